@@ -1,0 +1,435 @@
+"""Typed, frozen configuration for every part of cogexplore.
+
+Each section is a frozen dataclass whose fields are documented where they are
+declared and validated in ``__post_init__``; a bad value raises
+:class:`ConfigError` naming the section, the field and what is allowed.
+A *preset* is a TOML file (``shared/presets/<name>.toml`` or any path) with one
+table per section; fields left out keep the defaults below, which are the
+paper's values wherever the paper gives one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Mapping, get_type_hints
+
+PRESET_DIR = Path(__file__).with_name("presets")
+
+
+class ConfigError(ValueError):
+    """A configuration value is missing, of the wrong type or out of range."""
+
+
+def _check(cond: bool, section: str, name: str, value: Any, allowed: str) -> None:
+    if not cond:
+        raise ConfigError(f"[{section}] {name} = {value!r} is invalid: {allowed}")
+
+
+def _finite(x: Any) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+
+
+# ---------------------------------------------------------------------------
+# World, robot, sensor, environment
+# ---------------------------------------------------------------------------
+
+SPEED_TABLES: dict[str, tuple[tuple[float, ...], float]] = {
+    # name: (angular velocities in rad/s for left, half-left, straight, half-right, right;
+    #        linear velocity in m/s) -- the paper's Table "Speeds of different moving commands".
+    "train": ((1.4, 0.7, 0.0, -0.7, -1.4), 0.32),
+    "test": ((1.2, 0.6, 0.0, -0.6, -1.2), 0.25),
+}
+ACTION_NAMES: tuple[str, ...] = ("left", "half-left", "straight", "half-right", "right")
+NUM_ACTIONS = len(ACTION_NAMES)
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Kinect-like depth camera."""
+
+    width: int = 160
+    """Image width in pixels (Kinect depth downsampled as in the paper: 160)."""
+    height: int = 120
+    """Image height in pixels (120)."""
+    hfov_deg: float = 57.0
+    """Horizontal field of view in degrees (Kinect: 57)."""
+    vfov_deg: float = 43.0
+    """Vertical field of view in degrees (Kinect: 43)."""
+    max_range_m: float = 4.0
+    """Returns farther than this read 0, as the paper's Kinect images do."""
+    min_range_m: float = 0.0
+    """Returns nearer than this read 0 (a real Kinect is blind below ~0.5 m; 0 keeps the
+    paper's 0.55 m collision rule observable)."""
+    mount_height_m: float = 0.35
+    """Camera height above the floor. Must exceed tan(vfov/2) * l_s (~0.22 m) or the floor
+    itself would read nearer than the collision threshold."""
+    mount_forward_m: float = 0.0
+    """Camera offset ahead of the robot's centre along its heading (default: over the centre)."""
+    backend: str = "raycast"
+    """'raycast' (mujoco.mj_multiRay, no OpenGL, deterministic) or 'gl' (MuJoCo renderer;
+    needs MUJOCO_GL=egl or osmesa)."""
+    noise_std_m: float = 0.0
+    """Standard deviation of additive Gaussian depth noise in metres (0 = off)."""
+    dropout_prob: float = 0.0
+    """Probability that a valid pixel reads 0 (dropped return), per pixel and frame."""
+
+    def __post_init__(self) -> None:
+        s = "sensor"
+        for name in ("width", "height"):
+            v = getattr(self, name)
+            _check(isinstance(v, int) and not isinstance(v, bool) and 8 <= v <= 1024, s, name, v,
+                   "an integer in [8, 1024]")
+        for name in ("hfov_deg", "vfov_deg"):
+            v = getattr(self, name)
+            _check(_finite(v) and 1.0 <= v <= 170.0, s, name, v, "degrees in [1, 170]")
+        _check(_finite(self.max_range_m) and 0.1 <= self.max_range_m <= 100, s, "max_range_m",
+               self.max_range_m, "metres in [0.1, 100]")
+        _check(_finite(self.min_range_m) and 0 <= self.min_range_m < self.max_range_m, s,
+               "min_range_m", self.min_range_m, "metres in [0, max_range_m)")
+        _check(_finite(self.mount_height_m) and 0.01 <= self.mount_height_m <= 3.0, s,
+               "mount_height_m", self.mount_height_m, "metres in [0.01, 3]")
+        _check(_finite(self.mount_forward_m) and abs(self.mount_forward_m) <= 1.0, s,
+               "mount_forward_m", self.mount_forward_m, "metres in [-1, 1]")
+        _check(self.backend in ("raycast", "gl"), s, "backend", self.backend, "'raycast' or 'gl'")
+        _check(_finite(self.noise_std_m) and 0 <= self.noise_std_m <= 1.0, s, "noise_std_m",
+               self.noise_std_m, "metres in [0, 1]")
+        _check(_finite(self.dropout_prob) and 0 <= self.dropout_prob < 1.0, s, "dropout_prob",
+               self.dropout_prob, "a probability in [0, 1)")
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """The exploration task: world, robot motion, reward and episode end."""
+
+    world: str = "paper-indoor"
+    """A built-in world ('paper-indoor', 'corridor'), 'procedural:<seed>', or an MJCF path."""
+    speed_table: str = "train"
+    """'train' or 'test': the paper's two speed tables (see SPEED_TABLES)."""
+    control_period_s: float = 0.5
+    """Seconds each moving command is held before the next depth image. 0.5 s moves the robot
+    16 cm (train) / 12.5 cm (test) per step: a 200-step test episode can then cover ~25 m of
+    path, enough to cross the ~12 m reference world twice, while the 0.55 m threshold still
+    leaves more than two steps of travel between detection and contact."""
+    physics_timestep_s: float = 0.01
+    """MuJoCo integration step; the control period must be a whole multiple of it."""
+    robot_radius_m: float = 0.18
+    """Radius of the TurtleBot-like disc body."""
+    max_episode_steps: int = 500
+    """Step cap; reaching it truncates the episode (never a termination). The test protocol
+    uses 200."""
+    collision_distance_m: float = 0.55
+    """l_s: an episode ends in collision when the minimum valid depth falls below this."""
+    reward_move: float = 1.0
+    """r_move: reward for a collision-free move."""
+    reward_collision: float = -100.0
+    """r_ter: reward on collision (terminal)."""
+    start_index: int | None = None
+    """Start pose index; None draws one of the world's starts uniformly each episode."""
+
+    def __post_init__(self) -> None:
+        s = "env"
+        _check(isinstance(self.world, str) and self.world != "", s, "world", self.world,
+               "a world name or MJCF path")
+        _check(self.speed_table in SPEED_TABLES, s, "speed_table", self.speed_table,
+               f"one of {sorted(SPEED_TABLES)}")
+        _check(_finite(self.physics_timestep_s) and 1e-4 <= self.physics_timestep_s <= 0.05, s,
+               "physics_timestep_s", self.physics_timestep_s, "seconds in [1e-4, 0.05]")
+        _check(_finite(self.control_period_s) and 0.01 <= self.control_period_s <= 5.0, s,
+               "control_period_s", self.control_period_s, "seconds in [0.01, 5]")
+        if _finite(self.control_period_s) and _finite(self.physics_timestep_s):
+            ratio = self.control_period_s / self.physics_timestep_s
+            _check(abs(ratio - round(ratio)) < 1e-6, s, "control_period_s", self.control_period_s,
+                   f"a whole multiple of physics_timestep_s ({self.physics_timestep_s})")
+        _check(_finite(self.robot_radius_m) and 0.05 <= self.robot_radius_m <= 1.0, s,
+               "robot_radius_m", self.robot_radius_m, "metres in [0.05, 1]")
+        _check(isinstance(self.max_episode_steps, int) and self.max_episode_steps >= 1, s,
+               "max_episode_steps", self.max_episode_steps, "an integer >= 1")
+        _check(_finite(self.collision_distance_m) and 0 < self.collision_distance_m < 10, s,
+               "collision_distance_m", self.collision_distance_m, "metres in (0, 10)")
+        _check(_finite(self.reward_move), s, "reward_move", self.reward_move, "a finite number")
+        _check(_finite(self.reward_collision), s, "reward_collision", self.reward_collision,
+               "a finite number")
+        _check(self.start_index is None or (isinstance(self.start_index, int) and self.start_index >= 0),
+               s, "start_index", self.start_index, "None or an integer >= 0")
+
+    @property
+    def substeps(self) -> int:
+        """Physics steps per control period."""
+        return int(round(self.control_period_s / self.physics_timestep_s))
+
+
+# ---------------------------------------------------------------------------
+# Learning: network, replay, update rule, exploration, training loop
+# (owned by the learning core; see shared/model.py, replay.py, dqn.py, policy.py)
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """The Q-network (paper: 3 conv + 3 fc)."""
+
+    fc1: int = 512
+    """Units of fc1 (the paper's figure does not state them; 512 as in DQN)."""
+    fc2: int = 256
+    """Units of fc2."""
+    dropout: float = 0.5
+    """Dropout after fc1 and fc2 in training (off in evaluation), as in the paper."""
+    dueling: bool = False
+    """Dueling head (value + advantage) instead of a plain fc3. Off in the paper preset."""
+
+    def __post_init__(self) -> None:
+        s = "model"
+        for name in ("fc1", "fc2"):
+            v = getattr(self, name)
+            _check(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 8192, s, name, v,
+                   "an integer in [1, 8192]")
+        _check(_finite(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
+               "a probability in [0, 1)")
+        _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
+
+
+@dataclass(frozen=True)
+class ReplayConfig:
+    """Replay memory."""
+
+    capacity: int = 3000
+    """Transitions kept (paper: 3000)."""
+    prioritized: bool = False
+    """Proportional prioritised replay (Schaul et al.). Off in the paper preset."""
+    priority_alpha: float = 0.6
+    """Priority exponent alpha (prioritised replay only)."""
+    priority_beta: float = 0.4
+    """Importance-sampling exponent beta (prioritised replay only)."""
+
+    def __post_init__(self) -> None:
+        s = "replay"
+        _check(isinstance(self.capacity, int) and not isinstance(self.capacity, bool)
+               and 2 <= self.capacity <= 10_000_000, s, "capacity", self.capacity,
+               "an integer in [2, 10000000]")
+        _check(isinstance(self.prioritized, bool), s, "prioritized", self.prioritized, "true or false")
+        _check(_finite(self.priority_alpha) and 0 <= self.priority_alpha <= 1, s, "priority_alpha",
+               self.priority_alpha, "a number in [0, 1]")
+        _check(_finite(self.priority_beta) and 0 <= self.priority_beta <= 1, s, "priority_beta",
+               self.priority_beta, "a number in [0, 1]")
+
+
+@dataclass(frozen=True)
+class DQNConfig:
+    """The update rule."""
+
+    batch_size: int = 32
+    """Transitions per update (paper: 32)."""
+    gamma: float = 0.85
+    """Discount factor (paper: 0.85)."""
+    target_sync_every: int = 500
+    """Copy theta into theta^- every this many updates (C)."""
+    optimizer: str = "sgd"
+    """'sgd' (paper: momentum SGD) or 'adam'."""
+    lr: float = 1e-4
+    """Learning rate of the fully connected layers (see shared/dqn.py for the Caffe mapping)."""
+    conv_lr_scale: float = 0.1
+    """Learning rate of the conv layers as a fraction of lr (the paper trains them slower)."""
+    momentum: float = 0.99
+    """SGD momentum (paper: 0.99)."""
+    double_dqn: bool = False
+    """Double DQN targets (argmax by theta, value by theta^-)."""
+    n_step: int = 1
+    """n-step returns."""
+    loss: str = "mse"
+    """'mse' (paper) or 'huber'."""
+    grad_clip_norm: float = 0.0
+    """Clip the gradient's global norm to this value (0 = off)."""
+
+    def __post_init__(self) -> None:
+        s = "dqn"
+        _check(isinstance(self.batch_size, int) and 1 <= self.batch_size <= 4096, s, "batch_size",
+               self.batch_size, "an integer in [1, 4096]")
+        _check(_finite(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
+        _check(isinstance(self.target_sync_every, int) and self.target_sync_every >= 1, s,
+               "target_sync_every", self.target_sync_every, "an integer >= 1")
+        _check(self.optimizer in ("sgd", "adam"), s, "optimizer", self.optimizer, "'sgd' or 'adam'")
+        _check(_finite(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
+        _check(_finite(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
+               self.conv_lr_scale, "a number in [0, 10] (0 freezes the conv layers)")
+        _check(_finite(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
+               "a number in [0, 1)")
+        _check(isinstance(self.double_dqn, bool), s, "double_dqn", self.double_dqn, "true or false")
+        _check(isinstance(self.n_step, int) and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
+               "an integer in [1, 20]")
+        _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
+        _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
+               self.grad_clip_norm, "a number >= 0")
+
+
+@dataclass(frozen=True)
+class ExploreConfig:
+    """epsilon-greedy exploration."""
+
+    eps_start: float = 1.0
+    """epsilon at the first environment step."""
+    eps_end: float = 0.1
+    """epsilon after the decay."""
+    eps_decay_steps: int = 10_000
+    """Environment steps over which epsilon falls linearly from eps_start to eps_end."""
+    per_actor: bool = False
+    """Ape-X per-actor epsilon: actor i of N uses eps_base ** (1 + apex_alpha * i / (N - 1))."""
+    apex_base: float = 0.4
+    """Ape-X base epsilon."""
+    apex_alpha: float = 7.0
+    """Ape-X alpha."""
+
+    def __post_init__(self) -> None:
+        s = "explore"
+        for name in ("eps_start", "eps_end", "apex_base"):
+            v = getattr(self, name)
+            _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
+        _check(isinstance(self.eps_decay_steps, int) and self.eps_decay_steps >= 0, s,
+               "eps_decay_steps", self.eps_decay_steps, "an integer >= 0")
+        _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
+        _check(_finite(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
+               "a number >= 0")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The training loop (single-process trainer and learner service)."""
+
+    total_updates: int = 40_000
+    """Stop after this many gradient updates (paper's longest model: 40000)."""
+    warmup_transitions: int = 500
+    """Transitions collected before the first update."""
+    replay_ratio: float = 1.0
+    """Updates per inserted transition (the paper's Algorithm 1: 1)."""
+    checkpoint_every: int = 1000
+    """Updates between checkpoints."""
+    log_every: int = 50
+    """Updates between log rows."""
+    seed: int = 0
+    """Seed of every random generator in the run."""
+    device: str = "auto"
+    """'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:<n>'."""
+
+    def __post_init__(self) -> None:
+        s = "train"
+        for name in ("total_updates", "warmup_transitions", "checkpoint_every", "log_every", "seed"):
+            v = getattr(self, name)
+            _check(isinstance(v, int) and not isinstance(v, bool) and v >= 0, s, name, v,
+                   "an integer >= 0")
+        _check(self.checkpoint_every >= 1 and self.log_every >= 1, s, "checkpoint_every/log_every",
+               (self.checkpoint_every, self.log_every), "integers >= 1")
+        _check(_finite(self.replay_ratio) and 0 < self.replay_ratio <= 64, s, "replay_ratio",
+               self.replay_ratio, "a number in (0, 64]")
+        _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda")
+               or self.device.startswith("cuda:")), s, "device", self.device,
+               "'auto', 'cpu', 'cuda' or 'cuda:<n>'")
+
+
+# ---------------------------------------------------------------------------
+# The whole run
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything a run needs; one TOML table per section."""
+
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    env: EnvConfig = field(default_factory=EnvConfig)
+    model: ModelConfig = field(default_factory=ModelConfig)
+    replay: ReplayConfig = field(default_factory=ReplayConfig)
+    dqn: DQNConfig = field(default_factory=DQNConfig)
+    explore: ExploreConfig = field(default_factory=ExploreConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        return dataclasses.asdict(self)
+
+    def with_overrides(self, overrides: Mapping[str, Any]) -> "RunConfig":
+        """Apply ``{"section.field": value}`` overrides (e.g. from ``--set dqn.lr=1e-3``)."""
+        nested: dict[str, dict[str, Any]] = {}
+        for key, value in overrides.items():
+            section, _, name = key.partition(".")
+            if not name:
+                raise ConfigError(f"override {key!r} must look like 'section.field'")
+            nested.setdefault(section, {})[name] = value
+        return from_dict(nested, base=self)
+
+
+_SECTIONS: dict[str, type] = {f.name: f.default_factory().__class__ for f in fields(RunConfig)}  # type: ignore[misc]
+
+
+def _section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: str) -> Any:
+    hints = get_type_hints(cls)
+    known = {f.name for f in fields(cls)}
+    unknown = sorted(set(data) - known)
+    if unknown:
+        raise ConfigError(f"[{section}] unknown field(s) {unknown}; known: {sorted(known)}")
+    values = {}
+    for name, value in data.items():
+        hint = hints[name]
+        # TOML has no None and no int/float distinction the user cares about.
+        if hint in (float, "float") and isinstance(value, int) and not isinstance(value, bool):
+            value = float(value)
+        if value == "none" and "None" in str(hint):
+            value = None
+        values[name] = value
+    try:
+        return replace(base, **values)
+    except TypeError as exc:  # pragma: no cover - replace() only fails on unknown names
+        raise ConfigError(f"[{section}] {exc}") from None
+
+
+def from_dict(data: Mapping[str, Any], base: RunConfig | None = None) -> RunConfig:
+    """Build a RunConfig from nested mappings, validating every section."""
+    base = base or RunConfig()
+    if not isinstance(data, Mapping):
+        raise ConfigError(f"a config must be a table of sections, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(_SECTIONS))
+    if unknown:
+        raise ConfigError(f"unknown section(s) {unknown}; known: {sorted(_SECTIONS)}")
+    sections = {}
+    for name in _SECTIONS:
+        part = data.get(name, {})
+        if not isinstance(part, Mapping):
+            raise ConfigError(f"[{name}] must be a table, got {type(part).__name__}")
+        sections[name] = _section_from_dict(_SECTIONS[name], part, getattr(base, name), name)
+    return RunConfig(**sections)
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
+
+
+def load_preset(name_or_path: str | Path) -> RunConfig:
+    """Load a preset by name (``paper``, ``fast``, ...) or from a TOML file path."""
+    path = Path(name_or_path)
+    if not path.suffix:
+        path = PRESET_DIR / f"{name_or_path}.toml"
+        if not path.exists():
+            raise ConfigError(f"unknown preset {str(name_or_path)!r}; known: {preset_names()}")
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"preset file {path} does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"preset file {path} is not valid TOML: {exc}") from None
+    try:
+        return from_dict(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def parse_override(text: str) -> tuple[str, Any]:
+    """Parse ``section.field=value`` with a TOML value (bare words are strings)."""
+    key, sep, raw = text.partition("=")
+    if not sep:
+        raise ConfigError(f"override {text!r} must look like section.field=value")
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw
+    return key.strip(), value

@@ -1,0 +1,138 @@
+"""The TurtleBot-like robot: a planar disc on slide-x, slide-y and hinge-yaw joints,
+driven by velocity actuators so that its contacts with walls register (mocap bodies
+would pass through them).
+
+``build_model`` adds the robot to a world's static scene and compiles it; ``Robot``
+wraps the compiled model with pose access, unicycle commands and contact queries.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import mujoco
+import numpy as np
+
+from shared.config import EnvConfig, SensorConfig
+
+ROBOT_BODY = "robot"
+ROBOT_GEOM = "robot_base"
+CAMERA_NAME = "depth_camera"
+FLOOR_GEOM = "floor"
+ROBOT_HEIGHT_M = 0.30  # TurtleBot 2 base + plates; the camera sits above it
+# Velocity-servo gain (N*s/m and N*m*s/rad) and mass: stiff enough that the disc reaches the
+# commanded velocity within a couple of physics steps, so displacement per control period
+# matches v*T to a few millimetres.
+_KV_LINEAR = 3000.0
+_KV_ANGULAR = 300.0
+_MASS_KG = 6.0
+
+
+def add_robot(spec: mujoco.MjSpec, env: EnvConfig, sensor: SensorConfig) -> None:
+    """Add the robot body, joints, actuators and camera site to ``spec`` (in place)."""
+    body = spec.worldbody.add_body(name=ROBOT_BODY, pos=[0.0, 0.0, 0.0])
+    body.add_joint(name="robot_x", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1, 0, 0], damping=0.0)
+    body.add_joint(name="robot_y", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 1, 0], damping=0.0)
+    body.add_joint(name="robot_yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=0.0)
+    r = env.robot_radius_m
+    body.add_geom(
+        name=ROBOT_GEOM,
+        type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+        size=[r, ROBOT_HEIGHT_M / 2, 0.0],
+        pos=[0.0, 0.0, ROBOT_HEIGHT_M / 2 + 0.01],  # 1 cm clearance: no floor contact
+        mass=_MASS_KG,
+        rgba=[0.2, 0.2, 0.25, 1.0],
+        contype=1,
+        conaffinity=1,
+        group=3,
+    )
+    # The camera looks along the body's +x axis (the heading). MuJoCo cameras look along
+    # their local -z with +y up, hence the rotation (xyaxes).
+    body.add_camera(
+        name=CAMERA_NAME,
+        pos=[sensor.mount_forward_m, 0.0, sensor.mount_height_m],
+        xyaxes=[0, -1, 0, 0, 0, 1],
+        fovy=sensor.vfov_deg,
+    )
+    for joint, kv in (("robot_x", _KV_LINEAR), ("robot_y", _KV_LINEAR), ("robot_yaw", _KV_ANGULAR)):
+        act = spec.add_actuator(name=f"vel_{joint}", target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act.set_to_velocity(kv=kv)
+        act.ctrllimited = False
+        act.forcelimited = False
+
+
+def build_model(world_mjcf: str, env: EnvConfig, sensor: SensorConfig) -> mujoco.MjModel:
+    """Compile a world's static scene with the robot added."""
+    spec = mujoco.MjSpec.from_string(world_mjcf)
+    spec.option.timestep = env.physics_timestep_s
+    spec.option.gravity = [0.0, 0.0, 0.0]  # planar robot: no need to carry its weight
+    # Stiff velocity servos on a light disc are unstable under explicit Euler; the implicit
+    # integrator treats actuator damping implicitly and stays stable at any gain.
+    spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    add_robot(spec, env, sensor)
+    return spec.compile()
+
+
+@dataclass
+class Robot:
+    """Pose access, unicycle control and contact queries on a compiled model."""
+
+    model: mujoco.MjModel
+    data: mujoco.MjData
+
+    def __post_init__(self) -> None:
+        m = self.model
+        self.body_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, ROBOT_BODY)
+        self.geom_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, ROBOT_GEOM)
+        self.floor_id = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM)
+        self._qadr = np.array([m.jnt_qposadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)]
+                               for j in ("robot_x", "robot_y", "robot_yaw")])
+        self._dadr = np.array([m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, j)]
+                               for j in ("robot_x", "robot_y", "robot_yaw")])
+        self._act = np.array([mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_ACTUATOR, f"vel_{j}")
+                              for j in ("robot_x", "robot_y", "robot_yaw")])
+
+    def set_pose(self, x: float, y: float, yaw: float) -> None:
+        """Teleport the robot (zero velocity) and update kinematics."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self._qadr] = (x, y, yaw)
+        mujoco.mj_forward(self.model, self.data)
+
+    def pose(self) -> tuple[float, float, float]:
+        """(x, y, yaw) with yaw wrapped to (-pi, pi]."""
+        x, y, yaw = self.data.qpos[self._qadr]
+        return float(x), float(y), float(math.atan2(math.sin(yaw), math.cos(yaw)))
+
+    def drive(self, linear_mps: float, angular_rps: float, substeps: int) -> bool:
+        """Hold a unicycle command for ``substeps`` physics steps.
+
+        The world-frame velocity targets follow the heading every step, so the disc
+        moves along the arc a real differential drive would. Returns True if the robot
+        body touched an obstacle at any step.
+        """
+        m, d = self.model, self.data
+        qadr, act = self._qadr, self._act
+        touched = False
+        for _ in range(substeps):
+            yaw = d.qpos[qadr[2]]
+            d.ctrl[act[0]] = linear_mps * math.cos(yaw)
+            d.ctrl[act[1]] = linear_mps * math.sin(yaw)
+            d.ctrl[act[2]] = angular_rps
+            mujoco.mj_step(m, d)
+            if not touched and d.ncon:
+                touched = self.touching_obstacle()
+        mujoco.mj_forward(m, d)  # kinematics of the final state, for the camera
+        return touched
+
+    def touching_obstacle(self) -> bool:
+        """True if the robot's body is in contact with any geom but the floor."""
+        d = self.data
+        for i in range(d.ncon):
+            c = d.contact[i]
+            g1, g2 = c.geom1, c.geom2
+            if self.geom_id in (g1, g2):
+                other = g2 if g1 == self.geom_id else g1
+                if other != self.floor_id and c.dist <= 0.0:
+                    return True
+        return False
