@@ -49,11 +49,18 @@ def add_robot(spec: mujoco.MjSpec, env: EnvConfig, sensor: SensorConfig) -> None
     )
     # The camera looks along the body's +x axis (the heading). MuJoCo cameras look along
     # their local -z with +y up, hence the rotation (xyaxes).
+    # Intrinsics (not fovy) so that the GL renderer sees the same 57 x 43 degree pinhole
+    # with non-square pixels as the ray-cast camera; sensor_size only sets the length unit.
+    fx = (sensor.width / 2) / math.tan(math.radians(sensor.hfov_deg) / 2)
+    fy = (sensor.height / 2) / math.tan(math.radians(sensor.vfov_deg) / 2)
     body.add_camera(
         name=CAMERA_NAME,
         pos=[sensor.mount_forward_m, 0.0, sensor.mount_height_m],
         xyaxes=[0, -1, 0, 0, 0, 1],
-        fovy=sensor.vfov_deg,
+        resolution=[sensor.width, sensor.height],
+        sensor_size=[sensor.width * 1e-5, sensor.height * 1e-5],
+        focal_pixel=[fx, fy],
+        principal_pixel=[0.0, 0.0],
     )
     for joint, kv in (("robot_x", _KV_LINEAR), ("robot_y", _KV_LINEAR), ("robot_yaw", _KV_ANGULAR)):
         act = spec.add_actuator(name=f"vel_{joint}", target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)

@@ -1,0 +1,139 @@
+"""The Gymnasium environment: motion, reward, episode end, determinism."""
+
+import math
+
+import gymnasium as gym
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env
+
+import shared.env  # noqa: F401  (registers cogexplore/Explore-v0)
+from shared.config import EnvConfig, SPEED_TABLES
+from shared.env import ENV_ID, ExploreEnv
+from shared.world import SceneBuilder, StartPose
+
+
+def _corridor_world(face_distances: list[float]):
+    """Starts at the origin-ish facing +x towards a wall; one start per requested distance
+    from the camera to the wall's face."""
+    b = SceneBuilder("probe", (-2.0, -2.0, 8.0, 2.0 + 3 * len(face_distances)))
+    starts = []
+    for i, dist in enumerate(face_distances):
+        y = 3.0 * i
+        b.wall(dist + 0.05, y - 1.0, dist + 0.05, y + 1.0, height=2.0)
+        starts.append(StartPose(0.0, y, 0.0, f"wall-{dist}"))
+    return b.build("probe", starts)
+
+
+def test_check_env_passes():
+    env = ExploreEnv(world="box-room")
+    check_env(env, skip_render_check=True)
+    env.close()
+
+
+def test_registered_with_gymnasium():
+    env = gym.make(ENV_ID, world="box-room", speed_table="test")
+    obs, info = env.reset(seed=0)
+    assert obs.shape == (120, 160) and obs.dtype == np.float32
+    assert set(info) >= {"pose", "start_index", "collision_cause", "distance_from_start_m",
+                         "path_length_m", "min_depth_m", "step"}
+    env.close()
+
+
+@pytest.mark.parametrize("table", ["train", "test"])
+def test_straight_and_turn_speeds(table):
+    omegas, v = SPEED_TABLES[table]
+    env = ExploreEnv(world=_corridor_world([6.0]), speed_table=table, start_index=0)
+    period = env.env_config.control_period_s
+    env.reset(seed=0)
+    _, reward, term, _, info = env.step(2)  # straight
+    assert reward == 1.0 and not term
+    assert abs(info["pose"][0] - v * period) < 0.01 and abs(info["pose"][1]) < 1e-6
+    env.reset(seed=0)
+    _, _, _, _, info = env.step(0)  # left: arc of radius v/omega
+    omega = omegas[0]
+    assert abs(info["pose"][2] - omega * period) < 0.01
+    radius = v / omega
+    assert abs(info["pose"][0] - radius * math.sin(omega * period)) < 0.01
+    assert abs(info["pose"][1] - radius * (1 - math.cos(omega * period))) < 0.01
+
+
+def test_collision_rule_fires_below_055_m():
+    # train speed moves 0.16 m per step: from 0.70 m the next image reads 0.54 m (collision),
+    # from 0.75 m it reads 0.59 m (no collision).
+    env = ExploreEnv(world=_corridor_world([0.70, 0.75]), speed_table="train")
+    obs, info = env.reset(options={"start_index": 0})
+    assert info["min_depth_m"] == pytest.approx(0.70, abs=0.01)
+    _, reward, term, trunc, info = env.step(2)
+    assert term and not trunc and reward == -100.0
+    assert info["collision_cause"] == "depth" and info["min_depth_m"] < 0.55
+    env.reset(options={"start_index": 1})
+    _, reward, term, _, info = env.step(2)
+    assert not term and reward == 1.0 and info["collision_cause"] is None
+    assert 0.55 < info["min_depth_m"] < 0.6
+
+
+def test_body_contact_is_a_collision_even_when_unseen():
+    # A wall beside the robot is outside the 57 degree field of view; turning into it
+    # while moving makes the body touch it.
+    b = SceneBuilder("side", (-2.0, -1.0, 6.0, 1.0))
+    b.wall(-2.0, -0.2, 6.0, -0.2, height=2.0)  # face at y = -0.15, robot radius 0.18
+    world = b.build("side", [StartPose(0.0, 0.06, 0.0)])
+    env = ExploreEnv(world=world, collision_distance_m=0.01)
+    env.reset(seed=0)
+    causes = []
+    for _ in range(3):
+        _, _, term, _, info = env.step(4)  # right turn, towards the wall
+        causes.append(info["collision_cause"])
+        if term:
+            break
+    assert "contact" in causes
+
+
+def test_step_cap_truncates_not_terminates():
+    env = ExploreEnv(world=_corridor_world([6.0]), max_episode_steps=3, start_index=0)
+    env.reset(seed=0)
+    flags = [env.step(0)[2:4] for _ in range(3)]  # turning in place never collides here
+    assert flags[:2] == [(False, False), (False, False)]
+    assert flags[2] == (False, True)
+
+
+def test_same_seed_same_episode():
+    def rollout(seed):
+        env = ExploreEnv(world="box-room", max_episode_steps=30)
+        obs, _ = env.reset(seed=seed)
+        rng = np.random.default_rng(seed)
+        frames, poses = [obs], []
+        for _ in range(30):
+            obs, _, term, trunc, info = env.step(int(rng.integers(5)))
+            frames.append(obs)
+            poses.append(info["pose"])
+            if term or trunc:
+                break
+        return np.stack(frames), poses
+
+    a, pa = rollout(7)
+    b, pb = rollout(7)
+    np.testing.assert_array_equal(a, b)
+    assert pa == pb
+
+
+def test_bad_action_and_start_are_clear_errors():
+    env = ExploreEnv(world="box-room")
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match="action"):
+        env.step(7)
+    with pytest.raises(ValueError, match="start_index"):
+        env.reset(options={"start_index": 99})
+    with pytest.raises(ValueError, match="start_index"):
+        ExploreEnv(world="box-room", start_index=99)
+
+
+def test_info_tracks_distance_and_path_length():
+    env = ExploreEnv(world=_corridor_world([6.0]), start_index=0, speed_table="test")
+    env.reset(seed=0)
+    for _ in range(4):
+        _, _, _, _, info = env.step(2)
+    assert info["distance_from_start_m"] == pytest.approx(0.5, abs=0.03)
+    assert info["path_length_m"] == pytest.approx(info["distance_from_start_m"], abs=1e-6)
+    assert EnvConfig().control_period_s == 0.5
