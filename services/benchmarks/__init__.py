@@ -1,0 +1,1 @@
+"""Benchmarks run by ``cogexplore bench``; each module has ``run(...) -> dict``."""

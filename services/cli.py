@@ -1,0 +1,208 @@
+"""``cogexplore``: the one command-line entry to every service and tool.
+
+Each subcommand imports what it needs only when it runs, so ``--help`` is instant and a
+service never pays for another's dependencies.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: no telemetry attempts
+
+
+def _print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, default=float))
+
+
+# -- worlds ------------------------------------------------------------------------------
+
+def _worlds_list(args: argparse.Namespace) -> int:
+    from shared.world import BUILTIN_WORLDS, world_summary
+
+    names = list(BUILTIN_WORLDS) + [f"procedural:{s}" for s in args.procedural]
+    rows = [world_summary(name) for name in names]
+    if args.json:
+        _print_json(rows)
+    else:
+        for row in rows:
+            w, h = row["size_m"]
+            print(f"{row['name']:<18} {w:5.1f} x {h:4.1f} m  {row['num_starts']:2d} starts  "
+                  f"{row['free_area_m2']:6.1f} m2 free")
+    return 0
+
+
+def _worlds_show(args: argparse.Namespace) -> int:
+    from shared.maps import occupancy_grid, render_map_png
+    from shared.world import load_world
+
+    world = load_world(args.world)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    render_map_png(world, occupancy_grid(world), out, title=world.name)
+    print(out)
+    return 0
+
+
+# -- model -------------------------------------------------------------------------------
+
+def _model_summary(args: argparse.Namespace) -> int:
+    from shared.config import load_preset
+    from shared.model import summary
+
+    cfg = load_preset(args.preset)
+    rows = summary(cfg.model, cfg.sensor)
+    if args.json:
+        _print_json(rows)
+    else:
+        for row in rows if isinstance(rows, list) else rows.get("layers", []):
+            print(row)
+    return 0
+
+
+# -- bench -------------------------------------------------------------------------------
+
+def _bench_env(args: argparse.Namespace) -> int:
+    from services.benchmarks.env import run
+
+    result = run(world=args.world, steps=args.steps, backend=args.backend,
+                 allow_columns=not args.per_pixel, pin_cpu=None if args.no_pin else 0)
+    _print_json(result) if args.json else print(result)
+    return 0
+
+
+def _bench_learner(args: argparse.Namespace) -> int:
+    from services.benchmarks.learner import run
+
+    result = run(device=args.device)
+    _print_json(result) if args.json else print(result)
+    return 0
+
+
+def _bench_transport(args: argparse.Namespace) -> int:
+    from services.benchmarks.transport import run
+
+    result = run(seconds=args.seconds)
+    _print_json(result) if args.json else print(result)
+    return 0
+
+
+# -- demo (make run, until the full training job lands) ----------------------------------
+
+def _demo(args: argparse.Namespace) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from shared.env import ExploreEnv
+    from shared.maps import CoverageTracker, occupancy_grid, render_map_png
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    env = ExploreEnv(world=args.world, speed_table="test", max_episode_steps=args.max_steps)
+    grid = occupancy_grid(env.world)
+    rng = np.random.default_rng(args.seed)
+    trajectories, summary = [], []
+    for start_index in tqdm(range(len(env.world.starts)), desc="random policy, one episode per start"):
+        obs, info = env.reset(seed=args.seed + start_index, options={"start_index": start_index})
+        coverage = CoverageTracker(grid)
+        coverage.observe(*info["pose"], obs, env.sensor_config)
+        xy = [info["pose"][:2]]
+        while True:
+            obs, _, term, trunc, info = env.step(int(rng.integers(5)))
+            xy.append(info["pose"][:2])
+            coverage.observe(*info["pose"], obs, env.sensor_config)
+            if term or trunc:
+                break
+        trajectories.append(np.array(xy))
+        summary.append({"start_index": start_index, "steps": info["step"],
+                        "collision_cause": info["collision_cause"],
+                        "distance_m": round(info["distance_from_start_m"], 3),
+                        "coverage_m2": round(coverage.seen_area_m2, 2)})
+    png = out / f"{env.world.name}-random.png"
+    render_map_png(env.world, grid, png, trajectories=trajectories,
+                   title=f"{env.world.name}: random policy, one episode per start")
+    (out / "random.json").write_text(json.dumps(summary, indent=2))
+    mean_steps = sum(r["steps"] for r in summary) / len(summary)
+    print(f"mean moving steps {mean_steps:.1f}; map with trajectories: {png}")
+    return 0
+
+
+# -- parser -------------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cogexplore",
+        description="Distributed deep RL for depth-only robot exploration (after Tai & Liu, 2016).",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    def add(name: str, help_: str, handler: Callable[[argparse.Namespace], int] | None = None,
+            parent: Any = sub) -> argparse.ArgumentParser:
+        p = parent.add_parser(name, help=help_, description=help_)
+        if handler is not None:
+            p.set_defaults(handler=handler)
+        return p
+
+    worlds = add("worlds", "list and draw the worlds")
+    wsub = worlds.add_subparsers(dest="worlds_command", metavar="ACTION", required=True)
+    p = add("list", "list built-in worlds (name, size, starts)", _worlds_list, wsub)
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--procedural", type=int, nargs="*", default=[0],
+                   help="also list these procedural seeds (default: 0)")
+    p = add("show", "draw a top-down map with start poses and headings", _worlds_show, wsub)
+    p.add_argument("world", help="built-in name, procedural:<seed> or an MJCF path")
+    p.add_argument("--out", default="map.png", help="PNG path (default: map.png)")
+
+    model = add("model", "inspect the Q-network")
+    msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
+    p = add("summary", "each layer's output shape and parameter count", _model_summary, msub)
+    p.add_argument("--preset", default="paper", help="preset name or TOML path (default: paper)")
+    p.add_argument("--json", action="store_true", help="print JSON")
+
+    bench = add("bench", "benchmarks (print JSON)")
+    bsub = bench.add_subparsers(dest="bench_command", metavar="TARGET", required=True)
+    p = add("env", "environment steps/s and depth-frame time on one core", _bench_env, bsub)
+    p.add_argument("--world", default="paper-indoor")
+    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--backend", choices=["raycast", "gl"], default="raycast")
+    p.add_argument("--per-pixel", action="store_true",
+                   help="cast every pixel's ray (disable the exact column fast path)")
+    p.add_argument("--no-pin", action="store_true", help="do not pin the process to CPU 0")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p = add("learner", "DQN update time, forward time and FLOP utilisation", _bench_learner, bsub)
+    p.add_argument("--device", default="auto")
+    p.add_argument("--json", action="store_true", help="print JSON")
+    p = add("transport", "transitions/s through a loopback Zenoh router", _bench_transport, bsub)
+    p.add_argument("--seconds", type=float, default=5.0)
+    p.add_argument("--json", action="store_true", help="print JSON")
+
+    p = add("demo", "random-policy rollouts from every start, drawn on the map", _demo)
+    p.add_argument("--world", default="paper-indoor")
+    p.add_argument("--out", default="runs/demo")
+    p.add_argument("--max-steps", type=int, default=200)
+    p.add_argument("--seed", type=int, default=0)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from shared.config import ConfigError
+    from shared.world import WorldError
+
+    try:
+        return int(args.handler(args) or 0)
+    except (ConfigError, WorldError) as exc:
+        print(f"cogexplore: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,7 @@
+"""``python -m services.router``: see :mod:`services.router`."""
+
+import sys
+
+from services.router import main
+
+sys.exit(main())

@@ -1,0 +1,248 @@
+"""Zenoh plumbing on loopback: a real router, real client sessions, no mocks."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zenoh
+
+from services.benchmarks import transport as bench
+from services.router import READY_LINE, main as router_main
+from shared.keys import RunKeys
+from shared.messages import (GARBAGE, RejectCounter, TransitionBatch, WeightsMessage,
+                             architecture_fingerprint)
+from shared.transport import (DEFAULT_CONNECT, LivelinessWatch, TransportConfigError,
+                              TransportError, ZenohSettings, declare_alive,
+                              declare_reliable_publisher, free_tcp_port, open_router,
+                              open_session, put_reliable, query_latest, serve_latest,
+                              subscribe_messages)
+
+REPO = Path(__file__).resolve().parents[1]
+KEYS = RunKeys("test-transport")
+
+
+@pytest.fixture(scope="module")
+def router() -> Iterator[str]:
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        yield endpoint
+
+
+def client(endpoint: str) -> zenoh.Session:
+    return open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+
+
+def small_batch(episode: int) -> TransitionBatch:
+    rng = np.random.default_rng(episode)
+    frames = rng.integers(0, 4000, size=(3, 12, 16), dtype=np.uint16)
+    return TransitionBatch(actor_id="a0", episode=episode, first_step=0, start_index=1,
+                           depth_mm=frames[:2], next_depth_mm=frames[2],
+                           action=np.array([0, 4], np.uint8), reward=np.ones(2, np.float32),
+                           policy_version=np.array([1, 1], np.int64),
+                           pose=np.zeros((2, 3), np.float32), truncated=True)
+
+
+def weights(version: int) -> WeightsMessage:
+    tensors = {"w": np.full((4, 4), float(version), dtype=np.float32)}
+    return WeightsMessage(policy_version=version,
+                          architecture_fingerprint=architecture_fingerprint({"w": (4, 4)}),
+                          tensors=tensors)
+
+
+def wait_until(predicate, timeout_s: float = 5.0) -> bool:  # type: ignore[no-untyped-def]
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+# --- settings ---------------------------------------------------------------------------------
+
+def test_settings_from_env() -> None:
+    env = {"COGEXPLORE_ZENOH_MODE": "peer",
+           "COGEXPLORE_ZENOH_CONNECT": "tcp/10.0.0.5:7447, tcp/10.0.0.6:7447",
+           "COGEXPLORE_ZENOH_LISTEN": "tcp/0.0.0.0:7448",
+           "COGEXPLORE_ZENOH_CONFIG": ""}
+    settings = ZenohSettings.from_env(env)
+    assert settings == ZenohSettings(mode="peer", connect=("tcp/10.0.0.5:7447", "tcp/10.0.0.6:7447"),
+                                     listen=("tcp/0.0.0.0:7448",))
+    assert ZenohSettings.from_env({}) == ZenohSettings()
+    assert ZenohSettings.from_env({}, mode="router").mode == "router"
+    config = settings.to_config()
+    assert json.loads(config.get_json("mode")) == "peer"
+    assert json.loads(config.get_json("connect/endpoints")) == ["tcp/10.0.0.5:7447", "tcp/10.0.0.6:7447"]
+    assert json.loads(config.get_json("scouting/multicast/enabled")) is False
+    default = ZenohSettings().to_config()
+    assert json.loads(default.get_json("mode")) == "client"
+    assert json.loads(default.get_json("connect/endpoints")) == list(DEFAULT_CONNECT)
+
+
+def test_bad_settings_are_refused() -> None:
+    with pytest.raises(TransportConfigError, match="mode 'server'"):
+        ZenohSettings(mode="server")
+    with pytest.raises(TransportConfigError, match="'127.0.0.1:7447' is invalid"):
+        ZenohSettings.from_env({"COGEXPLORE_ZENOH_CONNECT": "127.0.0.1:7447"})
+    with pytest.raises(TransportConfigError, match="does not exist"):
+        ZenohSettings(config_file="/nonexistent/zenoh.json5").to_config()
+
+
+def test_config_file_is_the_base_and_fields_override_it(tmp_path: Path) -> None:
+    path = tmp_path / "zenoh.json5"
+    path.write_text('{ mode: "peer", // a JSON5 comment\n  listen: { endpoints: ["tcp/127.0.0.1:0"] } }')
+    from_file = ZenohSettings(config_file=str(path))
+    assert from_file.effective_mode == "peer"
+    assert json.loads(from_file.to_config().get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
+    overridden = ZenohSettings(config_file=str(path), mode="client", connect=("tcp/127.0.0.1:9",))
+    assert json.loads(overridden.to_config().get_json("mode")) == "client"
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ mode: ")
+    with pytest.raises(TransportConfigError, match="invalid"):
+        ZenohSettings(config_file=str(bad)).to_config()
+
+
+def test_client_without_router_fails_clearly_and_can_wait_for_one() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    settings = ZenohSettings(mode="client", connect=(endpoint,))
+    with pytest.raises(TransportError, match=endpoint.split("/")[1]):
+        open_session(settings)
+    # a router that appears while the client waits is found
+    routers: list[zenoh.Session] = []
+    starter = threading.Timer(0.3, lambda: routers.append(open_router([endpoint])))
+    starter.start()
+    try:
+        with open_session(settings, wait_s=10.0) as session:
+            assert not session.is_closed()
+    finally:
+        starter.join()
+        for r in routers:
+            r.close()
+
+
+# --- data through a router ---------------------------------------------------------------------
+
+def test_transition_batches_cross_the_router_with_block(router: str) -> None:
+    received: list[tuple[TransitionBatch, str]] = []
+    rejects = RejectCounter("transition batch")
+    with client(router) as learner, client(router) as actor:
+        subscribe_messages(learner, KEYS.all_transitions, TransitionBatch,
+                           lambda msg, key: received.append((msg, key)), rejects)
+        publisher = declare_reliable_publisher(actor, KEYS.transitions("a0"))
+        assert publisher.congestion_control == zenoh.CongestionControl.BLOCK
+        assert wait_until(lambda: publisher.matching_status.matching)
+        sent = [small_batch(e) for e in range(20)]
+        publisher.put(b"\xc1 not a message")  # rejected and counted; the stream carries on
+        for batch in sent:
+            publisher.put(batch.encode())
+        assert wait_until(lambda: len(received) == len(sent))
+    assert [msg.episode for msg, _ in received] == list(range(20))  # all, in order
+    first, key = received[0]
+    assert key == KEYS.transitions("a0")
+    assert np.array_equal(first.depth_mm, sent[0].depth_mm) and first.truncated
+    assert rejects.counts == {GARBAGE: 1}
+
+
+def test_get_on_the_weights_queryable_returns_the_latest(router: str) -> None:
+    latest: dict[str, bytes] = {}
+    with client(router) as learner, client(router) as actor:
+        queryable = serve_latest(learner, KEYS.weights_latest, lambda: latest.get("w"))
+        assert query_latest(actor, KEYS.weights_latest, timeout_s=1.0) is None  # nothing yet
+        latest["w"] = weights(1).encode()
+        latest["w"] = weights(2).encode()
+        payload = query_latest(actor, KEYS.weights_latest, timeout_s=5.0)
+        assert payload is not None
+        got = WeightsMessage.decode(payload)
+        assert got.policy_version == 2 and float(got.tensors["w"][0, 0]) == 2.0
+        # the weights stream is a separate key: a put there reaches stream subscribers only
+        stream: list[int] = []
+        subscribe_messages(actor, KEYS.weights, WeightsMessage,
+                           lambda msg, _key: stream.append(msg.policy_version), RejectCounter())
+        time.sleep(0.1)
+        put_reliable(learner, KEYS.weights, weights(3).encode())
+        assert wait_until(lambda: stream == [3])
+        queryable.undeclare()
+
+
+def test_liveliness_token_seen_and_its_loss_seen(router: str) -> None:
+    changes: list[tuple[str, bool]] = []
+    with client(router) as watcher_session:
+        with LivelinessWatch(watcher_session, KEYS.all_alive("actor"),
+                             lambda key, alive: changes.append((key, alive))) as watch:
+            key = KEYS.alive("actor", "a0")
+            actor = client(router)
+            token = declare_alive(actor, key)  # noqa: F841 - a dropped token is undeclared
+            assert watch.wait(lambda keys: key in keys, 5.0)
+            actor.close()  # the token dies with its session
+            assert watch.wait(lambda keys: key not in keys, 5.0)
+    assert changes == [(key, True), (key, False)]
+
+
+def test_liveliness_history_reports_tokens_declared_before_the_watch(router: str) -> None:
+    with client(router) as learner, client(router) as actor:
+        token = declare_alive(learner, KEYS.alive("learner", "l0"))
+        time.sleep(0.1)
+        with LivelinessWatch(actor, KEYS.all_alive("learner")) as watch:
+            assert watch.wait(lambda keys: KEYS.alive("learner", "l0") in keys, 5.0)
+            token.undeclare()
+            assert watch.wait(lambda keys: not keys, 5.0)
+
+
+# --- the router process ---------------------------------------------------------------------
+
+def test_router_help_exits_cleanly(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as info:
+        router_main(["--help"])
+    assert info.value.code == 0
+    assert "--listen" in capsys.readouterr().out
+
+
+def test_router_process_serves_clients_and_stops_on_sigterm() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    env = dict(os.environ, PYTHONPATH=str(REPO), RERUN_ANALYTICS="0")
+    proc = subprocess.Popen([sys.executable, "-m", "services.router", "--listen", endpoint,
+                             "--log-level", "WARNING"], cwd=REPO, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stdout.readline()  # type: ignore[union-attr]
+        assert READY_LINE in line, proc.stderr.read() if proc.poll() is not None else line  # type: ignore[union-attr]
+        got: list[bytes] = []
+        with client(endpoint) as a, client(endpoint) as b:
+            a.declare_subscriber(KEYS.weights, lambda s: got.append(s.payload.to_bytes()))
+            time.sleep(0.1)
+            put_reliable(b, KEYS.weights, b"ping")
+            assert wait_until(lambda: got == [b"ping"])
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=10) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        proc.stdout.close()  # type: ignore[union-attr]
+        proc.stderr.close()  # type: ignore[union-attr]
+
+
+def test_router_refuses_a_bad_endpoint(capsys: pytest.CaptureFixture[str]) -> None:
+    assert router_main(["--listen", "7447"]) == 2
+    assert "invalid" in capsys.readouterr().err
+
+
+# --- benchmark smoke test -------------------------------------------------------------------
+
+def test_transport_benchmark_runs_and_loses_nothing() -> None:
+    result = bench.run(seconds=0.3, batch_steps=4, height=24, width=32, processes=False)
+    assert result["bytes_per_transition"] > 24 * 32 * 2
+    assert result["codec"]["transitions_per_s"] > 0
+    loop = result["loopback"]
+    assert loop["batches_sent"] > 0 and loop["lost"] == 0 and loop["rejected"] == 0
+    assert loop["transitions_per_s"] > 0
