@@ -423,6 +423,27 @@ def load_preset(name_or_path: str | Path) -> RunConfig:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (int, float)):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    raise ConfigError(f"cannot write {value!r} to TOML")
+
+
+def to_toml(cfg: RunConfig) -> str:
+    """The whole config as TOML that ``load_preset`` reads back to an equal RunConfig
+    (None values are left out: they are the defaults)."""
+    lines: list[str] = []
+    for section, values in cfg.to_dict().items():
+        lines.append(f"[{section}]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in values.items() if v is not None]
+        lines.append("")
+    return "\n".join(lines)
+
+
 def parse_override(text: str) -> tuple[str, Any]:
     """Parse ``section.field=value`` with a TOML value (bare words are strings)."""
     key, sep, raw = text.partition("=")

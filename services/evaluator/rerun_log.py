@@ -1,0 +1,396 @@
+"""Rerun logging for evaluation and training: one entity layout, three timelines, one blueprint.
+
+Entity layout (``world`` is metric, z up). What a person reads numbers the start poses from 1
+as the paper and ``shared.maps.render_map_png`` do (start N is ``start_index`` N - 1 of the
+results JSON); episodes keep their 0-based index::
+
+    world/map                     static GridMap of the occupancy grid (light free, dark occupied)
+    world/map/extent              static outline of the world's extent
+    world/map/starts              static arrows: start poses, labelled 1..N
+    world/robot                   Transform3D (x, y, yaw) per step, with a static disc + heading arrow
+    world/trajectory/start_<N>/episode_<k>
+                                  LineStrips3D: the episode's path so far, re-logged each step
+    camera                        static Pinhole (the sensor's intrinsics, RDF)
+    camera/depth                  DepthImage, uint16 millimetres (meter = 1000)
+    camera/receptive              SegmentationImage: the top-10 % receptive-field mask (purple)
+    policy/q/<command>            Scalars, one series per command (left ... right)
+    policy/action                 Scalars: the chosen command's index
+    eval/episode/<metric>         Scalars per finished episode (steps, distance_m, ...)
+    eval/<metric>                 Scalars per evaluation of a policy version (mean_steps, ...)
+    train/<metric>                Scalars per learner update (loss, mean_q, epsilon, ...)
+    log/episodes                  TextLog: one line per finished episode
+
+Timelines: ``episode_step`` (step within the episode), ``episode`` (running episode count of
+this recording), ``update`` (learner update / policy version) and ``eval_frame`` (a step
+counter over the whole recording). ``eval_frame`` is extra: ``episode_step`` restarts each
+episode, so only a monotonic counter lets a person scrub through all episodes in order; the
+blueprint makes it the active timeline. ``train/*`` and ``eval/<metric>`` live on ``update``
+only: switch the timeline to ``update`` to see them plotted.
+
+Depth goes out as uint16 millimetres, the project's wire format: half the bytes of float32
+metres, and Rerun shows the same metres through ``meter=1000``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from shared.config import ACTION_NAMES, SensorConfig
+from shared.maps import OccupancyGrid
+from shared.world import World
+
+APPLICATION_ID = "cogexplore"
+TIMELINE_STEP = "episode_step"
+TIMELINE_EPISODE = "episode"
+TIMELINE_UPDATE = "update"
+TIMELINE_FRAME = "eval_frame"
+
+MAP = "world/map"
+STARTS = "world/map/starts"
+EXTENT = "world/map/extent"
+ROBOT = "world/robot"
+TRAJECTORY = "world/trajectory"
+CAMERA = "camera"
+DEPTH = "camera/depth"
+RECEPTIVE = "camera/receptive"
+Q_PREFIX = "policy/q"
+ACTION = "policy/action"
+EPISODE_LOG = "log/episodes"
+
+TRAJECTORY_Z_M = 0.02  # just above the map so the line is never hidden in it
+MM_PER_M = 1000.0
+_COMMAND_COLORS = [(230, 97, 1), (253, 184, 99), (90, 90, 90), (178, 171, 210), (94, 60, 153)]
+_METRIC_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
+
+
+class RerunLogError(ValueError):
+    """Bad input to the recorder: wrong shapes, unknown metric names, use after close."""
+
+
+def q_entity(action: int) -> str:
+    """Entity path of one command's Q-value series, e.g. ``policy/q/half-left``."""
+    return f"{Q_PREFIX}/{ACTION_NAMES[action]}"
+
+
+def trajectory_entity(start_index: int, episode: int) -> str:
+    """Entity path of one episode's path; starts are numbered from 1 as in the paper."""
+    return f"{TRAJECTORY}/start_{start_index + 1}/episode_{episode}"
+
+
+def default_blueprint(world: World | None = None) -> rrb.Blueprint:
+    """Map and camera on the left, Q-values, command and metrics on the right; the map is
+    seen from straight above its centre; ``eval_frame`` is the active timeline."""
+    eye = None
+    if world is not None:
+        xmin, ymin, xmax, ymax = world.extent
+        cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
+        height = 1.3 * max(xmax - xmin, ymax - ymin)
+        eye = rrb.EyeControls3D(position=(cx, cy, height), look_target=(cx, cy, 0.0), eye_up=(0.0, 1.0, 0.0))
+    return rrb.Blueprint(
+        rrb.Horizontal(
+            rrb.Vertical(
+                rrb.Spatial3DView(origin="world", name="Map, robot, trajectories", eye_controls=eye),
+                rrb.Spatial2DView(origin=CAMERA, name="Depth camera + receptive field"),
+                row_shares=[3, 2],
+            ),
+            rrb.Vertical(
+                rrb.TimeSeriesView(origin=Q_PREFIX, name="Q-values"),
+                rrb.TimeSeriesView(origin=ACTION, name="Chosen command (0 = left ... 4 = right)"),
+                rrb.Tabs(
+                    rrb.TimeSeriesView(origin="eval", name="Evaluation"),
+                    rrb.TimeSeriesView(origin="train", name="Training"),
+                    rrb.TextLogView(origin="log", name="Episodes"),
+                ),
+            ),
+            column_shares=[3, 2],
+        ),
+        rrb.TimePanel(timeline=TIMELINE_FRAME),
+        collapse_panels=False,
+    )
+
+
+class EvalRecorder:
+    """Logs evaluation episodes (and optionally training metrics) to a Rerun recording.
+
+    ``target`` is a path (an ``.rrd`` file is written), an ``rr.RecordingStream`` whose sinks
+    the caller has set, or None when only live sinks are wanted. Live sinks, alone or next to
+    the file (``set_sinks`` tees to all of them; the sinks are what ``connect_grpc`` and
+    ``serve_grpc`` set up): ``connect_url`` streams to a running viewer
+    (``rerun+http://host:9876/proxy``); ``serve=True`` hosts a gRPC server on ``serve_port``
+    that viewers connect to (its address is ``server_uri``), and ``serve_web`` also serves
+    the web viewer. Each recorder has its own ``RecordingStream``; nothing global is touched.
+    ``image_every`` logs every n-th depth image only (a full 12 x 10 x 200-step protocol is
+    24,000 images, ~0.9 GB of millimetres).
+    """
+
+    def __init__(self, target: str | Path | rr.RecordingStream | None, world: World, grid: OccupancyGrid | None,
+                 sensor_cfg: SensorConfig, *, connect_url: str | None = None,
+                 serve: bool = False, serve_port: int = 9876, serve_web: bool = False,
+                 recording_name: str | None = None, image_every: int = 1,
+                 robot_radius_m: float = 0.18, blueprint: rrb.Blueprint | None = None):
+        if not isinstance(image_every, int) or image_every < 1:
+            raise RerunLogError(f"image_every must be an integer >= 1, got {image_every!r}")
+        self.world = world
+        self.grid = grid
+        self.sensor_cfg = sensor_cfg
+        self.image_every = image_every
+        self.path: Path | None = None
+        self.server_uri: str | None = None
+        bp = blueprint if blueprint is not None else default_blueprint(world)
+        if isinstance(target, rr.RecordingStream):
+            if connect_url or serve or serve_web:
+                raise RerunLogError("pass either a RecordingStream (with its own sinks) or live options, not both")
+            self.rec = target
+            self._owns_stream = False
+            self.rec.send_blueprint(bp, make_active=False, make_default=True)
+        else:
+            self.rec = rr.RecordingStream(APPLICATION_ID)
+            self._owns_stream = True
+            sinks: list[Any] = []
+            if target is not None:
+                self.path = Path(target)
+                self.path.parent.mkdir(parents=True, exist_ok=True)
+                sinks.append(rr.FileSink(self.path))
+            if connect_url:
+                sinks.append(rr.GrpcSink(connect_url))
+            if serve or serve_web:
+                server = rr.GrpcServerSink(port=serve_port)
+                self.server_uri = server.uri
+                sinks.append(server)
+            if not sinks:
+                raise RerunLogError("nothing to log to: give a file path, connect_url or serve=True")
+            self.rec.set_sinks(*sinks, default_blueprint=bp)
+            if serve_web:
+                rr.serve_web_viewer(connect_to=self.server_uri, open_browser=False)
+        if recording_name:
+            self.rec.send_recording_name(recording_name)
+        self._closed = False
+        self._frame = 0
+        self._episode_count = 0
+        self._episode: tuple[int, int] | None = None
+        self._trajectory: list[tuple[float, float]] = []
+        self._step = 0
+        self._log_static(robot_radius_m)
+
+    # -- static scene --------------------------------------------------------------------
+
+    def _log_static(self, robot_radius_m: float) -> None:
+        rec = self.rec
+        rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        if self.grid is not None:
+            ny, nx = self.grid.shape
+            x0, y0 = self.grid.origin_xy
+            # Free light, occupied dark. Row 0 of OccupancyGrid.occupied is the lowest y, and
+            # GridMap puts the first row at ``translation`` (its lower-left corner), as a ROS
+            # OccupancyGrid does.
+            pixels = np.where(self.grid.occupied, 60, 235).astype(np.uint8)
+            rec.log(MAP, rr.GridMap(
+                data=pixels.tobytes(),
+                format=rr.components.ImageFormat(width=nx, height=ny, color_model="L", channel_datatype="U8"),
+                cell_size=self.grid.resolution_m, translation=[x0, y0, 0.0]), static=True)
+        xmin, ymin, xmax, ymax = self.world.extent
+        rec.log(EXTENT, rr.LineStrips3D([[(xmin, ymin, 0.01), (xmax, ymin, 0.01), (xmax, ymax, 0.01),
+                                           (xmin, ymax, 0.01), (xmin, ymin, 0.01)]],
+                                         colors=[(120, 120, 120)], radii=0.01), static=True)
+        starts = self.world.starts
+        if starts:
+            length = 0.4
+            rec.log(STARTS, rr.Arrows3D(
+                origins=[(s.x, s.y, 0.03) for s in starts],
+                vectors=[(length * math.cos(s.yaw), length * math.sin(s.yaw), 0.0) for s in starts],
+                labels=[str(i + 1) for i in range(len(starts))], colors=[(220, 30, 30)], radii=0.025),
+                static=True)
+        circle = [(robot_radius_m * math.cos(a), robot_radius_m * math.sin(a), 0.05)
+                  for a in np.linspace(0.0, 2 * math.pi, 33)]
+        rec.log(ROBOT, rr.LineStrips3D([circle], colors=[(30, 90, 200)], radii=0.015),
+                rr.Arrows3D(origins=[(0.0, 0.0, 0.05)], vectors=[(2 * robot_radius_m, 0.0, 0.0)],
+                            colors=[(30, 90, 200)], radii=0.02), static=True)
+        from shared.sensor import intrinsics
+
+        fx, fy, cx, cy = intrinsics(self.sensor_cfg)
+        rec.log(CAMERA, rr.Pinhole(focal_length=[fx, fy], principal_point=[cx, cy],
+                                   resolution=[self.sensor_cfg.width, self.sensor_cfg.height],
+                                   camera_xyz=rr.ViewCoordinates.RDF), static=True)
+        rec.log(RECEPTIVE, rr.AnnotationContext([(0, "", (0, 0, 0, 0)),
+                                                 (1, "top 10 % of pool3", (148, 0, 211, 140))]), static=True)
+        for a, name in enumerate(ACTION_NAMES):
+            rec.log(q_entity(a), rr.SeriesLines(names=name, colors=_COMMAND_COLORS[a]), static=True)
+        rec.log(ACTION, rr.SeriesPoints(names="command", markers="circle", marker_sizes=4.0), static=True)
+
+    # -- episodes ------------------------------------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise RerunLogError("the recorder is closed")
+
+    def _set_episode_time(self, step: int) -> None:
+        rec = self.rec
+        rec.reset_time()  # no timeline leaks from one kind of log call into another
+        rec.set_time(TIMELINE_EPISODE, sequence=self._episode_count)
+        rec.set_time(TIMELINE_STEP, sequence=step)
+        rec.set_time(TIMELINE_FRAME, sequence=self._frame)
+
+    def begin_episode(self, start_index: int, episode: int) -> None:
+        """Start logging an episode from start pose ``start_index`` (its ``episode``-th there)."""
+        self._check_open()
+        n = len(self.world.starts)
+        if not (isinstance(start_index, (int, np.integer)) and 0 <= start_index < max(n, 1)):
+            raise RerunLogError(f"start_index {start_index!r} out of range [0, {n})")
+        if not (isinstance(episode, (int, np.integer)) and episode >= 0):
+            raise RerunLogError(f"episode must be an integer >= 0, got {episode!r}")
+        if self._episode is not None:
+            self._episode_count += 1  # the previous episode was never ended
+        self._episode = (int(start_index), int(episode))
+        self._trajectory = []
+        self._step = 0
+
+    def log_step(self, step: int, pose: Sequence[float], depth_m: np.ndarray | None,
+                 q_values: Sequence[float] | np.ndarray | None, action: int | None) -> None:
+        """One decision: the pose it was taken at, the depth image the policy saw, its Q-values
+        and the chosen command. ``depth_m`` (H, W) float metres; None skips the image."""
+        self._check_open()
+        if self._episode is None:
+            raise RerunLogError("log_step before begin_episode")
+        if len(pose) != 3 or not all(math.isfinite(float(v)) for v in pose):
+            raise RerunLogError(f"pose must be three finite numbers (x, y, yaw), got {pose!r}")
+        x, y, yaw = (float(v) for v in pose)
+        self._step = int(step)
+        self._set_episode_time(self._step)
+        rec = self.rec
+        rec.log(ROBOT, rr.Transform3D(translation=[x, y, 0.0],
+                                      rotation_axis_angle=rr.RotationAxisAngle(axis=[0, 0, 1], radians=yaw)))
+        self._trajectory.append((x, y))
+        self._log_trajectory(self._trajectory)
+        if depth_m is not None and self._step % self.image_every == 0:
+            rec.log(DEPTH, self._depth_image(depth_m))
+        if q_values is not None:
+            q = np.asarray(q_values, dtype=np.float64).reshape(-1)
+            if q.shape != (len(ACTION_NAMES),):
+                raise RerunLogError(f"q_values must have {len(ACTION_NAMES)} entries, got {q.shape}")
+            for a in range(len(ACTION_NAMES)):
+                rec.log(q_entity(a), rr.Scalars(q[a]))
+        if action is not None:
+            if not (isinstance(action, (int, np.integer)) and 0 <= action < len(ACTION_NAMES)):
+                raise RerunLogError(f"action must be in 0..{len(ACTION_NAMES) - 1}, got {action!r}")
+            rec.log(ACTION, rr.Scalars(float(action)))
+        self._frame += 1
+
+    def _depth_image(self, depth_m: np.ndarray) -> rr.DepthImage:
+        depth = np.asarray(depth_m)
+        want = (self.sensor_cfg.height, self.sensor_cfg.width)
+        if depth.shape != want:
+            raise RerunLogError(f"depth_m must be {want} (the sensor's H, W), got {depth.shape}")
+        if depth.dtype != np.uint16:
+            depth = np.rint(np.clip(np.nan_to_num(depth, nan=0.0), 0.0, 65.535) * MM_PER_M).astype(np.uint16)
+        return rr.DepthImage(depth, meter=MM_PER_M,
+                             depth_range=(0.0, self.sensor_cfg.max_range_m * MM_PER_M))
+
+    def _log_trajectory(self, points: Sequence[tuple[float, float]]) -> None:
+        assert self._episode is not None
+        strip = np.array([(px, py, TRAJECTORY_Z_M) for px, py in points], dtype=np.float32)
+        color = _COMMAND_COLORS[self._episode[0] % len(_COMMAND_COLORS)]
+        self.rec.log(trajectory_entity(*self._episode), rr.LineStrips3D([strip], colors=[color], radii=0.02))
+
+    def log_receptive(self, mask: np.ndarray) -> None:
+        """The receptive-field mask (H, W) bool of the current step, drawn over the depth."""
+        self._check_open()
+        m = np.asarray(mask)
+        want = (self.sensor_cfg.height, self.sensor_cfg.width)
+        if m.shape != want:
+            raise RerunLogError(f"mask must be {want}, got {m.shape}")
+        self._set_episode_time(self._step)
+        self.rec.log(RECEPTIVE, rr.SegmentationImage(m.astype(np.uint8)))
+
+    def end_episode(self, summary: Any) -> None:
+        """Close the current episode with its result (an ``EpisodeResult`` or a mapping with
+        its fields): the final path is logged from ``trajectory_xy`` when it has one, and the
+        episode's metrics go to ``eval/episode/*`` and ``log/episodes``."""
+        self._check_open()
+        if self._episode is None:
+            raise RerunLogError("end_episode before begin_episode")
+        fields = asdict(summary) if is_dataclass(summary) else dict(summary)
+        steps = int(fields.get("steps", self._step))
+        self._set_episode_time(steps)
+        trajectory = fields.get("trajectory_xy")
+        if trajectory is not None and len(trajectory) > 0:
+            self._log_trajectory([(float(p[0]), float(p[1])) for p in trajectory])
+        rec = self.rec
+        for key in ("steps", "distance_m", "path_length_m", "coverage_m2", "coverage_fraction"):
+            if fields.get(key) is not None:
+                rec.log(f"eval/episode/{key}", rr.Scalars(float(fields[key])))
+        start, episode = self._episode
+        cause = fields.get("collision_cause")
+        ending = f"collision ({cause})" if cause else ("step cap" if fields.get("truncated") else "ended")
+        distance = fields.get("distance_m")
+        text = f"start {start + 1} episode {episode}: {steps} steps, {ending}" + (
+            f", {float(distance):.2f} m from start" if distance is not None else "")
+        rec.log(EPISODE_LOG, rr.TextLog(text, level="WARN" if cause else "INFO"))
+        self._episode = None
+        self._episode_count += 1
+        self._frame += 1
+
+    # -- learner and evaluation summaries -------------------------------------------------
+
+    def log_training(self, update: int, metrics: Mapping[str, float]) -> None:
+        """Learner metrics at ``update`` as ``train/<name>`` (loss, mean_q, epsilon,
+        updates_per_s, episode_length, ...); names are lower_snake_case, values finite."""
+        self._log_metrics("train", update, metrics)
+
+    def log_evaluation(self, update: int, summary: Mapping[str, Any]) -> None:
+        """An evaluation of the policy of ``update``: the numeric entries of ``summary`` (an
+        ``aggregate(...)`` result or its ``overall`` part) as ``eval/<name>``; collisions by
+        cause become ``eval/collisions_<cause>``."""
+        overall = summary.get("overall", summary)
+        flat: dict[str, float] = {}
+        for key, value in overall.items():
+            if isinstance(value, Mapping):
+                for sub, v in value.items():
+                    if isinstance(v, (int, float)) and not isinstance(v, bool):
+                        flat[f"{key}_{sub}"] = float(v)
+            elif isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+                flat[key] = float(value)
+        self._log_metrics("eval", update, flat)
+
+    def _log_metrics(self, prefix: str, update: int, metrics: Mapping[str, float]) -> None:
+        self._check_open()
+        if not (isinstance(update, (int, np.integer)) and update >= 0):
+            raise RerunLogError(f"update must be an integer >= 0, got {update!r}")
+        for name, value in metrics.items():
+            if not _METRIC_NAME.match(str(name)):
+                raise RerunLogError(f"metric name {name!r} must be lower_snake_case")
+            if not (isinstance(value, (int, float, np.floating, np.integer)) and not isinstance(value, bool)
+                    and math.isfinite(float(value))):
+                raise RerunLogError(f"metric {name!r} must be a finite number, got {value!r}")
+        self.rec.reset_time()
+        self.rec.set_time(TIMELINE_UPDATE, sequence=int(update))
+        for name, value in metrics.items():
+            self.rec.log(f"{prefix}/{name}", rr.Scalars(float(value)))
+
+    # -- lifetime ---------------------------------------------------------------------------
+
+    def close(self) -> None:
+        """Flush everything and close the sinks this recorder opened (the .rrd file is
+        complete afterwards); a stream passed in by the caller is flushed, not closed."""
+        if self._closed:
+            return
+        self._closed = True
+        self.rec.flush(timeout_sec=30.0)
+        if self._owns_stream:
+            self.rec.disconnect()
+
+    def __enter__(self) -> "EvalRecorder":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

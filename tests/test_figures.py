@@ -1,0 +1,170 @@
+"""Figures and tables: trajectory heatmaps, the loss curve, Table II."""
+
+from __future__ import annotations
+
+import json
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+from services.evaluator.figures import (
+    FigureError,
+    load_loss_log,
+    q_value_table_markdown,
+    save_heatmap_png,
+    save_heatmaps_side_by_side,
+    save_loss_curve_png,
+    smooth,
+    trajectory_heatmap,
+    trajectory_points,
+)
+from services.evaluator.results import EpisodeResult, EvalResults
+from shared.maps import occupancy_grid
+from shared.world import load_world
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def world():
+    return load_world("box-room")
+
+
+@pytest.fixture(scope="module")
+def grid(world):
+    return occupancy_grid(world)
+
+
+def episode(start: int, k: int, xy: list[tuple[float, float]]) -> EpisodeResult:
+    return EpisodeResult(start_index=start, episode=k, steps=len(xy) - 1, terminated=False, truncated=True,
+                         collision_cause=None, distance_m=0.0, path_length_m=0.0, coverage_m2=0.0,
+                         coverage_fraction=0.0, trajectory_xy=tuple(xy))
+
+
+def test_heatmap_counts_per_cell_normalised(grid) -> None:
+    # box-room grid: origin (-2, -2), 5 cm cells. Three points in one cell, one in another.
+    res = EvalResults((episode(0, 0, [(0.01, 0.01), (0.02, 0.03), (0.04, 0.04)]),
+                       episode(1, 0, [(1.01, -0.51), (5.0, 5.0)])))
+    assert trajectory_points(res).shape == (5, 2)
+    heat = trajectory_heatmap(grid, res, cell_m=None)
+    assert heat.shape == grid.shape
+    ix, iy = grid.world_to_cell(0.01, 0.01)
+    assert heat[iy, ix] == 1.0
+    jx, jy = grid.world_to_cell(1.01, -0.51)
+    assert heat[jy, jx] == pytest.approx(1 / 3)
+    assert np.count_nonzero(heat) == 2  # the point outside the grid is not counted
+    assert heat.min() == 0.0 and heat.max() == 1.0
+
+
+def test_heatmap_blocks_overlay_the_grid(grid) -> None:
+    # Two points in the same 25 cm block (5 x 5 cells anchored at the origin), one in another.
+    res = [episode(0, 0, [(-1.99, -1.99), (-1.80, -1.80)]), episode(0, 1, [(0.3, 0.3)])]
+    heat = trajectory_heatmap(grid, res, cell_m=0.25)
+    assert heat.shape == grid.shape
+    np.testing.assert_array_equal(heat[0:5, 0:5], 1.0)
+    assert heat[5, 5] == 0.0 and heat[0, 5] == 0.0
+    ix, iy = grid.world_to_cell(0.3, 0.3)
+    by, bx = (iy // 5) * 5, (ix // 5) * 5
+    np.testing.assert_array_equal(heat[by:by + 5, bx:bx + 5], 0.5)
+    assert np.count_nonzero(heat) == 50
+
+
+def test_heatmap_needs_trajectories(grid) -> None:
+    bare = EpisodeResult(0, 0, 3, False, True, None, 0.0, 0.0, 0.0, 0.0)
+    with pytest.raises(FigureError, match="no trajectory points"):
+        trajectory_heatmap(grid, [bare])
+
+
+def test_heatmap_pngs(tmp_path, world, grid) -> None:
+    res = [episode(0, 0, [(-1.2 + 0.1 * i, -1.2 + 0.1 * i) for i in range(20)])]
+    one = save_heatmap_png(world, grid, res, tmp_path / "a" / "heat.png", title="DRL", dpi=40)
+    assert one.read_bytes()[:8] == PNG_MAGIC
+    many = save_heatmaps_side_by_side(world, grid, {"A": res, "B": res, "C": res, "D": res},
+                                      tmp_path / "side.png", ncols=2, dpi=40)
+    img = mpimg.imread(many)
+    assert img.shape[0] > 0.7 * img.shape[1]  # two rows of two panels
+    wide = mpimg.imread(save_heatmaps_side_by_side(world, grid, {"A": res, "B": res, "C": res},
+                                                   tmp_path / "wide.png", dpi=40))
+    assert wide.shape[1] > 2 * wide.shape[0]  # one row of three
+    with pytest.raises(FigureError, match="at least one model"):
+        save_heatmaps_side_by_side(world, grid, {}, tmp_path / "none.png")
+
+
+# -- loss log --------------------------------------------------------------------------------
+
+
+def test_load_loss_log_formats(tmp_path) -> None:
+    csv_path = tmp_path / "stats.csv"
+    csv_path.write_text("update,loss,mean_q\n20,1.5,3\n10,2.0,2\n30,,1\n40,nan,1\n50,0.5,0\n")
+    updates, losses = load_loss_log(csv_path)
+    assert updates.tolist() == [10, 20, 50] and losses.tolist() == [2.0, 1.5, 0.5]
+
+    rows = [{"update": 1, "loss": 4.0}, {"update": 2, "loss": 3.0}]
+    (tmp_path / "rows.json").write_text(json.dumps(rows))
+    (tmp_path / "cols.json").write_text(json.dumps({"update": [1, 2], "loss": [4.0, 3.0]}))
+    (tmp_path / "rows.jsonl").write_text("\n".join(json.dumps(r) for r in rows) + "\n")
+    for name in ("rows.json", "cols.json", "rows.jsonl"):
+        u, v = load_loss_log(tmp_path / name)
+        assert u.tolist() == [1, 2] and v.tolist() == [4.0, 3.0], name
+    u, v = load_loss_log(rows)
+    assert v.tolist() == [4.0, 3.0]
+
+
+@pytest.mark.parametrize("content,suffix,match", [
+    ("step,value\n1,2\n", ".csv", "must name 'update' and 'loss'"),
+    ("update,loss\n1,abc\n", ".csv", "non-numeric"),
+    ('{"update": [1, 2], "loss": [1]}', ".json", "2 updates but 1 losses"),
+    ('[{"update": 1}]', ".json", "lacks 'update' or 'loss'"),
+    ("{oops", ".json", "not valid JSON"),
+    ("update,loss\n1,nan\n", ".csv", "no row with a finite loss"),
+])
+def test_load_loss_log_errors(tmp_path, content: str, suffix: str, match: str) -> None:
+    path = tmp_path / f"log{suffix}"
+    path.write_text(content)
+    with pytest.raises(FigureError, match=match):
+        load_loss_log(path)
+
+
+def test_missing_log(tmp_path) -> None:
+    with pytest.raises(FigureError, match="does not exist"):
+        load_loss_log(tmp_path / "none.csv")
+
+
+def test_smooth_is_a_trailing_mean() -> None:
+    np.testing.assert_allclose(smooth(np.array([1.0, 3.0, 5.0, 7.0]), 2), [1.0, 2.0, 4.0, 6.0])
+    np.testing.assert_allclose(smooth(np.arange(5.0), 1), np.arange(5.0))
+    with pytest.raises(FigureError):
+        smooth(np.arange(3.0), 0)
+
+
+def test_loss_curve_png(tmp_path) -> None:
+    rows = [{"update": i, "loss": 1000.0 * np.exp(-i / 40) + 0.1} for i in range(400)]
+    out = save_loss_curve_png(rows, tmp_path / "fig" / "loss.png", smooth_window=10, dpi=40)
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    linear = save_loss_curve_png(rows, tmp_path / "loss_lin.png", log_y=False, dpi=40)
+    assert linear.read_bytes() != out.read_bytes()
+
+
+# -- Table II --------------------------------------------------------------------------------
+
+
+def test_q_value_table_matches_paper_layout() -> None:
+    table = q_value_table_markdown({
+        "S1": {"SL": [23.9, 26.3, -10.6, -35.3, -34.4], "DRL": np.array([-16.3, -36.2, -31.7, -38.7, -44.5])},
+        "R4": {"DRL": [-87.6, -141.1, -115.2, -134.8, -137.4]},
+    })
+    assert table.splitlines() == [
+        "| Scene | Model | Left | H-Left | Straight | H-Right | Right |",
+        "|---|---|---:|---:|---:|---:|---:|",
+        "| S1 | SL | 23.9 | **26.3** | -10.6 | -35.3 | -34.4 |",
+        "|  | DRL | **-16.3** | -36.2 | -31.7 | -38.7 | -44.5 |",
+        "| R4 | DRL | **-87.6** | -141.1 | -115.2 | -134.8 | -137.4 |",
+    ]
+
+
+def test_q_value_table_errors() -> None:
+    with pytest.raises(FigureError, match="need 5 finite values"):
+        q_value_table_markdown({"S1": {"SL": [1.0, 2.0]}})
+    with pytest.raises(FigureError, match="at least one scene"):
+        q_value_table_markdown({})

@@ -1,0 +1,216 @@
+"""Rerun logging: write real .rrd files, check them with the bundled CLI and read them back."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rerun as rr
+from rerun.chunk import RrdReader
+
+from services.evaluator.rerun_log import (
+    ACTION,
+    DEPTH,
+    RECEPTIVE,
+    ROBOT,
+    EvalRecorder,
+    RerunLogError,
+    q_entity,
+    trajectory_entity,
+)
+from services.evaluator.results import run_protocol
+from shared.config import ACTION_NAMES, SensorConfig
+from shared.env import ExploreEnv
+from shared.maps import occupancy_grid
+from shared.world import load_world
+
+RERUN_CLI = Path(sys.executable).with_name("rerun")
+
+
+@pytest.fixture(scope="module")
+def world():
+    return load_world("box-room")
+
+
+@pytest.fixture(scope="module")
+def grid(world):
+    return occupancy_grid(world)
+
+
+def verify(path: Path) -> None:
+    env = {**os.environ, "RERUN_ANALYTICS": "0"}
+    proc = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(path)], capture_output=True, text=True,
+                          env=env, timeout=60)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+
+
+def read_rows(path: Path) -> dict[str, list[dict]]:
+    """Temporal rows per entity path (without the leading '/'), each a dict of columns."""
+    rows: dict[str, list[dict]] = defaultdict(list)
+    for chunk in RrdReader(path).stream().to_chunks():
+        if chunk.is_static:
+            rows["static:" + chunk.entity_path.lstrip("/")].append({})
+            continue
+        batch = chunk.to_record_batch()
+        names = [n for n in batch.schema.names if n not in ("log_time", "rerun.controls.RowId")]
+        columns = {n: batch.column(n).to_pylist() for n in names}
+        for i in range(batch.num_rows):
+            rows[chunk.entity_path.lstrip("/")].append({n: columns[n][i] for n in names})
+    return rows
+
+
+def frames(rows: list[dict]) -> list[int]:
+    return sorted(r["eval_frame"] for r in rows)
+
+
+def test_recording_holds_every_step(tmp_path, world, grid) -> None:
+    sensor = SensorConfig()
+    rng = np.random.default_rng(0)
+    logged = []  # (frame, start, episode, step, depth, q, action, pose)
+    path = tmp_path / "eval.rrd"
+    with EvalRecorder(path, world, grid, sensor, recording_name="test") as rec:
+        frame = 0
+        for start, episode, n_steps in ((0, 0, 4), (2, 1, 3)):
+            rec.begin_episode(start, episode)
+            traj = []
+            for step in range(n_steps):
+                depth = rng.uniform(0.3, 4.0, (120, 160)).astype(np.float32)
+                depth[:5] = 0.0  # no return
+                q = rng.normal(size=5)
+                action = int(rng.integers(5))
+                pose = (0.1 * step, -0.2 * start, 0.3 * step)
+                traj.append(pose[:2])
+                rec.log_step(step, pose, depth, q, action)
+                logged.append((frame, start, episode, step, depth, q, action, pose))
+                frame += 1
+            rec.log_receptive(np.arange(120 * 160).reshape(120, 160) % 10 == 0)
+            rec.end_episode({"steps": n_steps, "distance_m": 0.5, "terminated": True,
+                             "collision_cause": "depth", "trajectory_xy": traj + [(9.0, 9.0)]})
+            frame += 1
+        rec.log_training(120, {"loss": 3.5, "mean_q": -2.0, "epsilon": 0.4, "updates_per_s": 2.5,
+                               "episode_length": 31})
+    verify(path)
+    rows = read_rows(path)
+    step_frames = [f for f, *_ in logged]
+
+    # Depth: present at every step, in millimetres that decode to the logged metres.
+    assert frames(rows[DEPTH]) == step_frames
+    by_frame = {r["eval_frame"]: r for r in rows[DEPTH]}
+    for f, start, episode, step, depth, *_ in logged:
+        r = by_frame[f]
+        assert r["episode_step"] == step
+        fmt = r["DepthImage:format"][0]
+        assert (fmt["width"], fmt["height"]) == (160, 120)
+        assert r["DepthImage:meter"] == [1000.0]
+        mm = np.frombuffer(bytes(r["DepthImage:buffer"][0]), dtype=np.uint16).reshape(120, 160)
+        np.testing.assert_allclose(mm / 1000.0, depth, atol=5e-4)
+        assert (mm[:5] == 0).all()
+
+    # Q-values: one series per command, each with the logged value at every step.
+    for a in range(5):
+        series = {r["eval_frame"]: r["Scalars:scalars"][0] for r in rows[q_entity(a)]}
+        assert sorted(series) == step_frames
+        for f, *_, q, _action, _pose in logged:
+            assert series[f] == pytest.approx(q[a])
+    actions = {r["eval_frame"]: r["Scalars:scalars"][0] for r in rows[ACTION]}
+    assert [actions[f] for f, *_ in logged] == [float(a) for *_, a, _p in logged]
+
+    # Trajectory: the path so far at every step of the episode, then the full path at its end.
+    for start, episode, n_steps in ((0, 0, 4), (2, 1, 3)):
+        traj_rows = rows[trajectory_entity(start, episode)]
+        mine = [f for f, s, e, *_ in logged if (s, e) == (start, episode)]
+        assert frames(traj_rows)[:-1] == mine
+        strips = sorted(traj_rows, key=lambda r: r["eval_frame"])
+        for i, r in enumerate(strips[:-1]):
+            assert len(r["LineStrips3D:strips"][0]) == i + 1
+        final = strips[-1]["LineStrips3D:strips"][0]
+        assert len(final) == n_steps + 1 and final[-1][:2] == [9.0, 9.0]
+    assert trajectory_entity(0, 0) == "world/trajectory/start_1/episode_0"
+
+    # Robot pose, receptive mask, learner metrics, static scene.
+    assert frames(rows[ROBOT]) == step_frames
+    assert len(rows[RECEPTIVE]) == 2
+    assert rows["train/loss"][0]["update"] == 120 and rows["train/loss"][0]["Scalars:scalars"] == [3.5]
+    assert "episode" not in rows["train/loss"][0]  # no episode timeline leaks into learner metrics
+    assert {f"train/{k}" for k in ("mean_q", "epsilon", "updates_per_s", "episode_length")} <= set(rows)
+    for static in ("world/map", "world/map/starts", "camera", "world"):
+        assert "static:" + static in rows
+    texts = [r["TextLog:text"][0] for r in rows["log/episodes"]]
+    assert texts[0].startswith("start 1 episode 0: 4 steps, collision (depth)")
+    # A blueprint travels with the file.
+    assert RrdReader(path).blueprints()
+
+
+def test_protocol_with_recorder_logs_every_step(tmp_path, world, grid) -> None:
+    path = tmp_path / "protocol.rrd"
+
+    def policy(depth_m):
+        q = np.array([0.0, 0.1, 1.0 if depth_m[depth_m > 0].min() > 1.0 else -1.0, 0.1, 0.0])
+        return int(np.argmax(q)), q
+
+    with EvalRecorder(path, world, grid, SensorConfig(), image_every=2) as rec:
+        results = run_protocol(policy, lambda: ExploreEnv(world="box-room", speed_table="test"),
+                               starts=[0, 3], episodes_per_start=1, max_steps=12, recorder=rec, progress=False)
+    verify(path)
+    rows = read_rows(path)
+    total = sum(e.steps for e in results.episodes)
+    assert len(rows[q_entity(2)]) == total
+    assert len(rows[ROBOT]) == total
+    # image_every=2: depth at even steps only.
+    assert sorted(r["episode_step"] for r in rows[DEPTH]) == sorted(
+        s for e in results.episodes for s in range(0, e.steps, 2))
+    for e in results.episodes:
+        traj = rows[trajectory_entity(e.start_index, e.episode)]
+        assert len(traj) == e.steps + 1
+        last = max(traj, key=lambda r: r["eval_frame"])["LineStrips3D:strips"][0]
+        np.testing.assert_allclose(np.array(last)[:, :2], np.array(e.trajectory_xy), atol=1e-5)
+    assert len(rows["eval/episode/steps"]) == len(results.episodes)
+
+
+def test_recorder_on_callers_stream_and_misuse(tmp_path, world) -> None:
+    path = tmp_path / "own.rrd"
+    stream = rr.RecordingStream("cogexplore-test")
+    stream.save(path)
+    rec = EvalRecorder(stream, world, None, SensorConfig())  # no grid: map image left out
+    rec.begin_episode(1, 0)
+    with pytest.raises(RerunLogError, match="depth_m must be"):
+        rec.log_step(0, (0, 0, 0), np.zeros((10, 10), np.float32), None, 2)
+    with pytest.raises(RerunLogError, match="5 entries"):
+        rec.log_step(0, (0, 0, 0), None, [1.0, 2.0], 2)
+    with pytest.raises(RerunLogError, match="action"):
+        rec.log_step(0, (0, 0, 0), None, None, 5)
+    with pytest.raises(RerunLogError, match="lower_snake_case"):
+        rec.log_training(1, {"Loss!": 1.0})
+    with pytest.raises(RerunLogError, match="finite"):
+        rec.log_training(1, {"loss": float("nan")})
+    with pytest.raises(RerunLogError, match="start_index"):
+        rec.begin_episode(7, 0)
+    rec.log_evaluation(500, {"overall": {"mean_steps": 12.5, "collisions": {"depth": 3, "contact": 1},
+                                         "episodes": 4}})
+    rec.close()
+    with pytest.raises(RerunLogError, match="closed"):
+        rec.begin_episode(0, 0)
+    stream.log("after/close", rr.Scalars(1.0))  # the caller's stream stays open
+    stream.disconnect()
+    verify(path)
+    rows = read_rows(path)
+    assert "static:world/map" not in rows
+    assert rows["eval/mean_steps"][0]["update"] == 500
+    assert rows["eval/collisions_depth"][0]["Scalars:scalars"] == [3.0]
+    assert "after/close" in rows
+
+
+def test_recorder_needs_a_sink(world) -> None:
+    with pytest.raises(RerunLogError, match="nothing to log to"):
+        EvalRecorder(None, world, None, SensorConfig())
+    with pytest.raises(RerunLogError, match="image_every"):
+        EvalRecorder(None, world, None, SensorConfig(), image_every=0)
+
+
+def test_command_entities_are_named_after_commands() -> None:
+    assert [q_entity(a) for a in range(5)] == [f"policy/q/{n}" for n in ACTION_NAMES]

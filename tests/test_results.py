@@ -1,0 +1,260 @@
+"""Evaluation results: the record's invariants, aggregation, the JSON schema, Table III and
+the test protocol on the real environment (box-room, test speeds, tiny step caps)."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from services.evaluator.results import (
+    SCHEMA_ID,
+    EpisodeResult,
+    EvalResults,
+    ResultsError,
+    aggregate,
+    episode_seed,
+    load_results,
+    run_protocol,
+    save_results,
+    table_markdown,
+    to_json,
+    validate_results_json,
+)
+from shared.config import SensorConfig
+from shared.env import ExploreEnv
+
+
+def ep(start: int, k: int, steps: int, cause: str | None = None, cap: bool = False, dist: float = 1.0,
+       path: float = 2.0, cov: float = 0.5, traj: bool = False) -> EpisodeResult:
+    return EpisodeResult(start_index=start, episode=k, steps=steps, terminated=cause is not None,
+                         truncated=cap, collision_cause=cause, distance_m=dist, path_length_m=path,
+                         coverage_m2=10.0 * cov, coverage_fraction=cov,
+                         trajectory_xy=tuple((0.1 * i, 0.0) for i in range(steps + 1)) if traj else ())
+
+
+EPISODES = [
+    ep(0, 0, 10, "depth", dist=1.0, cov=0.2),
+    ep(0, 1, 200, cap=True, dist=3.0, cov=0.6),
+    ep(1, 0, 4, "contact", dist=0.5, cov=0.1),
+    ep(1, 1, 6, "depth", dist=0.7, cov=0.3, traj=True),
+]
+
+
+# -- the record -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kwargs,match", [
+    (dict(terminated=True, collision_cause=None), "cause go together"),
+    (dict(terminated=False, collision_cause="depth"), "cause go together"),
+    (dict(terminated=True, truncated=True, collision_cause="depth"), "both terminated"),
+    (dict(steps=-1), r"episode\.steps: expected an integer >= 0"),
+    (dict(collision_cause="wall", terminated=True), r"collision_cause"),
+    (dict(coverage_fraction=1.5), r"coverage_fraction"),
+    (dict(distance_m=float("nan")), r"distance_m"),
+    (dict(steps=3, trajectory_xy=((0.0, 0.0), (1.0, 0.0))), r"2 points for 3 steps"),
+    (dict(terminated=1, collision_cause="depth"), r"terminated: expected true or false"),
+])
+def test_episode_invariants(kwargs: dict, match: str) -> None:
+    base = dict(start_index=0, episode=0, steps=3, terminated=False, truncated=False, collision_cause=None,
+                distance_m=1.0, path_length_m=1.0, coverage_m2=1.0, coverage_fraction=0.1)
+    base.update(kwargs)
+    with pytest.raises(ResultsError, match=match):
+        EpisodeResult(**base)
+
+
+def test_episode_accepts_numpy_trajectory() -> None:
+    e = EpisodeResult(0, 0, 2, False, True, None, 1.0, 1.0, 1.0, 0.1, np.array([[0, 0], [1, 0], [2, 0.5]]))
+    assert e.trajectory_xy == ((0.0, 0.0), (1.0, 0.0), (2.0, 0.5))
+
+
+# -- aggregation ----------------------------------------------------------------------------
+
+
+def test_aggregate_numbers() -> None:
+    s = aggregate(EPISODES)
+    o = s["overall"]
+    assert o["episodes"] == 4
+    assert o["mean_steps"] == pytest.approx((10 + 200 + 4 + 6) / 4)
+    assert o["mean_distance_m"] == pytest.approx((1.0 + 3.0 + 0.5 + 0.7) / 4)
+    assert o["mean_path_length_m"] == pytest.approx(2.0)
+    assert o["mean_coverage_pct"] == pytest.approx(100 * (0.2 + 0.6 + 0.1 + 0.3) / 4)
+    assert o["mean_coverage_m2"] == pytest.approx(10 * (0.2 + 0.6 + 0.1 + 0.3) / 4)
+    assert o["collisions"] == {"depth": 2, "contact": 1}
+    assert o["collision_episodes"] == 3
+    assert o["reached_cap"] == 1
+    assert [p["start_index"] for p in s["per_start"]] == [0, 1]
+    p0, p1 = s["per_start"]
+    assert p0["mean_steps"] == pytest.approx(105.0) and p0["reached_cap"] == 1
+    assert p0["collisions"] == {"depth": 1, "contact": 0}
+    assert p1["mean_distance_m"] == pytest.approx(0.6) and p1["collisions"] == {"depth": 1, "contact": 1}
+    assert p0["std_steps"] == pytest.approx(95.0)
+
+
+def test_aggregate_refuses_nothing() -> None:
+    with pytest.raises(ResultsError, match="zero episodes"):
+        aggregate([])
+
+
+# -- the JSON document ----------------------------------------------------------------------
+
+
+def test_json_round_trip(tmp_path) -> None:
+    results = EvalResults(tuple(EPISODES), {"model": "DRL 500", "policy_version": 500})
+    doc = json.loads(to_json(results))
+    assert doc["schema"] == SCHEMA_ID
+    assert doc["summary"]["overall"]["reached_cap"] == 1
+    back = validate_results_json(to_json(results))
+    assert back.episodes == results.episodes
+    assert back.meta == {"model": "DRL 500", "policy_version": 500}
+    path = save_results(results, tmp_path / "r" / "results.json")
+    assert load_results(path).episodes == results.episodes
+    assert not list(path.parent.glob("*.tmp"))
+
+
+def _doc() -> dict:
+    return json.loads(to_json(EvalResults(tuple(EPISODES), {"model": "m"})))
+
+
+@pytest.mark.parametrize("mutate,match", [
+    (lambda d: d.update(schema="other/1"), "schema: expected"),
+    (lambda d: d.pop("summary"), "missing \\['summary'\\]"),
+    (lambda d: d.update(extra=1), "unknown \\['extra'\\]"),
+    (lambda d: d.update(episodes=[]), "non-empty list"),
+    (lambda d: d["episodes"][1].update(steps=-3), r"episodes\[1\]\.steps: expected an integer >= 0, got -3"),
+    (lambda d: d["episodes"][2].pop("distance_m"), r"episodes\[2\]: missing fields \['distance_m'\]"),
+    (lambda d: d["episodes"][3]["trajectory_xy"].__setitem__(2, [0.0, "x"]), r"episodes\[3\]\.trajectory_xy\[2\]"),
+    (lambda d: d["episodes"][1].update(episode=0), "appears twice"),
+    (lambda d: d["summary"]["overall"].update(mean_steps=99.0), r"summary\.overall\.mean_steps"),
+    (lambda d: d["summary"]["per_start"][1]["collisions"].update(depth=5), r"summary\.per_start\[1\]\.collisions\.depth"),
+    (lambda d: d.update(meta=[1]), "meta: expected an object"),
+])
+def test_validation_names_the_problem(mutate, match: str) -> None:
+    doc = _doc()
+    mutate(doc)
+    with pytest.raises(ResultsError, match=match):
+        validate_results_json(doc)
+
+
+def test_validation_rejects_bad_text(tmp_path) -> None:
+    with pytest.raises(ResultsError, match="not valid JSON"):
+        validate_results_json("{nope")
+    with pytest.raises(ResultsError, match="does not exist"):
+        load_results(tmp_path / "missing.json")
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({**_doc(), "schema": "x"}))
+    with pytest.raises(ResultsError, match=r"bad\.json: schema"):
+        load_results(bad)
+
+
+def test_results_refuse_non_json_meta() -> None:
+    with pytest.raises(ResultsError, match="meta"):
+        EvalResults(tuple(EPISODES), {"x": float("nan")})
+
+
+# -- Table III ------------------------------------------------------------------------------
+
+
+def test_table_layout_and_bold_best() -> None:
+    other = [ep(0, 0, 50, "depth", dist=4.0, cov=0.9), ep(2, 0, 7, "depth", dist=0.2, cov=0.05)]
+    table = table_markdown({"DRL 500": EvalResults(tuple(EPISODES)), "DRL 4000": other})
+    lines = table.strip().splitlines()
+    assert lines[0] == "| Metric | Model | 1 | 2 | 3 | All |"
+    assert lines[1] == "|---|---|---:|---:|---:|---:|"
+    assert len(lines) == 2 + 3 * 2
+    assert lines[2] == "| Count | DRL 500 | **105.0** | **5.0** | - | **55.0** |"
+    assert lines[3] == "|  | DRL 4000 | 50.0 | - | **7.0** | 28.5 |"
+    assert lines[4].startswith("| Distance (m) | DRL 500 | 2.0 | **0.6** | - |")
+    assert lines[5].startswith("|  | DRL 4000 | **4.0** | - | **0.2** |")
+    assert lines[6].startswith("| Coverage (%) | DRL 500 | 40.0 | **20.0** | - |")
+    # A results JSON object works as well as the results themselves.
+    assert table_markdown({"a": _doc()}) == table_markdown({"a": EvalResults(tuple(EPISODES))})
+
+
+def test_table_of_one_model_has_no_bold() -> None:
+    assert "**" not in table_markdown({"only": EPISODES})
+
+
+# -- the protocol on the real environment ----------------------------------------------------
+
+
+def make_env(noise: float = 0.0):
+    return lambda: ExploreEnv(world="box-room", speed_table="test", sensor=SensorConfig(noise_std_m=noise))
+
+
+def roomiest_side(depth_m: np.ndarray):
+    """A depth-only reflex: straight while both halves have room, else turn to the roomier one."""
+    h, w = depth_m.shape
+    seen = np.where(depth_m > 0, depth_m, 4.0)
+    left, right = seen[:, : w // 2].mean(), seen[:, w // 2:].mean()
+    action = 2 if min(left, right) > 1.4 else (0 if left > right else 4)
+    q = np.array([left, 0.0, min(left, right), 0.0, right])
+    return action, q
+
+
+def test_protocol_runs_every_start_times_episodes() -> None:
+    seen_shapes = set()
+
+    def policy(depth_m):
+        seen_shapes.add((depth_m.shape, depth_m.dtype))
+        return roomiest_side(depth_m)
+
+    results = run_protocol(policy, make_env(), starts=[0, 2, 3], episodes_per_start=2, max_steps=25,
+                           seed=3, progress=False, meta={"model": "reflex"})
+    assert [(e.start_index, e.episode) for e in results.episodes] == [(s, k) for s in (0, 2, 3) for k in (0, 1)]
+    assert seen_shapes == {((120, 160), np.dtype(np.float32))}
+    assert results.meta["model"] == "reflex" and results.meta["max_steps"] == 25
+    assert results.meta["speed_table"] == "test" and results.meta["world"] == "box-room"
+    for e in results.episodes:
+        assert 1 <= e.steps <= 25
+        assert e.truncated == (e.steps == 25 and not e.terminated)
+        assert len(e.trajectory_xy) == e.steps + 1
+        start, end = np.array(e.trajectory_xy[0]), np.array(e.trajectory_xy[-1])
+        assert e.distance_m == pytest.approx(float(np.linalg.norm(end - start)), abs=1e-9)
+        steps_len = np.linalg.norm(np.diff(np.array(e.trajectory_xy), axis=0), axis=1).sum()
+        assert e.path_length_m == pytest.approx(float(steps_len), rel=1e-6)
+        assert 0 < e.coverage_fraction <= 1 and e.coverage_m2 > 0
+    # Validated on its way through JSON.
+    assert validate_results_json(to_json(results)).episodes == results.episodes
+
+
+def test_protocol_counts_cap_and_collisions() -> None:
+    # Circling left from the centre never comes near a wall: every episode reaches the cap.
+    circling = run_protocol(lambda d: (0, None), make_env(), starts=[2], episodes_per_start=2,
+                            max_steps=30, progress=False)
+    assert aggregate(circling.episodes)["overall"]["reached_cap"] == 2
+    assert all(e.steps == 30 and e.distance_m < 0.5 < e.path_length_m for e in circling.episodes)
+    # Driving straight from every start ends in a collision before the cap.
+    straight = run_protocol(lambda d: (2, None), make_env(), episodes_per_start=1, max_steps=200,
+                            progress=False)
+    summary = aggregate(straight.episodes)["overall"]
+    assert summary["episodes"] == 4 and summary["reached_cap"] == 0
+    assert summary["collision_episodes"] == 4
+    assert all(e.terminated and e.collision_cause in ("depth", "contact") for e in straight.episodes)
+
+
+def test_protocol_is_deterministic_under_a_seed() -> None:
+    # Sensor noise makes episodes differ; the seed makes them repeat.
+    def run(seed):
+        return run_protocol(roomiest_side, make_env(noise=0.05), starts=[0, 1], episodes_per_start=2,
+                            max_steps=40, seed=seed, progress=False).episodes
+
+    first = run(0)
+    assert run(0) == first
+    assert episode_seed(0, 1, 1) != episode_seed(0, 1, 0) != episode_seed(1, 1, 0)
+
+
+def test_protocol_rejects_bad_setup() -> None:
+    with pytest.raises(ResultsError, match="starts"):
+        run_protocol(roomiest_side, make_env(), starts=[9], episodes_per_start=1, max_steps=5, progress=False)
+    with pytest.raises(ResultsError, match="max_episode_steps >= 200"):
+        run_protocol(roomiest_side, lambda: ExploreEnv(world="box-room", max_episode_steps=50),
+                     episodes_per_start=1, max_steps=200, progress=False)
+    with pytest.raises(ResultsError, match="returned action 7"):
+        run_protocol(lambda d: (7, None), make_env(), starts=[0], episodes_per_start=1, max_steps=5,
+                     progress=False)
+    with pytest.raises(ResultsError, match="episodes_per_start"):
+        run_protocol(roomiest_side, make_env(), episodes_per_start=0, progress=False)
+    assert math.isfinite(episode_seed(0, 0, 0))
