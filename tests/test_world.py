@@ -1,0 +1,265 @@
+"""Worlds with real MuJoCo: built-ins, procedural generation, user MJCF files, start checks."""
+
+import math
+from pathlib import Path
+
+import pytest
+
+from shared import maps
+from shared.config import EnvConfig
+from shared.env import ExploreEnv
+from shared.world import (BUILTIN_WORLDS, NUM_STARTS, SceneBuilder, StartPose, World, WorldError, load_world,
+                          obstacle_geom_count, procedural_world, validate_starts, world_summary)
+
+RADIUS = EnvConfig().robot_radius_m
+
+
+def _assert_connected_with_starts(world: World) -> None:
+    grid = maps.occupancy_grid(world)
+    labels, count = maps.free_components(grid, RADIUS)
+    assert count == 1, f"{world.name}: traversable space in {count} pieces"
+    for s in world.starts:
+        ix, iy = grid.world_to_cell(s.x, s.y)
+        assert labels[iy, ix] == 0, f"{world.name}: start {s.name} is not in the traversable space"
+
+
+@pytest.mark.parametrize("name", ["paper-indoor", "corridor"])
+def test_builtin_world_has_12_valid_starts_and_is_connected(name):
+    world = load_world(name)
+    assert world.kind == "builtin" and world.name == name
+    assert len(world.starts) == NUM_STARTS
+    assert len({s.name for s in world.starts}) == NUM_STARTS and all(s.name for s in world.starts)
+    checks = validate_starts(world)
+    assert all(c.ok for c in checks)
+    assert min(c.clearance_m for c in checks) >= 0.1
+    assert min(c.free_ahead_m for c in checks) >= 1.0
+    assert 2 < obstacle_geom_count(world) <= 80
+    _assert_connected_with_starts(world)
+
+
+def test_paper_indoor_is_about_12_m_and_has_narrow_gaps():
+    world = load_world("paper-indoor")
+    assert world.size_m == (12.0, 12.0)
+    grid = maps.occupancy_grid(world)
+    # The two hall boxes 0.3 m apart: the gap between them is free space the robot cannot enter.
+    assert grid.is_free(-1.55, 3.3)
+    trav = maps.traversable(grid, RADIUS)
+    ix, iy = grid.world_to_cell(-1.55, 3.3)
+    assert not trav[iy, ix]
+    assert 0.55 < maps.free_area_m2(grid) / (12 * 12) < 0.95
+
+
+def test_box_room_is_kept_for_tests():
+    world = load_world("box-room")
+    assert set(BUILTIN_WORLDS) >= {"box-room", "paper-indoor", "corridor"}
+    validate_starts(world)
+    _assert_connected_with_starts(world)
+
+
+@pytest.mark.parametrize("name", ["paper-indoor", "corridor", "procedural:1"])
+@pytest.mark.parametrize("table", ["train", "test"])
+def test_first_step_from_every_start_is_collision_free_for_every_action(name, table):
+    env = ExploreEnv(world=name, speed_table=table)
+    try:
+        for i in range(len(env.world.starts)):
+            for action in range(5):
+                env.reset(seed=0, options={"start_index": i})
+                _, _, terminated, _, info = env.step(action)
+                assert not terminated, f"{name} start {i} action {action}: {info['collision_cause']}"
+    finally:
+        env.close()
+
+
+def test_procedural_is_deterministic_per_seed_and_differs_across_seeds():
+    a, b = procedural_world(3), procedural_world(3)
+    assert a.mjcf == b.mjcf and a.starts == b.starts and a.extent == b.extent
+    c = procedural_world(4)
+    assert c.mjcf != a.mjcf and c.starts != a.starts
+    assert load_world("procedural:3") == a
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 5, 11])
+def test_procedural_worlds_are_connected_with_12_valid_starts(seed):
+    world = load_world(f"procedural:{seed}")
+    assert world.kind == "procedural"
+    w, h = world.size_m
+    assert 8.0 <= w <= 14.0 and 8.0 <= h <= 14.0
+    assert len(world.starts) == NUM_STARTS
+    validate_starts(world)
+    _assert_connected_with_starts(world)
+    assert obstacle_geom_count(world) <= 80
+
+
+@pytest.mark.parametrize("name", ["procedural:abc", "procedural:-1", "procedural:", "procedural: 5"])
+def test_bad_procedural_seed_is_rejected(name):
+    with pytest.raises(WorldError, match="seed"):
+        load_world(name)
+
+
+def test_unknown_world_name_lists_the_choices():
+    with pytest.raises(WorldError, match="paper-indoor"):
+        load_world("no-such-world")
+
+
+def test_validate_starts_names_each_bad_start():
+    b = SceneBuilder("probe", (-3.0, -3.0, 3.0, 3.0))
+    b.boundary()
+    b.wall(1.0, -3.0, 1.0, 3.0)  # near face at x = 0.95
+    starts = [StartPose(-2.0, 0.0, 0.0, "fine"),
+              StartPose(0.3, 0.0, 0.0, "facing-wall"),    # 0.65 m free ahead
+              StartPose(0.8, 0.0, math.pi, "in-wall"),     # disc overlaps the wall
+              StartPose(0.72, 0.0, math.pi, "too-close")]  # 0.05 m clearance
+    world = b.build("probe", starts)
+    with pytest.raises(WorldError) as err:
+        validate_starts(world)
+    msg = str(err.value)
+    assert "world 'probe'" in msg and "'fine'" not in msg
+    assert "'facing-wall'" in msg and "straight ahead" in msg
+    assert "'in-wall'" in msg and "inside or touching" in msg
+    assert "'too-close'" in msg and "needs >= 0.1 m" in msg
+
+
+# ---------------------------------------------------------------------------
+# User MJCF files
+# ---------------------------------------------------------------------------
+
+_ROOM = """
+<mujoco model="user-room">
+  <compiler angle="degree"/>
+  <worldbody>
+    {floor}
+    <geom name="north" type="box" pos="0 3 1" size="3 0.1 1"/>
+    <geom name="south" type="box" pos="0 -3 1" size="3 0.1 1"/>
+    <geom name="east" type="box" pos="3 0 1" size="0.1 3 1"/>
+    <geom name="west" type="box" pos="-3 0 1" size="0.1 3 1"/>
+    <body name="pillar" pos="1.5 1.5 0"><geom type="cylinder" size="0.3 1" pos="0 0 1"/></body>
+    {sites}
+  </worldbody>
+</mujoco>
+"""
+
+
+def _write(tmp_path: Path, name: str, sites: str, floor: str = '<geom name="ground" type="plane" size="0 0 1"/>',
+           extra: str = "") -> Path:
+    path = tmp_path / name
+    path.write_text(_ROOM.format(floor=floor, sites=sites + extra))
+    return path
+
+
+def test_user_world_loads_with_start_yaw_from_site_orientation(tmp_path):
+    path = _write(tmp_path, "room.xml",
+                  '<site name="start_south" pos="0 -2 0" euler="0 0 90"/>'
+                  '<site name="start_west" pos="-2 0.5 0" quat="0.3826834 0 0 0.9238795"/>'  # 135 degrees
+                  '<site name="marker" pos="0 0 0"/>')
+    world = load_world(str(path))
+    assert world.kind == "file" and world.name == str(path)
+    assert [s.name for s in world.starts] == ["start_south", "start_west"]
+    south, west = world.starts
+    assert (south.x, south.y) == pytest.approx((0.0, -2.0))
+    assert south.yaw == pytest.approx(math.pi / 2, abs=1e-6)
+    assert west.yaw == pytest.approx(3 * math.pi / 4, abs=1e-6)
+    assert world.extent == pytest.approx((-3.1, -3.1, 3.1, 3.1))
+    assert 'name="floor"' in world.mjcf and 'name="ground"' not in world.mjcf  # plane renamed
+    grid = maps.occupancy_grid(world)
+    assert not grid.is_free(1.5, 1.5) and grid.is_free(0.0, 0.0)  # the pillar in a child body
+    env = ExploreEnv(world=str(path))
+    try:
+        env.reset(seed=0, options={"start_index": 1})
+        assert env.robot.pose()[2] == pytest.approx(3 * math.pi / 4, abs=1e-6)
+    finally:
+        env.close()
+
+
+def test_user_world_without_a_plane_gets_a_floor(tmp_path):
+    path = _write(tmp_path, "nofloor.xml", '<site name="start_a" pos="0 0 0"/>', floor="")
+    world = load_world(str(path))
+    assert 'name="floor"' in world.mjcf
+    validate_starts(world)
+
+
+def test_broken_xml_names_the_file_and_mujocos_message(tmp_path):
+    path = tmp_path / "broken.xml"
+    path.write_text("<mujoco><worldbody><geom type='box' size='1 1 1'</worldbody></mujoco>")
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "cannot parse" in str(err.value) and "XML" in str(err.value)
+
+
+def test_missing_file_is_named(tmp_path):
+    with pytest.raises(WorldError, match="does not exist"):
+        load_world(str(tmp_path / "nowhere.xml"))
+
+
+def test_file_without_start_sites_is_rejected(tmp_path):
+    path = _write(tmp_path, "nostarts.xml", '<site name="marker" pos="0 0 0"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "start_" in str(err.value)
+
+
+def test_start_inside_an_obstacle_names_file_and_site(tmp_path):
+    path = _write(tmp_path, "inside.xml", '<site name="start_ok" pos="0 -2 0" euler="0 0 90"/>'
+                                          '<site name="start_in_pillar" pos="1.5 1.5 0"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    msg = str(err.value)
+    assert str(path) in msg and "start_in_pillar" in msg and "inside or touching" in msg
+    assert "start_ok" not in msg
+
+
+def test_start_touching_an_obstacle_names_file_and_site(tmp_path):
+    # Centre 0.1 m from the pillar's surface: the 0.18 m disc overlaps it by 8 cm.
+    x = 1.5 - 0.3 - 0.1
+    path = _write(tmp_path, "touch.xml", f'<site name="start_touching" pos="{x} 1.5 0" euler="0 0 180"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "start_touching" in str(err.value)
+    assert "inside or touching" in str(err.value)
+
+
+@pytest.mark.parametrize("body, what", [
+    ('<body name="door" pos="0 0 0"><joint type="hinge" axis="0 0 1"/><geom type="box" size="0.1 0.5 1" pos="0 0 1"/></body>',
+     "door"),
+    ('<body name="ball" pos="-1 -1 0.5"><freejoint/><geom type="sphere" size="0.1"/></body>', "ball"),
+])
+def test_bodies_that_can_move_are_rejected(tmp_path, body, what):
+    path = _write(tmp_path, "moving.xml", '<site name="start_a" pos="0 -2 0"/>', extra=body)
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "not static" in str(err.value) and what in str(err.value)
+
+
+def test_a_body_named_robot_is_rejected(tmp_path):
+    path = _write(tmp_path, "robot.xml", '<site name="start_a" pos="0 -2 0"/>',
+                  extra='<body name="robot" pos="2 -2 0"><geom type="box" size="0.1 0.1 0.1" pos="0 0 0.1"/></body>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "'robot'" in str(err.value)
+
+
+def test_names_the_robot_needs_are_reported_when_taken(tmp_path):
+    path = _write(tmp_path, "camera.xml", '<site name="start_a" pos="0 -2 0"/>',
+                  extra='<camera name="depth_camera" pos="0 0 2"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "with the robot added" in str(err.value)
+
+
+def test_the_example_world_file_loads():
+    path = Path(__file__).resolve().parents[1] / "shared" / "worlds" / "two_rooms.xml"
+    world = load_world(str(path))
+    assert [s.name for s in world.starts] == ["start_west_room", "start_door", "start_east_room",
+                                              "start_north_east"]
+    assert world.starts[0].yaw == pytest.approx(math.radians(30))
+    assert world.size_m == pytest.approx((8.1, 5.1))
+    _assert_connected_with_starts(world)
+
+
+def test_world_summary_reports_plain_facts():
+    summary = world_summary("paper-indoor")
+    assert summary["name"] == "paper-indoor" and summary["kind"] == "builtin"
+    assert summary["size_m"] == [12.0, 12.0] and summary["num_starts"] == 12
+    assert summary["num_obstacle_geoms"] == obstacle_geom_count(load_world("paper-indoor"))
+    assert 70.0 < summary["free_area_m2"] < 140.0 and summary["connected"] is True
+    assert world_summary("procedural:2")["kind"] == "procedural"
+    assert all(type(v) in (str, int, float, bool, list) for v in summary.values())  # JSON-ready
