@@ -6,6 +6,7 @@ and read them back with :func:`parse_key`. The layout, for run ``<run>``::
     cogexplore/<run>/transitions/<actor>        TransitionBatch stream of one actor (put, BLOCK)
     cogexplore/<run>/weights                    WeightsMessage stream from the learner (put, BLOCK)
     cogexplore/<run>/weights/latest             queryable: the learner's newest WeightsMessage
+    cogexplore/<run>/flow                       FlowControl from the learner (replay-ratio credit)
     cogexplore/<run>/stats/episode/<actor>      EpisodeStats of one actor
     cogexplore/<run>/stats/learner/<learner>    LearnerStats
     cogexplore/<run>/stats/eval/<evaluator>     EvalResult
@@ -111,6 +112,12 @@ class RunKeys:
     def weights_latest(self) -> str:
         """The learner's queryable answering with its newest WeightsMessage."""
         return f"{self.prefix}/weights/latest"
+
+    # -- flow control ------------------------------------------------------------------
+    @property
+    def flow(self) -> str:
+        """Where the learner says how many more transitions it wants (see FlowControl)."""
+        return f"{self.prefix}/flow"
 
     # -- statistics --------------------------------------------------------------------
     def stats(self, kind: str, source_id: str) -> str:

@@ -657,6 +657,32 @@ class LearnerStats(Message):
 
 @_register
 @dataclass(frozen=True)
+class FlowControl(Message):
+    """The learner's credit to the actors: it wants transitions until it has received
+    ``transitions_wanted`` in all, which keeps updates per inserted transition at the
+    configured replay ratio instead of letting fast actors flood a slow learner (and take its
+    CPU). Actors hold their batches while ``transitions_received >= transitions_wanted``."""
+
+    TYPE: ClassVar[str] = "flow"
+
+    learner_id: str
+    updates: int
+    transitions_received: int
+    transitions_wanted: int
+
+    def __post_init__(self) -> None:
+        _set(self, "learner_id", _chunk(self.learner_id, "learner_id"))
+        for name in ("updates", "transitions_received", "transitions_wanted"):
+            _set(self, name, _int(getattr(self, name), name))
+
+    @property
+    def credit(self) -> int:
+        """Transitions the learner still wants (<= 0: hold)."""
+        return self.transitions_wanted - self.transitions_received
+
+
+@_register
+@dataclass(frozen=True)
 class EvalResult(Message):
     """The test protocol run on one weights version: one entry per episode (start pose)."""
 

@@ -1,0 +1,181 @@
+"""The actor process: one environment, an epsilon-greedy policy on the newest weights it has,
+transitions out in small reliable batches, weights in without ever blocking the env loop.
+
+    cogexplore actor --run NAME --connect tcp/<router-host>:7447
+
+Flow per step: take the newest weights the subscriber has parked (if any) -> pick an
+action -> step the env -> batch the transition -> publish a batch when full or when the
+episode ends. While no learner is alive (liveliness), the loop pauses instead of
+publishing into the void, and resumes by itself when one is back.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+
+import torch
+
+from services.actor.batcher import TransitionBatcher
+from services.common import (
+    add_service_arguments, default_process_id, resolve_config, run_paths, setup_logging,
+    stop_event_on_signals, zenoh_settings,
+)
+from shared.config import RunConfig
+from shared.env import ExploreEnv
+from shared.keys import RunKeys
+from shared.messages import EpisodeStats, MessageError, RejectCounter, WeightsMessage
+from shared.model import QNetwork, architecture_fingerprint, resolve_device
+from shared.policy import EpsilonGreedyPolicy, EpsilonSchedule
+from shared.transport import (
+    LivelinessWatch, declare_alive, declare_reliable_publisher, open_session, query_latest,
+    subscribe_messages,
+)
+from shared.weights import load_message
+
+log = logging.getLogger("cogexplore.actor")
+
+
+class WeightSlot:
+    """The newest weights seen, parked by Zenoh threads and taken by the env loop.
+
+    Holding only the newest means a slow actor skips versions instead of queueing them.
+    """
+
+    def __init__(self, fingerprint: str):
+        self.fingerprint = fingerprint
+        self._lock = threading.Lock()
+        self._newest: WeightsMessage | None = None
+        self.refused = 0
+
+    def offer(self, message: WeightsMessage, _key: str = "") -> None:
+        try:
+            message.check_fingerprint(self.fingerprint)
+        except MessageError as exc:
+            if self.refused == 0:
+                log.error("refusing weights: %s (is the learner running another model config?)", exc)
+            self.refused += 1
+            return
+        with self._lock:
+            if self._newest is None or message.policy_version > self._newest.policy_version:
+                self._newest = message
+
+    def take_newer_than(self, version: int) -> WeightsMessage | None:
+        with self._lock:
+            message = self._newest
+        return message if message is not None and message.policy_version > version else None
+
+
+def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
+              actor_index: int = 0, num_actors: int = 1, batch_steps: int = 16,
+              max_steps: int | None = None, seed: int | None = None) -> dict:
+    """The actor loop; returns counters when ``stop`` is set (or after ``max_steps`` env steps)."""
+    keys = RunKeys(run)
+    device = resolve_device(cfg.train.device if cfg.train.device != "auto" else "cpu")
+    torch.set_num_threads(1)  # several actors share the machine's cores with the learner
+    seed = cfg.train.seed * 1000 + actor_index + 1 if seed is None else seed
+    env = ExploreEnv(cfg.env, cfg.sensor)
+    net = QNetwork(cfg.model, cfg.sensor).to(device)
+    # The schedule runs on this actor's steps times the fleet size: an estimate of the global
+    # env-step count that needs no message from anyone.
+    policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed)
+    batcher = TransitionBatcher(actor_id, batch_steps)
+    slot = WeightSlot(architecture_fingerprint(net))
+    rejects = RejectCounter("weights message", log)
+    counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "weights_loaded": 0}
+    policy_version = 0
+
+    with open_session(settings, wait_s=30.0) as session:
+        token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
+        learners = LivelinessWatch(session, keys.all_alive("learner"))
+        weights_sub = subscribe_messages(session, keys.weights, WeightsMessage, slot.offer, rejects)  # noqa: F841
+        publisher = declare_reliable_publisher(session, keys.transitions(actor_id))
+        stats_publisher = session.declare_publisher(keys.episode_stats(actor_id))
+
+        def fetch_latest() -> None:  # on its own thread: the env loop never waits on a query
+            payload = query_latest(session, keys.weights_latest, timeout_s=5.0)
+            if payload is not None:
+                message = rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
+                if message is not None:
+                    slot.offer(message)
+
+        threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
+
+        obs, info = env.reset(seed=seed)
+        batcher.begin_episode(obs, info["start_index"])
+        episode_return, episode_start = 0.0, time.monotonic()
+        paused_since: float | None = None
+        while not stop.is_set() and (max_steps is None or counters["env_steps"] < max_steps):
+            if not learners.alive:
+                if paused_since is None:
+                    paused_since = time.monotonic()
+                    log.info("no learner alive on run %r: pausing", run)
+                learners.wait(bool, timeout_s=0.5)
+                continue
+            if paused_since is not None:
+                counters["paused_s"] += time.monotonic() - paused_since
+                paused_since = None
+                log.info("learner is back: resuming")
+                threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
+
+            message = slot.take_newer_than(policy_version)
+            if message is not None:
+                load_message(net, message)
+                policy_version = message.policy_version
+                counters["weights_loaded"] += 1
+
+            choice = policy.act(obs, step=counters["env_steps"] * num_actors)
+            action, epsilon = choice.action, choice.epsilon
+            next_obs, reward, terminated, truncated, info = env.step(action)
+            counters["env_steps"] += 1
+            episode_return += reward
+            batch = batcher.add(action, reward, next_obs, terminated, truncated, policy_version, info["pose"])
+            if batch is not None:
+                publisher.put(batch.encode())
+                counters["batches"] += 1
+            obs = next_obs
+            if terminated or truncated:
+                stats = EpisodeStats(
+                    actor_id=actor_id, episode=batcher.episode, start_index=info["start_index"],
+                    steps=info["step"], episode_return=episode_return, terminated=terminated,
+                    truncated=truncated, collision_cause=info["collision_cause"],
+                    path_length_m=info["path_length_m"], distance_from_start_m=info["distance_from_start_m"],
+                    epsilon=epsilon, policy_version=policy_version,
+                    duration_s=time.monotonic() - episode_start)
+                stats_publisher.put(stats.encode())
+                counters["episodes"] += 1
+                obs, info = env.reset()
+                batcher.begin_episode(obs, info["start_index"])
+                episode_return, episode_start = 0.0, time.monotonic()
+        learners.close()
+    env.close()
+    counters["policy_version"] = policy_version
+    counters["rejected_weights"] = rejects.total + slot.refused
+    return counters
+
+
+def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--actor-id", default=None, help="unique id (default: actor-<hostname>-<pid>)")
+    parser.add_argument("--actor-index", type=int, default=0,
+                        help="index i of this actor among --num-actors (per-actor epsilon, seeds)")
+    parser.add_argument("--num-actors", type=int, default=1, help="number of actors N (per-actor epsilon)")
+    parser.add_argument("--batch-steps", type=int, default=16, help="transitions per published batch")
+    parser.add_argument("--max-steps", type=int, default=None, help="stop after this many env steps")
+    parser.add_argument("--log-level", default="INFO")
+
+
+def run_actor_command(args: argparse.Namespace) -> int:
+    paths = run_paths(args)
+    actor_id = args.actor_id or default_process_id("actor")
+    setup_logging(args.log_level)
+    cfg = resolve_config(args, paths)
+    stop = stop_event_on_signals()
+    settings = zenoh_settings(args)
+    log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
+    counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=args.actor_index,
+                         num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps)
+    log.info("actor %s done: %s", actor_id, counters)
+    return 0

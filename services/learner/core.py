@@ -1,0 +1,125 @@
+"""The learner's algorithm side, without Zenoh: replay memory + DQN agent + the replay-ratio
+rule. Both the learner service and the single-process trainer drive one of these.
+
+Replay ratio r = updates per inserted transition (the paper's Algorithm 1: one update per
+environment step, r = 1). After ``warmup_transitions`` have arrived, update k is due once
+``r * (received - warmup) >= k``; the learner asks actors for data only up to the point
+where the ratio would fall behind (``transitions_wanted``), see shared.messages.FlowControl.
+"""
+
+from __future__ import annotations
+
+import collections
+import math
+import time
+from typing import Any, Hashable
+
+import numpy as np
+
+from shared.config import RunConfig
+from shared.dqn import DQNAgent
+from shared.messages import SHAPE, MessageError, TransitionBatch
+from shared.replay import ReplayMemory
+
+
+class LearnerCore:
+    def __init__(self, cfg: RunConfig, device: str = "auto"):
+        self.cfg = cfg
+        self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
+        self.replay = ReplayMemory(cfg.replay, (cfg.sensor.height, cfg.sensor.width), seed=cfg.train.seed)
+        self.received = 0
+        # Latest policy version seen in each actor's transitions: the weight lag is
+        # policy_version - this.
+        self.actor_versions: dict[str, int] = {}
+        self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
+        self._last_metrics: dict[str, Any] = {}
+
+    # -- data in ---------------------------------------------------------------------------
+    def add_transition(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
+                       next_obs: np.ndarray | None, terminated: bool, truncated: bool) -> None:
+        self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated)
+        self.received += 1
+
+    def ingest(self, batch: TransitionBatch) -> int:
+        """Store a validated TransitionBatch; returns the transitions added.
+
+        Raises MessageError(SHAPE) for frames of another sensor size (nothing is stored).
+        """
+        batch.require_frame_shape(self.cfg.sensor.height, self.cfg.sensor.width)
+        stream = (batch.actor_id, batch.episode)
+        last = batch.steps - 1
+        for i in range(batch.steps):
+            self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
+                                batch.next_depth(i), batch.terminated and i == last,
+                                batch.truncated and i == last)
+        self.actor_versions[batch.actor_id] = max(self.actor_versions.get(batch.actor_id, 0),
+                                                  int(batch.policy_version[-1]))
+        return batch.steps
+
+    # -- the ratio rule --------------------------------------------------------------------
+    @property
+    def updates(self) -> int:
+        return self.agent.update_count
+
+    def updates_due(self) -> int:
+        """Updates that may run now without exceeding the replay ratio or the total."""
+        t = self.cfg.train
+        if self.received < max(t.warmup_transitions, self.cfg.dqn.batch_size) or len(self.replay) == 0:
+            return 0
+        allowed = math.floor(t.replay_ratio * (self.received - t.warmup_transitions)) + 1
+        return max(0, min(allowed, t.total_updates) - self.updates)
+
+    def transitions_wanted(self, slack: int) -> int:
+        """Transitions the learner wants to have received in all: enough for every update up
+        to ``total_updates`` at the replay ratio, but no more than ``slack`` ahead of now."""
+        t = self.cfg.train
+        needed_for_next = t.warmup_transitions + math.ceil(self.updates / t.replay_ratio)
+        needed_for_all = t.warmup_transitions + math.ceil(t.total_updates / t.replay_ratio)
+        return min(needed_for_next + slack, needed_for_all)
+
+    @property
+    def done(self) -> bool:
+        return self.updates >= self.cfg.train.total_updates
+
+    # -- training --------------------------------------------------------------------------
+    def train_step(self) -> dict[str, Any]:
+        """Sample a batch and do one DQN update (prioritised replay priorities refreshed)."""
+        dqn = self.cfg.dqn
+        batch = self.replay.sample(dqn.batch_size, dqn.n_step)
+        metrics = self.agent.update(batch)
+        if self.cfg.replay.prioritized:
+            self.replay.update_priorities(batch.indices, metrics["td_errors"])
+        self._window.append((metrics["loss"], metrics["q_mean"]))
+        self._last_metrics = metrics
+        return metrics
+
+    def recent(self, n: int = 100) -> tuple[float | None, float | None]:
+        """Mean loss and mean Q over the last ``n`` updates."""
+        if not self._window:
+            return None, None
+        items = list(self._window)[-n:]
+        return float(np.mean([x[0] for x in items])), float(np.mean([x[1] for x in items]))
+
+    def weight_lag(self) -> dict[str, int]:
+        return {actor: self.agent.policy_version - v for actor, v in self.actor_versions.items()}
+
+
+class RateMeter:
+    """Events per second over a sliding window of wall time."""
+
+    def __init__(self, window_s: float = 10.0):
+        self.window_s = window_s
+        self._points: collections.deque = collections.deque()
+
+    def add(self, count: float, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        self._points.append((now, count))
+
+    def rate(self, now: float | None = None) -> float:
+        now = time.monotonic() if now is None else now
+        while self._points and now - self._points[0][0] > self.window_s:
+            self._points.popleft()
+        if len(self._points) < 2:
+            return 0.0
+        span = now - self._points[0][0]
+        return sum(c for _, c in list(self._points)[1:]) / max(span, 1e-9)
