@@ -92,7 +92,27 @@ def _bench_transport(args: argparse.Namespace) -> int:
     return 0
 
 
-# -- demo (make run, until the full training job lands) ----------------------------------
+# -- services and tools defined elsewhere: (module, add-arguments function, run function) ---
+
+def _lazy(module: str, run: str) -> Callable[[argparse.Namespace], int]:
+    def handler(args: argparse.Namespace) -> int:
+        import importlib
+
+        return getattr(importlib.import_module(module), run)(args)
+
+    return handler
+
+
+def _add_lazy(sub: Any, name: str, help_: str, module: str, add: str, run: str) -> None:
+    """A subcommand whose options and code live in ``module`` (imported only when used)."""
+    import importlib
+
+    p = sub.add_parser(name, help=help_, description=help_)
+    getattr(importlib.import_module(module), add)(p)
+    p.set_defaults(handler=_lazy(module, run))
+
+
+# -- demo ----------------------------------------------------------------------------------
 
 def _demo(args: argparse.Namespace) -> int:
     import numpy as np
@@ -180,6 +200,19 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("transport", "transitions/s through a loopback Zenoh router", _bench_transport, bsub)
     p.add_argument("--seconds", type=float, default=5.0)
     p.add_argument("--json", action="store_true", help="print JSON")
+
+    _add_lazy(sub, "up", "run router, learner, actors and evaluator locally (the embedded default)",
+              "services.launcher", "add_up_arguments", "run_up_command")
+    _add_lazy(sub, "train", "train in one process (the paper's Algorithm 1; reference and baseline)",
+              "services.trainer", "add_train_arguments", "run_train_command")
+    _add_lazy(sub, "router", "run a Zenoh router (default tcp/0.0.0.0:7447)",
+              "services.router", "add_arguments", "run")
+    _add_lazy(sub, "learner", "run the learner service", "services.learner.service",
+              "add_learner_arguments", "run_learner_command")
+    _add_lazy(sub, "actor", "run one actor service (joins a run through its router)",
+              "services.actor.service", "add_actor_arguments", "run_actor_command")
+    _add_lazy(sub, "evaluate", "run the paper's test protocol on a checkpoint or a baseline policy",
+              "services.evaluator.evaluate", "add_evaluate_arguments", "run_evaluate")
 
     p = add("demo", "random-policy rollouts from every start, drawn on the map", _demo)
     p.add_argument("--world", default="paper-indoor")

@@ -12,7 +12,9 @@ publishing into the void, and resumes by itself when one is back.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
+import os
 import threading
 import time
 
@@ -23,10 +25,10 @@ from services.common import (
     add_service_arguments, default_process_id, resolve_config, run_paths, setup_logging,
     stop_event_on_signals, zenoh_settings,
 )
-from shared.config import RunConfig
+from shared.config import ConfigError, RunConfig
 from shared.env import ExploreEnv
 from shared.keys import RunKeys
-from shared.messages import EpisodeStats, MessageError, RejectCounter, WeightsMessage
+from shared.messages import EpisodeStats, FlowControl, MessageError, RejectCounter, WeightsMessage
 from shared.model import QNetwork, architecture_fingerprint, resolve_device
 from shared.policy import EpsilonGreedyPolicy, EpsilonSchedule
 from shared.transport import (
@@ -68,6 +70,32 @@ class WeightSlot:
         return message if message is not None and message.policy_version > version else None
 
 
+class FlowGate:
+    """The learner's replay-ratio credit (FlowControl) as seen by one actor: it may step
+    while the learner still wants transitions beyond what it has received and what this
+    actor has sent since that credit was issued."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._credit: int | None = None  # None: no word from the learner yet
+        self._sent_since = 0
+        self.changed = threading.Event()
+
+    def on_flow(self, message: FlowControl, _key: str = "") -> None:
+        with self._lock:
+            self._credit = message.credit
+            self._sent_since = 0
+        self.changed.set()
+
+    def sent(self, transitions: int) -> None:
+        with self._lock:
+            self._sent_since += transitions
+
+    def open(self) -> bool:
+        with self._lock:
+            return self._credit is None or self._credit - self._sent_since > 0
+
+
 def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
               actor_index: int = 0, num_actors: int = 1, batch_steps: int = 16,
               max_steps: int | None = None, seed: int | None = None) -> dict:
@@ -84,13 +112,16 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     batcher = TransitionBatcher(actor_id, batch_steps)
     slot = WeightSlot(architecture_fingerprint(net))
     rejects = RejectCounter("weights message", log)
-    counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "weights_loaded": 0}
+    gate = FlowGate()
+    counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
+                "weights_loaded": 0}
     policy_version = 0
 
     with open_session(settings, wait_s=30.0) as session:
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
         learners = LivelinessWatch(session, keys.all_alive("learner"))
         weights_sub = subscribe_messages(session, keys.weights, WeightsMessage, slot.offer, rejects)  # noqa: F841
+        flow_sub = subscribe_messages(session, keys.flow, FlowControl, gate.on_flow, rejects)  # noqa: F841
         publisher = declare_reliable_publisher(session, keys.transitions(actor_id))
         stats_publisher = session.declare_publisher(keys.episode_stats(actor_id))
 
@@ -120,6 +151,15 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 log.info("learner is back: resuming")
                 threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
 
+            if not gate.open():
+                # The learner is behind the replay ratio: wait for its next credit rather than
+                # take CPU from it (both usually share a machine).
+                held = time.monotonic()
+                gate.changed.clear()
+                gate.changed.wait(0.5)
+                counters["throttled_s"] += time.monotonic() - held
+                continue
+
             message = slot.take_newer_than(policy_version)
             if message is not None:
                 load_message(net, message)
@@ -134,6 +174,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
             batch = batcher.add(action, reward, next_obs, terminated, truncated, policy_version, info["pose"])
             if batch is not None:
                 publisher.put(batch.encode())
+                gate.sent(batch.steps)
                 counters["batches"] += 1
             obs = next_obs
             if terminated or truncated:
@@ -159,9 +200,11 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
 def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
     add_service_arguments(parser)
     parser.add_argument("--actor-id", default=None, help="unique id (default: actor-<hostname>-<pid>)")
-    parser.add_argument("--actor-index", type=int, default=0,
-                        help="index i of this actor among --num-actors (per-actor epsilon, seeds)")
-    parser.add_argument("--num-actors", type=int, default=1, help="number of actors N (per-actor epsilon)")
+    parser.add_argument("--actor-index", type=int, default=None,
+                        help="index i of this actor among --num-actors (per-actor epsilon, seed); default: "
+                             "derived from the actor id, so scaled replicas differ")
+    parser.add_argument("--num-actors", type=int, default=int(os.environ.get("COGEXPLORE_NUM_ACTORS", "1")),
+                        help="number of actors N, for per-actor epsilon (env COGEXPLORE_NUM_ACTORS; default 1)")
     parser.add_argument("--batch-steps", type=int, default=16, help="transitions per published batch")
     parser.add_argument("--max-steps", type=int, default=None, help="stop after this many env steps")
     parser.add_argument("--log-level", default="INFO")
@@ -175,7 +218,16 @@ def run_actor_command(args: argparse.Namespace) -> int:
     stop = stop_event_on_signals()
     settings = zenoh_settings(args)
     log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
-    counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=args.actor_index,
-                         num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps)
+    if args.num_actors < 1:
+        raise ConfigError(f"--num-actors must be >= 1, got {args.num_actors}")
+    # A stable hash (not Python's salted hash()) so that a restarted actor keeps its slot.
+    digest = int(hashlib.sha256(actor_id.encode()).hexdigest()[:12], 16)
+    index = args.actor_index if args.actor_index is not None else digest % args.num_actors
+    if not 0 <= index < args.num_actors:
+        raise ConfigError(f"--actor-index must be in [0, {args.num_actors}), got {index}")
+    seed = cfg.train.seed * 1000 + (index if args.actor_index is not None else digest % 100_000) + 1
+    counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=index,
+                         num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps,
+                         seed=seed)
     log.info("actor %s done: %s", actor_id, counters)
     return 0

@@ -31,6 +31,7 @@ class LearnerCore:
         # Latest policy version seen in each actor's transitions: the weight lag is
         # policy_version - this.
         self.actor_versions: dict[str, int] = {}
+        self.received_by_actor: collections.Counter = collections.Counter()
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
         self._last_metrics: dict[str, Any] = {}
 
@@ -52,6 +53,7 @@ class LearnerCore:
             self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
                                 batch.next_depth(i), batch.terminated and i == last,
                                 batch.truncated and i == last)
+        self.received_by_actor[batch.actor_id] += batch.steps
         self.actor_versions[batch.actor_id] = max(self.actor_versions.get(batch.actor_id, 0),
                                                   int(batch.policy_version[-1]))
         return batch.steps

@@ -1,0 +1,317 @@
+"""The evaluator process: the test protocol on the newest weights, every K learner updates.
+
+    cogexplore evaluator --run NAME --connect tcp/<router-host>:7447 [--every-updates 1000] [--full] [--once]
+    python -m services.evaluator ...            (the same)
+
+On start it announces itself (liveliness ``alive/evaluator/<id>``), asks the learner's
+queryable for its newest weights, then follows the ``weights`` stream. The Zenoh callback only
+parks the newest message; the main loop takes it and evaluates it when it is due: the first
+weights it sees, then whenever the policy version (the learner's update count at publication)
+enters a new multiple of ``--every-updates``. A message for another architecture (fingerprint)
+or one that does not decode is counted by cause and dropped; the service carries on.
+
+Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 10 per start)
+
+- publishes an ``EvalResult`` on ``stats/eval/<id>``;
+- appends one JSON line to ``runs/<run>/stats/eval.jsonl`` (summary, per start, rejects);
+- saves the results JSON to ``runs/<run>/stats/eval/eval-<version:06d>.json`` (the report
+  reuses it when the run's checkpoint holds the same weights);
+- writes a Rerun recording to ``runs/<run>/recordings/eval-<version:06d>.rrd`` (every
+  ``--image-every``-th depth image, every step's pose, Q-values and command).
+
+SIGINT/SIGTERM (or the ``stop`` event in tests) ends the loop within one environment step; the
+session, and with it the liveliness token, is closed on the way out.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import threading
+import time
+from dataclasses import asdict
+from pathlib import Path
+from typing import Any
+
+os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
+
+import torch
+
+from services.common import (
+    add_service_arguments, default_process_id, resolve_config, run_paths, setup_logging,
+    stop_event_on_signals, zenoh_settings,
+)
+from services.evaluator.evaluate import EvaluationCancelled, evaluate_policy, weights_sha256
+from services.evaluator.policies import GreedyPolicy
+from services.evaluator.results import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS, EvalResults, save_results
+from shared.config import RunConfig
+from shared.keys import RunKeys, validate_name
+from shared.messages import SHAPE, EvalResult, MessageError, RejectCounter, WeightsMessage
+from shared.model import ModelError, QNetwork, architecture_fingerprint, resolve_device
+from shared.transport import (
+    TransportError, ZenohSettings, declare_alive, open_session, put_reliable, query_latest, subscribe_messages,
+)
+from shared.weights import load_message
+
+log = logging.getLogger("cogexplore.evaluator")
+
+DEFAULT_EVERY_UPDATES = 1000
+CHEAP_EPISODES_PER_START = 1
+DEFAULT_IMAGE_EVERY = 10
+EVAL_LOG = "eval.jsonl"
+
+
+def recording_path(recordings: Path, policy_version: int) -> Path:
+    """``recordings/eval-<version:06d>.rrd``."""
+    return recordings / f"eval-{policy_version:06d}.rrd"
+
+
+class EvaluatorService:
+    """Evaluates the newest weights of one run; ``run(stop)`` is the process's main loop."""
+
+    def __init__(self, cfg: RunConfig, run: str, root: Path, settings: ZenohSettings, evaluator_id: str, *,
+                 every_updates: int = DEFAULT_EVERY_UPDATES, episodes_per_start: int = CHEAP_EPISODES_PER_START,
+                 max_steps: int = PAPER_MAX_STEPS, world: str | None = None, image_every: int = DEFAULT_IMAGE_EVERY,
+                 record: bool = True, seed: int = 0, device: str = "cpu", query_timeout_s: float = 2.0,
+                 connect_wait_s: float = 30.0):
+        for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),
+                            ("max_steps", max_steps), ("image_every", image_every)):
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        self.cfg = cfg
+        self.run_name = validate_name(run, "run name")
+        self.keys = RunKeys(run)
+        self.root = Path(root)
+        self.settings = settings
+        self.evaluator_id = validate_name(evaluator_id, "evaluator id")
+        self.every_updates = every_updates
+        self.episodes_per_start = episodes_per_start
+        self.max_steps = max_steps
+        self.world = world or cfg.env.world
+        self.image_every = image_every
+        self.record = record
+        self.seed = seed
+        self.query_timeout_s = query_timeout_s
+        self.connect_wait_s = connect_wait_s
+        self.device = resolve_device(device)
+        self.net = QNetwork(cfg.model, cfg.sensor).to(self.device).eval()
+        self.fingerprint = architecture_fingerprint(self.net)
+        self.policy = GreedyPolicy(self.net)
+        self.rejects = RejectCounter("weights message", log)
+        self.last_version: int | None = None
+        self.evaluations: list[dict[str, Any]] = []
+        """The JSON rows written so far (newest last)."""
+        self._pending: WeightsMessage | None = None
+        self._arrived = threading.Condition()
+
+    # -- weights in (Zenoh threads) ------------------------------------------------------------
+
+    def offer(self, message: WeightsMessage, key: str = "") -> None:
+        """Park ``message`` if it fits this network and is the newest seen; never evaluates."""
+        try:
+            message.check_fingerprint(self.fingerprint)
+        except MessageError as exc:
+            self.rejects.reject(exc, key or None)
+            return
+        with self._arrived:
+            if self._pending is None or message.policy_version > self._pending.policy_version:
+                self._pending = message
+                self._arrived.notify_all()
+
+    def take(self, timeout_s: float) -> WeightsMessage | None:
+        """The newest parked message (waiting up to ``timeout_s`` for one), or None."""
+        with self._arrived:
+            self._arrived.wait_for(lambda: self._pending is not None, timeout_s)
+            message, self._pending = self._pending, None
+            return message
+
+    def due(self, policy_version: int) -> bool:
+        """The first weights, then each that enters a new multiple of ``every_updates``."""
+        if self.last_version is None:
+            return True
+        if policy_version <= self.last_version:
+            return False
+        return policy_version // self.every_updates > self.last_version // self.every_updates
+
+    # -- one evaluation -------------------------------------------------------------------------
+
+    def evaluate(self, message: WeightsMessage, stop: threading.Event | None = None,
+                 session: Any = None) -> dict[str, Any] | None:
+        """Load ``message`` and run the protocol; write, record and publish the result.
+        Returns the JSON row, or None when the weights do not load (counted as a reject)."""
+        version = message.policy_version
+        try:
+            load_message(self.net, message)
+        except MessageError as exc:
+            self.rejects.reject(exc, self.keys.weights)
+            return None
+        except ModelError as exc:  # names or shapes that do not fit despite the fingerprint
+            self.rejects.reject(MessageError(SHAPE, str(exc)), self.keys.weights)
+            return None
+        self.last_version = version
+        stats = self.root / "stats"
+        rrd = recording_path(self.root / "recordings", version) if self.record else None
+        log.info("evaluating policy version %d on %s (%d episode(s) per start, %d steps)", version, self.world,
+                 self.episodes_per_start, self.max_steps)
+        started = time.monotonic()
+        meta = {"policy": "greedy", "model": f"{self.run_name}@{version}", "policy_version": version,
+                "fingerprint": self.fingerprint, "weights_sha256": weights_sha256(self.net),
+                "evaluator_id": self.evaluator_id}
+        results = evaluate_policy(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
+                                  episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
+                                  seed=self.seed, rrd=rrd, image_every=self.image_every, policy_version=version,
+                                  recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
+                                  stop=stop)
+        duration = time.monotonic() - started
+        save_results(results, stats / "eval" / f"eval-{version:06d}.json")
+        summary = results.summary
+        row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, "policy_version": version,
+               "world": self.world, "episodes_per_start": self.episodes_per_start, "max_steps": self.max_steps,
+               "seed": self.seed, "duration_s": round(duration, 3), "summary": summary["overall"],
+               "per_start": summary["per_start"], "recording": str(rrd) if rrd is not None else None,
+               "rejected_weights": self.rejects.counts}
+        stats.mkdir(parents=True, exist_ok=True)
+        with open(stats / EVAL_LOG, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        self.evaluations.append(row)
+        if session is not None:
+            put_reliable(session, self.keys.eval_results(self.evaluator_id),
+                         self.result_message(results, duration).encode())
+        o = summary["overall"]
+        log.info("policy version %d: mean steps %.1f, distance %.2f m, coverage %.1f %%, collisions %s, "
+                 "capped %d (%.1f s)", version, o["mean_steps"], o["mean_distance_m"], o["mean_coverage_pct"],
+                 o["collisions"], o["reached_cap"], duration)
+        return row
+
+    def result_message(self, results: EvalResults, duration_s: float) -> EvalResult:
+        """The wire form of an evaluation (one entry per episode, the summary in ``extra``)."""
+        eps = results.episodes
+        o = results.summary["overall"]
+        extra = {"mean_steps": o["mean_steps"], "mean_distance_m": o["mean_distance_m"],
+                 "mean_path_length_m": o["mean_path_length_m"], "mean_coverage_m2": o["mean_coverage_m2"],
+                 "mean_coverage_pct": o["mean_coverage_pct"], "reached_cap": o["reached_cap"],
+                 "episodes_per_start": self.episodes_per_start, "duration_s": duration_s,
+                 **{f"collisions_{cause}": n for cause, n in o["collisions"].items()}}
+        return EvalResult(evaluator_id=self.evaluator_id, policy_version=int(results.meta["policy_version"]),
+                          world=self.world, speed_table="test", max_steps=self.max_steps,
+                          start_index=tuple(e.start_index for e in eps), steps=tuple(e.steps for e in eps),
+                          collided=tuple(e.terminated for e in eps),
+                          path_length_m=tuple(e.path_length_m for e in eps), extra=extra)
+
+    # -- the loop -----------------------------------------------------------------------------
+
+    def fetch_latest(self, session: Any) -> None:
+        """Ask the learner's queryable for its newest weights and park them."""
+        payload = query_latest(session, self.keys.weights_latest, timeout_s=self.query_timeout_s)
+        if payload is None:
+            log.info("no answer from %s yet: waiting for the weights stream", self.keys.weights_latest)
+            return
+        message = self.rejects.decode(payload, WeightsMessage, source=self.keys.weights_latest)
+        if message is not None:
+            self.offer(message, self.keys.weights_latest)
+
+    def run(self, stop: threading.Event, once: bool = False, wait_weights_s: float = 60.0) -> int:
+        """Evaluate until ``stop`` is set (or, with ``once``, the latest weights once). Returns
+        a process exit status: 0, or 1 when ``once`` found no weights within ``wait_weights_s``."""
+        with open_session(self.settings, wait_s=self.connect_wait_s) as session:
+            subscriber = subscribe_messages(session, self.keys.weights, WeightsMessage, self.offer, self.rejects)
+            # Announced once subscribed: whoever sees the token can publish weights to us.
+            token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))
+            log.info("evaluator %s on run %r: every %d updates, %d episode(s) per start, world %s",
+                     self.evaluator_id, self.run_name, self.every_updates, self.episodes_per_start, self.world)
+            try:
+                self.fetch_latest(session)
+                deadline = time.monotonic() + wait_weights_s
+                while not stop.is_set():
+                    message = self.take(timeout_s=0.2)
+                    if message is None:
+                        if once and time.monotonic() > deadline:
+                            log.error("no weights for run %r within %.0f s (is the learner running?)",
+                                      self.run_name, wait_weights_s)
+                            return 1
+                        continue
+                    if not once and not self.due(message.policy_version):
+                        continue
+                    try:
+                        row = self.evaluate(message, stop, session)
+                    except EvaluationCancelled:
+                        log.info("evaluation of version %d cancelled", message.policy_version)
+                        break
+                    if once and row is not None:
+                        return 0
+                return 0
+            finally:
+                subscriber.undeclare()
+                token.undeclare()
+                log.info("evaluator %s stopping (rejected weights: %s)", self.evaluator_id,
+                         self.rejects.counts or "none")
+
+
+# ---------------------------------------------------------------------------------------------
+# The command
+# ---------------------------------------------------------------------------------------------
+
+
+def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of ``cogexplore evaluator`` (and ``python -m services.evaluator``)."""
+    add_service_arguments(parser)
+    parser.add_argument("--id", default=None, help="evaluator id (default: evaluator-<host>-<pid>)")
+    parser.add_argument("--every-updates", type=int, default=DEFAULT_EVERY_UPDATES, metavar="K",
+                        help=f"evaluate when the policy version enters a new multiple of K (default "
+                             f"{DEFAULT_EVERY_UPDATES})")
+    parser.add_argument("--full", action="store_true",
+                        help=f"the paper's full protocol: {PAPER_EPISODES_PER_START} episodes per start "
+                             f"(default {CHEAP_EPISODES_PER_START})")
+    parser.add_argument("--episodes-per-start", type=int, default=None, metavar="N",
+                        help="episodes per start (overrides --full)")
+    parser.add_argument("--max-steps", type=int, default=PAPER_MAX_STEPS, metavar="N",
+                        help=f"moving steps per episode at most (default {PAPER_MAX_STEPS})")
+    parser.add_argument("--world", default=None, help="world to evaluate in (default: the run config's)")
+    parser.add_argument("--image-every", type=int, default=DEFAULT_IMAGE_EVERY, metavar="N",
+                        help=f"record every N-th depth image (default {DEFAULT_IMAGE_EVERY})")
+    parser.add_argument("--no-record", action="store_true", help="no Rerun recordings")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
+    parser.add_argument("--once", action="store_true", help="evaluate the latest weights once and exit")
+    parser.add_argument("--wait-weights", type=float, default=60.0, metavar="SECONDS",
+                        help="with --once: how long to wait for weights (default 60)")
+    parser.add_argument("--query-timeout", type=float, default=2.0, metavar="SECONDS",
+                        help="timeout of the start-up query for the latest weights (default 2)")
+    parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
+
+
+def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """``cogexplore evaluator``: returns a process exit status (2: bad options, 1: no router or,
+    with ``--once``, no weights). ``stop`` (tests) replaces the SIGINT/SIGTERM handlers."""
+    try:
+        evaluator_id = validate_name(args.id or default_process_id("evaluator"), "evaluator id")
+        paths = run_paths(args)
+        setup_logging(args.log_level, paths.logs / f"{evaluator_id}.log")
+        cfg = resolve_config(args, paths)
+        # Like the actors, 'auto' means CPU here: the GPU, if any, belongs to the learner.
+        device = cfg.train.device if cfg.train.device != "auto" else "cpu"
+        episodes = args.episodes_per_start or (PAPER_EPISODES_PER_START if args.full else CHEAP_EPISODES_PER_START)
+        service = EvaluatorService(cfg, args.run, paths.root, zenoh_settings(args), evaluator_id,
+                                   every_updates=args.every_updates, episodes_per_start=episodes,
+                                   max_steps=args.max_steps, world=args.world, image_every=args.image_every,
+                                   record=not args.no_record, seed=args.seed, device=device,
+                                   query_timeout_s=args.query_timeout)
+    except (ValueError, ModelError) as exc:  # config, world, run name, device: the message says which
+        print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
+        return 2
+    if torch.get_num_threads() > 2:
+        torch.set_num_threads(2)  # share the machine with the learner and the actors
+    stop = stop if stop is not None else stop_event_on_signals()
+    try:
+        return service.run(stop, once=args.once, wait_weights_s=args.wait_weights)
+    except TransportError as exc:
+        log.error("%s", exc)
+        return 1
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m services.evaluator", description=__doc__.split("\n\n")[0])
+    add_evaluator_arguments(parser)
+    return run_evaluator(parser.parse_args(argv))

@@ -1,0 +1,235 @@
+"""The learner process: transitions in, DQN updates at the replay ratio, weights out.
+
+    cogexplore learner --run NAME --preset fast
+
+Zenoh callbacks only decode, validate and queue; one loop owns the replay memory and the
+agent: drain the queue into replay -> run the updates that are due -> publish weights every
+``--weights-every`` updates (from a sender thread that keeps only the newest, so a slow
+link never stalls training) -> publish flow control and statistics -> checkpoint. On start
+with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIGINT or at
+``total_updates`` it writes a final checkpoint and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import logging
+import queue
+import threading
+import time
+
+import torch
+
+from services.common import (
+    RunPaths, add_service_arguments, default_process_id, resolve_config, run_paths, save_config,
+    setup_logging, stop_event_on_signals, zenoh_settings,
+)
+from services.learner.core import LearnerCore, RateMeter
+from shared.checkpoint import CheckpointError, CheckpointManager
+from shared.config import RunConfig
+from shared.keys import RunKeys, parse_key
+from shared.messages import FlowControl, LearnerStats, MessageError, RejectCounter, TransitionBatch
+from shared.transport import (
+    LivelinessWatch, declare_alive, declare_reliable_publisher, open_session, serve_latest,
+    subscribe_messages,
+)
+from shared.weights import to_message
+
+log = logging.getLogger("cogexplore.learner")
+
+STATS_COLUMNS = ("time_s", "update", "policy_version", "loss", "mean_q", "updates_per_s", "transitions",
+                 "transitions_per_s", "replay_size", "rejected", "actors_alive", "mean_weight_lag")
+
+
+class LatestSender:
+    """Publishes the newest weights on its own thread; older unsent versions are skipped."""
+
+    def __init__(self, publisher, name: str = "weights-sender"):
+        self._publisher = publisher
+        self._cond = threading.Condition()
+        self._pending: bytes | None = None
+        self._closed = False
+        self.latest: bytes | None = None  # also served to queries
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    def offer(self, payload: bytes) -> None:
+        with self._cond:
+            self._pending = payload
+            self.latest = payload
+            self._cond.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending is not None or self._closed)
+                if self._closed:
+                    return
+                payload, self._pending = self._pending, None
+            try:
+                self._publisher.put(payload)
+            except Exception:
+                log.exception("publishing weights failed")
+
+    def close(self) -> None:
+        with self._cond:
+            self._closed = True
+            self._cond.notify()
+        self._thread.join(timeout=5.0)
+
+
+def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threading.Event, *,
+                learner_id: str = "learner", weights_every: int = 25, stats_every_s: float = 1.0,
+                flow_slack: int | None = None, device: str | None = None, save_replay: bool = True) -> dict:
+    """The learner loop. Returns final counters."""
+    keys = RunKeys(run)
+    paths.make()
+    core = LearnerCore(cfg, device=device or cfg.train.device)
+    checkpoints = CheckpointManager(paths.checkpoints)
+    resume_from(checkpoints, core)
+    config_dict = cfg.to_dict()
+
+    def save_checkpoint() -> None:
+        checkpoints.save(core.agent, replay=core.replay if save_replay else None, config=config_dict,
+                         extra={"transitions_received": core.received})
+    inbox: queue.Queue[TransitionBatch] = queue.Queue(maxsize=4096)
+    rejects = RejectCounter("transition batch", log)
+    flow_slack = flow_slack if flow_slack is not None else max(256, 4 * cfg.dqn.batch_size)
+    update_rate, transition_rate = RateMeter(), RateMeter()
+    stats_file = paths.stats / "learner.csv"
+    new_file = not stats_file.exists()
+    started = time.monotonic()
+
+    def on_batch(batch: TransitionBatch, key: str) -> None:
+        if parse_key(key).source != batch.actor_id:
+            rejects.reject(MessageError("inconsistent", f"actor id {batch.actor_id!r} sent on {key}"), key)
+            return
+        try:
+            inbox.put_nowait(batch)
+        except queue.Full:
+            rejects.reject(MessageError("oversize", "learner inbox full"), key)
+
+    with open_session(settings, wait_s=30.0) as session, open(stats_file, "a", newline="") as stats_fh:
+        writer = csv.writer(stats_fh)
+        if new_file:
+            writer.writerow(STATS_COLUMNS)
+        token = declare_alive(session, keys.alive("learner", learner_id))  # noqa: F841
+        actors = LivelinessWatch(session, keys.all_alive("actor"))
+        sender = LatestSender(declare_reliable_publisher(session, keys.weights))
+        queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
+        sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects)  # noqa: F841
+        flow_pub = session.declare_publisher(keys.flow)
+        stats_pub = session.declare_publisher(keys.learner_stats(learner_id))
+        sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+
+        last_stats = last_flow = 0.0
+        last_published = core.updates
+        while not stop.is_set() and not core.done:
+            # 1. data in
+            drained = 0
+            while True:
+                try:
+                    batch = inbox.get_nowait()
+                except queue.Empty:
+                    break
+                try:
+                    drained += core.ingest(batch)
+                except (MessageError, ValueError) as exc:
+                    rejects.reject(exc if isinstance(exc, MessageError) else MessageError("inconsistent", str(exc)),
+                                   batch.actor_id)
+            if drained:
+                transition_rate.add(drained)
+            # 2. updates that are due (a few at a time, so data and control keep flowing)
+            due = min(core.updates_due(), 8)
+            for _ in range(due):
+                core.train_step()
+                update_rate.add(1)
+            if core.updates - last_published >= weights_every:
+                sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+                last_published = core.updates
+            if core.updates and core.updates % cfg.train.checkpoint_every == 0 and due:
+                save_checkpoint()
+            # 3. control and statistics
+            now = time.monotonic()
+            if now - last_flow >= 0.1 or due:
+                flow_pub.put(FlowControl(learner_id=learner_id, updates=core.updates,
+                                         transitions_received=core.received,
+                                         transitions_wanted=core.transitions_wanted(flow_slack)).encode())
+                last_flow = now
+            if now - last_stats >= stats_every_s:
+                loss, mean_q = core.recent()
+                lag = core.weight_lag()
+                live = len(actors.alive)
+                stats = LearnerStats(
+                    learner_id=learner_id, updates=core.updates, policy_version=core.agent.policy_version,
+                    replay_size=len(core.replay), transitions_received=core.received,
+                    transitions_rejected=rejects.total, loss=loss, mean_q=mean_q,
+                    updates_per_s=update_rate.rate(now), transitions_per_s=transition_rate.rate(now),
+                    uptime_s=now - started, rejects=rejects.counts,
+                    extra={"actors_alive": live,
+                           "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
+                           **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[:24]},
+                           **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[:24]}})
+                stats_pub.put(stats.encode())
+                writer.writerow([round(now - started, 3), core.updates, core.agent.policy_version,
+                                 "" if loss is None else f"{loss:.6g}", "" if mean_q is None else f"{mean_q:.6g}",
+                                 f"{stats.updates_per_s:.3f}", core.received, f"{stats.transitions_per_s:.1f}",
+                                 len(core.replay), rejects.total, live, f"{stats.extra['mean_weight_lag']:.2f}"])
+                stats_fh.flush()
+                last_stats = now
+            if not drained and not due:
+                time.sleep(0.005)  # idle: wait for data without spinning a core
+
+        # Final: weights out (actors and evaluator see the last version), checkpoint.
+        sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+        save_checkpoint()
+        time.sleep(0.2)  # let the sender thread hand the final weights to Zenoh
+        sender.close()
+        actors.close()
+    return {"updates": core.updates, "transitions": core.received, "rejected": rejects.total,
+            "rejects": rejects.counts, "replay_size": len(core.replay)}
+
+
+def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--learner-id", default="learner", help="learner id (default: learner)")
+    parser.add_argument("--updates", type=int, default=None, help="override train.total_updates")
+    parser.add_argument("--weights-every", type=int, default=25, help="updates between weight publications")
+    parser.add_argument("--log-level", default="INFO")
+
+
+def run_learner_command(args: argparse.Namespace) -> int:
+    paths = run_paths(args).make()
+    setup_logging(args.log_level, paths.logs / "learner-service.log")
+    cfg = resolve_config(args, paths)
+    if args.updates is not None:
+        cfg = cfg.with_overrides({"train.total_updates": args.updates})
+    if not paths.config.exists():
+        save_config(cfg, paths)
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    stop = stop_event_on_signals()
+    settings = zenoh_settings(args)
+    log.info("learner %s for run %r via %s", args.learner_id, args.run, settings.describe())
+    result = run_learner(cfg, args.run, paths, settings, stop, learner_id=args.learner_id,
+                         weights_every=args.weights_every)
+    log.info("learner done: %s", result)
+    return 0
+
+
+def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
+    """Restore the newest checkpoint that loads (agent, and replay when it was saved)."""
+    checkpoint = checkpoints.load_latest()
+    for reason in checkpoints.skipped:
+        log.warning("skipped a checkpoint: %s", reason)
+    if checkpoint is None:
+        return False
+    try:
+        checkpoint.restore(core.agent, core.replay if checkpoint.replay_path is not None else None)
+    except CheckpointError as exc:
+        log.error("cannot resume from %s: %s; starting fresh", checkpoint.path, exc)
+        return False
+    core.received = int(checkpoint.extra.get("transitions_received", len(core.replay)))
+    log.info("resumed from %s at update %d (%d transitions in replay)", checkpoint.path.name,
+             core.updates, len(core.replay))
+    return True
