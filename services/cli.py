@@ -211,8 +211,12 @@ def build_parser() -> argparse.ArgumentParser:
               "add_learner_arguments", "run_learner_command")
     _add_lazy(sub, "actor", "run one actor service (joins a run through its router)",
               "services.actor.service", "add_actor_arguments", "run_actor_command")
+    _add_lazy(sub, "evaluator", "run the evaluator service (tests the newest weights every K updates)",
+              "services.evaluator.service", "add_evaluator_arguments", "run_evaluator")
     _add_lazy(sub, "evaluate", "run the paper's test protocol on a checkpoint or a baseline policy",
               "services.evaluator.evaluate", "add_evaluate_arguments", "run_evaluate")
+    _add_lazy(sub, "report", "the paper's tables and figures (PNG + Markdown) for a run",
+              "services.evaluator.report", "add_report_arguments", "run_report")
 
     p = add("demo", "random-policy rollouts from every start, drawn on the map", _demo)
     p.add_argument("--world", default="paper-indoor")

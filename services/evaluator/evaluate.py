@@ -33,19 +33,18 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 
 import torch
 
-from services.evaluator.policies import BASELINE_POLICIES, POLICY_NAMES, PolicyError, PolicyFn, make_policy
+from services.evaluator.policies import BASELINE_POLICIES, POLICY_NAMES, PolicyFn, make_policy
 from services.evaluator.results import (
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
     EvalResults,
-    ResultsError,
     aggregate,
     run_protocol,
     save_results,
     table_markdown,
 )
 from shared.config import ConfigError, EnvConfig, RunConfig, SensorConfig, from_dict, load_preset, parse_override
-from shared.world import WorldError, load_world
+from shared.world import load_world
 
 log = logging.getLogger("cogexplore.evaluate")
 

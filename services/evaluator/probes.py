@@ -142,7 +142,9 @@ def load_probes(directory: str | Path = PROBE_DIR, sensor_cfg: SensorConfig | No
                 (d / f"{scene.name}.npy").exists():
             depth, notes = load_probe_image(d / f"{scene.name}.npy", cfg)
         else:
-            depth, notes = render_probe(scene, cfg), (f"rendered for a {cfg.width}x{cfg.height} sensor",)
+            depth = render_probe(scene, cfg)
+            notes = (f"probe scenes rendered from their stored poses for the {cfg.width}x{cfg.height} sensor "
+                     f"(the stored images are {stored.get('width')}x{stored.get('height')})",)
         probes.append(Probe(scene.name, depth, meta, tuple(notes)))
     return probes
 

@@ -8,9 +8,9 @@ Into ``RUN_DIR/report/`` (or ``--out``), linked from ``report.md``:
 - Table III (Count / Distance per start, plus coverage) for the run's latest checkpoint, each
   ``--compare`` checkpoint and the ``random`` and ``reactive`` baselines, with collisions by
   cause and capped episodes per model. Results JSON already in the run (``report/results/``,
-  ``stats/``, the run folder) is reused when its checkpoint weights and protocol match;
-  everything else is evaluated (the full protocol, 10 episodes per start, by default) and
-  saved to ``report/results/`` for next time;
+  the evaluator service's ``stats/eval/``, ``stats/``, the run folder) is reused when its
+  weights and protocol match; everything else is evaluated (the full protocol, 10 episodes per
+  start, by default) and saved to ``report/results/`` for next time;
 - trajectory heatmaps per model and side by side (Fig. 6);
 - the loss curve over learner updates (Fig. 5) from ``stats/learner.csv``, and the evaluator
   service's mean steps per policy version from ``stats/eval.jsonl``, when they exist;
@@ -34,7 +34,14 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 
 import numpy as np
 
-from services.evaluator.evaluate import EvalSetup, LoadedModel, evaluate_policy, load_model, resolve_checkpoint, setup_evaluation
+from services.evaluator.evaluate import (
+    EvalSetup,
+    LoadedModel,
+    evaluate_policy,
+    load_model,
+    resolve_checkpoint,
+    setup_evaluation,
+)
 from services.evaluator.results import (
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
@@ -147,7 +154,8 @@ def load_eval_log(path: Path) -> list[dict[str, Any]]:
             row = json.loads(line)
         except json.JSONDecodeError:
             continue
-        if isinstance(row, dict) and isinstance(row.get("policy_version"), int) and isinstance(row.get("summary"), dict):
+        if (isinstance(row, dict) and isinstance(row.get("policy_version"), int)
+                and isinstance(row.get("summary"), dict)):
             rows.append(row)
     return sorted(rows, key=lambda r: r["policy_version"])
 
@@ -209,6 +217,12 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     notes = report.notes
     run_cfg = load_preset(str(run / "config.toml")) if (run / "config.toml").is_file() else None
 
+    for f in probe_files:  # refuse a bad probe before spending minutes on evaluations
+        try:
+            load_probe_image(f)
+        except ProbeError as exc:
+            raise ReportError(f"--probe {f}: {exc}") from None
+
     # -- the models -------------------------------------------------------------------------
     taken: set[str] = set()
     models: list[ReportModel] = []
@@ -232,7 +246,8 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     world_obj = load_world(world_name)
     starts = list(range(len(world_obj.starts)))
     results_dir = out / "results"
-    search = [results_dir, run / "stats", run, run / "results"]
+    # Ours first, then the evaluator service's (stats/eval/), then anything the user put in the run.
+    search = [results_dir, run / "stats" / "eval", run / "stats", run, run / "results"]
     for m in models:
         want = _protocol_meta(m.setup, world_name, episodes_per_start, max_steps, seed, starts)
         found = find_results(search, want)

@@ -32,7 +32,6 @@ import os
 import sys
 import threading
 import time
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +54,7 @@ from shared.transport import (
     TransportError, ZenohSettings, declare_alive, open_session, put_reliable, query_latest, subscribe_messages,
 )
 from shared.weights import load_message
+from shared.world import load_world
 
 log = logging.getLogger("cogexplore.evaluator")
 
@@ -91,6 +91,7 @@ class EvaluatorService:
         self.episodes_per_start = episodes_per_start
         self.max_steps = max_steps
         self.world = world or cfg.env.world
+        load_world(self.world)  # a bad world fails at start-up, not at the first evaluation
         self.image_every = image_every
         self.record = record
         self.seed = seed

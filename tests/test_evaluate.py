@@ -1,0 +1,274 @@
+"""``cogexplore evaluate`` and its parts: the protocol through ``evaluate_policy``, the results
+JSON, checkpoints of every kind, the baselines and the recorded .rrd (real env, real files)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rerun.chunk import RrdReader
+
+from services.evaluator.evaluate import (
+    EvaluateError,
+    EvaluationCancelled,
+    add_evaluate_arguments,
+    evaluate_policy,
+    load_model,
+    run_evaluate,
+    weights_sha256,
+)
+from services.evaluator.policies import PolicyError, RandomPolicy, ReactivePolicy, make_policy
+from services.evaluator.results import SCHEMA_ID, validate_results_json
+from shared.config import SensorConfig, load_preset
+from shared.sensor import intrinsics
+
+RERUN_CLI = Path(sys.executable).with_name("rerun")
+SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
+
+
+def small_config():
+    return load_preset("paper").with_overrides(SMALL)
+
+
+def make_run(root: Path, policy_version: int = 1000, seed: int = 0) -> Path:
+    """A run folder with one checkpoint of a fresh network and a weights export next to it."""
+    from shared.checkpoint import CheckpointManager, export_weights
+    from shared.dqn import DQNAgent
+
+    cfg = small_config()
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=seed)
+    agent.update_count = agent.policy_version = policy_version
+    CheckpointManager(root / "checkpoints").save(agent, config=cfg.to_dict())
+    export_weights(root / "weights.safetensors", agent.online, policy_version)
+    return root
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_evaluate_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def verify_rrd(path: Path) -> None:
+    env = {**os.environ, "RERUN_ANALYTICS": "0"}
+    proc = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(path)], capture_output=True, text=True,
+                          env=env, timeout=60)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+
+
+def entities(path: Path) -> dict[str, int]:
+    """Temporal rows per entity path of a recording."""
+    counts: dict[str, int] = {}
+    for chunk in RrdReader(path).stream().to_chunks():
+        if not chunk.is_static:
+            name = chunk.entity_path.lstrip("/")
+            counts[name] = counts.get(name, 0) + chunk.to_record_batch().num_rows
+    return counts
+
+
+# -- the protocol -----------------------------------------------------------------------------
+
+
+def test_protocol_runs_every_start_times_episodes_within_the_cap() -> None:
+    sensor = SensorConfig(width=64, height=48)
+    results = evaluate_policy(ReactivePolicy(sensor), world="box-room", sensor_cfg=sensor, episodes_per_start=2,
+                              max_steps=5, progress=False)
+    assert [(e.start_index, e.episode) for e in results.episodes] == [(s, k) for s in range(4) for k in range(2)]
+    assert all(1 <= e.steps <= 5 for e in results.episodes)
+    assert all(e.truncated == (e.steps == 5 and not e.terminated) for e in results.episodes)
+    assert results.meta["speed_table"] == "test" and results.meta["env"]["speed_table"] == "test"
+    assert results.meta["env"]["max_episode_steps"] == 5 and results.meta["sensor"]["width"] == 64
+    # Turning on the spot never collides in box-room's open middle: every episode hits the cap.
+    circling = evaluate_policy(lambda d: (0, None), world="box-room", sensor_cfg=sensor, starts=[2],
+                               episodes_per_start=3, max_steps=5, progress=False)
+    assert [e.steps for e in circling.episodes] == [5, 5, 5]
+    assert all(e.truncated and not e.terminated for e in circling.episodes)
+
+
+def test_random_policy_repeats_under_a_seed() -> None:
+    sensor = SensorConfig(width=64, height=48)
+
+    def run(seed: int):
+        return evaluate_policy(RandomPolicy(seed), world="box-room", sensor_cfg=sensor, episodes_per_start=2,
+                               max_steps=8, seed=seed, progress=False).episodes
+
+    first = run(3)
+    assert run(3) == first
+    assert run(4) != first
+
+
+def test_stop_cancels_within_a_step_and_drops_the_partial_recording(tmp_path: Path) -> None:
+    sensor = SensorConfig(width=64, height=48)
+    stop = threading.Event()
+    calls = []
+
+    def policy(depth):
+        calls.append(1)
+        if len(calls) == 3:
+            stop.set()
+        return 0, None
+
+    rrd = tmp_path / "partial.rrd"
+    with pytest.raises(EvaluationCancelled):
+        evaluate_policy(policy, world="box-room", sensor_cfg=sensor, max_steps=50, rrd=rrd, progress=False,
+                        stop=stop)
+    assert len(calls) == 3 and not rrd.exists()
+
+
+# -- the reactive baseline -----------------------------------------------------------------------
+
+
+def floor_image(sensor: SensorConfig) -> np.ndarray:
+    """What the camera sees on an empty floor: rows below the horizon at h / tan(angle), 0 above."""
+    _, fy, _, cy = intrinsics(sensor)
+    up = (cy - (np.arange(sensor.height) + 0.5)) / fy
+    with np.errstate(divide="ignore"):
+        rows = np.where(up < 0, sensor.mount_height_m / -up, 0.0)
+    rows = np.where(rows > sensor.max_range_m, 0.0, rows)
+    return np.repeat(rows[:, None], sensor.width, axis=1).astype(np.float32)
+
+
+def test_reactive_policy_reads_free_space_not_the_floor() -> None:
+    sensor = SensorConfig()
+    policy = ReactivePolicy(sensor)
+    floor = floor_image(sensor)
+    # An empty floor is all free: straight ahead.
+    assert np.isinf(policy.column_depth(floor)).all()
+    assert policy(floor)[0] == 2
+    # A wall 0.8 m ahead across the left two thirds: turn right.
+    blocked_left = floor.copy()
+    blocked_left[:, : 2 * sensor.width // 3] = 0.8
+    action, scores = policy(blocked_left)
+    assert action in (3, 4) and scores.shape == (5,)
+    # The mirror image turns left.
+    assert policy(blocked_left[:, ::-1].copy())[0] in (0, 1)
+    # A post straight ahead blocks the straight command, with free floor on both sides.
+    post = floor.copy()
+    post[:, 70:90] = 1.0
+    assert policy(post)[0] != 2
+    # Deterministic: the same image, the same command and scores.
+    assert policy(post)[0] == policy(post)[0]
+    np.testing.assert_array_equal(policy.scores(post), policy.scores(post))
+
+
+def test_policy_errors_are_clear() -> None:
+    with pytest.raises(PolicyError, match="needs a network"):
+        make_policy("greedy")
+    with pytest.raises(PolicyError, match="unknown policy"):
+        make_policy("sl-model")
+    with pytest.raises(PolicyError, match="sensor gives"):
+        ReactivePolicy(SensorConfig())(np.zeros((10, 10), np.float32))
+    with pytest.raises(PolicyError, match="corridor_m"):
+        ReactivePolicy(corridor_m=-1.0)
+
+
+# -- checkpoints --------------------------------------------------------------------------------
+
+
+def test_every_kind_of_checkpoint_loads_the_same_network(tmp_path: Path) -> None:
+    from shared.checkpoint import CheckpointManager
+
+    run = make_run(tmp_path / "run")
+    ckpt_file = CheckpointManager(run / "checkpoints").latest()
+    loaded = {src: load_model(src) for src in (run, run / "checkpoints", ckpt_file, run / "weights.safetensors")}
+    digests = {m.weights_sha256 for m in loaded.values()}
+    assert len(digests) == 1
+    for m in loaded.values():
+        assert m.policy_version == 1000 and not m.net.training
+        assert (m.net.sensor_cfg.width, m.net.sensor_cfg.height) == (64, 48)
+    assert loaded[run].kind == "checkpoint" and loaded[run].path == ckpt_file
+    assert loaded[run].run_config is not None and loaded[run].run_config.env.world == "box-room"
+    assert loaded[run / "weights.safetensors"].kind == "weights"
+    assert loaded[run].label == "run@1000"
+    # Another network's weights have another digest.
+    other = make_run(tmp_path / "other", seed=1)
+    assert load_model(other).weights_sha256 != digests.pop()
+
+
+def test_bad_checkpoints_are_named_in_the_error(tmp_path: Path) -> None:
+    with pytest.raises(EvaluateError, match="does not exist"):
+        load_model(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(EvaluateError, match="holds no checkpoint"):
+        load_model(tmp_path / "empty")
+    junk = tmp_path / "junk.safetensors"
+    junk.write_bytes(b"not a safetensors file")
+    with pytest.raises(EvaluateError, match="neither a checkpoint nor a weights export"):
+        load_model(junk)
+
+
+# -- the command ----------------------------------------------------------------------------------
+
+
+def test_evaluate_writes_results_json_and_a_verified_recording(tmp_path: Path, capsys) -> None:
+    run = make_run(tmp_path / "run")
+    out_json, out_rrd = tmp_path / "out" / "results.json", tmp_path / "out" / "eval.rrd"
+    status = run_evaluate(parse(["--checkpoint", str(run), "--episodes-per-start", "1", "--max-steps", "5",
+                                 "--json", str(out_json), "--rrd", str(out_rrd), "--device", "cpu", "--quiet"]))
+    assert status == 0
+    printed = capsys.readouterr().out
+    assert "| Count | run@1000 |" in printed
+
+    doc = json.loads(out_json.read_text())
+    assert set(doc) == {"schema", "meta", "episodes", "summary"} and doc["schema"] == SCHEMA_ID
+    results = validate_results_json(doc)
+    assert len(results.episodes) == 4  # box-room (the checkpoint's world): 4 starts x 1
+    meta = doc["meta"]
+    assert meta["policy"] == "greedy" and meta["policy_version"] == 1000 and meta["world"] == "box-room"
+    assert meta["weights_sha256"] == load_model(run).weights_sha256
+    assert meta["episodes_per_start"] == 1 and meta["max_steps"] == 5 and meta["speed_table"] == "test"
+    assert set(doc["summary"]) == {"overall", "per_start"} and len(doc["summary"]["per_start"]) == 4
+    overall = doc["summary"]["overall"]
+    for key in ("mean_steps", "mean_distance_m", "mean_path_length_m", "mean_coverage_m2", "mean_coverage_pct",
+                "collisions", "reached_cap"):
+        assert key in overall
+    for e in doc["episodes"]:
+        assert len(e["trajectory_xy"]) == e["steps"] + 1 and e["steps"] <= 5
+
+    verify_rrd(out_rrd)
+    rows = entities(out_rrd)
+    total_steps = sum(e.steps for e in results.episodes)
+    assert rows["camera/depth"] == total_steps
+    assert rows["policy/q/straight"] == total_steps and rows["policy/action"] == total_steps
+    assert rows["world/trajectory/start_1/episode_0"] == results.episodes[0].steps + 1
+    assert rows["eval/mean_steps"] == 1  # the summary at the policy version
+
+
+def test_evaluate_baseline_out_of_the_box(tmp_path: Path) -> None:
+    out = tmp_path / "random.json"
+    status = run_evaluate(parse(["--policy", "reactive", "--world", "box-room", "--episodes-per-start", "2",
+                                 "--max-steps", "5", "--json", str(out), "--set", "sensor.width=64",
+                                 "--set", "sensor.height=48", "--quiet"]))
+    assert status == 0
+    results = validate_results_json(out.read_text())
+    assert len(results.episodes) == 8 and results.meta["policy"] == "reactive"
+    assert results.meta["sensor"]["width"] == 64
+
+
+@pytest.mark.parametrize("argv,message", [
+    ([], "give --checkpoint"),
+    (["--policy", "greedy"], "needs --checkpoint"),
+    (["--policy", "random", "--world", "nowhere"], "unknown world"),
+    (["--policy", "random", "--set", "dqn.lr=1"], "only takes sensor"),
+    (["--policy", "random", "--episodes-per-start", "0", "--world", "box-room"], "episodes_per_start"),
+])
+def test_evaluate_refuses_bad_options_clearly(argv: list[str], message: str, capsys) -> None:
+    assert run_evaluate(parse(argv + ["--quiet"])) == 2
+    assert message in capsys.readouterr().err
+
+
+def test_greedy_policy_takes_the_best_q_value(tmp_path: Path) -> None:
+    model = load_model(make_run(tmp_path / "run"))
+    policy = make_policy("greedy", net=model.net)
+    depth = np.full((48, 64), 2.0, np.float32)
+    action, q = policy(depth)
+    assert q.shape == (5,) and action == int(np.argmax(q)) and all(math.isfinite(v) for v in q)
+    assert weights_sha256(model.net) == model.weights_sha256

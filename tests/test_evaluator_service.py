@@ -1,0 +1,170 @@
+"""The evaluator service on a real loopback Zenoh router: weights in, EvalResult, eval.jsonl and
+.rrd out; bad weights counted, not fatal; ``--once`` and SIGTERM as a real process."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+import zenoh
+
+from services.evaluator.service import EvaluatorService, recording_path
+from shared.config import load_preset
+from shared.keys import RunKeys
+from shared.messages import EvalResult
+from shared.model import QNetwork
+from shared.transport import (
+    LivelinessWatch, ZenohSettings, free_tcp_port, open_router, open_session, put_reliable, serve_latest,
+)
+from shared.weights import to_message
+
+REPO = Path(__file__).resolve().parents[1]
+RERUN_CLI = Path(sys.executable).with_name("rerun")
+OVERRIDES = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
+SET_ARGS = [a for k, v in OVERRIDES.items() for a in ("--set", f"{k}={v}")]
+
+
+@pytest.fixture(scope="module")
+def router() -> Iterator[str]:
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        yield endpoint
+
+
+def small_net(**extra) -> QNetwork:
+    cfg = load_preset("paper").with_overrides({**OVERRIDES, **extra})
+    return QNetwork(cfg.model, cfg.sensor)
+
+
+class Results:
+    """EvalResult messages received on a run's eval key, in arrival order."""
+
+    def __init__(self, session: zenoh.Session, keys: RunKeys):
+        self.items: list[EvalResult] = []
+        self._cond = threading.Condition()
+        self._sub = session.declare_subscriber(keys.all_stats("eval"), self._on_sample)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        with self._cond:
+            self.items.append(EvalResult.decode(sample.payload.to_bytes()))
+            self._cond.notify_all()
+
+    def wait(self, n: int, timeout_s: float = 60.0) -> list[EvalResult]:
+        with self._cond:
+            assert self._cond.wait_for(lambda: len(self.items) >= n, timeout_s), f"{len(self.items)} results"
+            return list(self.items)
+
+
+def wait_until(predicate, timeout_s: float = 10.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+def verify_rrd(path: Path) -> None:
+    proc = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(path)], capture_output=True, text=True,
+                          env={**os.environ, "RERUN_ANALYTICS": "0"}, timeout=60)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+
+
+def test_service_evaluates_due_weights_and_counts_bad_ones(router: str, tmp_path: Path) -> None:
+    keys = RunKeys("svc")
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    service = EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(connect=(router,)), "ev-1",
+                               every_updates=10, episodes_per_start=1, max_steps=5, image_every=2)
+    stop = threading.Event()
+    status: list[int] = []
+    worker = threading.Thread(target=lambda: status.append(service.run(stop)), daemon=True)
+    net = small_net()
+    with open_session(ZenohSettings(connect=(router,))) as session:
+        results = Results(session, keys)
+        with LivelinessWatch(session, keys.all_alive("evaluator")) as alive:
+            worker.start()
+            assert alive.wait(lambda keys_: keys.alive("evaluator", "ev-1") in keys_, 30.0)
+            # Garbage until the first is counted (subscriptions propagate through the router).
+            for _ in range(20):
+                put_reliable(session, keys.weights, b"\x00not msgpack")
+                if wait_until(lambda: service.rejects.total > 0, 0.5):
+                    break
+            assert service.rejects.counts.get("garbage", 0) >= 1
+            put_reliable(session, keys.weights, to_message(small_net(**{"model.fc1": 48}), 3).encode())
+            assert wait_until(lambda: service.rejects.counts.get("fingerprint") == 1)
+
+            put_reliable(session, keys.weights, to_message(net, 5).encode())
+            first = results.wait(1)[0]
+            put_reliable(session, keys.weights, to_message(net, 7).encode())   # same bucket of 10: skipped
+            put_reliable(session, keys.weights, to_message(net, 12).encode())  # a new multiple of 10: due
+            second = results.wait(2)[1]
+            stop.set()
+            worker.join(timeout=30)
+            assert not worker.is_alive() and status == [0]
+            # Closing the session took the liveliness token with it.
+            assert alive.wait(lambda keys_: not keys_, 10.0)
+
+    assert [first.policy_version, second.policy_version] == [5, 12]
+    for r in (first, second):
+        assert r.evaluator_id == "ev-1" and r.world == "box-room" and r.speed_table == "test"
+        assert sorted(r.start_index) == [0, 1, 2, 3] and all(1 <= s <= 5 for s in r.steps)
+        assert r.extra["mean_steps"] == pytest.approx(sum(r.steps) / 4)
+    assert [e["policy_version"] for e in service.evaluations] == [5, 12]
+
+    rows = [json.loads(line) for line in (tmp_path / "svc" / "stats" / "eval.jsonl").read_text().splitlines()]
+    assert [r["policy_version"] for r in rows] == [5, 12]
+    assert rows[1]["summary"]["episodes"] == 4 and rows[1]["max_steps"] == 5
+    assert rows[1]["rejected_weights"]["fingerprint"] == 1 and rows[1]["rejected_weights"]["garbage"] >= 1
+    assert rows[1]["summary"]["mean_steps"] == pytest.approx(second.extra["mean_steps"])
+    for version in (5, 12):
+        rrd = recording_path(tmp_path / "svc" / "recordings", version)
+        assert rrd.name == f"eval-{version:06d}.rrd"
+        verify_rrd(rrd)
+        assert (tmp_path / "svc" / "stats" / "eval" / f"eval-{version:06d}.json").is_file()
+    assert not recording_path(tmp_path / "svc" / "recordings", 7).exists()
+
+
+def service_process(router: str, runs: Path, *extra: str) -> subprocess.Popen:
+    env = {**os.environ, "RERUN_ANALYTICS": "0", "OMP_NUM_THREADS": "1"}
+    cmd = [sys.executable, "-m", "services.evaluator", "--run", "proc", "--runs-dir", str(runs),
+           "--connect", router, "--id", "ev-proc", "--max-steps", "4", "--no-record", *SET_ARGS, *extra]
+    return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_once_queries_the_latest_weights_and_exits(router: str, tmp_path: Path) -> None:
+    keys = RunKeys("proc")
+    payload = to_message(small_net(), 42).encode()
+    with open_session(ZenohSettings(connect=(router,))) as session:
+        results = Results(session, keys)
+        queryable = serve_latest(session, keys.weights_latest, lambda: payload)  # noqa: F841
+        proc = service_process(router, tmp_path, "--once")
+        out, _ = proc.communicate(timeout=120)
+        assert proc.returncode == 0, out
+        assert results.wait(1, 10.0)[0].policy_version == 42
+    row = json.loads((tmp_path / "proc" / "stats" / "eval.jsonl").read_text())
+    assert row["policy_version"] == 42 and row["recording"] is None
+
+
+def test_sigterm_stops_the_service_cleanly(router: str, tmp_path: Path) -> None:
+    keys = RunKeys("proc")
+    with open_session(ZenohSettings(connect=(router,))) as session:
+        with LivelinessWatch(session, keys.all_alive("evaluator")) as alive:
+            proc = service_process(router, tmp_path)
+            try:
+                assert alive.wait(lambda k: keys.alive("evaluator", "ev-proc") in k, 60.0)
+                proc.send_signal(signal.SIGTERM)
+                out, _ = proc.communicate(timeout=30)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+            assert proc.returncode == 0, out
+            assert "signal SIGTERM: stopping" in out
+            assert alive.wait(lambda k: not k, 10.0)

@@ -1,0 +1,212 @@
+"""``cogexplore report`` on a small but real run folder, and the probe scenes it uses."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from services.evaluator.probes import (
+    PROBE_DIR,
+    PROBE_SCENES,
+    ProbeError,
+    generate_probes,
+    load_probe_image,
+    load_probes,
+)
+from services.evaluator.evaluate import add_evaluate_arguments, run_evaluate
+from services.evaluator.report import add_report_arguments, build_report, run_report
+from shared.config import SensorConfig, load_preset, to_toml
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
+
+
+def small_config():
+    return load_preset("paper").with_overrides(SMALL)
+
+
+def make_run(root: Path, policy_version: int = 1000) -> Path:
+    """A run folder with one checkpoint of a fresh network, as the learner writes it."""
+    from shared.checkpoint import CheckpointManager
+    from shared.dqn import DQNAgent
+
+    cfg = small_config()
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
+    agent.update_count = agent.policy_version = policy_version
+    CheckpointManager(root / "checkpoints").save(agent, config=cfg.to_dict())
+    return root
+
+
+def write_learner_csv(run: Path) -> None:
+    (run / "stats").mkdir(parents=True, exist_ok=True)
+    rows = ["update,loss,mean_q,epsilon"] + [f"{u},{5.0 * np.exp(-u / 300) + 0.1:.4f},{-u / 100},0.5"
+                                             for u in range(0, 1000, 50)]
+    (run / "stats" / "learner.csv").write_text("\n".join(rows) + "\n")
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    run = make_run(tmp_path_factory.mktemp("runs") / "exp")
+    (run / "config.toml").write_text(to_toml(small_config()))
+    write_learner_csv(run)
+    # Two rows as the evaluator service writes them, and a torn last line (a crash mid-write).
+    rows = [{"policy_version": v, "max_steps": 200, "summary": {"mean_steps": m}} for v, m in ((0, 4.0), (1000, 9.5))]
+    (run / "stats" / "eval.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows) + '{"policy_ver')
+    return run
+
+
+def links(markdown: str) -> list[str]:
+    return re.findall(r"\]\(([^)]+)\)", markdown)
+
+
+def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path) -> None:
+    user_png = tmp_path / "door.png"
+    Image.fromarray(np.full((30, 40), 1500, np.uint16)).save(user_png)  # 1.5 m everywhere, another size
+    report = build_report(run_dir, episodes_per_start=1, max_steps=5, probe_files=[user_png], device="cpu",
+                          progress=False)
+    out = run_dir / "report"
+    assert report.markdown == out / "report.md"
+    text = report.markdown.read_text()
+    for name in ("heatmaps.png", "loss.png", "eval-curve.png", "heatmap-exp-1000.png", "heatmap-random.png",
+                 "heatmap-reactive.png"):
+        assert (out / name).read_bytes()[:8] == PNG_MAGIC, name
+    receptive = sorted((out / "receptive").glob("*.png"))
+    assert len(receptive) == len(PROBE_SCENES) + 1  # the stored scenes and the user's image, one model
+    # Every link in the Markdown points at a file that exists.
+    for link in links(text):
+        assert (out / link).is_file(), link
+    assert len(set(links(text))) >= len(report.figures)
+    # Table III with the three models, Table II with every scene.
+    for model in ("exp@1000", "random", "reactive"):
+        assert f"| {model} |" in text
+    assert "| Count | exp@1000 |" in text and "Coverage (%)" in text
+    for scene in [s.name for s in PROBE_SCENES] + ["user:door"]:
+        assert f"| {scene} | exp@1000 |" in text
+    assert "resized from 40x30 to 64x48" in text
+    assert text.count("rendered from their stored poses for the 64x48 sensor") == 1
+    # Results were evaluated with the requested protocol and saved for next time.
+    for model, path in report.results.items():
+        doc = json.loads(Path(path).read_text())
+        assert doc["meta"]["episodes_per_start"] == 1 and doc["meta"]["max_steps"] == 5
+        assert len(doc["episodes"]) == 4, model
+
+    # A second report reuses every result instead of evaluating again.
+    stamps = {m: Path(p).stat().st_mtime_ns for m, p in report.results.items()}
+    again = build_report(run_dir, episodes_per_start=1, max_steps=5, device="cpu", progress=False)
+    assert {m: Path(p).stat().st_mtime_ns for m, p in again.results.items()} == stamps
+    assert again.markdown.read_text().count("| reused: ") == 3
+    # Another protocol does not reuse them.
+    longer = build_report(run_dir, out_dir=tmp_path / "longer", episodes_per_start=1, max_steps=6,
+                          baselines=("reactive",), device="cpu", progress=False)
+    assert "| reused: " not in longer.markdown.read_text()
+
+
+def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_path: Path) -> None:
+    # `cogexplore up` ends with `evaluate --checkpoint RUN --json RUN/stats/final-eval.json`, then `report RUN`.
+    parser = argparse.ArgumentParser()
+    add_evaluate_arguments(parser)
+    final = run_dir / "stats" / "final-eval.json"
+    assert run_evaluate(parser.parse_args(["--checkpoint", str(run_dir), "--episodes-per-start", "1", "--max-steps",
+                                        "4", "--json", str(final), "--device", "cpu", "--quiet"])) == 0
+    report = build_report(run_dir, out_dir=tmp_path / "r", episodes_per_start=1, max_steps=4, baselines=(),
+                          device="cpu", progress=False)
+    assert report.results == {"exp@1000": final}
+    final.unlink()
+
+
+def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
+    run = tmp_path / "fresh"
+    run.mkdir()
+    (run / "config.toml").write_text(to_toml(small_config()))
+    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False)
+    text = report.markdown.read_text()
+    assert "no checkpoint yet" in text and "learner.csv does not exist" in text
+    assert "No checkpoint to probe" in text
+    assert "| reactive |" in text and (run / "report" / "heatmaps.png").is_file()
+
+
+def parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_report_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_report_command_refuses_bad_input(run_dir: Path, tmp_path: Path, capsys) -> None:
+    nan = tmp_path / "nan.npy"
+    depth = np.ones((48, 64), np.float32)
+    depth[3, 4] = np.nan
+    np.save(nan, depth)
+    assert run_report(parse([str(run_dir), "--probe", str(nan), "--episodes-per-start", "1", "--max-steps", "2",
+                             "--out", str(tmp_path / "r"), "--quiet", "--device", "cpu"])) == 2
+    assert "NaN" in capsys.readouterr().err
+    assert run_report(parse([str(tmp_path / "no-such-run")])) == 2
+    assert "does not exist" in capsys.readouterr().err
+
+
+# -- probes -------------------------------------------------------------------------------------
+
+
+def test_stored_probes_equal_the_regenerated_ones(tmp_path: Path) -> None:
+    # If this fails after a change to paper-indoor: python -m services.evaluator.probes
+    generate_probes(tmp_path)
+    stored = sorted(p.name for p in PROBE_DIR.iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == stored
+    assert len(stored) == 2 * len(PROBE_SCENES)
+    for scene in PROBE_SCENES:
+        fresh, kept = np.load(tmp_path / f"{scene.name}.npy"), np.load(PROBE_DIR / f"{scene.name}.npy")
+        assert kept.dtype == np.float32 and kept.shape == (120, 160)
+        np.testing.assert_allclose(kept, fresh, atol=1e-5, err_msg=scene.name)
+        assert json.loads((PROBE_DIR / f"{scene.name}.json").read_text()) == \
+            json.loads((tmp_path / f"{scene.name}.json").read_text())
+        # A probe is a scene the robot can be in: nothing in view nearer than the collision threshold.
+        assert kept[kept > 0].min() > 0.55
+
+
+def test_probes_load_for_any_sensor() -> None:
+    paper = load_probes()
+    assert [p.name for p in paper] == sorted(s.name for s in PROBE_SCENES)
+    assert all(p.depth_m.shape == (120, 160) and not p.notes for p in paper)
+    small = load_probes(sensor_cfg=SensorConfig(width=64, height=48))
+    assert all(p.depth_m.shape == (48, 64) and p.notes for p in small)
+
+
+def test_user_probe_images(tmp_path: Path) -> None:
+    sensor = SensorConfig(width=64, height=48)
+    mm = np.arange(48 * 64, dtype=np.uint16).reshape(48, 64) % 4000
+    png = tmp_path / "mm.png"
+    Image.fromarray(mm).save(png)
+    depth, notes = load_probe_image(png, sensor)
+    assert depth.dtype == np.float32 and notes == []
+    np.testing.assert_allclose(depth, mm / 1000.0, atol=1e-6)
+
+    big = tmp_path / "big.npy"
+    np.save(big, np.full((96, 128), 2.0))
+    depth, notes = load_probe_image(big, sensor)
+    assert depth.shape == (48, 64) and "resized from 128x96 to 64x48" in notes[0]
+    with pytest.raises(ProbeError, match="128x96 image, the sensor is 64x48"):
+        load_probe_image(big, sensor, resize=False)
+
+    far = tmp_path / "far.npy"
+    np.save(far, np.full((48, 64), 9.0))
+    depth, notes = load_probe_image(far, sensor)
+    assert (depth == 0).all() and "beyond the sensor" in notes[0]
+
+    rgb = tmp_path / "rgb.png"
+    Image.fromarray(np.zeros((48, 64, 3), np.uint8)).save(rgb)
+    for path, message in ((rgb, "colour image"), (tmp_path / "none.png", "does not exist")):
+        with pytest.raises(ProbeError, match=message):
+            load_probe_image(path, sensor)
+    neg = tmp_path / "neg.npy"
+    np.save(neg, -np.ones((48, 64)))
+    with pytest.raises(ProbeError, match="negative"):
+        load_probe_image(neg, sensor)
+    txt = tmp_path / "depth.txt"
+    txt.write_text("1 2 3")
+    with pytest.raises(ProbeError, match="unknown probe format"):
+        load_probe_image(txt, sensor)
