@@ -246,10 +246,10 @@ class DQNConfig:
 
     def __post_init__(self) -> None:
         s = "dqn"
-        _check(isinstance(self.batch_size, int) and 1 <= self.batch_size <= 4096, s, "batch_size",
+        _check(type(self.batch_size) is int and 1 <= self.batch_size <= 4096, s, "batch_size",
                self.batch_size, "an integer in [1, 4096]")
         _check(_finite(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
-        _check(isinstance(self.target_sync_every, int) and self.target_sync_every >= 1, s,
+        _check(type(self.target_sync_every) is int and self.target_sync_every >= 1, s,
                "target_sync_every", self.target_sync_every, "an integer >= 1")
         _check(self.optimizer in ("sgd", "adam"), s, "optimizer", self.optimizer, "'sgd' or 'adam'")
         _check(_finite(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
@@ -258,7 +258,7 @@ class DQNConfig:
         _check(_finite(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
                "a number in [0, 1)")
         _check(isinstance(self.double_dqn, bool), s, "double_dqn", self.double_dqn, "true or false")
-        _check(isinstance(self.n_step, int) and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
+        _check(type(self.n_step) is int and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
                "an integer in [1, 20]")
         _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
@@ -287,7 +287,7 @@ class ExploreConfig:
         for name in ("eps_start", "eps_end", "apex_base"):
             v = getattr(self, name)
             _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
-        _check(isinstance(self.eps_decay_steps, int) and self.eps_decay_steps >= 0, s,
+        _check(type(self.eps_decay_steps) is int and self.eps_decay_steps >= 0, s,
                "eps_decay_steps", self.eps_decay_steps, "an integer >= 0")
         _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
         _check(_finite(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,

@@ -10,7 +10,9 @@ comparable; medians are reported too.
 The optimisations measured here live in the real code (shared/model.py, shared/dqn.py):
 channels-last convolutions, pooling before ReLU, and the glibc allocator setting that stops
 activations being page-faulted in on every update. ``baseline=True`` also times a plain
-PyTorch version of the same update (NCHW, ReLU before pooling) in the same process.
+PyTorch version of the same update (NCHW, ReLU before pooling) in the same process; the
+allocator setting is process-wide, so that baseline already has it and the reported speedup
+leaves its share out (shared/model.py's docstring has the separate-process comparison).
 """
 
 from __future__ import annotations

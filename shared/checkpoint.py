@@ -1,0 +1,348 @@
+"""Atomic, pickle-free checkpoints of a DQNAgent (and optionally its replay memory).
+
+A checkpoint directory holds::
+
+    ckpt-000001000.safetensors          online + target weights, optimiser tensors, torch RNG;
+                                        JSON metadata (counters, optimiser hyperparameters,
+                                        configs, caller extras, a SHA-256 of all tensor bytes)
+    ckpt-000001000.replay-<digest>.safetensors
+                                        optional: the replay memory's arrays + its JSON state
+                                        (named by content, so re-saving the same update never
+                                        pairs a checkpoint with another save's replay)
+    latest                              the name of the newest complete checkpoint
+
+Every file is written to a temporary name, fsynced, renamed into place and the directory
+fsynced, replay before checkpoint before ``latest``, so a crash at any point leaves ``latest``
+naming a complete checkpoint; the last ``keep`` checkpoints stay on disk. Loading verifies the
+format and the digest: a truncated or corrupt file raises :class:`CheckpointError` and
+``CheckpointManager.load_latest`` falls back to the newest older checkpoint that loads.
+
+Weights are safetensors and metadata JSON: nothing is ever unpickled. ``export_weights`` writes
+a weights-only file (online net, architecture, policy version) for deployment.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+import safetensors.numpy
+import safetensors.torch
+import torch
+from safetensors import SafetensorError
+
+from shared.config import ConfigError, ModelConfig, SensorConfig
+from shared.dqn import DQNAgent, DQNError
+from shared.model import ModelError, QNetwork, architecture_fingerprint, load_tensors, weights_to_tensors
+from shared.replay import ReplayError, ReplayMemory
+
+FORMAT = "cogexplore-checkpoint"
+WEIGHTS_FORMAT = "cogexplore-weights"
+VERSION = 1
+LATEST = "latest"
+_META_KEY = "cogexplore"
+_NAME_RE = re.compile(r"^ckpt-(\d{9})\.safetensors$")
+_REPLAY_RE = re.compile(r"^ckpt-(\d{9})\.replay-[0-9a-f]{12}\.safetensors$")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint or weights file is missing, partial, corrupt or does not fit."""
+
+
+# --------------------------------------------------------------------------- atomic files
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _publish(tmp: Path, final: Path) -> None:
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, final)
+    _fsync_dir(final.parent)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` via a fsynced temporary file and a rename."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    _publish(tmp, path)
+
+
+def _digest(arrays: Mapping[str, Any]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = arrays[name]
+        if isinstance(a, torch.Tensor):
+            a = a.detach().to("cpu").contiguous().reshape(-1).view(torch.uint8).numpy()
+        else:
+            a = np.ascontiguousarray(a).reshape(-1).view(np.uint8)
+        h.update(name.encode())
+        h.update(str(a.size).encode())
+        h.update(memoryview(a))
+    return h.hexdigest()
+
+
+def _save_torch(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    meta = dict(meta, digest=_digest(tensors))
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
+    _publish(tmp, path)
+
+
+def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
+    try:
+        with safetensors.safe_open(str(path), framework="numpy") as f:
+            raw = (f.metadata() or {}).get(_META_KEY)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path} does not exist") from None
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path} is not a readable safetensors file (partial or corrupt?): "
+                              f"{exc}") from None
+    if raw is None:
+        raise CheckpointError(f"{path} has no cogexplore metadata: not a {fmt} file")
+    try:
+        meta = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise CheckpointError(f"{path}: metadata is not valid JSON ({exc})") from None
+    if meta.get("format") != fmt:
+        raise CheckpointError(f"{path} is a {meta.get('format')!r} file, expected {fmt!r}")
+    if meta.get("version") != VERSION:
+        raise CheckpointError(f"{path} has format version {meta.get('version')}, this code reads {VERSION}")
+    return meta
+
+
+def _load_verified(path: Path, fmt: str, framework: str = "pt") -> tuple[dict[str, Any], dict[str, Any]]:
+    meta = _read_meta(path, fmt)
+    try:
+        if framework == "pt":
+            tensors: dict[str, Any] = safetensors.torch.load_file(str(path))
+        else:
+            tensors = safetensors.numpy.load_file(str(path))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{path} cannot be read (partial or corrupt?): {exc}") from None
+    if _digest(tensors) != meta.get("digest"):
+        raise CheckpointError(f"{path} is corrupt: its tensor data does not match the stored digest")
+    return tensors, meta
+
+
+# --------------------------------------------------------------------------- checkpoints
+@dataclass
+class Checkpoint:
+    """A loaded, verified checkpoint (not yet applied to an agent)."""
+
+    path: Path
+    tensors: dict[str, torch.Tensor]
+    agent_meta: dict[str, Any]
+    config: dict[str, Any] | None
+    extra: dict[str, Any]
+    replay_path: Path | None = None
+    replay_digest: str | None = None
+
+    @property
+    def update_count(self) -> int:
+        return int(self.agent_meta["update_count"])
+
+    @property
+    def policy_version(self) -> int:
+        return int(self.agent_meta["policy_version"])
+
+    def restore(self, agent: DQNAgent, replay: ReplayMemory | None = None) -> None:
+        """Load the agent's state (and the replay memory, when given and saved) exactly."""
+        try:
+            agent.load_state_tensors(self.tensors, self.agent_meta)
+        except (DQNError, ModelError, KeyError, ValueError) as exc:
+            raise CheckpointError(f"{self.path} does not fit this agent: {exc}") from None
+        if replay is not None:
+            if self.replay_path is None:
+                raise CheckpointError(f"{self.path} was saved without its replay memory")
+            arrays, meta = _load_verified(self.replay_path, FORMAT + "-replay", framework="numpy")
+            if meta.get("digest") != self.replay_digest:
+                raise CheckpointError(f"{self.replay_path} belongs to another checkpoint")
+            try:
+                replay.load_state_dict(arrays, meta["replay"])
+            except (ReplayError, KeyError) as exc:
+                raise CheckpointError(f"{self.replay_path} does not fit this replay memory: {exc}") from None
+
+
+def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory | None = None,
+                    config: Mapping[str, Any] | None = None,
+                    extra: Mapping[str, Any] | None = None) -> Path:
+    """Write one checkpoint file (and ``<stem>.replay-<digest>.safetensors`` with ``replay``).
+
+    ``config`` is the run's config dict (RunConfig.to_dict()); ``extra`` any JSON-able state of
+    the caller (environment steps, episode counts, other RNG states).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors, agent_meta = agent.state_tensors()
+    replay_info = None
+    if replay is not None:
+        arrays, rmeta = replay.state_dict()
+        rdigest = _digest(arrays)
+        rpath = path.with_name(path.name.replace(".safetensors", f".replay-{rdigest[:12]}.safetensors"))
+        tmp = rpath.with_name(f".{rpath.name}.tmp-{os.getpid()}")
+        safetensors.numpy.save_file(
+            {k: np.ascontiguousarray(v) for k, v in arrays.items()}, tmp,
+            metadata={_META_KEY: json.dumps({"format": FORMAT + "-replay", "version": VERSION,
+                                             "replay": rmeta, "digest": rdigest})})
+        _publish(tmp, rpath)
+        replay_info = {"file": rpath.name, "digest": rdigest}
+    meta = {"format": FORMAT, "version": VERSION, "created_unix": time.time(), "agent": agent_meta,
+            "config": dict(config) if config is not None else None,
+            "extra": dict(extra) if extra is not None else {}, "replay": replay_info}
+    try:
+        json.dumps(meta)
+    except TypeError as exc:
+        raise CheckpointError(f"checkpoint config/extra must be JSON-serialisable: {exc}") from None
+    _save_torch(path, tensors, meta)
+    return path
+
+
+def load_checkpoint(path: Path | str) -> Checkpoint:
+    """Read and verify one checkpoint file; raises CheckpointError if partial or corrupt."""
+    path = Path(path)
+    tensors, meta = _load_verified(path, FORMAT)
+    rinfo = meta.get("replay")
+    return Checkpoint(path=path, tensors=tensors, agent_meta=meta["agent"], config=meta.get("config"),
+                      extra=meta.get("extra") or {},
+                      replay_path=path.with_name(rinfo["file"]) if rinfo else None,
+                      replay_digest=rinfo["digest"] if rinfo else None)
+
+
+@dataclass
+class CheckpointManager:
+    """Numbered checkpoints in one directory with a ``latest`` pointer; keeps the last ``keep``."""
+
+    directory: Path
+    keep: int = 3
+    skipped: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.directory = Path(self.directory)
+        if not (isinstance(self.keep, int) and self.keep >= 1):
+            raise CheckpointError(f"keep must be an integer >= 1, got {self.keep!r}")
+
+    def path_for(self, update_count: int) -> Path:
+        return self.directory / f"ckpt-{update_count:09d}.safetensors"
+
+    def checkpoints(self) -> list[Path]:
+        """Checkpoint files present, oldest first."""
+        if not self.directory.is_dir():
+            return []
+        return sorted(p for p in self.directory.iterdir() if _NAME_RE.match(p.name))
+
+    def latest(self) -> Path | None:
+        """The checkpoint ``latest`` names (None if there is none)."""
+        pointer = self.directory / LATEST
+        if not pointer.exists():
+            return None
+        name = pointer.read_text().strip()
+        if not _NAME_RE.match(name):
+            raise CheckpointError(f"{pointer} names {name!r}, which is not a checkpoint file")
+        return self.directory / name
+
+    def save(self, agent: DQNAgent, *, replay: ReplayMemory | None = None,
+             config: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None) -> Path:
+        """Save at the agent's update count, point ``latest`` at it, prune older ones."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        path = save_checkpoint(self.path_for(agent.update_count), agent, replay=replay,
+                               config=config, extra=extra)
+        atomic_write_text(self.directory / LATEST, path.name + "\n")
+        self._prune(path)
+        return path
+
+    def _prune(self, newest: Path) -> None:
+        ckpts = [p for p in self.checkpoints() if p != newest]
+        for old in ckpts[: max(0, len(ckpts) - (self.keep - 1))]:
+            old.unlink(missing_ok=True)
+        live_replays = set()
+        for p in self.checkpoints():
+            try:
+                rinfo = _read_meta(p, FORMAT).get("replay")
+            except CheckpointError:
+                continue  # unreadable: its replay is useless too
+            if rinfo:
+                live_replays.add(rinfo["file"])
+        for p in self.directory.iterdir():
+            # orphans: replays of pruned or re-saved checkpoints, temporaries of crashed writers
+            orphan_replay = _REPLAY_RE.match(p.name) and p.name not in live_replays
+            stale_tmp = p.name.startswith(".") and ".tmp-" in p.name and not p.name.endswith(
+                f".tmp-{os.getpid()}")
+            if orphan_replay or stale_tmp:
+                p.unlink(missing_ok=True)
+
+    def load(self, path: Path | str | None = None) -> Checkpoint:
+        """Load ``path``, or the one ``latest`` names; errors if it is partial or corrupt."""
+        target = Path(path) if path is not None else self.latest()
+        if target is None:
+            raise CheckpointError(f"no checkpoint in {self.directory}")
+        return load_checkpoint(target)
+
+    def load_latest(self) -> Checkpoint | None:
+        """The newest checkpoint that loads, starting from ``latest``; None if there is none.
+
+        Files that fail (and why) are listed in ``self.skipped``.
+        """
+        self.skipped = []
+        candidates = list(reversed(self.checkpoints()))
+        try:
+            first = self.latest()
+        except CheckpointError as exc:
+            self.skipped.append(str(exc))
+            first = None
+        if first is not None:
+            candidates = [first] + [p for p in candidates if p != first and p.name < first.name]
+        for path in candidates:
+            try:
+                return load_checkpoint(path)
+            except CheckpointError as exc:
+                self.skipped.append(str(exc))
+        return None
+
+
+# --------------------------------------------------------------------------- weights-only export
+def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0) -> Path:
+    """Write the network's weights, architecture and policy version (for deployment)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
+            "fingerprint": architecture_fingerprint(net),
+            "model": _asdict(net.model_cfg), "sensor": _asdict(net.sensor_cfg)}
+    _save_torch(path, weights_to_tensors(net), meta)
+    return path
+
+
+def load_exported_weights(path: Path | str, device: str | torch.device = "cpu") -> tuple[QNetwork, dict[str, Any]]:
+    """Rebuild the QNetwork of an ``export_weights`` file (eval mode) and return it with its metadata."""
+    path = Path(path)
+    tensors, meta = _load_verified(path, WEIGHTS_FORMAT)
+    try:
+        net = QNetwork(ModelConfig(**meta["model"]), SensorConfig(**meta["sensor"]))
+    except (ConfigError, TypeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: architecture metadata is invalid: {exc}") from None
+    if architecture_fingerprint(net) != meta.get("fingerprint"):
+        raise CheckpointError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its own "
+                              "architecture (written by another version?)")
+    try:
+        load_tensors(net, tensors)
+    except ModelError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    return net.to(device).eval(), meta
+
+
+def _asdict(cfg: Any) -> dict[str, Any]:
+    return asdict(cfg)

@@ -1,0 +1,369 @@
+"""The Q-network (Tai & Liu 2016, Fig. 2) and its supervised sibling, with one depth preprocessing.
+
+Input: one depth image, 1 x H x W (120 x 160 for the paper's Kinect), in metres with 0 = no return.
+``preprocess_depth`` is the only place where depth becomes network input: metres are divided by
+``DEPTH_SCALE_M`` (4 m, the Kinect's usable range) and clipped to [0, 1], so "no return" stays 0 and
+the network sees the same numbers whatever the sensor's configured ``max_range_m``.
+
+Layers (``ConvTrunk`` is the conv stack of the authors' supervised model, IROS 2016)::
+
+    conv1 32 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 32 x 60 x 80
+    conv2 32 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 32 x 30 x 40
+    conv3 64 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 64 x 15 x 20   ("pool3", the paper's 64 x 20 x 15)
+    fc1 (ModelConfig.fc1, default 512) + ReLU + dropout
+    fc2 (ModelConfig.fc2, default 256) + ReLU + dropout
+    fc3 5 (one Q-value per moving command), or a dueling value/advantage head
+
+Speed on CPU (``cogexplore bench learner``): three things, all in this module, matter on the
+2-core dev VM. Measured as the share of the in-process fp32 matmul peak that a batch-32 Double-DQN
+update achieves (3 runs each, separate processes, machine shared with other jobs): plain PyTorch
+0.25-0.34; + channels-last (oneDNN's native NHWC convolutions) 0.36-0.45; + pooling before ReLU
+(same values, 4x smaller ReLU tensors) 0.38-0.44; + ``reduce_allocator_page_faults`` 0.51-0.59,
+i.e. about 2x the plain version. ``torch.compile`` (67 s to compile, no faster), a NCHW conv1
+(C_in = 1) and TorchScript freezing for inference did not help and were dropped. The networks
+are created channels-last and ``.to(...)`` keeps that; single-image inference goes through
+:class:`InferenceRunner` (eval mode, ``torch.inference_mode``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from shared.config import NUM_ACTIONS, ModelConfig, SensorConfig
+
+DEPTH_SCALE_M = 4.0
+"""Depth that maps to network input 1.0; farther returns are clipped to 1."""
+CONV_CHANNELS: tuple[int, int, int] = (32, 32, 64)
+CONV_KERNEL = 5
+MM_PER_M = 1000.0
+
+
+class ModelError(ValueError):
+    """Bad network input, incompatible weights or an image too small for the conv stack."""
+
+
+def pool3_shape(sensor_cfg: SensorConfig) -> tuple[int, int, int]:
+    """(C, H, W) of pool3 for images of the sensor's size (each pool floors odd sizes)."""
+    h, w = sensor_cfg.height, sensor_cfg.width
+    for _ in range(3):
+        h, w = h // 2, w // 2
+    if h < 1 or w < 1:
+        raise ModelError(f"a {sensor_cfg.width}x{sensor_cfg.height} image is too small for three "
+                         "2x2 poolings (need at least 8x8)")
+    return CONV_CHANNELS[2], h, w
+
+
+def preprocess_depth(depth: Any, device: torch.device | str | None = None) -> torch.Tensor:
+    """Depth image(s) -> network input (B, 1, H, W) float32 in [0, 1], channels-last.
+
+    ``depth`` is (H, W) or (B, H, W), a numpy array or tensor. Floating-point input is metres;
+    integer input (``uint16`` from the wire and replay) is millimetres. 0 (no return) stays 0.
+    """
+    if isinstance(depth, np.ndarray):
+        if depth.dtype == np.uint16:  # torch's uint16 support is partial: widen first
+            depth = depth.astype(np.int32)
+        t = torch.from_numpy(np.ascontiguousarray(depth))
+    elif isinstance(depth, torch.Tensor):
+        t = depth
+    else:
+        raise ModelError(f"depth must be a numpy array or torch tensor, got {type(depth).__name__}")
+    if t.dim() == 2:
+        t = t.unsqueeze(0)
+    if t.dim() != 3:
+        raise ModelError(f"depth must be (H, W) or (B, H, W), got shape {tuple(t.shape)}")
+    if t.dtype == torch.bool or t.is_complex():
+        raise ModelError(f"depth must be float metres or integer millimetres, got {t.dtype}")
+    scale = 1.0 / DEPTH_SCALE_M if t.dtype.is_floating_point else 1.0 / (DEPTH_SCALE_M * MM_PER_M)
+    if device is not None:
+        t = t.to(device, non_blocking=True)
+    x = (t.to(torch.float32) * scale).clamp_(0.0, 1.0).unsqueeze(1)
+    # NaN (a broken frame) would poison every Q-value: read it as "no return"
+    x = torch.nan_to_num_(x, nan=0.0)
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """'auto' -> CUDA when present, else CPU; other names pass to torch.device (checked)."""
+    if isinstance(device, torch.device):
+        return device
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ModelError(f"unknown device {device!r}: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ModelError(f"device {device!r} requested but CUDA is not available")
+    return dev
+
+
+_ALLOCATOR_TUNED = False
+
+
+def reduce_allocator_page_faults() -> bool:
+    """Keep freed memory in the process heap instead of returning it to the OS (glibc only).
+
+    glibc serves large blocks (a batch's 78 MB conv1 activation) with fresh mmaps and unmaps them
+    on free, so every update page-faults its activations in again: measured on the dev VM, this
+    made a 32x32x120x160 conv 6x and a zero-fill 8x slower. Raising the mmap and trim thresholds
+    keeps those blocks in the heap for reuse. Process-wide and idempotent; returns whether set.
+    """
+    global _ALLOCATOR_TUNED
+    if _ALLOCATOR_TUNED:
+        return True
+    try:
+        import ctypes
+        import platform
+        if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+            return False
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        ok = libc.mallopt(m_mmap_threshold, 1 << 30) == 1 and libc.mallopt(m_trim_threshold, 1 << 30) == 1
+    except (OSError, AttributeError):
+        return False
+    _ALLOCATOR_TUNED = ok
+    return ok
+
+
+class ConvTrunk(nn.Module):
+    """conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        c1, c2, c3 = CONV_CHANNELS
+        pad = CONV_KERNEL // 2
+        self.conv1 = nn.Conv2d(1, c1, CONV_KERNEL, padding=pad)
+        self.conv2 = nn.Conv2d(c1, c2, CONV_KERNEL, padding=pad)
+        self.conv3 = nn.Conv2d(c2, c3, CONV_KERNEL, padding=pad)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        # The paper's order is conv -> ReLU -> pool. max-pool and ReLU commute (both monotone),
+        # so pooling first gives the same values and gradients while ReLU and its backward touch
+        # a 4x smaller tensor: about 10% of an update's time on CPU.
+        x = F.relu(F.max_pool2d(self.conv1(x), 2), inplace=True)
+        x = F.relu(F.max_pool2d(self.conv2(x), 2), inplace=True)
+        return F.relu(F.max_pool2d(self.conv3(x), 2), inplace=True)
+
+
+class QNetwork(nn.Module):
+    """Depth image -> 5 Q-values (left, half-left, straight, half-right, right)."""
+
+    def __init__(self, model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None):
+        super().__init__()
+        self.model_cfg = model_cfg or ModelConfig()
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.pool3_shape = pool3_shape(self.sensor_cfg)
+        flat = int(np.prod(self.pool3_shape))
+        cfg = self.model_cfg
+        self.trunk = ConvTrunk()
+        self.fc1 = nn.Linear(flat, cfg.fc1)
+        self.fc2 = nn.Linear(cfg.fc1, cfg.fc2)
+        self.dropout = nn.Dropout(cfg.dropout)
+        if cfg.dueling:
+            self.value = nn.Linear(cfg.fc2, 1)
+            self.advantage = nn.Linear(cfg.fc2, NUM_ACTIONS)
+        else:
+            self.fc3 = nn.Linear(cfg.fc2, NUM_ACTIONS)
+        self.to(memory_format=torch.channels_last)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, 1, H, W)."""
+        self._check_input(x)
+        return self.trunk(x)
+
+    def head(self, pool3: torch.Tensor) -> torch.Tensor:
+        """pool3 activations -> (B, 5) Q-values."""
+        # flatten in NCHW order whatever the memory format, so fc1 weights are format-independent
+        h = torch.flatten(pool3.contiguous(), 1)
+        h = self.dropout(F.relu(self.fc1(h), inplace=True))
+        h = self.dropout(F.relu(self.fc2(h), inplace=True))
+        if self.model_cfg.dueling:
+            adv = self.advantage(h)
+            return self.value(h) + adv - adv.mean(dim=1, keepdim=True)
+        return self.fc3(h)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))
+
+    def _check_input(self, x: torch.Tensor) -> None:
+        want = (1, self.sensor_cfg.height, self.sensor_cfg.width)
+        if x.dim() != 4 or tuple(x.shape[1:]) != want:
+            raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) "
+                             f"(use preprocess_depth), got {tuple(x.shape)}")
+
+    def conv_parameters(self) -> list[nn.Parameter]:
+        return list(self.trunk.parameters())
+
+    def head_parameters(self) -> list[nn.Parameter]:
+        return [p for n, p in self.named_parameters() if not n.startswith("trunk.")]
+
+
+class SupervisedNet(nn.Module):
+    """The authors' supervised obstacle-avoidance model: the same ConvTrunk + one fc to 5 classes."""
+
+    def __init__(self, sensor_cfg: SensorConfig | None = None):
+        super().__init__()
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.pool3_shape = pool3_shape(self.sensor_cfg)
+        self.trunk = ConvTrunk()
+        self.fc = nn.Linear(int(np.prod(self.pool3_shape)), NUM_ACTIONS)
+        self.to(memory_format=torch.channels_last)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        return self.trunk(x)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, H, W) -> (B, 5) class logits."""
+        return self.fc(torch.flatten(self.trunk(x).contiguous(), 1))
+
+
+def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
+    """Copy the ConvTrunk weights of ``src`` into ``dst`` (QNetwork <-> SupervisedNet)."""
+    for m, name in ((src, "src"), (dst, "dst")):
+        if not isinstance(getattr(m, "trunk", None), ConvTrunk):
+            raise ModelError(f"{name} ({type(m).__name__}) has no ConvTrunk")
+    with torch.no_grad():
+        for (n, ps), pd in zip(src.trunk.named_parameters(), dst.trunk.parameters()):
+            if ps.shape != pd.shape:
+                raise ModelError(f"conv weight {n}: shape {tuple(ps.shape)} != {tuple(pd.shape)}")
+            pd.copy_(ps)
+
+
+def architecture_fingerprint(net: nn.Module) -> str:
+    """Short hash of the class, parameter names, shapes and dtypes: equal iff weights are interchangeable."""
+    spec = [type(net).__name__] + [f"{n}:{tuple(t.shape)}:{t.dtype}" for n, t in net.state_dict().items()]
+    return hashlib.sha256("\n".join(spec).encode()).hexdigest()[:16]
+
+
+def weights_to_tensors(net: nn.Module) -> dict[str, torch.Tensor]:
+    """Parameters as contiguous CPU tensors in NCHW order (for messages, safetensors, other devices)."""
+    return {n: t.detach().to("cpu").contiguous() for n, t in net.state_dict().items()}
+
+
+def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
+    """Load ``weights_to_tensors`` output into ``net`` with a clear error on any mismatch."""
+    own = net.state_dict()
+    missing = sorted(set(own) - set(tensors))
+    extra = sorted(set(tensors) - set(own))
+    if missing or extra:
+        raise ModelError(f"weights do not fit {type(net).__name__}: missing {missing}, unexpected {extra}")
+    with torch.no_grad():
+        for n, t in own.items():
+            src = tensors[n]
+            if tuple(src.shape) != tuple(t.shape):
+                raise ModelError(f"weight {n}: shape {tuple(src.shape)}, network wants {tuple(t.shape)}")
+            t.copy_(src)  # copy_ keeps the destination's (channels-last) layout and device
+
+
+class InferenceRunner:
+    """Fast greedy evaluation of a QNetwork on one or a few depth images (actors, evaluator).
+
+    Keeps the network in eval mode (dropout off) and runs under ``torch.inference_mode``. It
+    shares the network's parameters, so weight updates loaded into ``net`` are seen at once.
+    """
+
+    def __init__(self, net: QNetwork):
+        reduce_allocator_page_faults()
+        self.net = net
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def q_values(self, depth: Any) -> np.ndarray:
+        """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy."""
+        single = getattr(depth, "ndim", 0) == 2
+        was_training = self.net.training
+        self.net.eval()
+        try:
+            with torch.inference_mode():
+                q = self.net(preprocess_depth(depth, self.device))
+        finally:
+            self.net.train(was_training)
+        out = q.float().cpu().numpy()
+        return out[0] if single else out
+
+
+def layer_summary(model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None,
+                  net: QNetwork | None = None) -> list[dict[str, Any]]:
+    """One row per layer: name, output shape (without batch) and parameter count.
+
+    This is what ``cogexplore model summary --json`` prints.
+    """
+    net = net or QNetwork(model_cfg, sensor_cfg)
+    s = net.sensor_cfg
+    rows: list[dict[str, Any]] = []
+
+    def row(name: str, out: torch.Tensor, module: nn.Module | None = None) -> torch.Tensor:
+        params = sum(p.numel() for p in module.parameters()) if module is not None else 0
+        rows.append({"layer": name, "output_shape": list(out.shape[1:]), "params": params})
+        return out
+
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.no_grad():
+            x = row("input", torch.zeros(1, 1, s.height, s.width))
+            t = net.trunk
+            for i, conv in enumerate((t.conv1, t.conv2, t.conv3), start=1):
+                x = row(f"conv{i}", F.relu(conv(x)), conv)
+                x = row(f"pool{i}", F.max_pool2d(x, 2))
+            h = torch.flatten(x, 1)
+            h = row("fc1", F.relu(net.fc1(h)), net.fc1)
+            h = row("fc2", F.relu(net.fc2(h)), net.fc2)
+            if net.model_cfg.dueling:
+                row("value", net.value(h), net.value)
+                row("advantage", net.advantage(h), net.advantage)
+                row("q", net.head(x), None)
+            else:
+                row("fc3", net.fc3(h), net.fc3)
+    finally:
+        net.train(was_training)
+    rows.append({"layer": "total", "output_shape": [NUM_ACTIONS],
+                 "params": sum(p.numel() for p in net.parameters())})
+    return rows
+
+
+summary = layer_summary
+
+
+def forward_flops(net: QNetwork | SupervisedNet) -> dict[str, int]:
+    """Multiply-add FLOPs (2 per MAC) of one single-image forward pass, per conv/fc layer."""
+    flops: dict[str, int] = {}
+    hooks = []
+
+    def record(name: str):
+        def hook(m: nn.Module, _inp: Any, out: torch.Tensor) -> None:
+            if isinstance(m, nn.Conv2d):
+                k = m.in_channels * m.kernel_size[0] * m.kernel_size[1] // m.groups
+                flops[name] = 2 * k * out[0].numel()
+            else:
+                flops[name] = 2 * m.in_features * m.out_features
+        return hook
+
+    for name, m in net.named_modules():
+        if isinstance(m, (nn.Conv2d, nn.Linear)):
+            hooks.append(m.register_forward_hook(record(name.removeprefix("trunk."))))
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.no_grad():
+            net(torch.zeros(1, 1, net.sensor_cfg.height, net.sensor_cfg.width))
+    finally:
+        for h in hooks:
+            h.remove()
+        net.train(was_training)
+    return flops
+
+
+def config_json(model_cfg: ModelConfig, sensor_cfg: SensorConfig) -> str:
+    """The configs that define a network's architecture, as JSON (for weight files)."""
+    return json.dumps({"model": asdict(model_cfg), "sensor": asdict(sensor_cfg)}, sort_keys=True)

@@ -1,0 +1,185 @@
+"""Checkpoints: round trip, exact resume, atomicity, corrupt files, pruning, weights export."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from shared.checkpoint import (CheckpointError, CheckpointManager, export_weights, load_checkpoint,
+                               load_exported_weights, save_checkpoint)
+from shared.config import DQNConfig, ModelConfig, ReplayConfig, RunConfig, SensorConfig
+from shared.dqn import DQNAgent
+from shared.replay import ReplayMemory
+
+TINY = SensorConfig(width=40, height=30)
+MODEL = ModelConfig(fc1=32, fc2=16, dropout=0.5)  # dropout on: resume must restore the RNG too
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def setup(dqn: DQNConfig, seed: int = 0):
+    agent = DQNAgent(MODEL, TINY, dqn, device="cpu", seed=seed)
+    mem = ReplayMemory(ReplayConfig(capacity=64, prioritized=True), (30, 40), seed=seed)
+    return agent, mem
+
+
+def fill(mem: ReplayMemory, n: int = 80) -> None:
+    rng = np.random.default_rng(1)
+    obs = rng.random((30, 40)).astype(np.float32) * 4
+    for t in range(n):
+        term = t % 9 == 8
+        nxt = rng.random((30, 40)).astype(np.float32) * 4
+        mem.add("a", obs, t % 5, -100.0 if term else 1.0, None if term else nxt, term)
+        obs = rng.random((30, 40)).astype(np.float32) * 4 if term else nxt
+
+
+def step(agent: DQNAgent, mem: ReplayMemory) -> dict:
+    batch = mem.sample(8, n_step=2)
+    m = agent.update(batch)
+    mem.update_priorities(batch.indices, m["td_errors"])
+    return m
+
+
+@pytest.mark.parametrize("dqn", [DQNConfig(target_sync_every=3, lr=1e-4),
+                                 DQNConfig(optimizer="adam", lr=1e-3, double_dqn=True, n_step=2)],
+                         ids=["sgd", "adam"])
+def test_resume_gives_exactly_the_same_next_updates(tmp_path, dqn):
+    agent, mem = setup(dqn)
+    fill(mem)
+    for _ in range(4):
+        step(agent, mem)
+    path = save_checkpoint(tmp_path / "c.safetensors", agent, replay=mem,
+                           config=RunConfig().to_dict(), extra={"env_steps": 80})
+    # continue without interruption ...
+    straight = [step(agent, mem) for _ in range(3)]
+    # ... and from the checkpoint in fresh objects (different seeds: everything must come from disk)
+    agent2, mem2 = setup(dqn, seed=123)
+    ck = load_checkpoint(path)
+    ck.restore(agent2, mem2)
+    assert ck.extra == {"env_steps": 80} and ck.config["dqn"]["gamma"] == 0.85
+    resumed = [step(agent2, mem2) for _ in range(3)]
+    for a, b in zip(straight, resumed):
+        assert a["loss"] == b["loss"] and a["synced_target"] == b["synced_target"]
+        np.testing.assert_array_equal(a["td_errors"], b["td_errors"])
+    for (k, v), v2 in zip(agent.online.state_dict().items(), agent2.online.state_dict().values()):
+        assert torch.equal(v, v2), k
+    for v, v2 in zip(agent.target.state_dict().values(), agent2.target.state_dict().values()):
+        assert torch.equal(v, v2)
+    assert agent2.update_count == agent.update_count == 7
+    assert agent2.policy_version == agent.policy_version
+
+
+def test_files_are_safetensors_with_json_metadata_never_pickle(tmp_path):
+    agent, _ = setup(DQNConfig())
+    path = save_checkpoint(tmp_path / "c.safetensors", agent)
+    raw = path.read_bytes()
+    header_len = int.from_bytes(raw[:8], "little")
+    header = json.loads(raw[8:8 + header_len])
+    meta = json.loads(header["__metadata__"]["cogexplore"])
+    assert meta["format"] == "cogexplore-checkpoint" and meta["agent"]["update_count"] == 0
+    assert "online.fc1.weight" in header and "target.fc1.weight" in header and "rng.torch" in header
+    assert b"\x80\x04" not in raw[:16]  # no pickle protocol marker
+
+
+def test_manager_keeps_last_k_and_points_latest_at_the_newest(tmp_path):
+    agent, mem = setup(DQNConfig())
+    fill(mem)
+    cm = CheckpointManager(tmp_path, keep=2)
+    assert cm.latest() is None and cm.load_latest() is None
+    for _ in range(4):
+        step(agent, mem)
+        cm.save(agent, replay=mem)
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert len(names) == 5 and names[-1] == "latest"
+    assert names[1] == "ckpt-000000003.safetensors" and names[0].startswith("ckpt-000000003.replay-")
+    assert names[3] == "ckpt-000000004.safetensors" and names[2].startswith("ckpt-000000004.replay-")
+    assert cm.latest().name == "ckpt-000000004.safetensors"
+    assert cm.load().update_count == 4
+    # re-saving the same update (a final save right after a periodic one) replaces both files
+    fill(mem, 5)
+    cm.save(agent, replay=mem)
+    assert len(list(tmp_path.glob("ckpt-000000004.replay-*"))) == 1
+    agent2, mem2 = setup(DQNConfig(), seed=5)
+    cm.load().restore(agent2, mem2)
+    assert mem2.transitions_added == mem.transitions_added
+
+
+def test_partial_write_leaves_the_previous_checkpoint_usable(tmp_path):
+    agent, mem = setup(DQNConfig())
+    fill(mem)
+    cm = CheckpointManager(tmp_path, keep=3)
+    step(agent, mem)
+    good = cm.save(agent)
+    # a writer killed mid-write leaves only a temporary file; latest is untouched
+    step(agent, mem)
+    full = save_checkpoint(tmp_path / "scratch.safetensors", agent).read_bytes()
+    (tmp_path / ".ckpt-000000002.safetensors.tmp-999").write_bytes(full[: len(full) // 2])
+    assert cm.latest() == good
+    assert cm.load().update_count == 1
+    # a truncated checkpoint under its final name gives a clear error ...
+    partial = cm.path_for(2)
+    partial.write_bytes(full[: len(full) // 3])
+    with pytest.raises(CheckpointError, match="partial or corrupt"):
+        load_checkpoint(partial)
+    # ... and load_latest falls back past it when latest names it
+    (tmp_path / "latest").write_text(partial.name + "\n")
+    ck = cm.load_latest()
+    assert ck is not None and ck.path == good and ck.update_count == 1
+    assert len(cm.skipped) == 1 and "ckpt-000000002" in cm.skipped[0]
+    with pytest.raises(CheckpointError):
+        cm.load()
+
+
+def test_flipped_bytes_are_detected_by_the_digest(tmp_path):
+    agent, _ = setup(DQNConfig())
+    path = save_checkpoint(tmp_path / "c.safetensors", agent)
+    raw = bytearray(path.read_bytes())
+    raw[-100] ^= 0xFF  # inside the tensor data, header intact
+    path.write_bytes(bytes(raw))
+    with pytest.raises(CheckpointError, match="digest"):
+        load_checkpoint(path)
+    path.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError, match="partial or corrupt"):
+        load_checkpoint(path)
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "missing.safetensors")
+
+
+def test_checkpoint_of_another_architecture_or_optimiser_is_refused(tmp_path):
+    agent, _ = setup(DQNConfig())
+    ck = load_checkpoint(save_checkpoint(tmp_path / "c.safetensors", agent))
+    other = DQNAgent(ModelConfig(fc1=64, fc2=16), TINY, DQNConfig(), device="cpu")
+    with pytest.raises(CheckpointError, match="architecture"):
+        ck.restore(other)
+    adam = DQNAgent(MODEL, TINY, DQNConfig(optimizer="adam"), device="cpu")
+    with pytest.raises(CheckpointError, match="optimiser"):
+        ck.restore(adam)
+    mem = ReplayMemory(ReplayConfig(capacity=64), (30, 40))
+    with pytest.raises(CheckpointError, match="without its replay"):
+        ck.restore(agent, mem)
+
+
+def test_weights_only_export_round_trip(tmp_path):
+    agent, mem = setup(DQNConfig(lr=1e-3))
+    fill(mem)
+    step(agent, mem)
+    path = export_weights(tmp_path / "deploy" / "w.safetensors", agent.online, agent.policy_version)
+    net, meta = load_exported_weights(path)
+    assert meta["policy_version"] == 1 and meta["sensor"]["width"] == 40
+    assert not net.training
+    depth = np.random.default_rng(0).random((30, 40)).astype(np.float32) * 4
+    np.testing.assert_array_equal(agent.q_values(depth), net(torch.from_numpy(depth[None, None] / 4)
+                                                             .contiguous(memory_format=torch.channels_last))
+                                  .detach().numpy()[0])
+    assert os.path.getsize(path) < 0.6 * os.path.getsize(save_checkpoint(tmp_path / "c.safetensors", agent))
+    with pytest.raises(CheckpointError, match="cogexplore-weights"):
+        load_exported_weights(tmp_path / "c.safetensors")

@@ -1,0 +1,197 @@
+"""DQN update: hand-computed TD targets, the Caffe lr mapping, target sync, learning rates, updates."""
+
+import numpy as np
+import pytest
+import torch
+
+from shared.config import DQNConfig, ModelConfig, ReplayConfig, SensorConfig, load_preset
+from shared.dqn import (DQNAgent, DQNError, caffe_lr_to_torch, n_step_returns, td_targets,
+                        update_flops)
+from shared.model import QNetwork, forward_flops
+from shared.replay import Batch, ReplayMemory
+
+TINY = SensorConfig(width=40, height=30)
+SMALL = ModelConfig(fc1=32, fc2=16, dropout=0.0)
+G = 0.85
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def make_batch(b: int = 8, seed: int = 0, terminated=None, n: int = 1) -> Batch:
+    rng = np.random.default_rng(seed)
+    return Batch(
+        obs=rng.integers(300, 4000, (b, 30, 40)).astype(np.uint16),
+        action=rng.integers(0, 5, b).astype(np.int64),
+        rewards=np.where(rng.random((b, n)) < 0.2, -100.0, 1.0).astype(np.float32),
+        n_steps=np.full(b, n, dtype=np.int64),
+        terminated=np.zeros(b, bool) if terminated is None else np.asarray(terminated),
+        next_obs=rng.integers(300, 4000, (b, 30, 40)).astype(np.uint16),
+        weights=np.ones(b, np.float32),
+        indices=np.arange(b),
+    )
+
+
+def test_td_targets_hand_computed_terminal_truncated_normal_and_n_step():
+    # rows: normal 1-step, collision, truncated (bootstraps like normal), 3-step, 2-step collision
+    rewards = torch.tensor([[1, 0, 0], [-100, 0, 0], [1, 0, 0], [1, 1, 1], [1, -100, 0]], dtype=torch.float32)
+    n_steps = torch.tensor([1, 1, 1, 3, 2])
+    terminated = torch.tensor([False, True, False, False, True])
+    next_q = torch.tensor([[0, 2, 1, 0, 0], [50, 50, 50, 50, 50], [3, 0, 0, 0, 0],
+                           [0, 0, 0, 0, 4], [9, 9, 9, 9, 9]], dtype=torch.float32)
+    y = td_targets(rewards, n_steps, terminated, next_q, G)
+    expected = [1 + G * 2, -100, 1 + G * 3, 1 + G + G ** 2 + G ** 3 * 4, 1 + G * -100]
+    np.testing.assert_allclose(y.numpy(), expected, rtol=1e-6)
+    # Double DQN: argmax from the online net, value from the target net
+    online = torch.tensor([[0, 0, 5, 0, 0]] * 5, dtype=torch.float32)
+    y2 = td_targets(rewards, n_steps, terminated, next_q, G, next_q_online=online)
+    expected2 = [1 + G * 1, -100, 1 + 0, 1 + G + G ** 2 + 0, 1 + G * -100]
+    np.testing.assert_allclose(y2.numpy(), expected2, rtol=1e-6)
+    # NaN next values of a collision row never leak into its target
+    next_q[1] = float("nan")
+    assert td_targets(rewards, n_steps, terminated, next_q, G)[1] == -100
+    np.testing.assert_allclose(n_step_returns(rewards, n_steps, G).numpy()[3], 1 + G + G ** 2)
+
+
+def test_caffe_euclidean_gradient_is_half_of_our_mean_squared_error():
+    """The documented lr mapping: Caffe 1e-7 == ours 5e-8, checked on real gradients."""
+    assert caffe_lr_to_torch(1e-7) == pytest.approx(5e-8)
+    torch.manual_seed(0)
+    q = torch.randn(4, 5, requires_grad=True)
+    a = torch.tensor([0, 3, 1, 4])
+    y = torch.randn(4) * 10
+    # Caffe DQN: EuclideanLoss over the whole (N, 5) blob, target = own output except taken action
+    target_blob = q.detach().clone()
+    target_blob[torch.arange(4), a] = y
+    caffe = ((q - target_blob) ** 2).sum() / (2 * 4)
+    (g_caffe,) = torch.autograd.grad(caffe, q)
+    ours = torch.nn.functional.mse_loss(q.gather(1, a[:, None]).squeeze(1), y)
+    (g_ours,) = torch.autograd.grad(ours, q)
+    torch.testing.assert_close(g_ours * 0.5, g_caffe)
+
+
+def test_update_uses_target_net_and_syncs_every_c_updates():
+    cfg = DQNConfig(target_sync_every=3, optimizer="adam", lr=1e-3)
+    agent = DQNAgent(SMALL, TINY, cfg, device="cpu", seed=0)
+    target_before = {k: v.clone() for k, v in agent.target.state_dict().items()}
+    batch = make_batch()
+    for i in range(2):
+        m = agent.update(batch)
+        assert not m["synced_target"]
+    assert all(torch.equal(v, agent.target.state_dict()[k]) for k, v in target_before.items())
+    assert not torch.equal(agent.online.fc1.weight, agent.target.fc1.weight)
+    m = agent.update(batch)
+    assert m["synced_target"] and m["update"] == 3 and m["policy_version"] == 3
+    for k, v in agent.online.state_dict().items():
+        assert torch.equal(v, agent.target.state_dict()[k])
+    assert not agent.target.training and not any(p.requires_grad for p in agent.target.parameters())
+
+
+def test_update_targets_match_hand_formula_with_the_target_network():
+    agent = DQNAgent(SMALL, TINY, DQNConfig(), device="cpu", seed=1)
+    batch = make_batch(terminated=[True, False, False, False, False, False, False, False])
+    tb = agent.to_tensors(batch)
+    with torch.no_grad():
+        next_q = agent.target(tb.next_obs)
+    y = agent.compute_targets(tb)
+    assert y[0] == batch.rewards[0, 0]
+    torch.testing.assert_close(y[1:], tb.rewards[1:, 0] + G * next_q[1:].max(1).values)
+    # garbage next frames of collision rows do not change their targets
+    batch.next_obs[0] = 123
+    assert agent.compute_targets(agent.to_tensors(batch))[0] == y[0]
+
+
+def test_repeated_updates_fit_a_fixed_batch():
+    agent = DQNAgent(SMALL, TINY, DQNConfig(optimizer="adam", lr=1e-2, double_dqn=True,
+                                            target_sync_every=10_000), device="cpu", seed=0)
+    batch = make_batch(16, terminated=np.arange(16) % 4 == 0)
+    first = agent.update(batch)["td_abs_mean"]
+    for _ in range(80):
+        last = agent.update(batch)
+    assert last["td_abs_mean"] < 0.5 * first
+    assert last["td_errors"].shape == (16,)
+
+
+def test_conv_layers_learn_slower_and_can_be_frozen():
+    agent = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3, conv_lr_scale=0.1), device="cpu", seed=0)
+    lrs = {g["name"]: g["lr"] for g in agent.optimizer.param_groups}
+    assert lrs == {"fc": pytest.approx(1e-3), "conv": pytest.approx(1e-4)}
+    frozen = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3, conv_lr_scale=0.0), device="cpu", seed=0)
+    conv_before = frozen.online.trunk.conv2.weight.clone()
+    fc_before = frozen.online.fc1.weight.clone()
+    frozen.update(make_batch())
+    assert torch.equal(frozen.online.trunk.conv2.weight, conv_before)
+    assert not torch.equal(frozen.online.fc1.weight, fc_before)
+
+
+def test_importance_weights_scale_each_sample():
+    a = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3), device="cpu", seed=0)
+    b = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3), device="cpu", seed=0)
+    before = a.online.fc3.weight.clone()
+    batch = make_batch(4)
+    zero_w = Batch(**{**batch.__dict__, "weights": np.array([1, 0, 0, 0], np.float32)})
+    only_first = Batch(**{k: (v[:1] if isinstance(v, np.ndarray) else v) for k, v in batch.__dict__.items()})
+    ma = a.update(zero_w)
+    mb = b.update(only_first)
+    # the zero-weight samples add nothing: a quarter of the one-sample loss and SGD step
+    assert ma["loss"] == pytest.approx(mb["loss"] / 4, rel=1e-5)
+    torch.testing.assert_close((a.online.fc3.weight - before) * 4, b.online.fc3.weight - before)
+
+
+def test_bad_batches_and_divergence_raise_clear_errors():
+    agent = DQNAgent(SMALL, TINY, DQNConfig(), device="cpu", seed=0)
+    big = make_batch()
+    wrong = Batch(**{**big.__dict__, "obs": np.zeros((8, 120, 160), np.uint16)})
+    with pytest.raises(DQNError, match="do not fit the sensor"):
+        agent.update(wrong)
+    nan = Batch(**{**big.__dict__, "rewards": np.full((8, 1), np.nan, np.float32)})
+    with pytest.raises(DQNError, match="non-finite loss"):
+        agent.update(nan)
+
+
+def test_weights_export_and_load_bump_policy_version():
+    a = DQNAgent(SMALL, TINY, DQNConfig(), device="cpu", seed=0)
+    b = DQNAgent(SMALL, TINY, DQNConfig(), device="cpu", seed=1)
+    b.load_weights(a.weights())
+    assert b.policy_version == 1
+    depth = np.random.default_rng(0).random((30, 40)).astype(np.float32) * 4
+    np.testing.assert_array_equal(a.q_values(depth), b.q_values(depth))
+    assert torch.equal(b.target.fc1.weight, a.online.fc1.weight)
+
+
+def test_update_flops_formula():
+    net = QNetwork()
+    f = forward_flops(net)
+    fwd = sum(f.values())
+    assert update_flops(net, 32, double_dqn=True) == 32 * (3 * fwd + 2 * fwd - f["conv1"])
+    assert update_flops(net, 32, double_dqn=False) == 32 * (2 * fwd + 2 * fwd - f["conv1"])
+    assert 60e9 < update_flops(net, 32) < 70e9
+
+
+def test_smoke_preset_runs_50_updates_end_to_end_on_replay():
+    cfg = load_preset("smoke")
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=cfg.train.seed)
+    mem = ReplayMemory(cfg.replay, (cfg.sensor.height, cfg.sensor.width), seed=0)
+    rng = np.random.default_rng(0)
+    obs = rng.random((cfg.sensor.height, cfg.sensor.width)).astype(np.float32) * 4
+    for t in range(200):
+        term = rng.random() < 0.1
+        nxt = rng.random(obs.shape).astype(np.float32) * 4
+        mem.add(0, obs, int(rng.integers(5)), -100.0 if term else 1.0, None if term else nxt, term)
+        obs = rng.random(obs.shape).astype(np.float32) * 4 if term else nxt
+    for _ in range(cfg.train.total_updates):
+        batch = mem.sample(cfg.dqn.batch_size, cfg.dqn.n_step)
+        m = agent.update(batch)
+        mem.update_priorities(batch.indices, m["td_errors"])
+    assert agent.update_count == 50 and np.isfinite(m["loss"])
+
+
+def test_replay_config_capacity_reaches_hundreds_of_thousands():
+    mem = ReplayMemory(ReplayConfig(capacity=300_000), (120, 160))
+    assert mem.bytes_per_transition < 1.2 * 120 * 160 * 2

@@ -1,0 +1,163 @@
+"""Q-network: shapes, preprocessing, dropout, pool-before-ReLU equivalence, supervised sibling."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from shared.config import ModelConfig, SensorConfig
+from shared.model import (DEPTH_SCALE_M, InferenceRunner, ModelError, QNetwork, SupervisedNet,
+                          architecture_fingerprint, copy_conv_weights, forward_flops, layer_summary,
+                          load_tensors, pool3_shape, preprocess_depth, weights_to_tensors)
+
+TINY = SensorConfig(width=40, height=30)
+SMALL = ModelConfig(fc1=32, fc2=16)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def test_paper_shapes_pool3_is_64x15x20():
+    torch.manual_seed(0)
+    net = QNetwork()
+    x = preprocess_depth(np.random.default_rng(0).random((2, 120, 160)).astype(np.float32) * 4)
+    assert x.shape == (2, 1, 120, 160)
+    assert net.features(x).shape == (2, 64, 15, 20)
+    assert net(x).shape == (2, 5)
+    assert pool3_shape(SensorConfig()) == (64, 15, 20)
+
+
+def test_summary_rows_shapes_and_parameter_counts():
+    rows = {r["layer"]: r for r in layer_summary(ModelConfig(), SensorConfig())}
+    assert rows["conv1"]["output_shape"] == [32, 120, 160] and rows["conv1"]["params"] == 32 * 25 + 32
+    assert rows["conv2"]["params"] == 32 * 32 * 25 + 32
+    assert rows["conv3"]["params"] == 64 * 32 * 25 + 64
+    assert rows["pool3"]["output_shape"] == [64, 15, 20]
+    assert rows["fc1"] == {"layer": "fc1", "output_shape": [512], "params": 64 * 15 * 20 * 512 + 512}
+    assert rows["fc2"]["output_shape"] == [256]
+    assert rows["fc3"]["output_shape"] == [5]
+    assert rows["total"]["params"] == sum(r["params"] for n, r in rows.items() if n != "total")
+
+
+def test_forward_flops_match_hand_count():
+    flops = forward_flops(QNetwork())
+    assert flops["conv1"] == 2 * 120 * 160 * 32 * 25
+    assert flops["conv2"] == 2 * 60 * 80 * 32 * 32 * 25
+    assert flops["conv3"] == 2 * 30 * 40 * 64 * 32 * 25
+    assert flops["fc1"] == 2 * 19200 * 512
+
+
+def test_preprocess_metres_and_millimetres_agree_and_keep_zero():
+    depth_m = np.array([[0.0, 1.0], [2.5, 9.0]], dtype=np.float32)
+    depth_mm = np.array([[0, 1000], [2500, 9000]], dtype=np.uint16)
+    a, b = preprocess_depth(depth_m), preprocess_depth(depth_mm)
+    assert torch.equal(a, b)
+    assert a.shape == (1, 1, 2, 2)
+    assert a[0, 0, 0, 0] == 0.0  # no return stays 0
+    assert a[0, 0, 0, 1] == pytest.approx(1.0 / DEPTH_SCALE_M)
+    assert a[0, 0, 1, 1] == 1.0  # clipped beyond the scale
+    assert preprocess_depth(torch.from_numpy(depth_m)).equal(a)
+    assert preprocess_depth(np.array([[np.nan, 1.0]], dtype=np.float32))[0, 0, 0, 0] == 0.0
+
+
+def test_preprocess_rejects_bad_shapes():
+    with pytest.raises(ModelError, match=r"\(H, W\) or \(B, H, W\)"):
+        preprocess_depth(np.zeros((1, 1, 4, 4), dtype=np.float32))
+    with pytest.raises(ModelError, match="numpy array or torch tensor"):
+        preprocess_depth([[1.0]])
+    net = QNetwork(SMALL, TINY)
+    with pytest.raises(ModelError, match="network input must be"):
+        net(torch.zeros(1, 1, 120, 160))
+
+
+def test_dropout_only_in_training():
+    torch.manual_seed(0)
+    net = QNetwork(ModelConfig(fc1=64, fc2=32, dropout=0.5), TINY)
+    x = preprocess_depth(np.random.default_rng(1).random((4, 30, 40)).astype(np.float32) * 3)
+    net.eval()
+    assert torch.equal(net(x), net(x))
+    net.train()
+    assert not torch.equal(net(x), net(x))
+
+
+def test_pool_then_relu_equals_paper_order_values_and_gradients():
+    torch.manual_seed(0)
+    net = QNetwork(SMALL, TINY)
+    x = preprocess_depth(np.random.default_rng(2).random((3, 30, 40)).astype(np.float32) * 4)
+    t = net.trunk
+
+    def paper_order(x):
+        for conv in (t.conv1, t.conv2, t.conv3):
+            x = F.max_pool2d(F.relu(conv(x)), 2)
+        return x
+
+    ours = t(x)
+    ref = paper_order(x)
+    assert torch.allclose(ours, ref, atol=1e-6)
+    g1 = torch.autograd.grad(ours.square().sum(), t.conv1.weight)[0]
+    g2 = torch.autograd.grad(paper_order(x).square().sum(), t.conv1.weight)[0]
+    assert torch.allclose(g1, g2, rtol=1e-4, atol=1e-6)
+
+
+def test_tiny_sensor_and_dueling_head():
+    net = QNetwork(ModelConfig(fc1=32, fc2=16, dueling=True), TINY).eval()
+    x = preprocess_depth(np.ones((2, 30, 40), dtype=np.float32))
+    assert net.features(x).shape == (2, 64, 3, 5)
+    q = net(x)
+    assert q.shape == (2, 5)
+    h = net.features(x).flatten(1)
+    h = F.relu(net.fc2(F.relu(net.fc1(h))))
+    adv = net.advantage(h)
+    # Q - V is the advantage with zero mean over actions
+    assert torch.allclose(q - net.value(h), adv - adv.mean(1, keepdim=True), atol=1e-5)
+    assert pool3_shape(SensorConfig(width=17, height=8)) == (64, 1, 2)  # odd sizes floor
+
+
+def test_supervised_net_shares_trunk_and_conv_weights_copy():
+    torch.manual_seed(0)
+    q = QNetwork(SMALL, TINY)
+    sl = SupervisedNet(TINY)
+    x = preprocess_depth(np.random.default_rng(3).random((2, 30, 40)).astype(np.float32) * 4)
+    assert sl(x).shape == (2, 5)
+    assert not torch.equal(q.features(x), sl.features(x))
+    copy_conv_weights(sl, q)
+    assert torch.equal(q.features(x), sl.features(x))
+    with pytest.raises(ModelError, match="no ConvTrunk"):
+        copy_conv_weights(torch.nn.Linear(2, 2), q)
+
+
+def test_weights_round_trip_and_mismatch_errors():
+    torch.manual_seed(0)
+    a, b = QNetwork(SMALL, TINY), QNetwork(SMALL, TINY)
+    tensors = weights_to_tensors(a)
+    assert all(t.is_contiguous() for t in tensors.values())
+    load_tensors(b, tensors)
+    x = preprocess_depth(np.ones((1, 30, 40), dtype=np.float32))
+    assert torch.equal(a.eval()(x), b.eval()(x))
+    other = QNetwork(ModelConfig(fc1=64, fc2=16), TINY)
+    assert architecture_fingerprint(other) != architecture_fingerprint(a)
+    with pytest.raises(ModelError, match="fc1.weight"):
+        load_tensors(other, tensors)
+    with pytest.raises(ModelError, match="missing"):
+        load_tensors(b, {k: v for k, v in tensors.items() if k != "fc3.bias"})
+
+
+def test_inference_runner_matches_eval_forward_and_restores_mode():
+    torch.manual_seed(0)
+    net = QNetwork(SMALL, TINY)
+    net.train()
+    runner = InferenceRunner(net)
+    depth = np.random.default_rng(4).random((30, 40)).astype(np.float32) * 4
+    q = runner.q_values(depth)
+    assert q.shape == (5,) and q.dtype == np.float32
+    assert net.training
+    with torch.no_grad():
+        ref = net.eval()(preprocess_depth(depth))[0].numpy()
+    np.testing.assert_array_equal(q, ref)
+    assert runner.q_values(np.stack([depth, depth])).shape == (2, 5)

@@ -1,0 +1,81 @@
+"""Action selection: epsilon schedules, Ape-X per-actor epsilon, greedy and epsilon-greedy."""
+
+import numpy as np
+import pytest
+import torch
+
+from shared.config import ExploreConfig, ModelConfig, SensorConfig
+from shared.model import QNetwork, preprocess_depth
+from shared.policy import (EpsilonGreedyPolicy, EpsilonSchedule, PolicyError, apex_epsilon,
+                           greedy_action, linear_epsilon)
+
+TINY = SensorConfig(width=40, height=30)
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def net() -> QNetwork:
+    torch.manual_seed(0)
+    return QNetwork(ModelConfig(fc1=16, fc2=8, dropout=0.5), TINY)
+
+
+def test_linear_schedule():
+    cfg = ExploreConfig(eps_start=1.0, eps_end=0.1, eps_decay_steps=100)
+    assert linear_epsilon(0, cfg) == 1.0
+    assert linear_epsilon(50, cfg) == pytest.approx(0.55)
+    assert linear_epsilon(100, cfg) == pytest.approx(0.1)
+    assert linear_epsilon(10_000, cfg) == pytest.approx(0.1)
+    assert linear_epsilon(0, ExploreConfig(eps_decay_steps=0, eps_end=0.2)) == 0.2
+    with pytest.raises(PolicyError, match="step"):
+        linear_epsilon(-1, cfg)
+
+
+def test_apex_per_actor_epsilon():
+    assert apex_epsilon(0, 8, 0.4, 7.0) == pytest.approx(0.4)
+    assert apex_epsilon(7, 8, 0.4, 7.0) == pytest.approx(0.4 ** 8)
+    assert apex_epsilon(3, 7, 0.4, 7.0) == pytest.approx(0.4 ** (1 + 7 * 3 / 6))
+    assert apex_epsilon(0, 1, 0.3, 7.0) == 0.3
+    with pytest.raises(PolicyError, match="actor_index"):
+        apex_epsilon(8, 8)
+    sched = EpsilonSchedule(ExploreConfig(per_actor=True), actor_index=2, num_actors=5)
+    assert sched(0) == sched(10_000) == pytest.approx(0.4 ** (1 + 7 * 2 / 4))
+    with pytest.raises(PolicyError):
+        EpsilonSchedule(ExploreConfig(per_actor=True), actor_index=5, num_actors=5)
+
+
+def test_greedy_returns_argmax_and_all_q_values_with_dropout_off():
+    n = net()
+    n.train()  # the policy must evaluate with dropout off anyway
+    policy = EpsilonGreedyPolicy(n)
+    depth = np.random.default_rng(0).random((30, 40)).astype(np.float32) * 4
+    choice = policy.greedy(depth)
+    with torch.no_grad():
+        ref = n.eval()(preprocess_depth(depth))[0].numpy()
+    np.testing.assert_array_equal(choice.q_values, ref)
+    assert choice.action == int(np.argmax(ref)) and not choice.explored
+    assert policy.act(depth, step=10**6).action == choice.action  # no schedule: greedy
+    assert greedy_action(np.array([1.0, 3.0, 3.0, 0.0, 0.0])) == 1  # ties: lowest index
+    with pytest.raises(PolicyError, match="shape"):
+        greedy_action(np.zeros(4))
+
+
+def test_epsilon_greedy_explores_uniformly_and_is_seeded():
+    cfg = ExploreConfig(eps_start=1.0, eps_end=0.0, eps_decay_steps=1000)
+    depth = np.ones((30, 40), dtype=np.float32)
+    p1 = EpsilonGreedyPolicy(net(), EpsilonSchedule(cfg), seed=7)
+    actions = np.array([p1.act(depth, step=0).action for _ in range(600)])
+    assert np.all(np.abs(np.bincount(actions, minlength=5) / 600 - 0.2) < 0.06)
+    p2 = EpsilonGreedyPolicy(net(), EpsilonSchedule(cfg), seed=7)
+    assert [p2.act(depth, step=0).action for _ in range(600)] == actions.tolist()
+    greedy = p1.greedy(depth).action
+    late = [p1.act(depth, step=1000) for _ in range(20)]
+    assert all(c.action == greedy and not c.explored and c.epsilon == 0.0 for c in late)
+    mid = [p1.act(depth, step=500) for _ in range(600)]
+    assert 0.4 < np.mean([c.explored for c in mid]) < 0.6

@@ -1,0 +1,206 @@
+"""Replay memory: shared frames, wrap-around, never-stale sampling, streams, n-step, priorities."""
+
+import numpy as np
+import pytest
+
+from shared.config import ReplayConfig
+from shared.replay import Batch, ReplayError, ReplayMemory, depth_to_mm
+
+SHAPE = (6, 8)
+
+
+def frame(value: int) -> np.ndarray:
+    """A uint16 frame whose every pixel is ``value`` (so content identifies the step)."""
+    return np.full(SHAPE, value, dtype=np.uint16)
+
+
+def add_episode(mem: ReplayMemory, stream, first: int, length: int, end: str = "collision",
+                rewards=None) -> list[int]:
+    """Steps first..first+length-1 with frames valued by step; returns transition ids."""
+    tids = []
+    for k in range(length):
+        step = first + k
+        last = k == length - 1
+        terminated = last and end == "collision"
+        truncated = last and end == "truncation"
+        r = rewards[k] if rewards is not None else (-100.0 if terminated else 1.0)
+        nxt = None if terminated else frame(step + 1)
+        tids.append(mem.add(stream, frame(step), k % 5, r, nxt, terminated, truncated))
+    return tids
+
+
+def test_depth_to_mm_rounds_clips_and_rejects_nan():
+    out = depth_to_mm(np.array([[0.0, 1.2344, 70.0]], dtype=np.float32))
+    assert out.dtype == np.uint16 and out.tolist() == [[0, 1234, 65535]]
+    with pytest.raises(ReplayError, match="NaN"):
+        depth_to_mm(np.array([[np.nan]], dtype=np.float32))
+
+
+def test_frames_are_stored_once_per_transition():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE)
+    add_episode(mem, "a", 0, 10, end="collision")
+    assert mem._frames_written == 10  # obs_0..obs_9, no next frame at the collision
+    add_episode(mem, "a", 100, 5, end="truncation")
+    assert mem._frames_written == 10 + 6  # a truncation keeps its next frame
+    # paper-sized frames: about one 38.4 KB frame per transition, not two
+    big = ReplayMemory(ReplayConfig(capacity=3000), (120, 160))
+    frame_bytes = 120 * 160 * 2
+    assert frame_bytes < big.bytes_per_transition < 1.2 * frame_bytes
+
+
+def test_wrap_around_never_returns_a_stale_frame():
+    mem = ReplayMemory(ReplayConfig(capacity=10), SHAPE, seed=0)
+    step = 0
+    for length, end in [(7, "collision"), (4, "truncation"), (9, "collision"), (3, "truncation"),
+                        (12, "collision")]:
+        add_episode(mem, "a", step, length, end)
+        step += 1000
+    assert len(mem) == 10
+    for _ in range(50):
+        b = mem.sample(16)
+        obs_val = b.obs[:, 0, 0].astype(np.int64)
+        assert np.all(b.obs == obs_val[:, None, None])  # whole frames, not mixes
+        live = ~b.terminated
+        # the next frame is always the step after the obs: frames belong to their transition
+        assert np.all(b.next_obs[live, 0, 0] == obs_val[live] + 1)
+        assert np.all(b.next_obs[b.terminated] == 0)
+        # only the last 10 transitions can come back
+        assert set(b.indices.tolist()) <= set(range(mem.transitions_added - 10, mem.transitions_added))
+
+
+def test_frame_pressure_invalidates_transitions_exactly():
+    # 1-step truncated episodes need 2 frames each: a small frame ring evicts transitions early
+    mem = ReplayMemory(ReplayConfig(capacity=10), SHAPE, frame_capacity=8, seed=1)
+    for ep in range(20):
+        add_episode(mem, "a", 10 * ep, 1, end="truncation")
+    assert len(mem) == 4  # 8 frames hold the last four 2-frame transitions
+    for _ in range(30):
+        b = mem.sample(8)
+        assert np.all(b.next_obs[:, 0, 0] == b.obs[:, 0, 0] + 1)
+        assert set(b.indices.tolist()) <= {16, 17, 18, 19}
+
+
+def test_interleaved_streams_keep_their_own_chains():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE, seed=0)
+    # actor A's steps are 0.., actor B's 500..; their transitions arrive alternately
+    for k in range(6):
+        for stream, base in (("A", 0), ("B", 500)):
+            term = k == 5 and stream == "A"
+            mem.add(stream, frame(base + k), 2, float(base + k), None if term else frame(base + k + 1), term)
+    assert mem._frames_written == 2 * 7 - 1  # A ends in a collision, B stays open
+    b = mem._gather(np.array([0, 1]), 3, np.ones(2, np.float32))  # first transition of A and of B
+    np.testing.assert_array_equal(b.rewards, [[0, 1, 2], [500, 501, 502]])
+    np.testing.assert_array_equal(b.n_steps, [3, 3])
+    np.testing.assert_array_equal(b.next_obs[:, 0, 0], [3, 503])
+
+
+def test_n_step_chains_stop_at_collision_truncation_and_missing_links():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE, seed=0)
+    col = add_episode(mem, "c", 0, 3, "collision", rewards=[1.0, 2.0, -100.0])
+    tru = add_episode(mem, "t", 100, 2, "truncation", rewards=[1.0, 3.0])
+    opn = add_episode(mem, "o", 200, 2, "open", rewards=[1.0, 4.0])  # episode still running
+    n = 4
+    b = mem._gather(np.array([col[0], col[2], tru[0], opn[0], opn[1]]), n, np.ones(5, np.float32))
+    np.testing.assert_array_equal(b.n_steps, [3, 1, 2, 2, 1])
+    np.testing.assert_array_equal(b.terminated, [True, True, False, False, False])
+    np.testing.assert_array_equal(b.rewards[0], [1.0, 2.0, -100.0, 0.0])
+    np.testing.assert_array_equal(b.rewards[2], [1.0, 3.0, 0.0, 0.0])
+    assert b.next_obs[2, 0, 0] == 102  # bootstrap from the truncation's next frame
+    assert b.next_obs[3, 0, 0] == 202  # chain stops where the stream has not arrived yet
+    assert b.next_obs[4, 0, 0] == 202
+    assert np.all(b.next_obs[:2] == 0)
+
+
+def test_mismatched_obs_breaks_the_chain_instead_of_linking_wrong_frames():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE)
+    mem.add("s", frame(0), 0, 1.0, frame(1), False)
+    mem.add("s", frame(7), 0, 1.0, frame(8), False)  # a lost transition: obs is not frame(1)
+    assert mem._frames_written == 4
+    b = mem._gather(np.array([0]), 3, np.ones(1, np.float32))
+    assert b.n_steps[0] == 1 and b.next_obs[0, 0, 0] == 1
+    mem.add("s", None, 1, 1.0, frame(9), False)  # obs=None continues from frame(8)
+    assert mem._frames_written == 5
+    with pytest.raises(ReplayError, match="open episode"):
+        mem.add("new", None, 0, 1.0, frame(1), False)
+
+
+def test_bad_transitions_and_requests_are_rejected():
+    mem = ReplayMemory(ReplayConfig(capacity=10), SHAPE)
+    with pytest.raises(ReplayError, match="empty"):
+        mem.sample(4)
+    with pytest.raises(ReplayError, match="action"):
+        mem.add("s", frame(0), 5, 1.0, frame(1), False)
+    with pytest.raises(ReplayError, match="needs next_obs"):
+        mem.add("s", frame(0), 1, 1.0, None, False)
+    with pytest.raises(ReplayError, match="shape"):
+        mem.add("s", np.zeros((3, 3), np.uint16), 1, 1.0, frame(1), False)
+    with pytest.raises(ReplayError, match="both"):
+        mem.add("s", frame(0), 1, 1.0, frame(1), True, True)
+    with pytest.raises(ReplayError, match="finite"):
+        mem.add("s", frame(0), 1, float("nan"), frame(1), False)
+    with pytest.raises(ReplayError, match="ReplayConfig"):
+        ReplayMemory({"capacity": 10}, SHAPE)
+
+
+def test_prioritised_sampling_follows_priorities():
+    cfg = ReplayConfig(capacity=8, prioritized=True, priority_alpha=1.0, priority_beta=0.5)
+    mem = ReplayMemory(cfg, SHAPE, seed=3)
+    tids = add_episode(mem, "a", 0, 4, "collision")
+    mem.update_priorities(np.array(tids), np.array([1.0, 2.0, 3.0, 4.0]) - 1e-3)
+    counts = np.zeros(4)
+    for _ in range(400):
+        b = mem.sample(32)
+        counts += np.bincount(b.indices, minlength=4)
+    freq = counts / counts.sum()
+    np.testing.assert_allclose(freq, [0.1, 0.2, 0.3, 0.4], atol=0.015)
+    # importance weights (N P)^-beta, normalised by the batch maximum
+    b = mem.sample(32)
+    p = (b.indices + 1) / 10.0
+    w = (4 * p) ** -0.5
+    np.testing.assert_allclose(b.weights, w / w.max(), rtol=1e-5)
+    # evicted transitions get probability 0; new ones the largest priority so far
+    add_episode(mem, "b", 100, 6, "collision")
+    assert len(mem) == 8
+    prios = mem.priorities()
+    assert prios[tids[0] % 8] == pytest.approx(4.0) and prios[tids[1] % 8] == pytest.approx(4.0)
+    assert set(mem.sample(64).indices.tolist()) <= set(range(2, 10))
+
+
+def test_uniform_sampling_is_uniform_and_weights_are_one():
+    mem = ReplayMemory(ReplayConfig(capacity=50), SHAPE, seed=5)
+    add_episode(mem, "a", 0, 5, "collision")
+    b = mem.sample(4000)
+    assert isinstance(b, Batch) and len(b) == 4000
+    assert np.all(b.weights == 1.0)
+    np.testing.assert_allclose(np.bincount(b.indices) / 4000, 0.2, atol=0.03)
+
+
+def test_state_dict_round_trip_restores_contents_streams_and_rng():
+    cfg = ReplayConfig(capacity=16, prioritized=True)
+    mem = ReplayMemory(cfg, SHAPE, seed=9)
+    add_episode(mem, "a", 0, 20, "truncation")
+    add_episode(mem, ("actor", 1), 50, 3, "open")
+    mem.update_priorities(np.array([10, 12]), np.array([5.0, 0.5]))
+    arrays, meta = mem.state_dict()
+    other = ReplayMemory(cfg, SHAPE, seed=0)
+    other.load_state_dict(arrays, meta)
+    b1, b2 = mem.sample(8, n_step=3), other.sample(8, n_step=3)
+    for name in ("obs", "action", "rewards", "n_steps", "terminated", "next_obs", "weights", "indices"):
+        np.testing.assert_array_equal(getattr(b1, name), getattr(b2, name))
+    # the open stream continues on the restored memory: its next obs reuses the stored frame
+    n = other._frames_written
+    other.add(("actor", 1), frame(53), 0, 1.0, frame(54), False)
+    assert other._frames_written == n + 1
+    with pytest.raises(ReplayError, match="does not fit"):
+        ReplayMemory(ReplayConfig(capacity=32, prioritized=True), SHAPE).load_state_dict(arrays, meta)
+
+
+def test_a_paused_stream_never_reuses_a_frame_about_to_be_overwritten():
+    mem = ReplayMemory(ReplayConfig(capacity=10), SHAPE, frame_capacity=6, seed=0)
+    mem.add("A", frame(0), 0, 1.0, frame(1), False)
+    for k in range(5):  # another actor writes 5 frames: A's frame(1) becomes the oldest
+        mem.add("B", frame(100 + k), 0, -100.0, None, True)
+    mem.add("A", frame(1), 0, 1.0, frame(2), False)  # must not link to the frame it evicts
+    b = mem.sample(64)
+    np.testing.assert_array_equal(b.next_obs[~b.terminated, 0, 0], b.obs[~b.terminated, 0, 0] + 1)
+    assert mem._gather(np.array([6]), 2, np.ones(1, np.float32)).obs[0, 0, 0] == 1
