@@ -200,6 +200,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("transport", "transitions/s through a loopback Zenoh router", _bench_transport, bsub)
     p.add_argument("--seconds", type=float, default=5.0)
     p.add_argument("--json", action="store_true", help="print JSON")
+    _add_lazy(bsub, "system", "env steps/s, updates/s, weight lag and replay ratio of router + learner + N "
+              "actors as real processes", "services.benchmarks.system", "add_arguments", "run_command")
 
     _add_lazy(sub, "up", "run router, learner, actors and evaluator locally (the embedded default)",
               "services.launcher", "add_up_arguments", "run_up_command")

@@ -44,6 +44,7 @@ import msgpack
 import numpy as np
 
 from shared.config import NUM_ACTIONS
+from shared.depth import depth_to_mm
 from shared.keys import KeyExprError, validate_name
 
 SCHEMA_VERSION = 1
@@ -351,28 +352,6 @@ def _tup() -> Any:
 
 
 # ---------------------------------------------------------------------------------------------
-# Depth conversion (float32 metres in the env, uint16 millimetres on the wire and in replay)
-# ---------------------------------------------------------------------------------------------
-
-def depth_to_mm(depth_m: np.ndarray) -> np.ndarray:
-    """Metres (0 = no return) to uint16 millimetres, rounded; beyond 65.535 m saturates."""
-    depth_m = np.asarray(depth_m)
-    if not np.issubdtype(depth_m.dtype, np.floating):
-        raise ValueError(f"depth_m must be a float array in metres, got {depth_m.dtype}")
-    if not np.isfinite(depth_m).all() or (depth_m < 0).any():
-        raise ValueError("depth_m must be finite and >= 0 (0 = no return)")
-    return np.minimum(np.rint(depth_m * 1000.0), 65535).astype(np.uint16)
-
-
-def depth_from_mm(depth_mm: np.ndarray) -> np.ndarray:
-    """uint16 millimetres to float32 metres."""
-    depth_mm = np.asarray(depth_mm)
-    if depth_mm.dtype != np.uint16:
-        raise ValueError(f"depth_mm must be uint16, got {depth_mm.dtype}")
-    return depth_mm.astype(np.float32) * np.float32(0.001)
-
-
-# ---------------------------------------------------------------------------------------------
 # Messages
 # ---------------------------------------------------------------------------------------------
 
@@ -475,7 +454,7 @@ class TransitionBatch(Message):
 
         def frames(x: Any) -> np.ndarray:
             x = np.asarray(x)
-            return x if x.dtype == np.uint16 else depth_to_mm(x)
+            return depth_to_mm(x)
 
         action_list = [int(a) for a in action]
         if any(not 0 <= a < NUM_ACTIONS for a in action_list):

@@ -27,7 +27,6 @@ are created channels-last and ``.to(...)`` keeps that; single-image inference go
 
 from __future__ import annotations
 
-import hashlib
 import json
 from dataclasses import asdict
 from typing import Any
@@ -38,12 +37,13 @@ import torch.nn.functional as F
 from torch import nn
 
 from shared.config import NUM_ACTIONS, ModelConfig, SensorConfig
+from shared.depth import MM_PER_M
+from shared.messages import architecture_fingerprint as wire_fingerprint
 
 DEPTH_SCALE_M = 4.0
 """Depth that maps to network input 1.0; farther returns are clipped to 1."""
 CONV_CHANNELS: tuple[int, int, int] = (32, 32, 64)
 CONV_KERNEL = 5
-MM_PER_M = 1000.0
 
 
 class ModelError(ValueError):
@@ -238,9 +238,10 @@ def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
 
 
 def architecture_fingerprint(net: nn.Module) -> str:
-    """Short hash of the class, parameter names, shapes and dtypes: equal iff weights are interchangeable."""
-    spec = [type(net).__name__] + [f"{n}:{tuple(t.shape)}:{t.dtype}" for n, t in net.state_dict().items()]
-    return hashlib.sha256("\n".join(spec).encode()).hexdigest()[:16]
+    """Hash of the class, parameter names and shapes: equal iff weights are interchangeable
+    (the wire's definition, shared.messages.architecture_fingerprint, applied to ``net``)."""
+    shapes = {n: tuple(t.shape) for n, t in net.state_dict().items()}
+    return wire_fingerprint(shapes, {"class": type(net).__name__})
 
 
 def weights_to_tensors(net: nn.Module) -> dict[str, torch.Tensor]:

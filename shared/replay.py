@@ -32,9 +32,8 @@ from typing import Any, Hashable
 import numpy as np
 
 from shared.config import NUM_ACTIONS, ReplayConfig
+from shared.depth import depth_to_mm
 
-MM_PER_M = 1000.0
-UINT16_MAX = np.iinfo(np.uint16).max
 PRIORITY_EPS = 1e-3
 """Added to |TD error| so that no valid transition's probability falls to 0."""
 _META_BYTES = 8 * 4 + 4 + 1 + 1 + 1 + 1  # tid, obs_fid, next_fid, next_tid, reward, action, flags, valid
@@ -64,18 +63,6 @@ class Batch:
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
-
-
-def depth_to_mm(depth: np.ndarray) -> np.ndarray:
-    """float metres -> uint16 millimetres (rounded, clipped to 65.535 m); uint16 passes through."""
-    depth = np.asarray(depth)
-    if depth.dtype == np.uint16:
-        return depth
-    if not np.issubdtype(depth.dtype, np.floating):
-        raise ReplayError(f"depth must be float metres or uint16 millimetres, got {depth.dtype}")
-    if not np.all(np.isfinite(depth)):
-        raise ReplayError("depth contains NaN or infinity")
-    return np.clip(np.rint(depth * MM_PER_M), 0, UINT16_MAX).astype(np.uint16)
 
 
 class SumTree:
@@ -228,7 +215,7 @@ class ReplayMemory:
             raise ReplayError("a transition cannot be both terminated (collision) and truncated")
         if not terminated and next_obs is None:
             raise ReplayError("a non-terminal transition needs next_obs (it bootstraps)")
-        next_mm = None if terminated else self._check_frame(depth_to_mm(next_obs), "next_obs")
+        next_mm = None if terminated else self._check_frame(next_obs, "next_obs")
         writes = 0 if next_mm is None else 1
         state = self._streams.get(stream_id)
         obs_fid = -1
@@ -240,7 +227,7 @@ class ReplayMemory:
                                   "frame is still stored")
             prev_tid, obs_fid = state
         else:
-            obs_mm = self._check_frame(depth_to_mm(obs), "obs")
+            obs_mm = self._check_frame(obs, "obs")
             if state is not None and self._frame_present(state[1], writes) and np.array_equal(
                     self._frames[state[1] % self.frame_capacity], obs_mm):
                 prev_tid, obs_fid = state
@@ -282,7 +269,11 @@ class ReplayMemory:
         """Forget a stream's open episode (e.g. its actor left); the next add starts a new chain."""
         self._streams.pop(stream_id, None)
 
-    def _check_frame(self, frame_mm: np.ndarray, name: str) -> np.ndarray:
+    def _check_frame(self, frame: np.ndarray, name: str) -> np.ndarray:
+        try:
+            frame_mm = depth_to_mm(frame)
+        except ValueError as exc:
+            raise ReplayError(f"{name}: {exc}") from None
         if frame_mm.shape != self.frame_shape:
             raise ReplayError(f"{name} has shape {frame_mm.shape}, replay stores {self.frame_shape}")
         return frame_mm

@@ -15,7 +15,8 @@ import pytest
 from shared import messages as m
 from shared.messages import (EpisodeStats, EvalResult, LearnerStats, MessageError, RejectCounter,
                              TransitionBatch, WeightsMessage, architecture_fingerprint,
-                             decode_message, depth_from_mm, depth_to_mm)
+                             decode_message)
+from shared.depth import depth_from_mm, depth_to_mm
 
 H, W = 12, 16  # small frames keep the tests fast; the layout does not depend on the size
 

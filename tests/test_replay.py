@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from shared.config import ReplayConfig
-from shared.replay import Batch, ReplayError, ReplayMemory, depth_to_mm
+from shared.depth import depth_to_mm
+from shared.replay import Batch, ReplayError, ReplayMemory
 
 SHAPE = (6, 8)
 
@@ -32,8 +33,11 @@ def add_episode(mem: ReplayMemory, stream, first: int, length: int, end: str = "
 def test_depth_to_mm_rounds_clips_and_rejects_nan():
     out = depth_to_mm(np.array([[0.0, 1.2344, 70.0]], dtype=np.float32))
     assert out.dtype == np.uint16 and out.tolist() == [[0, 1234, 65535]]
-    with pytest.raises(ReplayError, match="NaN"):
+    with pytest.raises(ValueError, match="NaN"):
         depth_to_mm(np.array([[np.nan]], dtype=np.float32))
+    memory = ReplayMemory(ReplayConfig(capacity=4), (1, 1))
+    with pytest.raises(ReplayError, match="NaN"):
+        memory.add("s", np.array([[np.nan]], np.float32), 0, 1.0, np.zeros((1, 1), np.float32), False)
 
 
 def test_frames_are_stored_once_per_transition():

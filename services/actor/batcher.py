@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.messages import MAX_BATCH_STEPS, TransitionBatch, depth_to_mm
+from shared.depth import depth_to_mm
+from shared.messages import MAX_BATCH_STEPS, TransitionBatch
 
 
 class TransitionBatcher:

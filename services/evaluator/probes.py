@@ -26,11 +26,11 @@ from typing import Any, Sequence
 import numpy as np
 
 from shared.config import SensorConfig
+from shared.depth import MM_PER_M
 
 PROBE_DIR = Path(__file__).resolve().parents[2] / "shared" / "probes"
 """Where the stored probe scenes live (``shared/probes/``)."""
 PROBE_WORLD = "paper-indoor"
-MM_PER_M = 1000.0
 
 
 class ProbeError(ValueError):

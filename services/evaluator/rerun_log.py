@@ -47,6 +47,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from shared.config import ACTION_NAMES, SensorConfig
+from shared.depth import MM_PER_M
 from shared.maps import OccupancyGrid
 from shared.world import World
 
@@ -69,7 +70,6 @@ ACTION = "policy/action"
 EPISODE_LOG = "log/episodes"
 
 TRAJECTORY_Z_M = 0.02  # just above the map so the line is never hidden in it
-MM_PER_M = 1000.0
 _COMMAND_COLORS = [(230, 97, 1), (253, 184, 99), (90, 90, 90), (178, 171, 210), (94, 60, 153)]
 _METRIC_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
