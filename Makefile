@@ -20,8 +20,13 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 
+# The main job: the distributed system on this machine (router, learner, 2 actors, evaluator),
+# 500 learner updates of the `fast` preset on paper-indoor (the paper's "DRL 500" stage), then
+# the test protocol and the report. Everything lands in runs/main/.
+RUN_ARGS ?= --actors 2 --preset fast --updates 500 --run main --final-episodes 2
+
 run: venv
-	$(VENV)/bin/cogexplore demo --out runs/demo
+	$(VENV)/bin/cogexplore up $(RUN_ARGS)
 
 test: venv
 	$(VENV)/bin/python -m pytest -q

@@ -1,7 +1,7 @@
 """``cogexplore``: the one command-line entry to every service and tool.
 
-Each subcommand imports what it needs only when it runs, so ``--help`` is instant and a
-service never pays for another's dependencies.
+Subcommands live with their code (``add_*_arguments`` + ``run_*`` in each module) and are
+collected here; a service never pays for another's dependencies at run time.
 """
 
 from __future__ import annotations
@@ -112,46 +112,6 @@ def _add_lazy(sub: Any, name: str, help_: str, module: str, add: str, run: str) 
     p.set_defaults(handler=_lazy(module, run))
 
 
-# -- demo ----------------------------------------------------------------------------------
-
-def _demo(args: argparse.Namespace) -> int:
-    import numpy as np
-    from tqdm import tqdm
-
-    from shared.env import ExploreEnv
-    from shared.maps import CoverageTracker, occupancy_grid, render_map_png
-
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    env = ExploreEnv(world=args.world, speed_table="test", max_episode_steps=args.max_steps)
-    grid = occupancy_grid(env.world)
-    rng = np.random.default_rng(args.seed)
-    trajectories, summary = [], []
-    for start_index in tqdm(range(len(env.world.starts)), desc="random policy, one episode per start"):
-        obs, info = env.reset(seed=args.seed + start_index, options={"start_index": start_index})
-        coverage = CoverageTracker(grid)
-        coverage.observe(*info["pose"], obs, env.sensor_config)
-        xy = [info["pose"][:2]]
-        while True:
-            obs, _, term, trunc, info = env.step(int(rng.integers(5)))
-            xy.append(info["pose"][:2])
-            coverage.observe(*info["pose"], obs, env.sensor_config)
-            if term or trunc:
-                break
-        trajectories.append(np.array(xy))
-        summary.append({"start_index": start_index, "steps": info["step"],
-                        "collision_cause": info["collision_cause"],
-                        "distance_m": round(info["distance_from_start_m"], 3),
-                        "coverage_m2": round(coverage.seen_area_m2, 2)})
-    png = out / f"{env.world.name}-random.png"
-    render_map_png(env.world, grid, png, trajectories=trajectories,
-                   title=f"{env.world.name}: random policy, one episode per start")
-    (out / "random.json").write_text(json.dumps(summary, indent=2))
-    mean_steps = sum(r["steps"] for r in summary) / len(summary)
-    print(f"mean moving steps {mean_steps:.1f}; map with trajectories: {png}")
-    return 0
-
-
 # -- parser -------------------------------------------------------------------------------
 
 def build_parser() -> argparse.ArgumentParser:
@@ -220,11 +180,6 @@ def build_parser() -> argparse.ArgumentParser:
     _add_lazy(sub, "report", "the paper's tables and figures (PNG + Markdown) for a run",
               "services.evaluator.report", "add_report_arguments", "run_report")
 
-    p = add("demo", "random-policy rollouts from every start, drawn on the map", _demo)
-    p.add_argument("--world", default="paper-indoor")
-    p.add_argument("--out", default="runs/demo")
-    p.add_argument("--max-steps", type=int, default=200)
-    p.add_argument("--seed", type=int, default=0)
     return parser
 
 
