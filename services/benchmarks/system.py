@@ -287,7 +287,7 @@ def _print_text(result: dict[str, Any]) -> None:
     print(f"  replay ratio     {'n/a' if ratio is None else f'{ratio:8.3f}'} (target {result['replay_ratio_target']})")
     lag = result["mean_weight_lag"]
     print(f"  mean weight lag  {'n/a' if lag is None else f'{lag:8.1f}'} versions")
-    print(f"  cpu %            " + "  ".join(f"{n} {p}" for n, p in result["cpu_percent"].items()))
+    print("  cpu %            " + "  ".join(f"{n} {p}" for n, p in result["cpu_percent"].items()))
     print(f"  load avg before  {result['load_avg_1m_before']:.2f} on {result['cpu_count']} cores")
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from shared.config import RunConfig
 from shared.dqn import DQNAgent
-from shared.messages import SHAPE, MessageError, TransitionBatch
+from shared.messages import TransitionBatch
 from shared.replay import ReplayMemory
 
 

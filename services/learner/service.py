@@ -22,7 +22,7 @@ import time
 import torch
 
 from services.common import (
-    RunPaths, add_service_arguments, default_process_id, resolve_config, run_paths, save_config,
+    RunPaths, add_service_arguments, resolve_config, run_paths, save_config,
     setup_logging, stop_event_on_signals, zenoh_settings,
 )
 from services.learner.core import LearnerCore, RateMeter

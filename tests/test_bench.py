@@ -1,0 +1,64 @@
+"""The benchmarks through the real CLI, small: `bench env`, `bench transport`, `bench system`."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _bench(*argv: str, timeout_s: float) -> dict:
+    env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
+    result = subprocess.run([sys.executable, "-m", "services.cli", "bench", *argv, "--json"], cwd=REPO, env=env,
+                            capture_output=True, text=True, timeout=timeout_s)
+    assert result.returncode == 0, f"bench {argv[0]} failed ({result.returncode}):\n{result.stderr[-3000:]}"
+    return json.loads(result.stdout)
+
+
+def test_bench_env_json() -> None:
+    out = _bench("env", "--world", "box-room", "--steps", "50", "--no-pin", timeout_s=120)
+    assert out["world"] == "box-room" and out["steps"] == 50
+    assert out["image"] == [120, 160]
+    assert out["steps_per_s"] > 0 and out["raw_steps_per_s"] > 0
+    assert 0 < out["depth_ms_p50"] <= out["depth_ms_p90"]
+    assert out["physics_ms_p50"] > 0
+
+
+def test_bench_transport_json() -> None:
+    out = _bench("transport", "--seconds", "1", timeout_s=180)
+    assert out["batch_steps"] == 16 and out["frame"] == "160x120"
+    # Depth dominates the wire: within 5 % of the raw uint16 frames.
+    assert out["depth_bytes_per_transition"] <= out["bytes_per_transition"] < 1.05 * out["depth_bytes_per_transition"]
+    assert out["codec"]["transitions_per_s"] > 0 and out["codec"]["batches"] > 0
+    loop = out["loopback"]
+    assert loop["transitions_per_s"] > 0 and loop["batches_sent"] > 0
+    assert loop["lost"] == 0 and loop["rejected"] == 0  # reliable puts: everything sent arrives
+    assert loop["batches_received"] == loop["batches_sent"]
+
+
+@pytest.mark.timeout(300)
+def test_bench_system_json(tmp_path: Path) -> None:
+    out = _bench("system", "--preset", "smoke", "--actors", "1", "--seconds", "5", "--warmup-s", "0",
+                 "--startup-timeout-s", "150", "--runs-dir", str(tmp_path), timeout_s=280)
+    expected = {"preset", "actors", "seconds", "env_steps_per_s", "env_steps_per_s_per_actor", "updates_per_s",
+                "replay_ratio_target", "replay_ratio_achieved", "mean_weight_lag", "transitions", "updates",
+                "cpu_percent", "time_to_steady_s"}
+    assert expected <= set(out)
+    assert out["preset"] == "smoke" and out["actors"] == 1 and out["frame"] == "40x30"
+    assert out["seconds"] >= 4.0  # the learner's clock between its two reports
+    assert out["transitions"] > 0 and out["env_steps_per_s"] > 0
+    assert out["updates"] > 0 and out["updates_per_s"] > 0
+    assert set(out["env_steps_per_s_per_actor"]) == {"actor-0"}
+    assert out["env_steps_per_s_per_actor"]["actor-0"] == pytest.approx(out["env_steps_per_s"])
+    assert out["replay_ratio_target"] == 1.0 and out["replay_ratio_achieved"] > 0
+    assert out["mean_weight_lag"] is not None and out["mean_weight_lag"] >= 0
+    assert {"router", "learner", "actor-0"} <= set(out["cpu_percent"])
+    # Everything was stopped: the learner wrote its final checkpoint on SIGTERM.
+    assert (tmp_path / "bench-system" / "checkpoints" / "latest").exists()
+    assert (tmp_path / "bench-system" / "stats" / "learner.csv").exists()
