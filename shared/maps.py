@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterable, Sequence
+from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
 import mujoco
 import numpy as np
@@ -469,14 +469,57 @@ class CoverageTracker:
 # ---------------------------------------------------------------------------
 
 
+HEATMAP_CMAP = "YlOrRd"
+"""Pale yellow (rare) to dark red (busiest): never as dark as an obstacle."""
+
+
+def draw_map(ax: Any, world: "World", grid: OccupancyGrid, heatmap: np.ndarray | None = None,
+             trajectories: Iterable[np.ndarray] | None = None, title: str | None = None,
+             small: bool = False) -> Any:
+    """Draw the top-down map on a matplotlib axis: obstacles dark, starts as numbered arrows
+    along their headings, optional heatmap (2-D cells over the grid's extent, 0 = not drawn) and
+    trajectories (each (N, 2+) xy). Returns the heatmap's image (for a colorbar) or None."""
+    from matplotlib.colors import ListedColormap
+
+    xmin, ymin, xmax, ymax = grid.extent
+    ax.imshow(grid.occupied.astype(np.uint8), origin="lower", extent=(xmin, xmax, ymin, ymax),
+              cmap=ListedColormap(["#f4f2ec", "#2b2b2b"]), vmin=0, vmax=1, interpolation="nearest")
+    im = None
+    if heatmap is not None:
+        hm = np.asarray(heatmap, dtype=np.float64)
+        if hm.ndim != 2:
+            raise MapError(f"heatmap must be 2-D (cells over the grid's extent), got shape {hm.shape}")
+        im = ax.imshow(np.ma.masked_where(hm <= 0, hm), origin="lower", extent=(xmin, xmax, ymin, ymax),
+                       cmap=HEATMAP_CMAP, alpha=0.9, vmin=0.0, vmax=max(1.0, float(hm.max())),
+                       interpolation="nearest")
+    for k, traj in enumerate(trajectories or ()):
+        t = np.asarray(traj, dtype=np.float64)
+        if t.ndim != 2 or t.shape[1] < 2:
+            raise MapError(f"trajectory {k} must be (N, 2) points, got shape {t.shape}")
+        ax.plot(t[:, 0], t[:, 1], lw=1.0, alpha=0.8)
+    arrow = 0.06 * max(xmax - xmin, ymax - ymin)
+    for i, s in enumerate(world.starts):
+        ax.annotate("", xy=(s.x + arrow * math.cos(s.yaw), s.y + arrow * math.sin(s.yaw)), xytext=(s.x, s.y),
+                    arrowprops=dict(arrowstyle="-|>", color="#d62728", lw=1.2 if small else 1.6))
+        ax.text(s.x - 0.35 * arrow * math.cos(s.yaw), s.y - 0.35 * arrow * math.sin(s.yaw), str(i + 1),
+                color="#1f3fbf", fontsize=7 if small else 8, ha="center", va="center", fontweight="bold")
+    ax.set_xlim(xmin, xmax)
+    ax.set_ylim(ymin, ymax)
+    ax.set_aspect("equal")
+    ax.set_title(title if title is not None else world.name, fontsize=10 if small else None)
+    if small:
+        ax.tick_params(labelsize=7)
+    else:
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+    return im
+
+
 def render_map_png(world: "World", grid: OccupancyGrid, out_path: str | Path,
                    trajectories: Iterable[np.ndarray] | None = None, heatmap: np.ndarray | None = None,
                    title: str | None = None, dpi: int = 120) -> Path:
-    """Top-down map: obstacles dark, starts as numbered arrows along their headings,
-    optional trajectories (each (N, 2+) xy) and heatmap (over the grid's extent) with a
-    colorbar. Returns the written path."""
+    """The map of :func:`draw_map` as a PNG (with a colorbar for a heatmap). Returns the path."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.colors import ListedColormap
     from matplotlib.figure import Figure
 
     out = Path(out_path)
@@ -486,33 +529,9 @@ def render_map_png(world: "World", grid: OccupancyGrid, out_path: str | Path,
     fig = Figure(figsize=(6.5 * min(2.0, max(0.5, w / h)) + (1.2 if heatmap is not None else 0.0), 6.5))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    ax.imshow(grid.occupied.astype(np.uint8), origin="lower", extent=(xmin, xmax, ymin, ymax),
-              cmap=ListedColormap(["#f4f2ec", "#2b2b2b"]), vmin=0, vmax=1, interpolation="nearest")
-    if heatmap is not None:
-        hm = np.asarray(heatmap, dtype=np.float64)
-        if hm.ndim != 2:
-            raise MapError(f"heatmap must be 2-D, got shape {hm.shape}")
-        masked = np.ma.masked_where(hm <= 0, hm)
-        im = ax.imshow(masked, origin="lower", extent=(xmin, xmax, ymin, ymax), cmap="inferno",
-                       alpha=0.85, vmin=0.0, vmax=max(1.0, float(hm.max())), interpolation="nearest")
+    im = draw_map(ax, world, grid, heatmap=heatmap, trajectories=trajectories, title=title)
+    if im is not None:
         fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="normalised visits")
-    for k, traj in enumerate(trajectories or ()):
-        t = np.asarray(traj, dtype=np.float64)
-        if t.ndim != 2 or t.shape[1] < 2:
-            raise MapError(f"trajectory {k} must be (N, 2) points, got shape {t.shape}")
-        ax.plot(t[:, 0], t[:, 1], lw=1.0, alpha=0.8)
-    arrow = 0.06 * max(w, h)
-    for i, s in enumerate(world.starts):
-        ax.annotate("", xy=(s.x + arrow * math.cos(s.yaw), s.y + arrow * math.sin(s.yaw)), xytext=(s.x, s.y),
-                    arrowprops=dict(arrowstyle="-|>", color="#d62728", lw=1.6))
-        ax.text(s.x - 0.35 * arrow * math.cos(s.yaw), s.y - 0.35 * arrow * math.sin(s.yaw), str(i + 1),
-                color="#1f3fbf", fontsize=8, ha="center", va="center", fontweight="bold")
-    ax.set_xlim(xmin, xmax)
-    ax.set_ylim(ymin, ymax)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    ax.set_title(title if title is not None else world.name)
     fig.tight_layout()
     fig.savefig(out, dpi=dpi)
     return out

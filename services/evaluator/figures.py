@@ -21,7 +21,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from services.evaluator.results import EpisodeResult, EvalResults, episodes_of
-from shared.maps import OccupancyGrid, normalize_heatmap, render_map_png, visit_counts
+from shared.maps import OccupancyGrid, draw_map, normalize_heatmap, render_map_png, visit_counts
 from shared.world import World
 
 # Column labels of the paper's Table II.
@@ -80,28 +80,6 @@ def save_heatmap_png(world: World, grid: OccupancyGrid, results: EvalResults | S
                           title=title, dpi=dpi)
 
 
-def _draw_map(ax: Any, world: World, grid: OccupancyGrid, heat: np.ndarray, title: str) -> Any:
-    from matplotlib.colors import ListedColormap
-
-    xmin, ymin, xmax, ymax = grid.extent
-    ax.imshow(grid.occupied.astype(np.uint8), origin="lower", extent=(xmin, xmax, ymin, ymax),
-              cmap=ListedColormap(["#f4f2ec", "#2b2b2b"]), vmin=0, vmax=1, interpolation="nearest")
-    im = ax.imshow(np.ma.masked_where(heat <= 0, heat), origin="lower", extent=(xmin, xmax, ymin, ymax),
-                   cmap="inferno", alpha=0.85, vmin=0.0, vmax=1.0, interpolation="nearest")
-    arrow = 0.06 * max(xmax - xmin, ymax - ymin)
-    for i, s in enumerate(world.starts):
-        ax.annotate("", xy=(s.x + arrow * math.cos(s.yaw), s.y + arrow * math.sin(s.yaw)), xytext=(s.x, s.y),
-                    arrowprops=dict(arrowstyle="-|>", color="#d62728", lw=1.2))
-        ax.text(s.x - 0.35 * arrow * math.cos(s.yaw), s.y - 0.35 * arrow * math.sin(s.yaw), str(i + 1),
-                color="#1f3fbf", fontsize=7, ha="center", va="center", fontweight="bold")
-    ax.set_xlim(xmin, xmax)
-    ax.set_ylim(ymin, ymax)
-    ax.set_aspect("equal")
-    ax.set_title(title, fontsize=10)
-    ax.tick_params(labelsize=7)
-    return im
-
-
 def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
                                models: Mapping[str, EvalResults | Sequence[EpisodeResult]],
                                out_path: str | Path, ncols: int | None = None, dpi: int = 110,
@@ -124,7 +102,7 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
     axes = fig.subplots(nrows, ncols, squeeze=False)
     im = None
     for ax, (name, results) in zip(axes.flat, models.items()):
-        im = _draw_map(ax, world, grid, trajectory_heatmap(grid, results, cell_m), name)
+        im = draw_map(ax, world, grid, heatmap=trajectory_heatmap(grid, results, cell_m), title=name, small=True)
     for ax in list(axes.flat)[n:]:
         ax.set_axis_off()
     fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02, label="normalised visits")
