@@ -17,13 +17,7 @@ TINY = SensorConfig(width=40, height=30)
 MODEL = ModelConfig(fc1=32, fc2=16, dropout=0.5)  # dropout on: resume must restore the RNG too
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def setup(dqn: DQNConfig, seed: int = 0):

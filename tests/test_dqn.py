@@ -15,13 +15,7 @@ SMALL = ModelConfig(fc1=32, fc2=16, dropout=0.0)
 G = 0.85
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def make_batch(b: int = 8, seed: int = 0, terminated=None, n: int = 1) -> Batch:

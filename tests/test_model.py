@@ -14,13 +14,7 @@ TINY = SensorConfig(width=40, height=30)
 SMALL = ModelConfig(fc1=32, fc2=16)
 
 
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """Tiny networks: one thread is faster, and far faster on a loaded 2-core machine."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_paper_shapes_pool3_is_64x15x20():
