@@ -37,8 +37,11 @@ SERVICE_ENV = (
     "COGEXPLORE_ZENOH_LISTEN", "COGEXPLORE_ZENOH_MODE", "COGEXPLORE_ZENOH_CONFIG", "COGEXPLORE_DEVICE",
 )
 """The environment variables every service reads (the CLI contract)."""
-EXTRA_ENV = ("COGEXPLORE_RERUN_URL",)
-"""Also set by the compose file: where the evaluator streams to the Rerun viewer."""
+EXTRA_ENV = ("COGEXPLORE_RERUN_URL", "COGEXPLORE_RERUN_EVERY_EPISODES")
+"""Also read by the services: where the evaluator and the actors stream to the Rerun viewer,
+and which share of its episodes each actor streams."""
+RERUN_ENV_READERS = ("actor", "evaluator")
+"""Services whose ``--rerun-connect`` defaults to ``COGEXPLORE_RERUN_URL``."""
 
 # The flags of zenohd 1.x (zenohd/src/main.rs): the router service runs the official image,
 # whose entrypoint passes the compose `command` to zenohd.
@@ -237,6 +240,8 @@ def test_service_command_starts(services: dict[str, dict], service: str) -> None
     text = run_help(cogexplore_argv(command[1:]), service_env(spec))
     missing = [o for o in options_in(command) if o not in text]
     assert not missing, f"`{' '.join(command)}`: options {missing} are not in its --help"
+    if service in RERUN_ENV_READERS:  # the variable the compose file sets is one the service reads
+        assert "--rerun-connect" in text and "COGEXPLORE_RERUN_URL" in text, service
 
 
 def test_rerun_viewer_command_starts(services: dict[str, dict]) -> None:

@@ -7,6 +7,12 @@ Flow per step: take the newest weights the subscriber has parked (if any) -> pic
 action -> step the env -> batch the transition -> publish a batch when full or when the
 episode ends. While no learner is alive (liveliness), the loop pauses instead of
 publishing into the void, and resumes by itself when one is back.
+
+With ``--rerun-connect URL`` (env ``COGEXPLORE_RERUN_URL``) every ``--rerun-every-episodes``-th
+episode (env ``COGEXPLORE_RERUN_EVERY_EPISODES``, default 20) also goes live to that Rerun
+viewer (``EpisodeStream``: depth every ``--rerun-image-every``-th step, pose, trajectory,
+Q-values and the command taken), as one recording named after the actor. The env loop only
+queues copies; a worker thread does the rest, and a viewer that is down is skipped.
 """
 
 from __future__ import annotations
@@ -38,6 +44,11 @@ from shared.transport import (
 from shared.weights import load_message
 
 log = logging.getLogger("cogexplore.actor")
+
+ENV_RERUN_URL = "COGEXPLORE_RERUN_URL"
+ENV_RERUN_EVERY_EPISODES = "COGEXPLORE_RERUN_EVERY_EPISODES"
+DEFAULT_RERUN_EVERY_EPISODES = 20
+DEFAULT_RERUN_IMAGE_EVERY = 5
 
 
 class WeightSlot:
@@ -98,8 +109,11 @@ class FlowGate:
 
 def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
               actor_index: int = 0, num_actors: int = 1, batch_steps: int = 16,
-              max_steps: int | None = None, seed: int | None = None) -> dict:
-    """The actor loop; returns counters when ``stop`` is set (or after ``max_steps`` env steps)."""
+              max_steps: int | None = None, seed: int | None = None, rerun_url: str | None = None,
+              rerun_every_episodes: int = DEFAULT_RERUN_EVERY_EPISODES,
+              rerun_image_every: int = DEFAULT_RERUN_IMAGE_EVERY) -> dict:
+    """The actor loop; returns counters when ``stop`` is set (or after ``max_steps`` env steps).
+    ``rerun_url``: stream every ``rerun_every_episodes``-th episode live to that Rerun viewer."""
     keys = RunKeys(run)
     device = resolve_device(cfg.train.device if cfg.train.device != "auto" else "cpu")
     torch.set_num_threads(1)  # several actors share the machine's cores with the learner
@@ -116,6 +130,14 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
     policy_version = 0
+    stream = None
+    if rerun_url:
+        from services.evaluator.rerun_log import EpisodeStream
+
+        stream = EpisodeStream(rerun_url, env.world, cfg.sensor, recording_name=f"actor {actor_id} ({run})",
+                               every_episodes=rerun_every_episodes, image_every=rerun_image_every,
+                               robot_radius_m=cfg.env.robot_radius_m)
+        log.info("streaming every %d-th episode to the Rerun viewer at %s", rerun_every_episodes, rerun_url)
 
     with open_session(settings, wait_s=30.0) as session:
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
@@ -136,6 +158,8 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
 
         obs, info = env.reset(seed=seed)
         batcher.begin_episode(obs, info["start_index"])
+        if stream is not None:
+            stream.begin_episode(batcher.episode, info["start_index"])
         episode_return, episode_start = 0.0, time.monotonic()
         paused_since: float | None = None
         while not stop.is_set() and (max_steps is None or counters["env_steps"] < max_steps):
@@ -168,6 +192,8 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
 
             choice = policy.act(obs, step=counters["env_steps"] * num_actors)
             action, epsilon = choice.action, choice.epsilon
+            if stream is not None:  # info is still obs's: the pose the decision was taken at
+                stream.log_step(info["step"], info["pose"], obs, choice.q_values, action)
             next_obs, reward, terminated, truncated, info = env.step(action)
             counters["env_steps"] += 1
             episode_return += reward
@@ -187,13 +213,24 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                     duration_s=time.monotonic() - episode_start)
                 stats_publisher.put(stats.encode())
                 counters["episodes"] += 1
+                if stream is not None:
+                    stream.end_episode({"steps": info["step"], "truncated": truncated,
+                                        "collision_cause": info["collision_cause"],
+                                        "distance_m": info["distance_from_start_m"],
+                                        "path_length_m": info["path_length_m"]}, final_pose=info["pose"])
                 obs, info = env.reset()
                 batcher.begin_episode(obs, info["start_index"])
+                if stream is not None:
+                    stream.begin_episode(batcher.episode, info["start_index"])
                 episode_return, episode_start = 0.0, time.monotonic()
         learners.close()
     env.close()
     counters["policy_version"] = policy_version
     counters["rejected_weights"] = rejects.total + slot.refused
+    if stream is not None:
+        stream.close()
+        counters.update(rerun_episodes_streamed=stream.episodes_streamed, rerun_steps_streamed=stream.steps_logged,
+                        rerun_episodes_skipped=stream.episodes_skipped, rerun_dropped=stream.dropped)
     return counters
 
 
@@ -207,6 +244,18 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
                         help="number of actors N, for per-actor epsilon (env COGEXPLORE_NUM_ACTORS; default 1)")
     parser.add_argument("--batch-steps", type=int, default=16, help="transitions per published batch")
     parser.add_argument("--max-steps", type=int, default=None, help="stop after this many env steps")
+    live = parser.add_argument_group("Rerun live", "watch a sample of this actor's episodes")
+    live.add_argument("--rerun-connect", metavar="URL", default=os.environ.get(ENV_RERUN_URL) or None,
+                      help=f"stream every N-th episode to the Rerun viewer at URL, e.g. "
+                           f"rerun+http://127.0.0.1:9876/proxy (env {ENV_RERUN_URL}; default: none); a viewer "
+                           "that does not answer is skipped")
+    live.add_argument("--rerun-every-episodes", type=int, metavar="N",
+                      # A string default goes through type=int: a bad env value is an option error.
+                      default=os.environ.get(ENV_RERUN_EVERY_EPISODES) or str(DEFAULT_RERUN_EVERY_EPISODES),
+                      help=f"stream every N-th episode (env {ENV_RERUN_EVERY_EPISODES}; default "
+                           f"{DEFAULT_RERUN_EVERY_EPISODES})")
+    live.add_argument("--rerun-image-every", type=int, default=DEFAULT_RERUN_IMAGE_EVERY, metavar="K",
+                      help=f"depth image of every K-th step of a streamed episode (default {DEFAULT_RERUN_IMAGE_EVERY})")
     parser.add_argument("--log-level", default="INFO")
 
 
@@ -220,6 +269,14 @@ def run_actor_command(args: argparse.Namespace) -> int:
     log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
     if args.num_actors < 1:
         raise ConfigError(f"--num-actors must be >= 1, got {args.num_actors}")
+    for option, value in (("--rerun-every-episodes", args.rerun_every_episodes),
+                          ("--rerun-image-every", args.rerun_image_every)):
+        if value < 1:
+            raise ConfigError(f"{option} must be >= 1, got {value}")
+    if args.rerun_connect:
+        from services.evaluator.rerun_log import parse_viewer_url
+
+        parse_viewer_url(args.rerun_connect)  # a malformed URL fails here, before the session opens
     # A stable hash (not Python's salted hash()) so that a restarted actor keeps its slot.
     digest = int(hashlib.sha256(actor_id.encode()).hexdigest()[:12], 16)
     index = args.actor_index if args.actor_index is not None else digest % args.num_actors
@@ -228,6 +285,7 @@ def run_actor_command(args: argparse.Namespace) -> int:
     seed = cfg.train.seed * 1000 + (index if args.actor_index is not None else digest % 100_000) + 1
     counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=index,
                          num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps,
-                         seed=seed)
+                         seed=seed, rerun_url=args.rerun_connect, rerun_every_episodes=args.rerun_every_episodes,
+                         rerun_image_every=args.rerun_image_every)
     log.info("actor %s done: %s", actor_id, counters)
     return 0

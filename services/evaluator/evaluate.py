@@ -2,10 +2,16 @@
 
     cogexplore evaluate --checkpoint runs/exp1 --json out.json --rrd out.rrd
     cogexplore evaluate --policy random --world paper-indoor --episodes-per-start 2 --json out.json
+    cogexplore evaluate --checkpoint runs/exp1 --rerun-connect rerun+http://127.0.0.1:9876/proxy
+    cogexplore evaluate --checkpoint runs/exp1 --rerun-serve     # then open the printed address
 
 Greedy episodes (dropout off) at the TEST speed table from every start pose of the world,
 ``--episodes-per-start`` each, capped at ``--max-steps`` moving steps; results per start and
-overall (``results.py``) go to the JSON, the steps to an optional Rerun recording.
+overall (``results.py``) go to the JSON, the steps to an optional Rerun recording: a file
+(``--rrd``), a running viewer (``--rerun-connect URL``, e.g. one started with ``rerun``; a
+viewer that does not answer is warned about and skipped) or a gRPC server plus web viewer that
+this command hosts (``--rerun-serve``; it prints the address to open and keeps serving after
+the evaluation until Ctrl-C, or for ``--rerun-serve-seconds``).
 
 ``--checkpoint`` accepts what ``shared.checkpoint`` writes: a checkpoint file, a checkpoint
 directory (its ``latest``, falling back to the newest that loads), a run folder (its
@@ -25,6 +31,7 @@ import logging
 import os
 import sys
 import threading
+import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -80,10 +87,14 @@ class LoadedModel:
     """Digest of the online weights: tells one checkpoint from another whatever its path."""
     run_config: RunConfig | None
     """The run config stored in a checkpoint (None for weights-only exports)."""
+    name: str | None = None
+    """A fixed table name (the baselines: 'SL', 'RL'); None: derived from the path."""
 
     @property
     def label(self) -> str:
-        """A short name for tables: ``<run or file>@<policy_version>``."""
+        """A short name for tables: ``name``, else ``<run or file>@<policy_version>``."""
+        if self.name is not None:
+            return self.name
         stem = self.path.parent.parent.name if self.path.parent.name == "checkpoints" else self.path.stem
         return f"{stem}@{self.policy_version}"
 
@@ -183,6 +194,23 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
                        weights_sha256(net), None)
 
 
+def load_supervised_model(source: str | Path, device: str | torch.device = "cpu") -> LoadedModel:
+    """Load a supervised model file (``cogexplore pretrain``) for the ``sl`` policy, labelled SL."""
+    from shared.model import ModelError, architecture_fingerprint, resolve_device
+    from shared.supervised import SupervisedError, load_supervised
+
+    path = Path(source)
+    if not path.is_file():
+        raise EvaluateError(f"the sl policy needs --checkpoint <supervised model .safetensors> (written by "
+                            f"`cogexplore pretrain`); {str(source)!r} is not a file")
+    try:
+        net, _meta = load_supervised(path, resolve_device(device))
+    except (SupervisedError, ModelError) as exc:
+        raise EvaluateError(str(exc)) from None
+    return LoadedModel(net, path, "supervised", 0, architecture_fingerprint(net), weights_sha256(net), None,
+                       name="SL")
+
+
 def _cfg(data: Mapping[str, Any], section: str) -> Any:
     try:
         return getattr(from_dict({section: dict(data)}), section)
@@ -207,16 +235,22 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
                     seed: int = 0, starts: Sequence[int] | None = None, rrd: str | Path | None = None,
                     image_every: int = 1, policy_version: int = 0, recording_name: str | None = None,
                     progress: bool = True, meta: Mapping[str, Any] | None = None,
-                    stop: threading.Event | None = None) -> EvalResults:
+                    stop: threading.Event | None = None, rerun_connect: str | None = None,
+                    recorder: Any = None) -> EvalResults:
     """Run the protocol with ``policy_fn`` and return its results (optionally recorded).
 
     ``rrd``: write a Rerun recording there (every ``image_every``-th depth image, every
     step's pose, Q-values/scores, command and trajectory, and the summary at update
-    ``policy_version``). ``stop``: when set, the run ends within one step with
-    :class:`EvaluationCancelled` (the partial recording is deleted).
+    ``policy_version``). ``rerun_connect``: also stream it live to the viewer at that URL
+    (``rerun+http://host:9876/proxy``); one that does not answer is skipped with a warning.
+    ``recorder``: an ``EvalRecorder`` the caller opened (see :func:`open_recorder`) and
+    closes, instead of ``rrd``/``rerun_connect``. ``stop``: when set, the run ends within
+    one step with :class:`EvaluationCancelled` (the partial recording is deleted).
     """
     from shared.env import ExploreEnv
 
+    if recorder is not None and (rrd is not None or rerun_connect is not None):
+        raise EvaluateError("pass a recorder or rrd/rerun_connect, not both")
     cfg = protocol_env_config(env_cfg, world, max_steps)
     world_obj = load_world(world)  # fail early, with the world's own error, before any env is built
 
@@ -230,13 +264,12 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
                 raise EvaluationCancelled("evaluation cancelled")
             return policy_fn(depth_m)
 
-    recorder = None
-    if rrd is not None:
-        from services.evaluator.rerun_log import EvalRecorder
-        from shared.maps import occupancy_grid
-
-        recorder = EvalRecorder(rrd, world_obj, occupancy_grid(world_obj), sensor_cfg, image_every=image_every,
-                                recording_name=recording_name, robot_radius_m=cfg.robot_radius_m)
+    owns_recorder = recorder is None
+    if recorder is None:
+        rerun_connect = live_viewer_url(rerun_connect, rrd is not None)
+    if recorder is None and (rrd is not None or rerun_connect is not None):
+        recorder = open_recorder(world_obj, sensor_cfg, cfg, rrd, connect_url=rerun_connect,
+                                 image_every=image_every, recording_name=recording_name)
     full_meta = {"sensor": asdict(sensor_cfg), "env": {k: v for k, v in asdict(cfg).items() if k != "start_index"}}
     full_meta.update(meta or {})
     ok = False
@@ -249,10 +282,47 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
         ok = True
         return results
     finally:
-        if recorder is not None:
+        if recorder is not None and owns_recorder:
             recorder.close()
             if not ok and recorder.path is not None:
                 recorder.path.unlink(missing_ok=True)
+
+
+def live_viewer_url(url: str | None, writes_file: bool = False) -> str | None:
+    """``url`` when a Rerun viewer answers there, else None with a warning: Rerun's own client
+    would stall 5 s on it and then drop everything. EvaluateError when ``url`` is malformed."""
+    if url is None:
+        return None
+    from services.evaluator.rerun_log import parse_viewer_url, viewer_reachable
+
+    try:
+        parse_viewer_url(url)
+    except ValueError as exc:
+        raise EvaluateError(str(exc)) from None
+    if viewer_reachable(url):
+        return url
+    log.warning("no Rerun viewer answers at %s: not streaming this evaluation%s", url,
+                " (the .rrd file is written)" if writes_file else "")
+    return None
+
+
+def open_recorder(world: Any, sensor_cfg: SensorConfig, env_cfg: EnvConfig, rrd: str | Path | None = None, *,
+                  connect_url: str | None = None, serve: bool = False, serve_port: int = 9876,
+                  web_port: int = 9090, image_every: int = 1, recording_name: str | None = None) -> Any:
+    """An ``EvalRecorder`` for the protocol in ``world`` (a World or its name): a file, a live
+    viewer, a hosted gRPC server + web viewer (``serve``), or several; EvaluateError for bad
+    options (a malformed URL, a port in use)."""
+    from services.evaluator.rerun_log import EvalRecorder
+    from shared.maps import occupancy_grid
+
+    world_obj = load_world(world) if isinstance(world, str) else world
+    try:
+        return EvalRecorder(rrd, world_obj, occupancy_grid(world_obj), sensor_cfg, connect_url=connect_url,
+                            serve=serve, serve_port=serve_port, serve_web=serve, web_port=web_port,
+                            image_every=image_every, recording_name=recording_name,
+                            robot_radius_m=env_cfg.robot_radius_m)
+    except ValueError as exc:
+        raise EvaluateError(str(exc)) from None
 
 
 # ---------------------------------------------------------------------------------------------
@@ -266,7 +336,9 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="checkpoint file or directory, run folder, or weights export (greedy policy)")
     parser.add_argument("--policy", choices=POLICY_NAMES, default=None,
                         help="greedy (the checkpoint's; default with --checkpoint), random or reactive "
-                             "(baselines, no checkpoint needed)")
+                             "(baselines, no checkpoint needed), sl (--checkpoint: a supervised model from "
+                             "`cogexplore pretrain`) or rl (--checkpoint: a frozen-conv Q-learning run; "
+                             "greedy, labelled RL)")
     parser.add_argument("--world", default=None,
                         help="built-in world, procedural:<seed> or an MJCF file (default: the checkpoint's "
                              f"training world, else {DEFAULT_WORLD})")
@@ -281,6 +353,19 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rrd", metavar="PATH", help="write a Rerun recording here")
     parser.add_argument("--image-every", type=int, default=1, metavar="N",
                         help="record every N-th depth image only (default 1)")
+    live = parser.add_argument_group("Rerun live", "watch the evaluation while it runs (with or without --rrd)")
+    live.add_argument("--rerun-connect", metavar="URL",
+                      help="stream to a running Rerun viewer, e.g. rerun+http://127.0.0.1:9876/proxy (start one "
+                           "with `rerun`); a viewer that does not answer is skipped with a warning")
+    live.add_argument("--rerun-serve", action="store_true",
+                      help="host a Rerun gRPC server and web viewer, print the address to open, and keep serving "
+                           "after the evaluation until Ctrl-C")
+    live.add_argument("--rerun-port", type=int, default=9876, metavar="PORT",
+                      help="gRPC port of --rerun-serve (default 9876)")
+    live.add_argument("--rerun-web-port", type=int, default=9090, metavar="PORT",
+                      help="web viewer port of --rerun-serve (default 9090)")
+    live.add_argument("--rerun-serve-seconds", type=float, default=None, metavar="S",
+                      help="with --rerun-serve: stop serving S seconds after the evaluation (scripts, tests)")
     parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     parser.add_argument("--preset", default=None,
                         help="config preset for a baseline's sensor and env (default: the checkpoint's config, "
@@ -318,11 +403,21 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
         raise EvaluateError("give --checkpoint (greedy policy) or --policy random|reactive")
     if policy not in POLICY_NAMES:
         raise EvaluateError(f"unknown policy {policy!r}; known: {list(POLICY_NAMES)}")
-    if policy == "greedy" and checkpoint is None and model is None:
-        raise EvaluateError("the greedy policy needs --checkpoint (baselines: --policy "
+    if policy in ("greedy", "sl", "rl") and checkpoint is None and model is None:
+        raise EvaluateError(f"the {policy} policy needs --checkpoint (baselines without one: --policy "
                             + " or ".join(BASELINE_POLICIES) + ")")
     if model is None and checkpoint is not None:
-        model = load_model(checkpoint, device)
+        model = load_supervised_model(checkpoint, device) if policy == "sl" else load_model(checkpoint, device)
+    if model is not None and (policy == "sl") != (model.kind == "supervised"):
+        raise EvaluateError(f"{model.path} is a {model.kind} file: the sl policy takes a supervised model "
+                            "(`cogexplore pretrain`), the other policies a Q-network checkpoint")
+    if policy == "rl" and model is not None:
+        if model.name is None:
+            model = dataclasses.replace(model, name="RL")
+        dqn = model.run_config.dqn if model.run_config is not None else None
+        if dqn is not None and dqn.conv_lr_scale != 0:
+            log.warning("%s was trained with dqn.conv_lr_scale = %g: not the RL baseline's frozen conv layers",
+                        model.path, dqn.conv_lr_scale)
     if preset is not None:
         base = load_preset(preset)
     elif model is not None and model.run_config is not None:
@@ -330,7 +425,8 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     else:
         base = load_preset("paper")
     if model is not None:
-        base = dataclasses.replace(base, sensor=model.net.sensor_cfg, model=model.net.model_cfg)
+        base = dataclasses.replace(base, sensor=model.net.sensor_cfg,
+                                   model=getattr(model.net, "model_cfg", base.model))
     parsed = dict(parse_override(o) for o in overrides)
     bad = sorted(k for k in parsed if not k.startswith(("sensor.", "env.")))
     if bad:
@@ -343,25 +439,76 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=cfg.sensor, seed=seed)
     world_name = world or (model.run_config.env.world if model is not None and model.run_config is not None
                            else DEFAULT_WORLD)
-    return EvalSetup(policy, fn, cfg.sensor, cfg.env, world_name, model if policy == "greedy" else None)
+    return EvalSetup(policy, fn, cfg.sensor, cfg.env, world_name,
+                     model if policy in ("greedy", "sl", "rl") else None)
+
+
+def _check_live_options(args: argparse.Namespace) -> None:
+    serve_seconds = getattr(args, "rerun_serve_seconds", None)
+    if serve_seconds is not None and not args.rerun_serve:
+        raise EvaluateError("--rerun-serve-seconds needs --rerun-serve")
+    if serve_seconds is not None and not serve_seconds >= 0:
+        raise EvaluateError(f"--rerun-serve-seconds must be >= 0, got {serve_seconds}")
+    if args.rerun_serve and args.rerun_port == args.rerun_web_port:
+        raise EvaluateError(f"--rerun-port and --rerun-web-port are both {args.rerun_port}")
+    if args.rerun_connect:
+        from services.evaluator.rerun_log import parse_viewer_url
+
+        try:
+            parse_viewer_url(args.rerun_connect)
+        except ValueError as exc:
+            raise EvaluateError(f"--rerun-connect: {exc}") from None
+
+
+def _serve_until_stopped(seconds: float | None) -> None:
+    """Keep the process (and with it the Rerun servers) up for ``seconds``, or until SIGINT/SIGTERM."""
+    from services.common import stop_event_on_signals
+
+    stop = stop_event_on_signals()  # installed now: Ctrl-C during the evaluation still interrupts it
+    deadline = None if seconds is None else time.monotonic() + seconds
+    while not stop.is_set():
+        left = None if deadline is None else deadline - time.monotonic()
+        if left is not None and left <= 0:
+            break
+        stop.wait(1.0 if left is None else min(left, 1.0))
 
 
 def run_evaluate(args: argparse.Namespace) -> int:
     """``cogexplore evaluate``: returns a process exit status."""
+    recorder = None
+    ok = False
     try:
+        _check_live_options(args)
         setup = setup_evaluation(args.policy, args.checkpoint, world=args.world, preset=args.preset,
                                  overrides=args.overrides, seed=args.seed, device=args.device)
         log.info("evaluating %s on %s", setup.meta()["model"], setup.world)
+        recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"
+        if args.rerun_serve:
+            # Opened here, not in evaluate_policy: the server must outlive the evaluation.
+            recorder = open_recorder(setup.world, setup.sensor_cfg,
+                                     protocol_env_config(setup.env_cfg, setup.world, args.max_steps), args.rrd,
+                                     connect_url=live_viewer_url(args.rerun_connect, args.rrd is not None),
+                                     serve=True, serve_port=args.rerun_port,
+                                     web_port=args.rerun_web_port, image_every=args.image_every,
+                                     recording_name=recording_name)
+            print(f"rerun: open {recorder.web_url} in a browser, or run `rerun --connect {recorder.viewer_url}` "
+                  "(from another machine, put this machine's name in place of localhost/127.0.0.1)", flush=True)
         results = evaluate_policy(
             setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg, env_cfg=setup.env_cfg,
             episodes_per_start=args.episodes_per_start, max_steps=args.max_steps, seed=args.seed,
-            starts=args.starts, rrd=args.rrd, image_every=args.image_every,
-            policy_version=setup.model.policy_version if setup.model else 0,
-            recording_name=f"evaluate {setup.meta()['model']} on {setup.world}", progress=not args.quiet,
-            meta=setup.meta())
+            starts=args.starts, rrd=None if recorder is not None else args.rrd,
+            rerun_connect=None if recorder is not None else args.rerun_connect, recorder=recorder,
+            image_every=args.image_every, policy_version=setup.model.policy_version if setup.model else 0,
+            recording_name=recording_name, progress=not args.quiet, meta=setup.meta())
+        ok = True
     except ValueError as exc:  # every error of bad input here is one (checkpoint, world, config, policy)
         print(f"cogexplore evaluate: error: {exc}", file=sys.stderr)
         return 2
+    finally:
+        if recorder is not None and not ok:
+            recorder.close()
+            if recorder.path is not None:
+                recorder.path.unlink(missing_ok=True)
     if args.json_out:
         save_results(results, args.json_out)
     summary = aggregate(results.episodes)["overall"]
@@ -372,6 +519,18 @@ def run_evaluate(args: argparse.Namespace) -> int:
     for what, path in (("results", args.json_out), ("recording", args.rrd)):
         if path:
             print(f"{what}: {path}")
+    if recorder is not None:
+        try:
+            recorder.rec.flush(timeout_sec=30.0)  # everything on disk and in the server while we serve
+        except RuntimeError as exc:  # a --rerun-connect viewer that went away
+            log.warning("Rerun live stream failed: %s", exc)
+        seconds = args.rerun_serve_seconds
+        print(f"rerun: serving at {recorder.web_url} " + (f"for {seconds:g} s" if seconds is not None
+                                                          else "until Ctrl-C"), flush=True)
+        try:
+            _serve_until_stopped(seconds)
+        finally:
+            recorder.close()
     return 0
 
 

@@ -1,10 +1,16 @@
-"""Policies the evaluator can run: the learned greedy policy and two baselines.
+"""Policies the evaluator can run: the learned greedy policy and the baselines.
 
 Every policy is a callable ``policy(depth_m) -> (action, scores or None)`` as
 ``results.run_protocol`` wants it, with ``depth_m`` a float32 (H, W) image in metres
 (0 = no return) and ``action`` an index into ``shared.config.ACTION_NAMES``.
 
 - ``greedy``: argmax of a QNetwork's Q-values, dropout off (the paper's test protocol).
+- ``sl``: the supervised model (the authors' IROS 2016 baseline, ``shared.supervised``): argmax
+  of its five class scores; the softmax probabilities are returned as the scores.
+- ``rl``: the authors' RCAR 2016 Q-learning baseline: greedy on a DQN checkpoint whose conv
+  layers were copied from the supervised model and frozen (``train.init_conv_from`` + ``dqn.
+  conv_lr_scale = 0``), only the fully connected layers trained. The same computation as
+  ``greedy``; the name labels it.
 - ``random``: a uniformly random command from a seeded generator.
 - ``reactive``: a non-learned obstacle avoider in the spirit of vector-field histograms
   (VFH, Borenstein & Koren 1991): the image columns are split into five sectors, one per
@@ -12,19 +18,20 @@ Every policy is a callable ``policy(depth_m) -> (action, scores or None)`` as
   much of it is free beyond a clearance and how deep it is, and the best sector's command
   is taken. Deterministic: the same image always gives the same command.
 
-``make_policy(name, ...)`` builds one by name; later baselines (``sl``) register here.
+``make_policy(name, ...)`` builds one by name.
 """
 
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
 from shared.config import NUM_ACTIONS, SensorConfig
 
-POLICY_NAMES: tuple[str, ...] = ("greedy", "random", "reactive")
+POLICY_NAMES: tuple[str, ...] = ("greedy", "random", "reactive", "sl", "rl")
 """Names ``make_policy`` and ``cogexplore evaluate --policy`` accept."""
 BASELINE_POLICIES: tuple[str, ...] = ("random", "reactive")
 """Policies that need no checkpoint."""
@@ -60,6 +67,37 @@ class GreedyPolicy:
         q = self.runner.q_values(_check_depth(depth_m, self.net.sensor_cfg))
         # argmax takes the first maximum: ties (a fresh net rarely has any) break toward "left".
         return int(np.argmax(q)), q
+
+
+class RLPolicy(GreedyPolicy):
+    """Greedy on a frozen-conv Q-learning checkpoint (the RL baseline): only the name differs."""
+
+    name = "rl"
+
+
+class SupervisedPolicy:
+    """Argmax of the supervised model's class scores (eval mode); returns the softmax
+    probabilities as the scores."""
+
+    name = "sl"
+
+    def __init__(self, net: Any):
+        from shared.model import SupervisedNet
+
+        if not isinstance(net, SupervisedNet):
+            raise PolicyError(f"the sl policy needs a SupervisedNet, got {type(net).__name__}")
+        self.net = net.eval()
+
+    def __call__(self, depth_m: np.ndarray) -> tuple[int, np.ndarray]:
+        import torch
+
+        from shared.model import preprocess_depth
+
+        depth = _check_depth(depth_m, self.net.sensor_cfg)
+        with torch.inference_mode():
+            logits = self.net(preprocess_depth(depth, next(self.net.parameters()).device))
+            probs = torch.softmax(logits.float(), dim=1)[0].cpu().numpy()
+        return int(np.argmax(probs)), probs
 
 
 class RandomPolicy:
@@ -182,12 +220,16 @@ class ReactivePolicy:
 
 def make_policy(name: str, *, net: Any = None, sensor_cfg: SensorConfig | None = None,
                 seed: int = 0) -> PolicyFn:
-    """A policy by name: ``greedy`` needs ``net`` (a QNetwork), ``random`` uses ``seed``,
-    ``reactive`` the sensor geometry of ``sensor_cfg``."""
+    """A policy by name: ``greedy`` and ``rl`` need ``net`` (a QNetwork), ``sl`` a SupervisedNet,
+    ``random`` uses ``seed``, ``reactive`` the sensor geometry of ``sensor_cfg``."""
+    if name in ("greedy", "rl", "sl") and net is None:
+        raise PolicyError(f"the {name} policy needs a network: give a checkpoint")
     if name == "greedy":
-        if net is None:
-            raise PolicyError("the greedy policy needs a network: give a checkpoint")
         return GreedyPolicy(net)
+    if name == "rl":
+        return RLPolicy(net)
+    if name == "sl":
+        return SupervisedPolicy(net)
     if name == "random":
         return RandomPolicy(seed)
     if name == "reactive":

@@ -29,16 +29,30 @@ only: switch the timeline to ``update`` to see them plotted.
 
 Depth goes out as uint16 millimetres, the project's wire format: half the bytes of float32
 metres, and Rerun shows the same metres through ``meter=1000``.
+
+Live viewing. A recorder can stream to a running viewer (``connect_url``) or host a gRPC
+server (and the web viewer) itself (``serve``). Rerun's gRPC client behaves badly toward a
+viewer that is down (measured with rerun-sdk 0.41): ``set_sinks`` blocks 5 s trying to
+connect, the sink then drops everything and ``flush`` raises. So callers check the viewer with
+:class:`ViewerLink` (a TCP connect, milliseconds) before each stream, ``close`` turns a failed
+live flush into a warning, and :class:`EpisodeStream` does all of it on a worker thread for
+the training actors, whose env loop must never wait on a viewer.
 """
 
 from __future__ import annotations
 
+import logging
 import math
 import os
+import queue
 import re
+import socket
+import threading
+import uuid
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any, Mapping, Sequence
+from urllib.parse import quote, urlsplit
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
@@ -50,6 +64,8 @@ from shared.config import ACTION_NAMES, SensorConfig
 from shared.depth import MM_PER_M
 from shared.maps import OccupancyGrid
 from shared.world import World
+
+log = logging.getLogger("cogexplore.rerun")
 
 APPLICATION_ID = "cogexplore"
 TIMELINE_STEP = "episode_step"
@@ -69,6 +85,11 @@ Q_PREFIX = "policy/q"
 ACTION = "policy/action"
 EPISODE_LOG = "log/episodes"
 
+DEFAULT_GRPC_PORT = 9876
+DEFAULT_WEB_PORT = 9090
+VIEWER_URL_SCHEMES = {"rerun+http": 80, "rerun+https": 443, "rerun": 443}
+"""The schemes Rerun's gRPC client accepts, with the port each implies when the URL has none."""
+
 TRAJECTORY_Z_M = 0.02  # just above the map so the line is never hidden in it
 _COMMAND_COLORS = [(230, 97, 1), (253, 184, 99), (90, 90, 90), (178, 171, 210), (94, 60, 153)]
 _METRIC_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
@@ -86,6 +107,87 @@ def q_entity(action: int) -> str:
 def trajectory_entity(start_index: int, episode: int) -> str:
     """Entity path of one episode's path; starts are numbered from 1 as in the paper."""
     return f"{TRAJECTORY}/start_{start_index + 1}/episode_{episode}"
+
+
+def parse_viewer_url(url: str) -> tuple[str, int]:
+    """Host and port of a Rerun viewer's gRPC proxy URL such as ``rerun+http://host:9876/proxy``
+    (the form ``rerun --connect`` and ``rr.GrpcSink`` take); RerunLogError when it is not one."""
+    try:
+        parts = urlsplit(str(url))
+        port = parts.port
+    except ValueError as exc:
+        raise RerunLogError(f"bad Rerun viewer URL {url!r}: {exc}") from None
+    if parts.scheme not in VIEWER_URL_SCHEMES:
+        raise RerunLogError(f"bad Rerun viewer URL {url!r}: the scheme must be one of "
+                            f"{sorted(f'{k}://' for k in VIEWER_URL_SCHEMES)}, e.g. rerun+http://127.0.0.1:9876/proxy")
+    if not parts.hostname:
+        raise RerunLogError(f"bad Rerun viewer URL {url!r}: no host")
+    if parts.path != "/proxy":
+        raise RerunLogError(f"bad Rerun viewer URL {url!r}: the path must be /proxy")
+    return parts.hostname, port if port is not None else VIEWER_URL_SCHEMES[parts.scheme]
+
+
+def viewer_reachable(url: str, timeout_s: float = 1.0) -> bool:
+    """Whether something accepts TCP connections at the viewer URL's host and port."""
+    host, port = parse_viewer_url(url)
+    try:
+        with socket.create_connection((host, port), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
+
+
+def check_port_free(port: int, what: str = "port") -> None:
+    """RerunLogError naming ``what`` unless TCP ``port`` can be bound on all interfaces now
+    (Rerun's gRPC server only logs a failed bind and then drops what it is sent)."""
+    if not (isinstance(port, int) and 0 < port < 65536):
+        raise RerunLogError(f"{what} must be in 1..65535, got {port!r}")
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind(("0.0.0.0", port))
+        except OSError as exc:
+            raise RerunLogError(f"{what} {port} is not free ({exc.strerror}): pick another") from None
+
+
+def local_viewer_url(port: int, host: str = "127.0.0.1") -> str:
+    """The gRPC proxy URL of a server on ``port``: what ``rerun --connect`` takes."""
+    return f"rerun+http://{host}:{port}/proxy"
+
+
+def web_viewer_address(grpc_url: str, web_port: int, host: str = "localhost") -> str:
+    """The page of the web viewer on ``web_port`` that opens the stream at ``grpc_url``."""
+    return f"http://{host}:{web_port}/?url={quote(grpc_url, safe='')}"
+
+
+class ViewerLink:
+    """A viewer URL that may be down: ``up()`` checks it (a TCP connect, milliseconds) before
+    each stream, so a missing viewer costs nothing instead of Rerun's 5 s connect stall. The
+    first failure is logged as a warning, later changes (down again, back up) at info."""
+
+    def __init__(self, url: str, what: str = "streaming", timeout_s: float = 1.0):
+        parse_viewer_url(url)  # a malformed URL fails at start-up, not at the first stream
+        self.url = url
+        self.what = what
+        self.timeout_s = timeout_s
+        self._up: bool | None = None
+        self._warned = False
+        self.failures = 0
+
+    def up(self) -> bool:
+        ok = viewer_reachable(self.url, self.timeout_s)
+        if not ok:
+            self.failures += 1
+            if not self._warned:
+                self._warned = True
+                log.warning("no Rerun viewer at %s: %s live is off until one answers (checked again each "
+                            "time; files are written as usual)", self.url, self.what)
+            elif self._up:
+                log.info("Rerun viewer at %s went away: %s live is off", self.url, self.what)
+        elif self._up is False:
+            log.info("Rerun viewer at %s answers again: %s live", self.url, self.what)
+        self._up = ok
+        return ok
 
 
 def default_blueprint(world: World | None = None) -> rrb.Blueprint:
@@ -127,17 +229,21 @@ class EvalRecorder:
     the caller has set, or None when only live sinks are wanted. Live sinks, alone or next to
     the file (``set_sinks`` tees to all of them; the sinks are what ``connect_grpc`` and
     ``serve_grpc`` set up): ``connect_url`` streams to a running viewer
-    (``rerun+http://host:9876/proxy``); ``serve=True`` hosts a gRPC server on ``serve_port``
-    that viewers connect to (its address is ``server_uri``), and ``serve_web`` also serves
-    the web viewer. Each recorder has its own ``RecordingStream``; nothing global is touched.
-    ``image_every`` logs every n-th depth image only (a full 12 x 10 x 200-step protocol is
-    24,000 images, ~0.9 GB of millimetres).
+    (``rerun+http://host:9876/proxy``; check it with :class:`ViewerLink` first, as Rerun
+    stalls 5 s on one that is down); ``serve=True`` hosts a gRPC server on ``serve_port``
+    that viewers connect to (``viewer_url``; it lives until ``close``), and ``serve_web``
+    also serves the web viewer on ``web_port`` (``web_url``; it lives until the process
+    ends). Each recorder has its own ``RecordingStream``; only the web viewer is global.
+    ``recording_id``: recorders with the same id add to one recording in the viewer (the
+    actors' streams). ``image_every`` logs every n-th depth image only (a full 12 x 10 x
+    200-step protocol is 24,000 images, ~0.9 GB of millimetres).
     """
 
     def __init__(self, target: str | Path | rr.RecordingStream | None, world: World, grid: OccupancyGrid | None,
                  sensor_cfg: SensorConfig, *, connect_url: str | None = None,
-                 serve: bool = False, serve_port: int = 9876, serve_web: bool = False,
-                 recording_name: str | None = None, image_every: int = 1,
+                 serve: bool = False, serve_port: int = DEFAULT_GRPC_PORT, serve_web: bool = False,
+                 web_port: int = DEFAULT_WEB_PORT, recording_name: str | None = None,
+                 recording_id: str | None = None, image_every: int = 1,
                  robot_radius_m: float = 0.18, blueprint: rrb.Blueprint | None = None):
         if not isinstance(image_every, int) or image_every < 1:
             raise RerunLogError(f"image_every must be an integer >= 1, got {image_every!r}")
@@ -147,16 +253,25 @@ class EvalRecorder:
         self.image_every = image_every
         self.path: Path | None = None
         self.server_uri: str | None = None
+        self.viewer_url: str | None = None
+        """Where a viewer on this machine connects to the served stream (``serve``)."""
+        self.web_url: str | None = None
+        """The web viewer's page on this machine, opening the served stream (``serve_web``)."""
+        self.live = bool(connect_url or serve or serve_web)
         bp = blueprint if blueprint is not None else default_blueprint(world)
         if isinstance(target, rr.RecordingStream):
-            if connect_url or serve or serve_web:
+            if self.live or recording_id is not None:
                 raise RerunLogError("pass either a RecordingStream (with its own sinks) or live options, not both")
             self.rec = target
             self._owns_stream = False
             self.rec.send_blueprint(bp, make_active=False, make_default=True)
         else:
-            self.rec = rr.RecordingStream(APPLICATION_ID)
-            self._owns_stream = True
+            if connect_url:
+                parse_viewer_url(connect_url)
+            if serve or serve_web:
+                check_port_free(serve_port, "the Rerun gRPC port")
+            if serve_web:
+                check_port_free(web_port, "the Rerun web viewer port")
             sinks: list[Any] = []
             if target is not None:
                 self.path = Path(target)
@@ -167,12 +282,20 @@ class EvalRecorder:
             if serve or serve_web:
                 server = rr.GrpcServerSink(port=serve_port)
                 self.server_uri = server.uri
+                self.viewer_url = local_viewer_url(serve_port)
                 sinks.append(server)
             if not sinks:
                 raise RerunLogError("nothing to log to: give a file path, connect_url or serve=True")
-            self.rec.set_sinks(*sinks, default_blueprint=bp)
             if serve_web:
-                rr.serve_web_viewer(connect_to=self.server_uri, open_browser=False)
+                assert self.viewer_url is not None
+                try:  # before the sinks: a web port taken in the meantime leaves nothing open
+                    rr.serve_web_viewer(web_port=web_port, connect_to=self.viewer_url, open_browser=False)
+                except RuntimeError as exc:
+                    raise RerunLogError(f"cannot serve the Rerun web viewer on port {web_port}: {exc}") from None
+                self.web_url = web_viewer_address(self.viewer_url, web_port)
+            self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+            self._owns_stream = True
+            self.rec.set_sinks(*sinks, default_blueprint=bp)
         if recording_name:
             self.rec.send_recording_name(recording_name)
         self._closed = False
@@ -240,6 +363,22 @@ class EvalRecorder:
         rec.set_time(TIMELINE_EPISODE, sequence=self._episode_count)
         rec.set_time(TIMELINE_STEP, sequence=step)
         rec.set_time(TIMELINE_FRAME, sequence=self._frame)
+
+    def set_position(self, episode_count: int, frame: int) -> None:
+        """Continue the ``episode`` and ``eval_frame`` timelines from these values: a recorder
+        that adds to a recording other recorders began (same ``recording_id``) starts where
+        they stopped instead of at 0."""
+        self._check_open()
+        for name, value in (("episode_count", episode_count), ("frame", frame)):
+            if not (isinstance(value, (int, np.integer)) and value >= 0):
+                raise RerunLogError(f"{name} must be an integer >= 0, got {value!r}")
+        self._episode_count = int(episode_count)
+        self._frame = int(frame)
+
+    @property
+    def frame(self) -> int:
+        """The next ``eval_frame`` value."""
+        return self._frame
 
     def begin_episode(self, start_index: int, episode: int) -> None:
         """Start logging an episode from start pose ``start_index`` (its ``episode``-th there)."""
@@ -381,11 +520,18 @@ class EvalRecorder:
 
     def close(self) -> None:
         """Flush everything and close the sinks this recorder opened (the .rrd file is
-        complete afterwards); a stream passed in by the caller is flushed, not closed."""
+        complete afterwards); a stream passed in by the caller is flushed, not closed. A live
+        stream whose viewer went away is logged as a warning, not raised: the file sink is
+        flushed and closed all the same."""
         if self._closed:
             return
         self._closed = True
-        self.rec.flush(timeout_sec=30.0)
+        try:
+            self.rec.flush(timeout_sec=30.0)
+        except RuntimeError as exc:
+            if not self.live or "grpc" not in str(exc).lower():  # a file that fails is an error
+                raise
+            log.warning("Rerun live stream failed (%s); the recording file, if any, is complete", exc)
         if self._owns_stream:
             self.rec.disconnect()
 
@@ -394,3 +540,177 @@ class EvalRecorder:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+class EpisodeStream:
+    """Streams every ``every_episodes``-th episode of a training actor live to a viewer,
+    without ever making the env loop wait on the network or the viewer.
+
+    The env loop's calls (``begin_episode``, ``log_step``, ``end_episode``) only copy the step's
+    small arrays onto a bounded queue (a full queue drops the item and counts it). A worker
+    thread checks the viewer (:class:`ViewerLink`) at each streamed episode's start, opens an
+    :class:`EvalRecorder` for that episode and closes it at its end: a viewer that is down
+    costs one refused TCP connect per streamed episode, and one that restarts gets the next
+    episode. All recorders share one ``recording_id``, so the viewer shows one recording per
+    actor (``recording_name``) whose ``episode`` timeline is the actor's episode number and
+    whose ``eval_frame`` runs on across episodes. Depth goes out every ``image_every``-th step.
+    """
+
+    _STOP = ("stop",)
+
+    def __init__(self, url: str, world: World, sensor_cfg: SensorConfig, *, recording_name: str,
+                 every_episodes: int = 20, image_every: int = 5, robot_radius_m: float = 0.18,
+                 queue_size: int = 4096):
+        for name, value in (("every_episodes", every_episodes), ("image_every", image_every),
+                            ("queue_size", queue_size)):
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise RerunLogError(f"{name} must be an integer >= 1, got {value!r}")
+        self.link = ViewerLink(url, what=f"streaming {recording_name!r}")
+        self.url = url
+        self.world = world
+        self.sensor_cfg = sensor_cfg
+        self.recording_name = recording_name
+        self.recording_id = f"{APPLICATION_ID}-{uuid.uuid4().hex}"
+        self.every_episodes = every_episodes
+        self.image_every = image_every
+        self.robot_radius_m = robot_radius_m
+        self.episodes_streamed = 0
+        """Episodes the worker sent to a viewer, begin to end."""
+        self.episodes_skipped = 0
+        """Episodes due for streaming that found no viewer."""
+        self.steps_logged = 0
+        self.dropped = 0
+        """Items the env loop could not queue (the worker fell behind)."""
+        self._active = False  # env-loop side: the current episode is being streamed
+        self._frame = 0  # worker side: the next eval_frame of the shared recording
+        self._grid: OccupancyGrid | None = None
+        self._failed_once = False
+        self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=queue_size)
+        self._closed = False
+        self._thread = threading.Thread(target=self._work, name="rerun-episode-stream", daemon=True)
+        self._thread.start()
+
+    # -- env-loop side: copies and a non-blocking put, nothing else ------------------------
+
+    def begin_episode(self, episode: int, start_index: int) -> bool:
+        """A new episode of the actor; returns whether it is streamed (every n-th is)."""
+        self._active = not self._closed and int(episode) % self.every_episodes == 0
+        if self._active:
+            self._put(("begin", int(episode), int(start_index)))
+        return self._active
+
+    def log_step(self, step: int, pose: Sequence[float], depth_m: np.ndarray | None,
+                 q_values: Sequence[float] | np.ndarray | None, action: int | None) -> None:
+        """One decision of a streamed episode (a no-op otherwise); as ``EvalRecorder.log_step``."""
+        if not self._active:
+            return
+        depth = None
+        if depth_m is not None and int(step) % self.image_every == 0:
+            depth = np.array(depth_m, dtype=np.float32, copy=True)  # the env may reuse its buffer
+        q = None if q_values is None else np.array(q_values, dtype=np.float64, copy=True)
+        self._put(("step", int(step), tuple(float(v) for v in pose), depth, q,
+                   None if action is None else int(action)))
+
+    def end_episode(self, summary: Mapping[str, Any], final_pose: Sequence[float] | None = None) -> None:
+        """The end of a streamed episode (a no-op otherwise): ``summary`` as for
+        ``EvalRecorder.end_episode`` (steps, distance_m, path_length_m, collision_cause,
+        truncated); ``final_pose`` closes the trajectory."""
+        if not self._active:
+            return
+        self._active = False
+        fields = dict(summary)
+        if final_pose is not None:
+            fields["final_pose"] = tuple(float(v) for v in final_pose)
+        self._put(("end", fields))
+
+    def _put(self, item: tuple[Any, ...]) -> None:
+        try:
+            self._queue.put_nowait(item)
+        except queue.Full:
+            if self.dropped == 0:
+                log.warning("Rerun stream %r falls behind: dropping steps (the actor goes on)", self.recording_name)
+            self.dropped += 1
+
+    def close(self, timeout_s: float = 10.0) -> None:
+        """Finish what is queued (at most ``timeout_s``), close the stream and stop the worker."""
+        if self._closed:
+            return
+        self._closed = True
+        self._active = False
+        try:
+            self._queue.put(self._STOP, timeout=timeout_s)
+        except queue.Full:
+            log.warning("Rerun stream %r: the worker is stuck; leaving it behind", self.recording_name)
+            return
+        self._thread.join(timeout_s)
+
+    def __enter__(self) -> "EpisodeStream":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # -- worker side -------------------------------------------------------------------------
+
+    def _work(self) -> None:
+        recorder: EvalRecorder | None = None
+        trajectory: list[tuple[float, float]] = []
+        while True:
+            item = self._queue.get()
+            kind = item[0]
+            if kind == "stop":
+                break
+            try:
+                if kind == "begin":
+                    self._finish(recorder)  # an 'end' that was dropped
+                    recorder = None
+                    _, episode, start_index = item
+                    if not self.link.up():
+                        self.episodes_skipped += 1
+                        continue
+                    recorder = self._open()
+                    recorder.set_position(episode, self._frame)
+                    recorder.begin_episode(start_index, episode)
+                    trajectory = []
+                elif recorder is None:
+                    continue  # the steps of an episode that is not streamed (no viewer)
+                elif kind == "step":
+                    _, step, pose, depth, q, action = item
+                    recorder.log_step(step, pose, depth, q, action)
+                    trajectory.append((pose[0], pose[1]))
+                    self.steps_logged += 1
+                elif kind == "end":
+                    fields = item[1]
+                    final = fields.pop("final_pose", None)
+                    if final is not None:
+                        trajectory.append((final[0], final[1]))
+                    fields.setdefault("trajectory_xy", tuple(trajectory))
+                    recorder.end_episode(fields)
+                    self.episodes_streamed += 1
+                    self._finish(recorder)
+                    recorder = None
+            except Exception as exc:  # noqa: BLE001  the viewer must never take the actor down
+                if not self._failed_once:
+                    self._failed_once = True
+                    log.warning("Rerun stream %r: %s: %s (this episode is dropped; the actor goes on)",
+                                self.recording_name, type(exc).__name__, exc)
+                self._finish(recorder)
+                recorder = None
+        self._finish(recorder)
+
+    def _open(self) -> EvalRecorder:
+        if self._grid is None:
+            from shared.maps import occupancy_grid
+
+            self._grid = occupancy_grid(self.world)
+        return EvalRecorder(None, self.world, self._grid, self.sensor_cfg, connect_url=self.url,
+                            recording_name=self.recording_name, recording_id=self.recording_id,
+                            robot_radius_m=self.robot_radius_m)
+
+    def _finish(self, recorder: EvalRecorder | None) -> None:
+        if recorder is not None:
+            self._frame = recorder.frame
+            try:
+                recorder.close()
+            except Exception as exc:  # noqa: BLE001
+                log.warning("Rerun stream %r: closing failed: %s", self.recording_name, exc)

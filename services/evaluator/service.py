@@ -17,7 +17,11 @@ Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 1
 - saves the results JSON to ``runs/<run>/stats/eval/eval-<version:06d>.json`` (the report
   reuses it when the run's checkpoint holds the same weights);
 - writes a Rerun recording to ``runs/<run>/recordings/eval-<version:06d>.rrd`` (every
-  ``--image-every``-th depth image, every step's pose, Q-values and command).
+  ``--image-every``-th depth image, every step's pose, Q-values and command);
+- with ``--rerun-connect URL`` (default: env ``COGEXPLORE_RERUN_URL``), also streams that
+  recording live to the Rerun viewer there. The viewer is checked before each evaluation: one
+  that does not answer is warned about once and skipped (the ``.rrd`` files go on), one that
+  goes away mid-evaluation only costs a warning.
 
 SIGINT/SIGTERM (or the ``stop`` event in tests) ends the loop within one environment step; the
 session, and with it the liveliness token, is closed on the way out.
@@ -45,6 +49,7 @@ from services.common import (
 )
 from services.evaluator.evaluate import EvaluationCancelled, evaluate_policy, weights_sha256
 from services.evaluator.policies import GreedyPolicy
+from services.evaluator.rerun_log import ViewerLink
 from services.evaluator.results import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS, EvalResults, save_results
 from shared.config import RunConfig
 from shared.keys import RunKeys, validate_name
@@ -62,6 +67,7 @@ DEFAULT_EVERY_UPDATES = 1000
 CHEAP_EPISODES_PER_START = 1
 DEFAULT_IMAGE_EVERY = 10
 EVAL_LOG = "eval.jsonl"
+ENV_RERUN_URL = "COGEXPLORE_RERUN_URL"
 
 
 def recording_path(recordings: Path, policy_version: int) -> Path:
@@ -76,7 +82,7 @@ class EvaluatorService:
                  every_updates: int = DEFAULT_EVERY_UPDATES, episodes_per_start: int = CHEAP_EPISODES_PER_START,
                  max_steps: int = PAPER_MAX_STEPS, world: str | None = None, image_every: int = DEFAULT_IMAGE_EVERY,
                  record: bool = True, seed: int = 0, device: str = "cpu", query_timeout_s: float = 2.0,
-                 connect_wait_s: float = 30.0):
+                 connect_wait_s: float = 30.0, rerun_url: str | None = None):
         for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),
                             ("max_steps", max_steps), ("image_every", image_every)):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -94,6 +100,8 @@ class EvaluatorService:
         load_world(self.world)  # a bad world fails at start-up, not at the first evaluation
         self.image_every = image_every
         self.record = record
+        # A malformed URL fails here, at start-up; one that does not answer is checked per evaluation.
+        self.viewer = ViewerLink(rerun_url, what="streaming evaluations") if rerun_url else None
         self.seed = seed
         self.query_timeout_s = query_timeout_s
         self.connect_wait_s = connect_wait_s
@@ -161,11 +169,12 @@ class EvaluatorService:
         meta = {"policy": "greedy", "model": f"{self.run_name}@{version}", "policy_version": version,
                 "fingerprint": self.fingerprint, "weights_sha256": weights_sha256(self.net),
                 "evaluator_id": self.evaluator_id}
+        live = self.viewer.url if self.viewer is not None and self.viewer.up() else None
         results = evaluate_policy(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
                                   episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
                                   seed=self.seed, rrd=rrd, image_every=self.image_every, policy_version=version,
                                   recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
-                                  stop=stop)
+                                  stop=stop, rerun_connect=live)
         duration = time.monotonic() - started
         save_results(results, stats / "eval" / f"eval-{version:06d}.json")
         summary = results.summary
@@ -173,6 +182,7 @@ class EvaluatorService:
                "world": self.world, "episodes_per_start": self.episodes_per_start, "max_steps": self.max_steps,
                "seed": self.seed, "duration_s": round(duration, 3), "summary": summary["overall"],
                "per_start": summary["per_start"], "recording": str(rrd) if rrd is not None else None,
+               "streamed_to": live,
                "rejected_weights": self.rejects.counts}
         stats.mkdir(parents=True, exist_ok=True)
         with open(stats / EVAL_LOG, "a") as f:
@@ -273,7 +283,11 @@ def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--world", default=None, help="world to evaluate in (default: the run config's)")
     parser.add_argument("--image-every", type=int, default=DEFAULT_IMAGE_EVERY, metavar="N",
                         help=f"record every N-th depth image (default {DEFAULT_IMAGE_EVERY})")
-    parser.add_argument("--no-record", action="store_true", help="no Rerun recordings")
+    parser.add_argument("--no-record", action="store_true", help="no .rrd recordings (live streaming stays)")
+    parser.add_argument("--rerun-connect", metavar="URL", default=os.environ.get(ENV_RERUN_URL) or None,
+                        help=f"also stream every evaluation live to the Rerun viewer at URL, e.g. "
+                             f"rerun+http://rerun:9876/proxy (env {ENV_RERUN_URL}; default: none). A viewer "
+                             "that does not answer is skipped with a warning; the service goes on")
     parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
     parser.add_argument("--once", action="store_true", help="evaluate the latest weights once and exit")
     parser.add_argument("--wait-weights", type=float, default=60.0, metavar="SECONDS",
@@ -298,7 +312,7 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
                                    every_updates=args.every_updates, episodes_per_start=episodes,
                                    max_steps=args.max_steps, world=args.world, image_every=args.image_every,
                                    record=not args.no_record, seed=args.seed, device=device,
-                                   query_timeout_s=args.query_timeout)
+                                   query_timeout_s=args.query_timeout, rerun_url=args.rerun_connect)
     except (ValueError, ModelError) as exc:  # config, world, run name, device: the message says which
         print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
         return 2
