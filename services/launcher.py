@@ -86,6 +86,8 @@ class Launcher:
         logfile = self.paths.logs / f"{name}.log"
         handle = open(logfile, "ab")
         env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
+        if self.args.rerun_connect:
+            env["COGEXPLORE_RERUN_URL"] = self.args.rerun_connect  # evaluator and actors stream there
         process = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=handle,
                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                    start_new_session=True, preexec_fn=_die_with_parent)
@@ -254,6 +256,9 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--final-episodes", type=int, default=10,
                         help="episodes per start in the final evaluation (paper: 10)")
     parser.add_argument("--no-report", action="store_true", help="skip the final evaluation and report")
+    parser.add_argument("--rerun-connect", default=None, metavar="URL",
+                        help="stream evaluations and every 20th actor episode live to a Rerun viewer, "
+                             "e.g. rerun+http://127.0.0.1:9876/proxy (start one with `rerun`)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
