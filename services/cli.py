@@ -179,6 +179,10 @@ def build_parser() -> argparse.ArgumentParser:
               "services.evaluator.evaluate", "add_evaluate_arguments", "run_evaluate")
     _add_lazy(sub, "report", "the paper's tables and figures (PNG + Markdown) for a run",
               "services.evaluator.report", "add_report_arguments", "run_report")
+    _add_lazy(sub, "pretrain", "the supervised model (SL baseline, DRL conv init) from expert-labelled depth images",
+              "services.pretrain", "add_pretrain_arguments", "run_pretrain_command")
+    _add_lazy(sub, "experiment", "the paper's SL / RL / DRL comparison end to end (resumable)",
+              "services.experiment", "add_experiment_arguments", "run_experiment_command")
 
     return parser
 

@@ -96,7 +96,7 @@ def _digest(arrays: Mapping[str, Any]) -> str:
     return h.hexdigest()
 
 
-def _save_torch(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
     meta = dict(meta, digest=_digest(tensors))
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
@@ -125,7 +125,7 @@ def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
     return meta
 
 
-def _load_verified(path: Path, fmt: str, framework: str = "pt") -> tuple[dict[str, Any], dict[str, Any]]:
+def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict[str, Any], dict[str, Any]]:
     meta = _read_meta(path, fmt)
     try:
         if framework == "pt":
@@ -169,7 +169,7 @@ class Checkpoint:
         if replay is not None:
             if self.replay_path is None:
                 raise CheckpointError(f"{self.path} was saved without its replay memory")
-            arrays, meta = _load_verified(self.replay_path, FORMAT + "-replay", framework="numpy")
+            arrays, meta = load_tensors_file(self.replay_path, FORMAT + "-replay", framework="numpy")
             if meta.get("digest") != self.replay_digest:
                 raise CheckpointError(f"{self.replay_path} belongs to another checkpoint")
             try:
@@ -208,14 +208,14 @@ def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory |
         json.dumps(meta)
     except TypeError as exc:
         raise CheckpointError(f"checkpoint config/extra must be JSON-serialisable: {exc}") from None
-    _save_torch(path, tensors, meta)
+    save_tensors_file(path, tensors, meta)
     return path
 
 
 def load_checkpoint(path: Path | str) -> Checkpoint:
     """Read and verify one checkpoint file; raises CheckpointError if partial or corrupt."""
     path = Path(path)
-    tensors, meta = _load_verified(path, FORMAT)
+    tensors, meta = load_tensors_file(path, FORMAT)
     rinfo = meta.get("replay")
     return Checkpoint(path=path, tensors=tensors, agent_meta=meta["agent"], config=meta.get("config"),
                       extra=meta.get("extra") or {},
@@ -322,14 +322,14 @@ def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0) -> 
     meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
             "fingerprint": architecture_fingerprint(net),
             "model": _asdict(net.model_cfg), "sensor": _asdict(net.sensor_cfg)}
-    _save_torch(path, weights_to_tensors(net), meta)
+    save_tensors_file(path, weights_to_tensors(net), meta)
     return path
 
 
 def load_exported_weights(path: Path | str, device: str | torch.device = "cpu") -> tuple[QNetwork, dict[str, Any]]:
     """Rebuild the QNetwork of an ``export_weights`` file (eval mode) and return it with its metadata."""
     path = Path(path)
-    tensors, meta = _load_verified(path, WEIGHTS_FORMAT)
+    tensors, meta = load_tensors_file(path, WEIGHTS_FORMAT)
     try:
         net = QNetwork(ModelConfig(**meta["model"]), SensorConfig(**meta["sensor"]))
     except (ConfigError, TypeError, KeyError) as exc:

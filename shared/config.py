@@ -312,6 +312,10 @@ class TrainConfig:
     """Seed of every random generator in the run."""
     device: str = "auto"
     """'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:<n>'."""
+    init_conv_from: str = ""
+    """A supervised model file (``cogexplore pretrain``) whose conv layers initialise the
+    Q-network when a run starts fresh (the paper's transfer); '' = random initialisation. A
+    resumed run keeps its checkpoint's weights."""
 
     def __post_init__(self) -> None:
         s = "train"
@@ -326,6 +330,10 @@ class TrainConfig:
         _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda")
                or self.device.startswith("cuda:")), s, "device", self.device,
                "'auto', 'cpu', 'cuda' or 'cuda:<n>'")
+        _check(isinstance(self.init_conv_from, str) and (self.init_conv_from == "" or (
+               self.init_conv_from.strip() == self.init_conv_from and self.init_conv_from.endswith(".safetensors"))),
+               s, "init_conv_from", self.init_conv_from,
+               "'' (random conv layers) or the path of a supervised model .safetensors file")
 
 
 # ---------------------------------------------------------------------------

@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import shutil
+import signal
 import sys
 import tempfile
 import threading
@@ -49,6 +51,7 @@ class _Observed:
     lock: threading.Lock = field(default_factory=threading.Lock)
     learner: list[tuple[float, Any]] = field(default_factory=list)  # (monotonic arrival, LearnerStats)
     episodes: list[tuple[float, Any]] = field(default_factory=list)  # (monotonic arrival, EpisodeStats)
+    flow: Any | None = None  # the newest FlowControl
 
     def on_learner(self, stats: Any, _key: str) -> None:
         with self.lock:
@@ -57,6 +60,10 @@ class _Observed:
     def on_episode(self, stats: Any, _key: str) -> None:
         with self.lock:
             self.episodes.append((time.monotonic(), stats))
+
+    def on_flow(self, message: Any, _key: str) -> None:
+        with self.lock:
+            self.flow = message
 
     def latest(self) -> Any | None:
         with self.lock:
@@ -116,7 +123,7 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     from services.common import resolve_config, save_config
     from services.launcher import Launcher
     from shared.keys import RunKeys
-    from shared.messages import EpisodeStats, LearnerStats, RejectCounter
+    from shared.messages import EpisodeStats, FlowControl, LearnerStats, RejectCounter
     from shared.transport import ZenohSettings, open_session, subscribe_messages
 
     overrides = list(overrides or [])
@@ -160,12 +167,13 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
             rejects = RejectCounter("stats message")
             subs = [subscribe_messages(session, keys.all_stats("learner"), LearnerStats, observed.on_learner, rejects),
                     subscribe_messages(session, keys.all_stats("episode"), EpisodeStats, observed.on_episode,
-                                       rejects)]
+                                       rejects),
+                    subscribe_messages(session, keys.flow, FlowControl, observed.on_flow, rejects)]
             try:
                 # 1. Up and in its steady state (see _steady): not the actors' first burst nor
                 # the learner's catch-up on it.
                 deadline = time.monotonic() + startup_timeout_s
-                while not _steady(observed, actor_ids, launcher.config.train.replay_ratio):
+                while not _steady(observed, actor_ids, launcher.config.train):
                     check_alive()
                     if time.monotonic() > deadline:
                         raise BenchError(f"not in a steady state after {startup_timeout_s:.0f} s (last learner "
@@ -231,29 +239,38 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     }
 
 
-def _steady(observed: _Observed, actor_ids: list[str], replay_ratio: float, span_s: float = 8.0) -> bool:
-    """True once the learner updates, every actor's transitions have arrived, and over the
-    last ``span_s`` of learner reports transitions kept arriving with updates / transitions
-    within a factor of 2 of the replay ratio.
+def _steady(observed: _Observed, actor_ids: list[str], train: Any, span_s: float = 8.0) -> bool:
+    """True once the learner runs its steady state: it updates, every actor's transitions have
+    arrived, its backlog of due updates is no more than flow control allows, and over the last
+    reports (``span_s`` and three reports at least) transitions kept arriving with updates /
+    transitions within a factor of 2 of the replay ratio.
 
-    Why: the actors run ahead by the flow-control slack (and what was in flight) before the
-    first update, then wait while the learner catches up (no transitions at all); a window
-    over either phase says nothing about the running system.
+    Why: before the first update the actors run ahead by the flow-control slack (and what
+    was in flight when credit was granted), then wait while the learner catches up on that
+    backlog with no transitions arriving; a window over either phase measures neither.
     """
     with observed.lock:
         reports = [s for _, s in observed.learner]
-    if not reports:
+        flow = observed.flow
+    if not reports or flow is None:
         return False
     last = reports[-1]
     if last.updates == 0 or any(_received(last, a) <= 0 for a in actor_ids):
         return False
-    earlier = [s for s in reports if s.updates > 0 and last.uptime_s - s.uptime_s >= span_s]
+    ratio, warmup = train.replay_ratio, train.warmup_transitions
+    # The learner asks for transitions up to warmup + updates / ratio + slack; in its steady
+    # state that is what it has, so its backlog is about ratio * slack (plus batches in flight).
+    slack = flow.transitions_wanted - warmup - math.ceil(flow.updates / ratio)
+    backlog = ratio * (last.transitions_received - warmup) - last.updates
+    if backlog > ratio * (slack + 32 * len(actor_ids)) + 8:
+        return False
+    earlier = [s for s in reports[:-3] if s.updates > 0 and last.uptime_s - s.uptime_s >= span_s]
     if not earlier:
         return False
     first = earlier[-1]
     d_transitions = last.transitions_received - first.transitions_received
     d_updates = last.updates - first.updates
-    return d_transitions > 0 and 0.5 <= d_updates / d_transitions / replay_ratio <= 2.0
+    return d_transitions > 0 and 0.5 <= d_updates / d_transitions / ratio <= 2.0
 
 
 def _sleep_checking(seconds: float, check_alive: Any) -> None:
@@ -263,8 +280,9 @@ def _sleep_checking(seconds: float, check_alive: Any) -> None:
         time.sleep(min(0.5, left))
 
 
-def _next_report(observed: _Observed, check_alive: Any, timeout_s: float = 30.0) -> tuple[float, Any]:
-    """The first learner report that arrives from now on (reports come about once a second)."""
+def _next_report(observed: _Observed, check_alive: Any, timeout_s: float = 180.0) -> tuple[float, Any]:
+    """The first learner report that arrives from now on (about once a second, or once per
+    learner loop of a few updates when updates are slow)."""
     with observed.lock:
         seen = len(observed.learner)
     deadline = time.monotonic() + timeout_s
@@ -310,11 +328,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print JSON")
 
 
+def _interrupt(_signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt
+
+
 def run_command(args: argparse.Namespace) -> int:
     from services.common import setup_logging
     from shared.config import ConfigError
 
     setup_logging("WARNING")
+    # SIGTERM, and SIGINT even where a background shell ignored it, end the measurement through
+    # the normal clean-up (stop the processes, learner first).
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _interrupt)
     if args.actors < 1:
         raise ConfigError(f"--actors must be >= 1, got {args.actors}")
     try:

@@ -26,6 +26,11 @@ class LearnerCore:
     def __init__(self, cfg: RunConfig, device: str = "auto"):
         self.cfg = cfg
         self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
+        if cfg.train.init_conv_from:
+            # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
+            from shared.supervised import init_agent_conv
+
+            init_agent_conv(self.agent, cfg.train.init_conv_from)
         self.replay = ReplayMemory(cfg.replay, (cfg.sensor.height, cfg.sensor.width), seed=cfg.train.seed)
         self.received = 0
         # Latest policy version seen in each actor's transitions: the weight lag is

@@ -1,0 +1,103 @@
+"""``cogexplore experiment paper`` end to end at CI size: SL pretraining, the frozen-conv RL run,
+DRL stages through the distributed system (``cogexplore up`` subprocesses) resuming one run,
+evaluation of every model, the tables and figures, and resuming an interrupted experiment."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from services.experiment import (
+    Experiment,
+    ExperimentError,
+    add_experiment_arguments,
+    main,
+    options_from_args,
+    parse_checkpoints,
+)
+
+TINY = ["paper", "--preset", "smoke", "--world", "box-room", "--actors", "1", "--sl-worlds", "box-room",
+        "--sl-frames", "120", "--sl-epochs", "1", "--rl-updates", "20", "--episodes-per-start", "1",
+        "--max-steps", "10", "--device", "cpu", "--quiet"]
+
+
+def run(out: Path, checkpoints: str, *extra: str) -> Experiment:
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    args = parser.parse_args([*TINY, "--out", str(out), "--checkpoints", checkpoints, *extra])
+    messages: list[str] = []
+    experiment = Experiment(options_from_args(args), echo=messages.append)
+    experiment.run()
+    return experiment
+
+
+def conv(tensors: dict[str, torch.Tensor], prefix: str = "") -> dict[str, torch.Tensor]:
+    return {k[len(prefix):]: v for k, v in tensors.items() if k.startswith(prefix + "trunk.")}
+
+
+def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
+    from shared.checkpoint import CheckpointManager, load_exported_weights
+    from shared.supervised import load_supervised
+
+    out = tmp_path / "exp"
+    first = run(out, "20")
+    assert first.ran == ["sl", "rl", "drl-20", "eval-SL", "eval-RL", "eval-DRL-20", "eval-reactive",
+                         "eval-random"]
+    table = (out / "table.md").read_text()
+    for label in ("SL", "RL", "DRL-20", "reactive", "random"):
+        assert f"| {label} |" in table
+    assert "| Count |" in table and "| Distance (m) |" in table
+    assert (out / "heatmaps.png").stat().st_size > 1000
+    wall = (out / "wallclock.md").read_text()
+    assert "| drl-20 |" in wall and "| rl |" in wall
+    assert "![heatmaps](heatmaps.png)" in (out / "report.md").read_text()
+    for label in ("SL", "RL", "DRL-20"):
+        results = json.loads((out / "eval" / f"{label}.json").read_text())
+        assert results["meta"]["model"] == label and len(results["episodes"]) == 4  # box-room: 4 starts
+        assert all(e["steps"] <= 10 for e in results["episodes"])
+
+    # RL: conv layers are the SL model's, frozen; fc layers trained. DRL starts from the SL conv.
+    sl_net, _ = load_supervised(out / "sl" / "sl.safetensors")
+    sl_conv = conv(sl_net.state_dict())
+    rl = CheckpointManager(out / "runs" / "rl" / "checkpoints").load()
+    assert rl.update_count == 20
+    for name, t in conv(rl.tensors, "online.").items():
+        assert torch.equal(t, sl_conv[name]), name
+    drl_net, drl_meta = load_exported_weights(out / "models" / "drl-20.safetensors")
+    assert drl_meta["policy_version"] >= 20
+    assert drl_net.sensor_cfg.width == 40  # the smoke preset's image
+
+    # The next stage resumes the same DRL run; finished stages are skipped.
+    second = run(out, "20,40")
+    assert second.ran == ["drl-40", "eval-DRL-40"]
+    assert set(second.skipped) >= {"sl", "rl", "drl-20", "eval-SL", "eval-RL", "eval-DRL-20"}
+    learner_log = (out / "runs" / "drl" / "logs" / "learner.log").read_text()
+    assert "resumed from ckpt-000000020.safetensors" in learner_log
+    assert CheckpointManager(out / "runs" / "drl" / "checkpoints").load().update_count == 40
+    assert "| DRL-40 |" in (out / "table.md").read_text()
+    state = json.loads((out / "state.json").read_text())
+    assert state["stages"]["drl-40"]["updates"] == 40
+
+    # Nothing left to do: a third invocation only rewrites the report.
+    third = run(out, "20,40")
+    assert third.ran == []
+
+    # Other options than the state's are refused, through the command too.
+    with pytest.raises(ExperimentError, match="other options"):
+        run(out, "20,40", "--max-steps", "20")
+    assert main([*TINY, "--out", str(out), "--checkpoints", "10,20,40"]) == 2  # 10 is behind the run
+
+
+def test_checkpoint_list_and_options_are_validated(tmp_path, capsys):
+    assert parse_checkpoints("500,4000,7500,40000") == [500, 4000, 7500, 40000]
+    for bad in ("", "500,400", "0,10", "a,b"):
+        with pytest.raises(ExperimentError):
+            parse_checkpoints(bad)
+    assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--world", "nowhere"]) == 2
+    assert "nowhere" in capsys.readouterr().err
+    assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--actors", "0"]) == 2
+    assert not (tmp_path / "x" / "state.json").exists()

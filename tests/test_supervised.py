@@ -1,0 +1,290 @@
+"""Supervised pretraining: the expert, the dataset, SL training, the transfer into the Q-network,
+and the ``sl`` / ``rl`` evaluation policies (real worlds, real env, real files; tiny sizes)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from services.evaluator.evaluate import add_evaluate_arguments, run_evaluate
+from shared.config import ConfigError, EnvConfig, SensorConfig, TrainConfig, load_preset
+from shared.supervised import (
+    CommandExpert,
+    DriveConfig,
+    ExpertConfig,
+    SupervisedDataset,
+    SupervisedError,
+    TrainSettings,
+    card_path,
+    clearance_map,
+    dataset_request,
+    generate_dataset,
+    load_supervised,
+    open_or_generate,
+    save_supervised,
+    train_supervised,
+)
+from shared.world import SceneBuilder, StartPose, load_world
+
+SMALL_SENSOR = SensorConfig(width=40, height=30)
+TEST_ENV = EnvConfig(speed_table="test")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def one_thread():
+    # Small convolutions on a busy 2-core machine: one thread is several times faster than two.
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> SupervisedDataset:
+    """800 frames in the corridor world (40 x 30 images): the structured corridors of the
+    authors' supervised data."""
+    return generate_dataset(tmp_path_factory.mktemp("sl") / "data", worlds=["corridor"], frames=800,
+                            sensor_cfg=SMALL_SENSOR, env_cfg=TEST_ENV, drive_cfg=DriveConfig(episode_steps=60),
+                            seed=0, test_fraction=0.25, progress=False)
+
+
+@pytest.fixture(scope="module")
+def trained(dataset, tmp_path_factory):
+    net, card = train_supervised(dataset, TrainSettings(epochs=6, batch_size=32, lr=2e-3, seed=1, device="cpu"),
+                                 progress=False)
+    path = save_supervised(tmp_path_factory.mktemp("model") / "sl.safetensors", net, card)
+    return net, card, path
+
+
+# ----------------------------------------------------------------------------------- expert
+
+
+def test_clearance_map_is_the_exact_distance_to_the_nearest_occupied_cell():
+    rng = np.random.default_rng(3)
+    occ = rng.random((23, 31)) < 0.05
+    occ[0, 0] = True
+    got = clearance_map(occ, 0.1)
+    cells = np.argwhere(occ)
+    iy, ix = np.mgrid[0:23, 0:31]
+    brute = np.sqrt(((iy[..., None] - cells[:, 0]) ** 2 + (ix[..., None] - cells[:, 1]) ** 2).min(axis=-1)) * 0.1
+    np.testing.assert_allclose(got, brute, atol=1e-9)
+    assert np.all(got[occ] == 0)
+
+
+def _wall_scene(open_side: str):
+    """A 6 x 6 m room; the robot at the origin faces +x toward a wall 1.2 m ahead that blocks
+    straight ahead and one side; the other side is open."""
+    b = SceneBuilder(f"wall-open-{open_side}", (-3.0, -3.0, 3.0, 3.0))
+    b.boundary()
+    if open_side == "left":
+        b.wall(1.2, -3.0, 1.2, 0.3)
+    else:
+        b.wall(1.2, -0.3, 1.2, 3.0)
+    return b.build(f"wall-open-{open_side}", [StartPose(0.0, 0.0, 0.0)])
+
+
+@pytest.mark.parametrize("open_side, wanted", [("left", {0, 1}), ("right", {3, 4})])
+def test_expert_turns_toward_the_free_side(open_side, wanted):
+    expert = CommandExpert(_wall_scene(open_side), TEST_ENV)
+    scores = expert.scores(0.0, 0.0, 0.0)
+    assert expert.label(0.0, 0.0, 0.0) in wanted
+    # the blocked side is worse than the open one, and a wall 1.2 m ahead stops "straight" early
+    turn_open, turn_blocked = (scores[0], scores[4]) if open_side == "left" else (scores[4], scores[0])
+    assert turn_open > turn_blocked
+    assert max(scores[i] for i in wanted) > scores[2]
+    # with the wall out of the way straight ahead wins
+    open_room = SceneBuilder("open-room", (-3.0, -3.0, 3.0, 3.0))
+    open_room.boundary()
+    assert CommandExpert(open_room.build("open-room", [StartPose(0, 0, 0)]), TEST_ENV).label(-2.0, 0.0, 0.0) == 2
+
+
+def test_expert_drives_box_room_without_collision():
+    from shared.env import ExploreEnv
+
+    env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=60)
+    expert = CommandExpert(env.world, env.env_config, SMALL_SENSOR)
+    for start in range(len(env.world.starts)):
+        env.reset(seed=start, options={"start_index": start})
+        for _ in range(60):
+            _, _, terminated, truncated, info = env.step(expert.label(*env.robot.pose()))
+            assert not terminated, f"start {start}: collision ({info['collision_cause']}) at step {info['step']}"
+            if truncated:
+                break
+
+
+def test_expert_config_is_validated():
+    with pytest.raises(SupervisedError, match="turn_steps"):
+        ExpertConfig(horizon_steps=4, turn_steps=4)
+    with pytest.raises(SupervisedError, match="noise_prob"):
+        DriveConfig(noise_prob=1.5)
+
+
+# ---------------------------------------------------------------------------------- dataset
+
+
+def test_dataset_has_declared_sizes_labels_and_an_episode_split(dataset):
+    m = dataset.manifest
+    n = 800
+    assert len(dataset) == n == m["frames"]
+    assert dataset.depth_mm.shape == (n, 30, 40) and dataset.depth_mm.dtype == np.uint16
+    assert dataset.labels.dtype == np.uint8 and dataset.labels.max() <= 4
+    assert sum(m["label_counts"].values()) == n
+    assert len(set(np.asarray(dataset.labels).tolist())) >= 3  # not a constant label
+    depth = np.asarray(dataset.depth_mm[:50])
+    assert depth.max() <= 4000 and (depth > 0).mean() > 0.5  # millimetres within the 4 m range
+    train, test = dataset.split()
+    assert len(train) + len(test) == n and len(test) > 0 and len(train) > len(test)
+    assert not set(dataset.episodes[train].tolist()) & set(dataset.episodes[test].tolist())  # by episode
+    assert 0.15 < len(test) / n < 0.5
+    # every file is a plain .npy (no pickle) and the manifest is JSON
+    for name in ("depth_mm", "labels", "episodes", "worlds", "poses"):
+        np.load(dataset.root / f"{name}.npy", allow_pickle=False, mmap_mode="r")
+    assert json.loads((dataset.root / "manifest.json").read_text())["format"] == "cogexplore-sl-data"
+
+
+def test_dataset_labels_are_the_experts_at_the_stored_poses(dataset):
+    expert = CommandExpert(load_world("corridor"), TEST_ENV, SMALL_SENSOR)
+    for i in np.random.default_rng(0).choice(len(dataset), 20, replace=False):
+        assert expert.label(*dataset.poses[i]) == dataset.labels[i]
+
+
+def test_dataset_is_reused_only_when_its_request_matches(tmp_path):
+    args = (["box-room", "corridor"], 60, SMALL_SENSOR, TEST_ENV, ExpertConfig(), DriveConfig(episode_steps=10), 0, 0.3)
+    ds, reused = open_or_generate(tmp_path / "d", dataset_request(*args), progress=False)
+    assert not reused and len(ds) == 60
+    assert ds.manifest["frames_per_world"] == {"box-room": 30, "corridor": 30}
+    assert set(np.asarray(ds.worlds).tolist()) == {0, 1}
+    again, reused = open_or_generate(tmp_path / "d", dataset_request(*args), progress=False)
+    assert reused and again.manifest["created_unix"] == ds.manifest["created_unix"]
+    other = list(args)
+    other[1] = 70
+    bigger, reused = open_or_generate(tmp_path / "d", dataset_request(*other), progress=False)
+    assert not reused and len(bigger) == 70
+    (tmp_path / "d" / "labels.npy").write_bytes(b"garbage")
+    with pytest.raises(SupervisedError):
+        SupervisedDataset.open(tmp_path / "d")
+
+
+def test_dataset_refuses_bad_requests(tmp_path):
+    with pytest.raises(SupervisedError, match="frames"):
+        generate_dataset(tmp_path / "x", worlds=["box-room"], frames=1, progress=False)
+    with pytest.raises(ValueError, match="unknown world"):
+        generate_dataset(tmp_path / "x", worlds=["no-such-world"], frames=10, progress=False)
+
+
+# --------------------------------------------------------------------------------- training
+
+
+def test_sl_training_is_clearly_above_chance(trained, dataset):
+    _net, card, _path = trained
+    assert card["data"]["test_frames"] == len(dataset.split()[1])
+    # chance: 0.2 balanced accuracy whatever the label distribution
+    assert card["balanced_accuracy"] >= 0.35, card
+    assert card["accuracy"] >= 0.5, card
+    cm = np.asarray(card["confusion_matrix"])
+    assert cm.shape == (5, 5) and cm.sum() == card["data"]["test_frames"]
+    assert math.isclose(card["accuracy"], np.trace(cm) / cm.sum())
+
+
+def test_model_file_round_trips_with_its_card(trained, tmp_path):
+    net, card, path = trained
+    loaded, meta = load_supervised(path)
+    assert meta["card"]["accuracy"] == card["accuracy"]
+    assert json.loads(card_path(path).read_text())["confusion_matrix"] == card["confusion_matrix"]
+    for (name, a), b in zip(net.state_dict().items(), loaded.state_dict().values()):
+        assert torch.equal(a.cpu(), b), name
+    broken = tmp_path / "broken.safetensors"
+    data = bytearray(path.read_bytes())
+    data[-10] ^= 0xFF
+    broken.write_bytes(bytes(data))
+    with pytest.raises(SupervisedError):
+        load_supervised(broken)
+    with pytest.raises(SupervisedError, match="safetensors"):
+        save_supervised(tmp_path / "model.pt", net)
+
+
+# --------------------------------------------------------------------------------- transfer
+
+
+def test_transfer_copies_exactly_the_conv_weights_and_a_resume_wins(trained, tmp_path):
+    from services.learner.core import LearnerCore
+    from services.learner.service import resume_from
+    from shared.checkpoint import CheckpointManager
+
+    sl_net, _card, path = trained
+    base = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30})
+    plain = LearnerCore(base, device="cpu")
+    core = LearnerCore(base.with_overrides({"train.init_conv_from": str(path)}), device="cpu")
+    sl = {k: v for k, v in sl_net.state_dict().items() if k.startswith("trunk.")}
+    for net in (core.agent.online, core.agent.target):
+        for name, t in net.state_dict().items():
+            if name.startswith("trunk."):
+                assert torch.equal(t.cpu(), sl[name].cpu()), name
+            else:  # fully connected layers stay at their (seeded) initialisation
+                assert torch.equal(t.cpu(), plain.agent.online.state_dict()[name].cpu()), name
+    assert not torch.equal(plain.agent.online.trunk.conv1.weight, core.agent.online.trunk.conv1.weight)
+
+    # a run that resumes keeps its checkpoint's weights, not the supervised ones
+    CheckpointManager(tmp_path / "ckpt").save(plain.agent)
+    resumed = LearnerCore(base.with_overrides({"train.init_conv_from": str(path)}), device="cpu")
+    assert resume_from(CheckpointManager(tmp_path / "ckpt"), resumed)
+    for name, t in resumed.agent.online.state_dict().items():
+        assert torch.equal(t, plain.agent.online.state_dict()[name]), name
+
+
+def test_init_conv_from_is_validated(tmp_path):
+    assert TrainConfig().init_conv_from == ""
+    with pytest.raises(ConfigError, match="init_conv_from"):
+        TrainConfig(init_conv_from="model.pt")
+    with pytest.raises(ConfigError, match="init_conv_from"):
+        load_preset("smoke").with_overrides({"train.init_conv_from": 3})
+    from services.learner.core import LearnerCore
+
+    with pytest.raises(SupervisedError, match="no such file"):
+        LearnerCore(load_preset("smoke").with_overrides({"train.init_conv_from": str(tmp_path / "x.safetensors")}),
+                    device="cpu")
+
+
+# ------------------------------------------------------------------------------- evaluation
+
+
+def _evaluate(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser()
+    add_evaluate_arguments(parser)
+    return run_evaluate(parser.parse_args(argv))
+
+
+def test_evaluate_policy_sl_and_rl(trained, tmp_path, capsys):
+    from services.evaluator.results import load_results
+    from shared.checkpoint import CheckpointManager
+    from shared.dqn import DQNAgent
+
+    _net, _card, path = trained
+    common = ["--world", "box-room", "--episodes-per-start", "1", "--max-steps", "5", "--quiet", "--device", "cpu"]
+    out = tmp_path / "sl.json"
+    assert _evaluate(["--policy", "sl", "--checkpoint", str(path), "--json", str(out), *common]) == 0
+    results = load_results(out)
+    assert results.meta["model"] == "SL" and results.meta["policy"] == "sl"
+    assert results.meta["checkpoint_kind"] == "supervised"
+    assert len(results.episodes) == 4 and results.meta["sensor"]["width"] == 40
+    assert "| SL |" in capsys.readouterr().out
+
+    # rl: greedy on a frozen-conv Q-learning run, labelled RL
+    cfg = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30, "dqn.conv_lr_scale": 0.0,
+                                               "train.init_conv_from": str(path)})
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
+    CheckpointManager(tmp_path / "rl" / "checkpoints").save(agent, config=cfg.to_dict())
+    out = tmp_path / "rl.json"
+    assert _evaluate(["--policy", "rl", "--checkpoint", str(tmp_path / "rl"), "--json", str(out), *common]) == 0
+    assert load_results(out).meta["model"] == "RL"
+
+    # the wrong kind of file for each, and no file at all
+    assert _evaluate(["--policy", "sl", "--checkpoint", str(tmp_path / "rl"), *common]) == 2
+    assert _evaluate(["--policy", "rl", "--checkpoint", str(path), *common]) == 2
+    assert _evaluate(["--policy", "sl", *common]) == 2
+    assert "needs --checkpoint" in capsys.readouterr().err
