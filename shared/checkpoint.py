@@ -97,6 +97,7 @@ def _digest(arrays: Mapping[str, Any]) -> str:
 
 
 def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    """Atomically write tensors + JSON metadata (with a digest of the tensors) as safetensors."""
     meta = dict(meta, digest=_digest(tensors))
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
@@ -126,6 +127,8 @@ def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
 
 
 def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict[str, Any], dict[str, Any]]:
+    """Read a file written by save_tensors_file: check its format tag ``fmt`` and digest;
+    raises CheckpointError if it is partial, corrupt or of another format."""
     meta = _read_meta(path, fmt)
     try:
         if framework == "pt":
