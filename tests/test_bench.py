@@ -64,5 +64,7 @@ def test_bench_system_json(tmp_path: Path) -> None:
     assert out["mean_weight_lag"] is not None and out["mean_weight_lag"] >= 0
     assert {"router", "learner", "actor-0"} <= set(out["cpu_percent"])
     # Everything was stopped: the learner wrote its final checkpoint on SIGTERM.
-    assert (tmp_path / "bench-system" / "checkpoints" / "latest").exists()
-    assert (tmp_path / "bench-system" / "stats" / "learner.csv").exists()
+    run_dir = Path(out["run_dir"])
+    assert run_dir.parent == tmp_path
+    assert (run_dir / "checkpoints" / "latest").exists()
+    assert (run_dir / "stats" / "learner.csv").exists()

@@ -37,7 +37,7 @@ from typing import Any
 # Defaults that keep the learner running for the whole measurement and keep periodic
 # checkpoint writes out of the steady state; --set may override them.
 _BENCH_OVERRIDES = ("train.total_updates=1000000000", "train.checkpoint_every=1000000000")
-_RUN = "bench-system"
+_RUN_PREFIX = "bench-system"
 
 
 class BenchError(RuntimeError):
@@ -96,7 +96,9 @@ def _launcher_args(actors: int, preset: str, overrides: list[str], runs_dir: Pat
 
     parser = argparse.ArgumentParser(add_help=False)
     add_up_arguments(parser)
-    argv = ["--actors", str(actors), "--preset", preset, "--run", _RUN, "--runs-dir", str(runs_dir),
+    # A fresh run name each time: the learner would resume from an earlier run's checkpoint.
+    run = f"{_RUN_PREFIX}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    argv = ["--actors", str(actors), "--preset", preset, "--run", run, "--runs-dir", str(runs_dir),
             "--no-evaluator", "--no-report", "--quiet"]
     for override in (*_BENCH_OVERRIDES, *overrides):
         argv += ["--set", override]
@@ -216,6 +218,7 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     return {
         "preset": preset,
         "overrides": overrides,
+        "run_dir": None if temporary else str(launcher.paths.root),
         "actors": actors,
         "world": cfg.env.world,
         "frame": f"{cfg.sensor.width}x{cfg.sensor.height}",
