@@ -640,7 +640,8 @@ class FlowControl(Message):
     """The learner's credit to the actors: it wants transitions until it has received
     ``transitions_wanted`` in all, which keeps updates per inserted transition at the
     configured replay ratio instead of letting fast actors flood a slow learner (and take its
-    CPU). Actors hold their batches while ``transitions_received >= transitions_wanted``."""
+    CPU). ``received_from`` counts what the learner has received from each actor, so that an
+    actor can tell its transitions still in flight from those already counted."""
 
     TYPE: ClassVar[str] = "flow"
 
@@ -648,11 +649,18 @@ class FlowControl(Message):
     updates: int
     transitions_received: int
     transitions_wanted: int
+    received_from: dict[str, int] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         _set(self, "learner_id", _chunk(self.learner_id, "learner_id"))
         for name in ("updates", "transitions_received", "transitions_wanted"):
             _set(self, name, _int(getattr(self, name), name))
+        if not isinstance(self.received_from, Mapping):
+            raise MessageError(FIELD_TYPE, "received_from must be a map of actor id -> count")
+        if len(self.received_from) > MAX_TENSORS:
+            raise MessageError(OVERSIZE, f"received_from has {len(self.received_from)} actors")
+        _set(self, "received_from", {_chunk(k, "received_from key"): _int(v, f"received_from[{k!r}]")
+                                     for k, v in self.received_from.items()})
 
     @property
     def credit(self) -> int:

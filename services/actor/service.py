@@ -83,28 +83,41 @@ class WeightSlot:
 
 class FlowGate:
     """The learner's replay-ratio credit (FlowControl) as seen by one actor: it may step
-    while the learner still wants transitions beyond what it has received and what this
-    actor has sent since that credit was issued."""
+    while the learner still wants more transitions than this actor has in flight (sent,
+    but not yet counted by the learner in ``received_from``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, actor_id: str) -> None:
+        self.actor_id = actor_id
         self._lock = threading.Lock()
         self._credit: int | None = None  # None: no word from the learner yet
-        self._sent_since = 0
+        self._received_from_me = 0
+        self._sent = 0
         self.changed = threading.Event()
 
     def on_flow(self, message: FlowControl, _key: str = "") -> None:
         with self._lock:
+            received = message.received_from.get(self.actor_id, 0)
+            if received < self._received_from_me:
+                self._sent = received  # the count went back: a restarted learner
             self._credit = message.credit
-            self._sent_since = 0
+            self._received_from_me = received
         self.changed.set()
+
+    def reset(self) -> None:
+        """Forget the accounting (a learner came back: it counts afresh)."""
+        with self._lock:
+            self._credit, self._received_from_me, self._sent = None, 0, 0
 
     def sent(self, transitions: int) -> None:
         with self._lock:
-            self._sent_since += transitions
+            self._sent += transitions
 
     def open(self) -> bool:
         with self._lock:
-            return self._credit is None or self._credit - self._sent_since > 0
+            if self._credit is None:
+                return True
+            in_flight = max(0, self._sent - self._received_from_me)
+            return self._credit - in_flight > 0
 
 
 def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
@@ -126,7 +139,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     batcher = TransitionBatcher(actor_id, batch_steps)
     slot = WeightSlot(architecture_fingerprint(net))
     rejects = RejectCounter("weights message", log)
-    gate = FlowGate()
+    gate = FlowGate(actor_id)
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
     policy_version = 0
@@ -173,6 +186,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 counters["paused_s"] += time.monotonic() - paused_since
                 paused_since = None
                 log.info("learner is back: resuming")
+                gate.reset()
                 threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
 
             if not gate.open():

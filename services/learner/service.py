@@ -140,8 +140,9 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                                    batch.actor_id)
             if drained:
                 transition_rate.add(drained)
-            # 2. updates that are due (a few at a time, so data and control keep flowing)
-            due = min(core.updates_due(), 8)
+            # 2. one due update per pass (an update can take a second on a CPU: data, credit
+            # and statistics keep flowing between updates)
+            due = min(core.updates_due(), 1)
             for _ in range(due):
                 core.train_step()
                 update_rate.add(1)
@@ -155,7 +156,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             if now - last_flow >= 0.1 or due:
                 flow_pub.put(FlowControl(learner_id=learner_id, updates=core.updates,
                                          transitions_received=core.received,
-                                         transitions_wanted=core.transitions_wanted(flow_slack)).encode())
+                                         transitions_wanted=core.transitions_wanted(flow_slack),
+                                         received_from=dict(core.received_by_actor)).encode())
                 last_flow = now
             if now - last_stats >= stats_every_s:
                 loss, mean_q = core.recent()
