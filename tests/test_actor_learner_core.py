@@ -82,3 +82,11 @@ def test_ingest_rejects_frames_of_another_sensor_and_stores_nothing():
     with pytest.raises(MessageError):
         core.ingest(batch)
     assert core.received == 0 and len(core.replay) == 0
+
+
+def test_flow_gate_forgets_transitions_lost_in_flight():
+    gate = FlowGate("a", horizon_s=10.0)
+    gate.on_flow(_flow(credit=20, received_from_a=0))
+    gate.sent(32, now=100.0)  # e.g. sent before the learner subscribed: never counted
+    assert not gate.open(now=105.0)
+    assert gate.open(now=111.0), "after the horizon, unacknowledged transitions count as lost"

@@ -18,6 +18,7 @@ queues copies; a worker thread does the rest, and a viewer that is down is skipp
 from __future__ import annotations
 
 import argparse
+import collections
 import hashlib
 import logging
 import os
@@ -84,21 +85,29 @@ class WeightSlot:
 class FlowGate:
     """The learner's replay-ratio credit (FlowControl) as seen by one actor: it may step
     while the learner still wants more transitions than this actor has in flight (sent,
-    but not yet counted by the learner in ``received_from``)."""
+    but not yet counted by the learner in ``received_from``).
 
-    def __init__(self, actor_id: str) -> None:
+    A transition not counted within ``horizon_s`` is taken as lost (e.g. sent just before
+    the learner subscribed), so a lost batch can never hold the actor for good.
+    """
+
+    def __init__(self, actor_id: str, horizon_s: float = 10.0) -> None:
         self.actor_id = actor_id
+        self.horizon_s = horizon_s
         self._lock = threading.Lock()
         self._credit: int | None = None  # None: no word from the learner yet
         self._received_from_me = 0
         self._sent = 0
+        self._sends: collections.deque = collections.deque()  # (time, total sent after it)
+        self._settled = 0  # total sent as of horizon_s ago: arrived or lost by now
         self.changed = threading.Event()
 
     def on_flow(self, message: FlowControl, _key: str = "") -> None:
         with self._lock:
             received = message.received_from.get(self.actor_id, 0)
-            if received < self._received_from_me:
-                self._sent = received  # the count went back: a restarted learner
+            if received < self._received_from_me:  # the count went back: a restarted learner
+                self._sent = self._settled = received
+                self._sends.clear()
             self._credit = message.credit
             self._received_from_me = received
         self.changed.set()
@@ -106,17 +115,22 @@ class FlowGate:
     def reset(self) -> None:
         """Forget the accounting (a learner came back: it counts afresh)."""
         with self._lock:
-            self._credit, self._received_from_me, self._sent = None, 0, 0
+            self._credit, self._received_from_me, self._sent, self._settled = None, 0, 0, 0
+            self._sends.clear()
 
-    def sent(self, transitions: int) -> None:
+    def sent(self, transitions: int, now: float | None = None) -> None:
         with self._lock:
             self._sent += transitions
+            self._sends.append((time.monotonic() if now is None else now, self._sent))
 
-    def open(self) -> bool:
+    def open(self, now: float | None = None) -> bool:
+        now = time.monotonic() if now is None else now
         with self._lock:
+            while self._sends and now - self._sends[0][0] > self.horizon_s:
+                self._settled = self._sends.popleft()[1]
             if self._credit is None:
                 return True
-            in_flight = max(0, self._sent - self._received_from_me)
+            in_flight = max(0, self._sent - max(self._received_from_me, self._settled))
             return self._credit - in_flight > 0
 
 

@@ -114,7 +114,6 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         writer = csv.writer(stats_fh)
         if new_file:
             writer.writerow(STATS_COLUMNS)
-        token = declare_alive(session, keys.alive("learner", learner_id))  # noqa: F841
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
@@ -122,6 +121,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         flow_pub = session.declare_publisher(keys.flow)
         stats_pub = session.declare_publisher(keys.learner_stats(learner_id))
         sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+        # Announce the learner only now that it can receive: actors start sending on this token.
+        token = declare_alive(session, keys.alive("learner", learner_id))  # noqa: F841
 
         last_stats = last_flow = 0.0
         last_published = core.updates
