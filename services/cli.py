@@ -65,6 +65,28 @@ def _model_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+def _model_export(args: argparse.Namespace) -> int:
+    from services.evaluator.evaluate import EvaluateError, load_model
+    from shared.checkpoint import export_weights
+
+    try:
+        loaded = load_model(args.checkpoint)
+    except EvaluateError as exc:
+        print(f"cogexplore: error: {exc}", file=sys.stderr)
+        return 2
+    card = {}
+    if args.card:
+        card = json.loads(Path(args.card).read_text())
+        if not isinstance(card, dict):
+            print(f"cogexplore: error: {args.card} must hold a JSON object", file=sys.stderr)
+            return 2
+    out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half,
+                         extra={"card": card} if card else None)
+    _print_json({"out": str(out), "bytes": out.stat().st_size, "policy_version": loaded.policy_version,
+                 "source": str(loaded.path), "half": args.half})
+    return 0
+
+
 # -- bench -------------------------------------------------------------------------------
 
 def _bench_env(args: argparse.Namespace) -> int:
@@ -143,6 +165,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("summary", "each layer's output shape and parameter count", _model_summary, msub)
     p.add_argument("--preset", default="paper", help="preset name or TOML path (default: paper)")
     p.add_argument("--json", action="store_true", help="print JSON")
+    p = add("export", "write a checkpoint's online weights as a weights-only file (deployment, "
+            "`evaluate --checkpoint FILE`)", _model_export, msub)
+    p.add_argument("checkpoint", help="checkpoint file or directory, or run folder")
+    p.add_argument("--out", required=True, help="output .safetensors path")
+    p.add_argument("--half", action="store_true", help="store float16 (half the size)")
+    p.add_argument("--card", metavar="JSON", help="a JSON object stored in the file's metadata (model card)")
 
     bench = add("bench", "benchmarks (print JSON)")
     bsub = bench.add_subparsers(dest="bench_command", metavar="TARGET", required=True)

@@ -318,14 +318,22 @@ class CheckpointManager:
 
 
 # --------------------------------------------------------------------------- weights-only export
-def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0) -> Path:
-    """Write the network's weights, architecture and policy version (for deployment)."""
+def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0, *, half: bool = False,
+                   extra: Mapping[str, Any] | None = None) -> Path:
+    """Write the network's weights, architecture and policy version (for deployment).
+
+    ``half`` stores float16 (half the bytes; loading casts back to float32, and the greedy
+    action is what matters, not the last bits of a Q-value). ``extra`` is JSON-able metadata
+    kept beside the weights (e.g. a model card)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
             "fingerprint": architecture_fingerprint(net),
-            "model": _asdict(net.model_cfg), "sensor": _asdict(net.sensor_cfg)}
-    save_tensors_file(path, weights_to_tensors(net), meta)
+            "model": _asdict(net.model_cfg), "sensor": _asdict(net.sensor_cfg), **dict(extra or {})}
+    tensors = weights_to_tensors(net)
+    if half:
+        tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
+    save_tensors_file(path, tensors, meta)
     return path
 
 
@@ -345,6 +353,30 @@ def load_exported_weights(path: Path | str, device: str | torch.device = "cpu") 
     except ModelError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
     return net.to(device).eval(), meta
+
+
+# --------------------------------------------------------------------------- shipped models
+PRETRAINED_DIR = Path(__file__).resolve().parent / "pretrained"
+"""Models shipped with the package (see ``shared/pretrained/MODEL_CARD.md``)."""
+PRETRAINED_FILES = {"drl": "drl.safetensors", "sl": "sl.safetensors"}
+"""``pretrained`` (= ``pretrained:drl``) and ``pretrained:sl`` name these files."""
+
+
+def pretrained_path(name: str | Path) -> Path | None:
+    """The shipped file a ``pretrained[:drl|:sl]`` argument names; None for any other argument.
+
+    Raises CheckpointError for an unknown ``pretrained:<kind>`` or a missing shipped file."""
+    text = str(name)
+    if text != "pretrained" and not text.startswith("pretrained:"):
+        return None
+    kind = text.partition(":")[2] or "drl"
+    if kind not in PRETRAINED_FILES:
+        raise CheckpointError(f"unknown shipped model {text!r}; choose pretrained, "
+                              + ", ".join(f"pretrained:{k}" for k in PRETRAINED_FILES))
+    path = PRETRAINED_DIR / PRETRAINED_FILES[kind]
+    if not path.is_file():
+        raise CheckpointError(f"the shipped model {path} is missing (a broken install?)")
+    return path
 
 
 def _asdict(cfg: Any) -> dict[str, Any]:

@@ -129,6 +129,15 @@ class EnvConfig:
     """r_ter: reward on collision (terminal)."""
     start_index: int | None = None
     """Start pose index; None draws one of the world's starts uniformly each episode."""
+    random_start_prob: float = 0.0
+    """Share of episodes (when no start index is fixed) that begin at a random free pose, uniform
+    over the points at least ``random_start_clearance_m`` from every obstacle, with a random
+    heading, instead of at one of the world's starts. Training from 12 poses only shows the
+    network the few metres an ε-greedy episode reaches from them; random poses show it the whole
+    world. 0 in the paper preset. The test protocol always uses the world's starts."""
+    random_start_clearance_m: float = 0.6
+    """Least distance (m) from a random start to any obstacle (the collision threshold l_s is
+    also checked on the first image)."""
 
     def __post_init__(self) -> None:
         s = "env"
@@ -155,6 +164,10 @@ class EnvConfig:
                "a finite number")
         _check(self.start_index is None or (isinstance(self.start_index, int) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
+        _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
+               self.random_start_prob, "a probability in [0, 1]")
+        _check(_finite(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
+               "random_start_clearance_m", self.random_start_clearance_m, "metres in (0, 5)")
 
     @property
     def substeps(self) -> int:
@@ -314,8 +327,8 @@ class TrainConfig:
     """'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:<n>'."""
     init_conv_from: str = ""
     """A supervised model file (``cogexplore pretrain``) whose conv layers initialise the
-    Q-network when a run starts fresh (the paper's transfer); '' = random initialisation. A
-    resumed run keeps its checkpoint's weights."""
+    Q-network when a run starts fresh (the paper's transfer); 'pretrained:sl' = the shipped one
+    (80 x 60 images); '' = random initialisation. A resumed run keeps its checkpoint's weights."""
 
     def __post_init__(self) -> None:
         s = "train"
@@ -330,10 +343,10 @@ class TrainConfig:
         _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda")
                or self.device.startswith("cuda:")), s, "device", self.device,
                "'auto', 'cpu', 'cuda' or 'cuda:<n>'")
-        _check(isinstance(self.init_conv_from, str) and (self.init_conv_from == "" or (
+        _check(isinstance(self.init_conv_from, str) and (self.init_conv_from in ("", "pretrained:sl") or (
                self.init_conv_from.strip() == self.init_conv_from and self.init_conv_from.endswith(".safetensors"))),
                s, "init_conv_from", self.init_conv_from,
-               "'' (random conv layers) or the path of a supervised model .safetensors file")
+               "'' (random conv layers), 'pretrained:sl' or the path of a supervised model .safetensors file")
 
 
 # ---------------------------------------------------------------------------

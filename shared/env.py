@@ -82,6 +82,9 @@ class ExploreEnv(gym.Env):
         self._last_xy = (0.0, 0.0)
         self._path_length = 0.0
         self._steps = 0
+        self._random_start = False
+        self._clear_cells: np.ndarray | None = None  # cells a random start may use, built on first need
+        self._grid = None
 
     # -- Gymnasium API ------------------------------------------------------------------
 
@@ -97,12 +100,21 @@ class ExploreEnv(gym.Env):
         if not (isinstance(index, (int, np.integer)) and 0 <= index < n_starts):
             raise ValueError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
-        self.robot.set_pose(start.x, start.y, start.yaw)
+        x, y, yaw = start.x, start.y, start.yaw
+        self.robot.set_pose(x, y, yaw)
+        self._depth = self.camera.capture(self.data)
+        self._random_start = False
+        fixed = "start_index" in options or self.env_config.start_index is not None
+        if not fixed and self.env_config.random_start_prob > 0 and \
+                self.np_random.random() < self.env_config.random_start_prob:
+            pose = self._random_free_pose()
+            if pose is not None:
+                x, y, yaw = pose
+                self._random_start = True
         self._start_index = int(index)
-        self._start_xy = self._last_xy = (start.x, start.y)
+        self._start_xy = self._last_xy = (x, y)
         self._path_length = 0.0
         self._steps = 0
-        self._depth = self.camera.capture(self.data)
         return self._depth, self._info(None, min_valid_depth(self._depth))
 
     def step(self, action):
@@ -133,11 +145,40 @@ class ExploreEnv(gym.Env):
 
     # -- helpers ---------------------------------------------------------------------
 
+    def _random_free_pose(self, tries: int = 50) -> tuple[float, float, float] | None:
+        """Move the robot to a random pose ``random_start_clearance_m`` from every obstacle whose
+        first image is above the collision threshold (with a 10 cm margin); None (robot left at
+        the drawn world start) when no such pose turns up."""
+        if self._clear_cells is None:
+            from shared.maps import clearance_map, occupancy_grid
+
+            self._grid = occupancy_grid(self.world, 0.05)
+            clearance = clearance_map(self._grid.occupied, self._grid.resolution_m)
+            self._clear_cells = np.argwhere(clearance >= self.env_config.random_start_clearance_m)
+        if len(self._clear_cells) == 0:
+            return None
+        saved = self.robot.pose()
+        half = self._grid.resolution_m / 2
+        for _ in range(tries):
+            iy, ix = self._clear_cells[self.np_random.integers(len(self._clear_cells))]
+            cx, cy = self._grid.cell_to_world(ix, iy)
+            pose = (float(cx + self.np_random.uniform(-half, half)), float(cy + self.np_random.uniform(-half, half)),
+                    float(self.np_random.uniform(-math.pi, math.pi)))
+            self.robot.set_pose(*pose)
+            depth = self.camera.capture(self.data)
+            if min_valid_depth(depth) >= self.env_config.collision_distance_m + 0.1:
+                self._depth = depth
+                return pose
+        self.robot.set_pose(*saved)
+        self._depth = self.camera.capture(self.data)
+        return None
+
     def _info(self, cause: str | None, min_depth: float) -> dict[str, Any]:
         x, y, yaw = self.robot.pose()
         return {
             "pose": (x, y, yaw),
             "start_index": self._start_index,
+            "random_start": self._random_start,
             "collision_cause": cause,
             "min_depth_m": min_depth,
             "distance_from_start_m": math.hypot(x - self._start_xy[0], y - self._start_xy[1]),

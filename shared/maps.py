@@ -294,6 +294,36 @@ def occupancy_grid(world: "World", resolution_m: float = 0.05) -> OccupancyGrid:
 # ---------------------------------------------------------------------------
 
 
+def clearance_map(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
+    """Exact Euclidean distance (m) from each cell centre to the nearest occupied cell centre
+    (0 on occupied cells); separable two-pass transform, no scipy needed."""
+    occ = np.asarray(occupied, dtype=bool)
+    if occ.ndim != 2:
+        raise MapError(f"occupied must be a 2-D array, got shape {occ.shape}")
+    ny, nx = occ.shape
+    if not occ.any():
+        return np.full((ny, nx), np.inf)
+    big = float(nx + ny + 1)
+    g = np.empty((ny, nx))
+    d = np.full(nx, big)
+    for iy in range(ny):  # cells to the nearest occupied cell in the same column: down, then up
+        d = np.where(occ[iy], 0.0, d + 1.0)
+        g[iy] = d
+    d = np.full(nx, big)
+    for iy in range(ny - 1, -1, -1):
+        d = np.where(occ[iy], 0.0, d + 1.0)
+        g[iy] = np.minimum(g[iy], d)
+    xs = np.arange(nx, dtype=np.float64)
+    dx2 = (xs[:, None] - xs[None, :]) ** 2
+    out = np.empty((ny, nx))
+    chunk = max(1, 4_000_000 // (nx * nx))
+    g2 = g ** 2
+    for r0 in range(0, ny, chunk):
+        block = g2[r0:r0 + chunk]  # (rows, nx): min over source columns x' of (x - x')^2 + g(x')^2
+        out[r0:r0 + chunk] = (dx2[None, :, :] + block[:, None, :]).min(axis=2)
+    return np.sqrt(out) * resolution_m
+
+
 def inflate(occupied: np.ndarray, radius_cells: float) -> np.ndarray:
     """Cells within ``radius_cells`` (centre to centre) of an occupied cell.
 

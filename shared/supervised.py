@@ -100,36 +100,6 @@ def mirror_labels(labels: np.ndarray | torch.Tensor) -> Any:
 # ---------------------------------------------------------------------------------------------
 
 
-def clearance_map(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
-    """Exact Euclidean distance (m) from each cell centre to the nearest occupied cell centre
-    (0 on occupied cells); separable two-pass transform, no scipy needed."""
-    occ = np.asarray(occupied, dtype=bool)
-    if occ.ndim != 2:
-        raise SupervisedError(f"occupied must be a 2-D array, got shape {occ.shape}")
-    ny, nx = occ.shape
-    if not occ.any():
-        return np.full((ny, nx), np.inf)
-    big = float(nx + ny + 1)
-    g = np.empty((ny, nx))
-    d = np.full(nx, big)
-    for iy in range(ny):  # cells to the nearest occupied cell in the same column: down, then up
-        d = np.where(occ[iy], 0.0, d + 1.0)
-        g[iy] = d
-    d = np.full(nx, big)
-    for iy in range(ny - 1, -1, -1):
-        d = np.where(occ[iy], 0.0, d + 1.0)
-        g[iy] = np.minimum(g[iy], d)
-    xs = np.arange(nx, dtype=np.float64)
-    dx2 = (xs[:, None] - xs[None, :]) ** 2
-    out = np.empty((ny, nx))
-    chunk = max(1, 4_000_000 // (nx * nx))
-    g2 = g ** 2
-    for r0 in range(0, ny, chunk):
-        block = g2[r0:r0 + chunk]  # (rows, nx): min over source columns x' of (x - x')^2 + g(x')^2
-        out[r0:r0 + chunk] = (dx2[None, :, :] + block[:, None, :]).min(axis=2)
-    return np.sqrt(out) * resolution_m
-
-
 @dataclass(frozen=True)
 class ExpertConfig:
     """How the expert looks ahead and scores (see the module docstring)."""
@@ -203,7 +173,7 @@ class CommandExpert:
 
     def __init__(self, world: World, env_cfg: EnvConfig | None = None, sensor_cfg: SensorConfig | None = None,
                  cfg: ExpertConfig | None = None):
-        from shared.maps import occupancy_grid
+        from shared.maps import clearance_map, occupancy_grid
         from shared.sensor import column_angles
 
         self.world = world
@@ -871,7 +841,14 @@ def copy_conv_from_supervised(dst: torch.nn.Module, path: str | Path) -> dict[st
 
 def init_agent_conv(agent: DQNAgent, path: str | Path) -> dict[str, Any]:
     """The paper's transfer: the agent's online conv layers from the supervised model, and the
-    target network synchronised to the online one. Returns the model file's metadata."""
+    target network synchronised to the online one. ``pretrained:sl`` names the shipped supervised
+    model. Returns the model file's metadata."""
+    from shared.checkpoint import CheckpointError, pretrained_path
+
+    try:
+        path = pretrained_path(path) or path
+    except CheckpointError as exc:
+        raise SupervisedError(f"train.init_conv_from: {exc}") from None
     if not Path(path).is_file():
         raise SupervisedError(f"train.init_conv_from = {str(path)!r}: no such file (write one with "
                               "`cogexplore pretrain --out PATH`)")

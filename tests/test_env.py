@@ -137,3 +137,43 @@ def test_info_tracks_distance_and_path_length():
     assert info["distance_from_start_m"] == pytest.approx(0.5, abs=0.03)
     assert info["path_length_m"] == pytest.approx(info["distance_from_start_m"], abs=1e-6)
     assert EnvConfig().control_period_s == 0.5
+
+
+def test_random_starts_are_clear_varied_and_never_used_by_the_test_protocol():
+    from shared.config import SensorConfig
+    from shared.maps import occupancy_grid
+
+    env = ExploreEnv(EnvConfig(world="paper-indoor", random_start_prob=1.0, random_start_clearance_m=0.6),
+                     sensor=SensorConfig(width=40, height=30))
+    grid = occupancy_grid(env.world, 0.05)
+    occupied_xy = np.stack(grid.cell_to_world(*np.argwhere(grid.occupied)[:, ::-1].T), axis=1)
+    named = {(s.x, s.y) for s in env.world.starts}
+    poses = []
+    for seed in range(8):
+        obs, info = env.reset(seed=seed)
+        assert info["random_start"] is True
+        x, y, _ = info["pose"]
+        assert (x, y) not in named
+        # 0.6 m from every occupied cell (less half a cell of jitter), and not a collision at once
+        assert np.hypot(occupied_xy[:, 0] - x, occupied_xy[:, 1] - y).min() > 0.6 - 0.05
+        assert shared.env.min_valid_depth(obs) >= 0.55 + 0.1
+        assert info["distance_from_start_m"] == 0.0
+        poses.append((round(x, 2), round(y, 2)))
+    assert len(set(poses)) == 8
+    # an explicit start index (what evaluation passes) always starts at that world start
+    _, info = env.reset(seed=0, options={"start_index": 3})
+    s = env.world.starts[3]
+    assert info["random_start"] is False and info["pose"][:2] == pytest.approx((s.x, s.y), abs=1e-9)
+    # the same seed draws the same random start
+    a = env.reset(seed=5)[1]["pose"]
+    b = env.reset(seed=5)[1]["pose"]
+    assert a == b
+
+
+def test_random_start_config_is_validated():
+    from shared.config import ConfigError
+
+    with pytest.raises(ConfigError, match="random_start_prob"):
+        EnvConfig(random_start_prob=1.5)
+    with pytest.raises(ConfigError, match="random_start_clearance_m"):
+        EnvConfig(random_start_clearance_m=float("nan"))

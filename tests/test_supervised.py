@@ -13,6 +13,7 @@ import torch
 
 from services.evaluator.evaluate import add_evaluate_arguments, run_evaluate
 from shared.config import ConfigError, EnvConfig, SensorConfig, TrainConfig, load_preset
+from shared.maps import clearance_map
 from shared.supervised import (
     CommandExpert,
     DriveConfig,
@@ -21,7 +22,6 @@ from shared.supervised import (
     SupervisedError,
     TrainSettings,
     card_path,
-    clearance_map,
     dataset_request,
     generate_dataset,
     load_supervised,

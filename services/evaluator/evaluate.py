@@ -117,9 +117,16 @@ def weights_sha256(net: torch.nn.Module) -> str:
 def resolve_checkpoint(source: str | Path) -> Path | None:
     """The file a checkpoint argument names: a file as is; a directory through its
     ``latest`` pointer; a run folder through ``<run>/checkpoints``. None for a checkpoint
-    directory that exists but holds no checkpoint yet."""
-    from shared.checkpoint import CheckpointManager
+    directory that exists but holds no checkpoint yet. ``pretrained`` (or ``pretrained:drl``,
+    ``pretrained:sl``) names a model shipped with the package."""
+    from shared.checkpoint import CheckpointError, CheckpointManager, pretrained_path
 
+    try:
+        shipped = pretrained_path(source)
+    except CheckpointError as exc:
+        raise EvaluateError(str(exc)) from None
+    if shipped is not None:
+        return shipped
     p = Path(source)
     if p.is_file():
         return p
@@ -199,8 +206,8 @@ def load_supervised_model(source: str | Path, device: str | torch.device = "cpu"
     from shared.model import ModelError, architecture_fingerprint, resolve_device
     from shared.supervised import SupervisedError, load_supervised
 
-    path = Path(source)
-    if not path.is_file():
+    path = resolve_checkpoint("pretrained:sl" if str(source) == "pretrained" else source)
+    if path is None or not path.is_file():
         raise EvaluateError(f"the sl policy needs --checkpoint <supervised model .safetensors> (written by "
                             f"`cogexplore pretrain`); {str(source)!r} is not a file")
     try:
@@ -333,7 +340,8 @@ def open_recorder(world: Any, sensor_cfg: SensorConfig, env_cfg: EnvConfig, rrd:
 def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``cogexplore evaluate``."""
     parser.add_argument("--checkpoint", metavar="CKPT",
-                        help="checkpoint file or directory, run folder, or weights export (greedy policy)")
+                        help="checkpoint file or directory, run folder, weights export, or `pretrained` "
+                             "(the shipped DRL model; with --policy sl the shipped supervised model)")
     parser.add_argument("--policy", choices=POLICY_NAMES, default=None,
                         help="greedy (the checkpoint's; default with --checkpoint), random or reactive "
                              "(baselines, no checkpoint needed), sl (--checkpoint: a supervised model from "

@@ -1,0 +1,101 @@
+"""Shipped models and deployment exports: ``cogexplore model export`` (float16, model card),
+``pretrained[:drl|:sl]`` resolution, and the shipped files evaluating out of the box."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from services.cli import main
+from services.evaluator.evaluate import EvaluateError, add_evaluate_arguments, load_model, run_evaluate
+from services.evaluator.results import validate_results_json
+from shared.checkpoint import (PRETRAINED_DIR, PRETRAINED_FILES, CheckpointError, CheckpointManager,
+                               load_exported_weights, pretrained_path)
+from shared.config import ModelConfig, SensorConfig, load_preset
+from shared.dqn import DQNAgent
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def evaluate_args(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_evaluate_arguments(parser)
+    return parser.parse_args(argv)
+
+
+def test_model_export_half_precision_keeps_the_greedy_policy(tmp_path: Path, capsys) -> None:
+    cfg = load_preset("paper")
+    agent = DQNAgent(ModelConfig(fc1=64, fc2=32), SensorConfig(width=80, height=60), cfg.dqn, device="cpu", seed=3)
+    agent.update_count = agent.policy_version = 321
+    CheckpointManager(tmp_path / "run" / "checkpoints").save(agent, config=cfg.to_dict())
+    card = tmp_path / "card.json"
+    card.write_text(json.dumps({"world": "paper-indoor", "updates": 321}))
+
+    outs = {}
+    for half in (False, True):
+        out = tmp_path / f"w-{half}.safetensors"
+        argv = ["model", "export", str(tmp_path / "run"), "--out", str(out), "--card", str(card)]
+        assert main(argv + (["--half"] if half else [])) == 0
+        printed = json.loads(capsys.readouterr().out)
+        assert printed["policy_version"] == 321 and printed["half"] is half and printed["bytes"] == out.stat().st_size
+        outs[half] = out
+    assert outs[True].stat().st_size < 0.55 * outs[False].stat().st_size
+
+    full, meta = load_exported_weights(outs[False])
+    half, half_meta = load_exported_weights(outs[True])
+    assert half_meta["card"] == {"world": "paper-indoor", "updates": 321} and half_meta["policy_version"] == 321
+    assert all(t.dtype == torch.float32 for t in half.state_dict().values())  # cast back on load
+    depth = torch.from_numpy(np.random.default_rng(0).uniform(0, 4, (64, 1, 60, 80)).astype(np.float32) / 4)
+    with torch.no_grad():
+        q_full, q_half = full(depth), half(depth)
+    assert torch.allclose(q_full, q_half, atol=1e-2 * q_full.abs().max().item() + 1e-4)
+    assert (q_full.argmax(1) == q_half.argmax(1)).float().mean() >= 0.95
+
+
+def test_model_export_errors_are_clear(tmp_path: Path, capsys) -> None:
+    assert main(["model", "export", str(tmp_path / "nothing"), "--out", str(tmp_path / "w.safetensors")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert not (tmp_path / "w.safetensors").exists()
+
+
+def test_pretrained_names_resolve_to_shipped_files() -> None:
+    assert pretrained_path("runs/x/checkpoints") is None and pretrained_path(Path("pretrained.safetensors")) is None
+    drl = PRETRAINED_DIR / PRETRAINED_FILES["drl"]
+    assert pretrained_path("pretrained") == pretrained_path("pretrained:drl") == drl
+    assert pretrained_path("pretrained:sl") == PRETRAINED_DIR / "sl.safetensors"
+    with pytest.raises(CheckpointError, match="unknown shipped model 'pretrained:big'.*pretrained:sl"):
+        pretrained_path("pretrained:big")
+    with pytest.raises(EvaluateError, match="unknown shipped model"):
+        load_model("pretrained:big")
+
+
+def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: Path) -> None:
+    """`cogexplore evaluate --checkpoint pretrained` on a fresh install: both shipped models load
+    from the package, say where they came from, and run the protocol on the reference world."""
+    card_md = (PRETRAINED_DIR / "MODEL_CARD.md").read_text()
+    drl = load_model("pretrained")
+    assert drl.kind == "weights" and drl.path == PRETRAINED_DIR / "drl.safetensors"
+    _, meta = load_exported_weights(drl.path)
+    card = meta["card"]
+    assert card["world"] == "paper-indoor" and card["updates"] == drl.policy_version > 0
+    assert f"{card['eval']['paper-indoor']['mean_steps']:.1f}" in card_md
+
+    out = tmp_path / "drl.json"
+    assert run_evaluate(evaluate_args(["--checkpoint", "pretrained", "--starts", "0", "--episodes-per-start", "1",
+                                       "--max-steps", "10", "--json", str(out), "--device", "cpu",
+                                       "--quiet"])) == 0
+    results = validate_results_json(out.read_text())
+    assert results.meta["world"] == "paper-indoor" and results.meta["policy_version"] == drl.policy_version
+    assert results.meta["sensor"]["width"] == drl.net.sensor_cfg.width
+
+    out = tmp_path / "sl.json"
+    assert run_evaluate(evaluate_args(["--policy", "sl", "--checkpoint", "pretrained", "--starts", "0",
+                                       "--episodes-per-start", "1", "--max-steps", "10", "--json", str(out),
+                                       "--device", "cpu", "--quiet"])) == 0
+    results = validate_results_json(out.read_text())
+    assert results.meta["policy"] == "sl" and len(results.episodes) == 1
