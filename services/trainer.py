@@ -42,7 +42,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     paths.make()
     save_config(cfg, paths)
     core = LearnerCore(cfg, device=cfg.train.device)
-    checkpoints = CheckpointManager(paths.checkpoints)
+    checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resumed = resume_from(checkpoints, core)
     env = ExploreEnv(cfg.env, cfg.sensor)
     policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=cfg.train.seed + 1)

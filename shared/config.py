@@ -319,6 +319,9 @@ class TrainConfig:
     """Updates per inserted transition (the paper's Algorithm 1: 1)."""
     checkpoint_every: int = 1000
     """Updates between checkpoints."""
+    keep_checkpoints: int = 3
+    """How many of the newest checkpoints stay on disk (raise it to evaluate a learning curve
+    afterwards: each one holds weights, target weights and optimiser state)."""
     log_every: int = 50
     """Updates between log rows."""
     seed: int = 0
@@ -332,10 +335,12 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         s = "train"
-        for name in ("total_updates", "warmup_transitions", "checkpoint_every", "log_every", "seed"):
+        for name in ("total_updates", "warmup_transitions", "checkpoint_every", "keep_checkpoints", "log_every",
+                     "seed"):
             v = getattr(self, name)
             _check(isinstance(v, int) and not isinstance(v, bool) and v >= 0, s, name, v,
                    "an integer >= 0")
+        _check(self.keep_checkpoints >= 1, s, "keep_checkpoints", self.keep_checkpoints, "an integer >= 1")
         _check(self.checkpoint_every >= 1 and self.log_every >= 1, s, "checkpoint_every/log_every",
                (self.checkpoint_every, self.log_every), "integers >= 1")
         _check(_finite(self.replay_ratio) and 0 < self.replay_ratio <= 64, s, "replay_ratio",

@@ -14,16 +14,19 @@ from services.common import RunPaths
 from services.evaluator.evaluate import evaluate_policy, load_model
 from services.evaluator.policies import make_policy
 from services.trainer import train_single_process
+from shared.checkpoint import CheckpointManager
 from shared.config import load_preset
 
 
 @pytest.mark.timeout(900)
 def test_tiny_training_beats_random_by_a_clear_margin(tmp_path: Path):
     torch.manual_seed(0)
-    cfg = load_preset("tiny")
+    cfg = load_preset("tiny").with_overrides({"train.checkpoint_every": 500, "train.keep_checkpoints": 5})
     paths = RunPaths(tmp_path / "tiny")
     result = train_single_process(cfg, paths, progress=False)
     assert result["updates"] == cfg.train.total_updates
+    kept = [p.name for p in CheckpointManager(paths.checkpoints).checkpoints()]
+    assert kept == [CheckpointManager(paths.checkpoints).path_for(u).name for u in range(1000, 3001, 500)]
 
     protocol = dict(world=cfg.env.world, sensor_cfg=cfg.sensor, episodes_per_start=5, max_steps=100,
                     seed=123, progress=False)

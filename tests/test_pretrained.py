@@ -99,3 +99,22 @@ def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: P
                                        "--device", "cpu", "--quiet"])) == 0
     results = validate_results_json(out.read_text())
     assert results.meta["policy"] == "sl" and len(results.episodes) == 1
+
+
+def test_fast_80x60_recipe_builds_the_shipped_network_from_the_shipped_sl_model() -> None:
+    """The shipped DRL model's preset starts from the shipped supervised model (`pretrained:sl`)
+    and has the shipped model's architecture, so the model card's recipe reproduces it."""
+    from shared.model import architecture_fingerprint
+    from shared.supervised import init_agent_conv, load_supervised
+
+    cfg = load_preset("fast-80x60")
+    assert cfg.train.init_conv_from == "pretrained:sl"
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
+    meta = init_agent_conv(agent, cfg.train.init_conv_from)
+    assert meta["sensor"]["width"] == cfg.sensor.width
+    sl_net, _ = load_supervised(PRETRAINED_DIR / "sl.safetensors")
+    for mine, theirs in zip(agent.online.trunk.parameters(), sl_net.trunk.parameters(), strict=True):
+        assert torch.equal(mine, theirs)
+    for mine, target in zip(agent.online.parameters(), agent.target.parameters(), strict=True):
+        assert torch.equal(mine, target)
+    assert architecture_fingerprint(agent.online) == architecture_fingerprint(load_model("pretrained").net)

@@ -86,7 +86,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     keys = RunKeys(run)
     paths.make()
     core = LearnerCore(cfg, device=device or cfg.train.device)
-    checkpoints = CheckpointManager(paths.checkpoints)
+    checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resume_from(checkpoints, core)
     config_dict = cfg.to_dict()
 
