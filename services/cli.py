@@ -76,9 +76,13 @@ def _model_export(args: argparse.Namespace) -> int:
         return 2
     card = {}
     if args.card:
-        card = json.loads(Path(args.card).read_text())
+        try:
+            card = json.loads(Path(args.card).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            print(f"cogexplore: error: --card {args.card}: {exc}", file=sys.stderr)
+            return 2
         if not isinstance(card, dict):
-            print(f"cogexplore: error: {args.card} must hold a JSON object", file=sys.stderr)
+            print(f"cogexplore: error: --card {args.card} must hold a JSON object", file=sys.stderr)
             return 2
     out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half,
                          extra={"card": card} if card else None)

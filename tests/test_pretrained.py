@@ -58,9 +58,18 @@ def test_model_export_half_precision_keeps_the_greedy_policy(tmp_path: Path, cap
 
 
 def test_model_export_errors_are_clear(tmp_path: Path, capsys) -> None:
-    assert main(["model", "export", str(tmp_path / "nothing"), "--out", str(tmp_path / "w.safetensors")]) == 2
+    out = tmp_path / "w.safetensors"
+    assert main(["model", "export", str(tmp_path / "nothing"), "--out", str(out)]) == 2
     assert "does not exist" in capsys.readouterr().err
-    assert not (tmp_path / "w.safetensors").exists()
+    cfg = load_preset("tiny")
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu")
+    CheckpointManager(tmp_path / "ckpts").save(agent, config=cfg.to_dict())
+    for text, message in (("{not json", "Expecting property name"), ("[1, 2]", "must hold a JSON object")):
+        (tmp_path / "card.json").write_text(text)
+        assert main(["model", "export", str(tmp_path / "ckpts"), "--out", str(out), "--card",
+                     str(tmp_path / "card.json")]) == 2
+        assert message in capsys.readouterr().err
+    assert not out.exists()
 
 
 def test_pretrained_names_resolve_to_shipped_files() -> None:
