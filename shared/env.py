@@ -100,17 +100,17 @@ class ExploreEnv(gym.Env):
         if not (isinstance(index, (int, np.integer)) and 0 <= index < n_starts):
             raise ValueError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
-        x, y, yaw = start.x, start.y, start.yaw
-        self.robot.set_pose(x, y, yaw)
-        self._depth = self.camera.capture(self.data)
-        self._random_start = False
+        pose = None  # a random free pose (it leaves the robot there and its image in self._depth)
         fixed = "start_index" in options or self.env_config.start_index is not None
         if not fixed and self.env_config.random_start_prob > 0 and \
                 self.np_random.random() < self.env_config.random_start_prob:
             pose = self._random_free_pose()
-            if pose is not None:
-                x, y, yaw = pose
-                self._random_start = True
+        self._random_start = pose is not None
+        if pose is None:
+            pose = (start.x, start.y, start.yaw)
+            self.robot.set_pose(*pose)
+            self._depth = self.camera.capture(self.data)
+        x, y, _ = pose
         self._start_index = int(index)
         self._start_xy = self._last_xy = (x, y)
         self._path_length = 0.0
@@ -147,8 +147,8 @@ class ExploreEnv(gym.Env):
 
     def _random_free_pose(self, tries: int = 50) -> tuple[float, float, float] | None:
         """Move the robot to a random pose ``random_start_clearance_m`` from every obstacle whose
-        first image is above the collision threshold (with a 10 cm margin); None (robot left at
-        the drawn world start) when no such pose turns up."""
+        first image (kept in ``self._depth``) is above the collision threshold with a 10 cm
+        margin; None when no such pose turns up (the caller then places the robot)."""
         if self._clear_cells is None:
             from shared.maps import clearance_map, occupancy_grid
 
@@ -157,7 +157,6 @@ class ExploreEnv(gym.Env):
             self._clear_cells = np.argwhere(clearance >= self.env_config.random_start_clearance_m)
         if len(self._clear_cells) == 0:
             return None
-        saved = self.robot.pose()
         half = self._grid.resolution_m / 2
         for _ in range(tries):
             iy, ix = self._clear_cells[self.np_random.integers(len(self._clear_cells))]
@@ -169,8 +168,6 @@ class ExploreEnv(gym.Env):
             if min_valid_depth(depth) >= self.env_config.collision_distance_m + 0.1:
                 self._depth = depth
                 return pose
-        self.robot.set_pose(*saved)
-        self._depth = self.camera.capture(self.data)
         return None
 
     def _info(self, cause: str | None, min_depth: float) -> dict[str, Any]:

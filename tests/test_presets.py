@@ -46,7 +46,8 @@ def test_fast_smoke_and_tiny_presets():
     ("replay", "capacity", 1, "capacity"), ("replay", "priority_alpha", 2.0, "priority_alpha"),
     ("model", "fc1", 0, "fc1"), ("model", "dropout", 1.0, "dropout"), ("model", "dueling", "yes", "dueling"),
     ("explore", "eps_end", 1.5, "eps_end"), ("explore", "eps_decay_steps", -1, "eps_decay_steps"),
-    ("train", "device", "tpu", "device"), ("train", "keep_checkpoints", 0, "keep_checkpoints"), ("train", "replay_ratio", 0.0, "replay_ratio"),
+    ("train", "device", "tpu", "device"), ("train", "keep_checkpoints", 0, "keep_checkpoints"),
+    ("train", "replay_ratio", 0.0, "replay_ratio"),
     ("sensor", "width", 4, "width"),
 ])
 def test_bad_values_in_a_preset_file_are_rejected(tmp_path, section, field, value, match):
