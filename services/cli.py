@@ -68,12 +68,22 @@ def _model_summary(args: argparse.Namespace) -> int:
 def _model_export(args: argparse.Namespace) -> int:
     from services.evaluator.evaluate import EvaluateError, load_model
     from shared.checkpoint import export_weights
+    from shared.model import ModelError, average_weights, load_tensors
 
     try:
-        loaded = load_model(args.checkpoint)
+        sources = [load_model(c) for c in args.checkpoint]
     except EvaluateError as exc:
         print(f"cogexplore: error: {exc}", file=sys.stderr)
         return 2
+    loaded = sources[-1]
+    extra: dict[str, Any] = {}
+    if len(sources) > 1:
+        try:
+            load_tensors(loaded.net, average_weights([s.net for s in sources]))
+        except ModelError as exc:
+            print(f"cogexplore: error: {exc}", file=sys.stderr)
+            return 2
+        extra["averaged_from"] = [{"source": str(s.path), "policy_version": s.policy_version} for s in sources]
     card = {}
     if args.card:
         try:
@@ -84,10 +94,11 @@ def _model_export(args: argparse.Namespace) -> int:
         if not isinstance(card, dict):
             print(f"cogexplore: error: --card {args.card} must hold a JSON object", file=sys.stderr)
             return 2
-    out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half,
-                         extra={"card": card} if card else None)
+    if card:
+        extra["card"] = card
+    out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
     _print_json({"out": str(out), "bytes": out.stat().st_size, "policy_version": loaded.policy_version,
-                 "source": str(loaded.path), "half": args.half})
+                 "source": str(loaded.path), "averaged": len(sources), "half": args.half})
     return 0
 
 
@@ -170,8 +181,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="paper", help="preset name or TOML path (default: paper)")
     p.add_argument("--json", action="store_true", help="print JSON")
     p = add("export", "write a checkpoint's online weights as a weights-only file (deployment, "
-            "`evaluate --checkpoint FILE`)", _model_export, msub)
-    p.add_argument("checkpoint", help="checkpoint file or directory, or run folder")
+            "`evaluate --checkpoint FILE`); several checkpoints are averaged", _model_export, msub)
+    p.add_argument("checkpoint", nargs="+",
+                   help="checkpoint file or directory, or run folder; with several (one run's later "
+                        "checkpoints), their weights' mean, labelled with the last one's update")
     p.add_argument("--out", required=True, help="output .safetensors path")
     p.add_argument("--half", action="store_true", help="store float16 (half the size)")
     p.add_argument("--card", metavar="JSON", help="a JSON object stored in the file's metadata (model card)")

@@ -398,8 +398,8 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoints", default="500,4000,7500,40000",
                         help="DRL update counts to evaluate (default 500,4000,7500,40000, the paper's)")
     parser.add_argument("--actors", type=int, default=2, help="actor processes of the DRL run (default 2)")
-    parser.add_argument("--preset", default="fast-80x60",
-                        help="preset name or TOML path (default fast-80x60, our recipe on 2 CPU cores; `paper` "
+    parser.add_argument("--preset", default="fast-40x30",
+                        help="preset name or TOML path (default fast-40x30, our recipe on 2 CPU cores; `paper` "
                              "trains with the paper's Table I exactly, whose learning rate needs far more updates)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                         help="override a config field for every run and evaluation (repeatable)")

@@ -73,12 +73,12 @@ def add_pretrain_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def config_for(preset: str, overrides: list[str] | tuple[str, ...] = ()) -> RunConfig:
-    """The preset with sensor./env. overrides (the only sections pretraining reads)."""
+    """The preset with sensor./env. overrides and model.depth_encoding (what pretraining reads)."""
     cfg = load_preset(preset)
     parsed = dict(parse_override(o) for o in overrides)
-    bad = sorted(k for k in parsed if not k.startswith(("sensor.", "env.")))
+    bad = sorted(k for k in parsed if not k.startswith(("sensor.", "env.")) and k != "model.depth_encoding")
     if bad:
-        raise ConfigError(f"pretrain only takes sensor.* and env.* overrides, got {bad}")
+        raise ConfigError(f"pretrain only takes sensor.*, env.* and model.depth_encoding overrides, got {bad}")
     return cfg.with_overrides(parsed) if parsed else cfg
 
 
@@ -93,7 +93,7 @@ def run_pretraining(cfg: RunConfig, *, out: str | Path, worlds: list[str], frame
     env_cfg = dataclasses.replace(cfg.env, speed_table=speed_table, start_index=None)
     return pretrain(out, worlds=worlds, frames=frames, sensor_cfg=cfg.sensor, env_cfg=env_cfg, data_dir=data_dir,
                     settings=TrainSettings(epochs=epochs, batch_size=batch_size, lr=lr, class_balance=class_balance,
-                                           seed=seed, device=device),
+                                           seed=seed, device=device, depth_encoding=cfg.model.depth_encoding),
                     drive_cfg=DriveConfig(episode_steps=episode_steps), seed=seed, test_fraction=test_fraction,
                     progress=progress)
 

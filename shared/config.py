@@ -47,6 +47,12 @@ ACTION_NAMES: tuple[str, ...] = ("left", "half-left", "straight", "half-right", 
 NUM_ACTIONS = len(ACTION_NAMES)
 
 
+def mirror_action(action: Any) -> Any:
+    """The command for the left-right mirrored image (left <-> right, half-left <-> half-right);
+    works on ints, numpy arrays and tensors."""
+    return (NUM_ACTIONS - 1) - action
+
+
 @dataclass(frozen=True)
 class SensorConfig:
     """Kinect-like depth camera."""
@@ -181,6 +187,10 @@ class EnvConfig:
 # ---------------------------------------------------------------------------
 
 
+DEPTH_ENCODINGS: tuple[str, ...] = ("metric", "inverse")
+"""ModelConfig.depth_encoding values (shared.model.encode_depth)."""
+
+
 @dataclass(frozen=True)
 class ModelConfig:
     """The Q-network (paper: 3 conv + 3 fc)."""
@@ -193,6 +203,11 @@ class ModelConfig:
     """Dropout after fc1 and fc2 in training (off in evaluation), as in the paper."""
     dueling: bool = False
     """Dueling head (value + advantage) instead of a plain fc3. Off in the paper preset."""
+    depth_encoding: str = "metric"
+    """How depth enters the conv layers. 'metric' (the paper's): depth / 4 m, so "no return"
+    (beyond range) is 0, next to a wall at the collision distance (0.14). 'inverse':
+    0.5 m / depth capped at 1, so near obstacles give large values, free space beyond range
+    stays 0 and the input falls monotonically with distance (see shared.model.encode_depth)."""
 
     def __post_init__(self) -> None:
         s = "model"
@@ -203,6 +218,8 @@ class ModelConfig:
         _check(_finite(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
                "a probability in [0, 1)")
         _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
+        _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
+               f"one of {', '.join(DEPTH_ENCODINGS)}")
 
 
 @dataclass(frozen=True)
@@ -256,6 +273,9 @@ class DQNConfig:
     """'mse' (paper) or 'huber'."""
     grad_clip_norm: float = 0.0
     """Clip the gradient's global norm to this value (0 = off)."""
+    mirror_augment: bool = False
+    """Mirror a random half of each batch left-right (both frames flipped, left <-> right
+    commands swapped): the task is symmetric, so every transition teaches its mirror image too."""
 
     def __post_init__(self) -> None:
         s = "dqn"
@@ -276,6 +296,7 @@ class DQNConfig:
         _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
+        _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
 
 
 @dataclass(frozen=True)

@@ -38,6 +38,7 @@ is the one meant to learn quickly.
 from __future__ import annotations
 
 import copy
+import dataclasses
 from dataclasses import asdict, dataclass
 from typing import Any
 
@@ -45,7 +46,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.config import DQNConfig, ModelConfig, SensorConfig
+from shared.config import DQNConfig, ModelConfig, SensorConfig, mirror_action
 from shared.model import (InferenceRunner, QNetwork, architecture_fingerprint, forward_flops,
                           load_tensors,
                           preprocess_depth, reduce_allocator_page_faults, resolve_device,
@@ -104,6 +105,17 @@ class TensorBatch:
     terminated: torch.Tensor
     next_obs: torch.Tensor
     weights: torch.Tensor
+
+
+def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
+    """``tb`` with the transitions where ``flip`` (B,) is true mirrored left-right: both frames
+    flipped horizontally and the command swapped (left <-> right, half-left <-> half-right).
+    Rewards, returns and episode ends are those of the mirror-image transition unchanged."""
+    def frames(x: torch.Tensor) -> torch.Tensor:
+        return torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(memory_format=torch.channels_last)
+
+    return dataclasses.replace(tb, obs=frames(tb.obs), next_obs=frames(tb.next_obs),
+                               action=torch.where(flip, mirror_action(tb.action), tb.action))
 
 
 class DQNAgent:
@@ -193,6 +205,8 @@ class DQNAgent:
         for prioritised replay.
         """
         tb = batch if isinstance(batch, TensorBatch) else self.to_tensors(batch)
+        if self.cfg.mirror_augment:
+            tb = mirror_batch(tb, torch.rand(len(tb.action), device=tb.action.device) < 0.5)
         y = self.compute_targets(tb)
         self.online.train()
         q_all = self.online(tb.obs)

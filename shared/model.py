@@ -3,7 +3,9 @@
 Input: one depth image, 1 x H x W (120 x 160 for the paper's Kinect), in metres with 0 = no return.
 ``preprocess_depth`` is the only place where depth becomes network input: metres are divided by
 ``DEPTH_SCALE_M`` (4 m, the Kinect's usable range) and clipped to [0, 1], so "no return" stays 0 and
-the network sees the same numbers whatever the sensor's configured ``max_range_m``.
+the network sees the same numbers whatever the sensor's configured ``max_range_m``. The conv
+stack's first, parameter-free step re-encodes that input (``ModelConfig.depth_encoding``, see
+:func:`encode_depth`), so every caller feeds the same tensor whatever the encoding.
 
 Layers (``ConvTrunk`` is the conv stack of the authors' supervised model, IROS 2016)::
 
@@ -42,6 +44,8 @@ from shared.messages import architecture_fingerprint as wire_fingerprint
 
 DEPTH_SCALE_M = 4.0
 """Depth that maps to network input 1.0; farther returns are clipped to 1."""
+INVERSE_DEPTH_NEAR_M = 0.5
+"""The 'inverse' encoding's depth that maps to 1.0 (just inside the 0.55 m collision distance)."""
 CONV_CHANNELS: tuple[int, int, int] = (32, 32, 64)
 CONV_KERNEL = 5
 
@@ -133,11 +137,30 @@ def reduce_allocator_page_faults() -> bool:
     return ok
 
 
-class ConvTrunk(nn.Module):
-    """conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
+def encode_depth(x: torch.Tensor, encoding: str) -> torch.Tensor:
+    """Re-encode ``preprocess_depth`` output (depth / 4 m, 0 = no return) for the conv layers.
 
-    def __init__(self) -> None:
+    'metric' returns it unchanged (the paper). 'inverse' gives ``INVERSE_DEPTH_NEAR_M / depth``
+    capped at 1 and keeps "no return" at 0: in the metric input, open space beyond 4 m (0) and a
+    wall at the collision distance (0.14) are neighbours, so a small shift of the far region
+    looks like a nearby obstacle; inverse depth is monotone (0 far, 1 at the threshold), is
+    nearly continuous at the range limit (0.125 -> 0) and spends its range on the near
+    obstacles that decide a collision."""
+    if encoding == "metric":
+        return x
+    if encoding == "inverse":
+        near = INVERSE_DEPTH_NEAR_M / DEPTH_SCALE_M
+        return torch.where(x > 0, (near / x.clamp(min=near)), torch.zeros((), dtype=x.dtype, device=x.device))
+    raise ModelError(f"unknown depth encoding {encoding!r}")
+
+
+class ConvTrunk(nn.Module):
+    """Depth encoding, then conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
+
+    def __init__(self, depth_encoding: str = "metric") -> None:
         super().__init__()
+        encode_depth(torch.zeros(1), depth_encoding)  # unknown names fail here, not mid-training
+        self.depth_encoding = depth_encoding
         c1, c2, c3 = CONV_CHANNELS
         pad = CONV_KERNEL // 2
         self.conv1 = nn.Conv2d(1, c1, CONV_KERNEL, padding=pad)
@@ -148,6 +171,7 @@ class ConvTrunk(nn.Module):
         # The paper's order is conv -> ReLU -> pool. max-pool and ReLU commute (both monotone),
         # so pooling first gives the same values and gradients while ReLU and its backward touch
         # a 4x smaller tensor: about 10% of an update's time on CPU.
+        x = encode_depth(x, self.depth_encoding)
         x = F.relu(F.max_pool2d(self.conv1(x), 2), inplace=True)
         x = F.relu(F.max_pool2d(self.conv2(x), 2), inplace=True)
         return F.relu(F.max_pool2d(self.conv3(x), 2), inplace=True)
@@ -163,7 +187,7 @@ class QNetwork(nn.Module):
         self.pool3_shape = pool3_shape(self.sensor_cfg)
         flat = int(np.prod(self.pool3_shape))
         cfg = self.model_cfg
-        self.trunk = ConvTrunk()
+        self.trunk = ConvTrunk(cfg.depth_encoding)
         self.fc1 = nn.Linear(flat, cfg.fc1)
         self.fc2 = nn.Linear(cfg.fc1, cfg.fc2)
         self.dropout = nn.Dropout(cfg.dropout)
@@ -209,11 +233,11 @@ class QNetwork(nn.Module):
 class SupervisedNet(nn.Module):
     """The authors' supervised obstacle-avoidance model: the same ConvTrunk + one fc to 5 classes."""
 
-    def __init__(self, sensor_cfg: SensorConfig | None = None):
+    def __init__(self, sensor_cfg: SensorConfig | None = None, depth_encoding: str = "metric"):
         super().__init__()
         self.sensor_cfg = sensor_cfg or SensorConfig()
         self.pool3_shape = pool3_shape(self.sensor_cfg)
-        self.trunk = ConvTrunk()
+        self.trunk = ConvTrunk(depth_encoding)
         self.fc = nn.Linear(int(np.prod(self.pool3_shape)), NUM_ACTIONS)
         self.to(memory_format=torch.channels_last)
 
@@ -230,6 +254,9 @@ def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
     for m, name in ((src, "src"), (dst, "dst")):
         if not isinstance(getattr(m, "trunk", None), ConvTrunk):
             raise ModelError(f"{name} ({type(m).__name__}) has no ConvTrunk")
+    if src.trunk.depth_encoding != dst.trunk.depth_encoding:
+        raise ModelError(f"the conv layers were trained on {src.trunk.depth_encoding!r} depth input, the "
+                         f"network reads {dst.trunk.depth_encoding!r} (model.depth_encoding)")
     with torch.no_grad():
         for (n, ps), pd in zip(src.trunk.named_parameters(), dst.trunk.parameters()):
             if ps.shape != pd.shape:
@@ -238,15 +265,32 @@ def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
 
 
 def architecture_fingerprint(net: nn.Module) -> str:
-    """Hash of the class, parameter names and shapes: equal iff weights are interchangeable
-    (the wire's definition, shared.messages.architecture_fingerprint, applied to ``net``)."""
+    """Hash of the class, parameter names and shapes (and a non-metric depth encoding): equal iff
+    weights are interchangeable (the wire's definition, shared.messages.architecture_fingerprint, applied to ``net``)."""
     shapes = {n: tuple(t.shape) for n, t in net.state_dict().items()}
-    return wire_fingerprint(shapes, {"class": type(net).__name__})
+    extra = {"class": type(net).__name__}
+    encoding = getattr(getattr(net, "trunk", None), "depth_encoding", "metric")
+    if encoding != "metric":  # same shapes, different meaning; metric keeps the older fingerprints
+        extra["depth_encoding"] = encoding
+    return wire_fingerprint(shapes, extra)
 
 
 def weights_to_tensors(net: nn.Module) -> dict[str, torch.Tensor]:
     """Parameters as contiguous CPU tensors in NCHW order (for messages, safetensors, other devices)."""
     return {n: t.detach().to("cpu").contiguous() for n, t in net.state_dict().items()}
+
+
+def average_weights(nets: list[nn.Module]) -> dict[str, torch.Tensor]:
+    """The element-wise mean of the weights of networks of one architecture (float32, CPU):
+    averaging the checkpoints of one run's later updates smooths the greedy policy's
+    checkpoint-to-checkpoint swings. ModelError when the architectures differ."""
+    if not nets:
+        raise ModelError("nothing to average")
+    prints = {architecture_fingerprint(n) for n in nets}
+    if len(prints) != 1:
+        raise ModelError(f"cannot average networks of different architectures ({len(prints)} fingerprints)")
+    states = [weights_to_tensors(n) for n in nets]
+    return {name: torch.stack([s[name].float() for s in states]).mean(0) for name in states[0]}
 
 
 def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:

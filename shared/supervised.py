@@ -55,11 +55,13 @@ import torch.nn.functional as F
 
 from shared.config import (
     ACTION_NAMES,
+    DEPTH_ENCODINGS,
     NUM_ACTIONS,
     SPEED_TABLES,
     ConfigError,
     EnvConfig,
     SensorConfig,
+    mirror_action,
 )
 from shared.model import (
     ModelError,
@@ -88,11 +90,6 @@ MIN_EPISODES = 8
 
 class SupervisedError(ValueError):
     """Bad settings, a dataset or model file that is missing, partial or does not fit."""
-
-
-def mirror_labels(labels: np.ndarray | torch.Tensor) -> Any:
-    """The command for the left-right mirrored image: left <-> right, half-left <-> half-right."""
-    return (NUM_ACTIONS - 1) - labels
 
 
 # ---------------------------------------------------------------------------------------------
@@ -645,8 +642,14 @@ class TrainSettings:
     every class equally; in between trades overall accuracy for the turns' accuracy."""
     seed: int = 0
     device: str = "auto"
+    depth_encoding: str = "metric"
+    """The network's depth input encoding (``ModelConfig.depth_encoding``); a DRL run that copies
+    these conv layers must use the same one."""
 
     def __post_init__(self) -> None:
+        if self.depth_encoding not in DEPTH_ENCODINGS:
+            raise SupervisedError(f"depth_encoding must be one of {', '.join(DEPTH_ENCODINGS)}, "
+                                  f"got {self.depth_encoding!r}")
         if not (isinstance(self.epochs, int) and self.epochs >= 1):
             raise SupervisedError(f"epochs must be an integer >= 1, got {self.epochs!r}")
         if not (isinstance(self.batch_size, int) and 1 <= self.batch_size <= 4096):
@@ -715,7 +718,7 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
         raise SupervisedError(f"{dataset.root}: the split has {len(train_idx)} train and {len(test_idx)} test frames")
     torch.manual_seed(s.seed)
     rng = np.random.default_rng(s.seed)
-    net = SupervisedNet(dataset.sensor_cfg).to(device)
+    net = SupervisedNet(dataset.sensor_cfg, s.depth_encoding).to(device)
     opt = torch.optim.Adam(net.parameters(), lr=s.lr, weight_decay=s.weight_decay)
     labels_all = np.asarray(dataset.labels)
     freq = np.bincount(labels_all[train_idx], minlength=NUM_ACTIONS).astype(np.float64)
@@ -740,7 +743,7 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
                     flip = torch.from_numpy(rng.random(len(idx)) < 0.5).to(device)
                     x = torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(
                         memory_format=torch.channels_last)
-                    y = torch.where(flip, mirror_labels(y), y)
+                    y = torch.where(flip, mirror_action(y), y)
                 logits = net(x)
                 loss = F.cross_entropy(logits, y, weight=class_weights)
                 opt.zero_grad(set_to_none=True)
@@ -799,7 +802,8 @@ def save_supervised(path: str | Path, net: SupervisedNet, card: Mapping[str, Any
         raise SupervisedError(f"a supervised model file must end in .safetensors, got {path}")
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": MODEL_FORMAT, "version": VERSION, "fingerprint": architecture_fingerprint(net),
-            "sensor": asdict(net.sensor_cfg), "card": _jsonable(dict(card or {}))}
+            "sensor": asdict(net.sensor_cfg), "depth_encoding": net.trunk.depth_encoding,
+            "card": _jsonable(dict(card or {}))}
     save_tensors_file(path, weights_to_tensors(net), meta)
     atomic_write_text(card_path(path), json.dumps(meta["card"], indent=2) + "\n")
     return path
@@ -815,9 +819,9 @@ def load_supervised(path: str | Path, device: str | torch.device = "cpu") -> tup
     except CheckpointError as exc:
         raise SupervisedError(f"not a supervised model (write one with `cogexplore pretrain`): {exc}") from None
     try:
-        net = SupervisedNet(SensorConfig(**meta["sensor"]))
-    except (ConfigError, TypeError, KeyError) as exc:
-        raise SupervisedError(f"{path}: sensor metadata is invalid: {exc}") from None
+        net = SupervisedNet(SensorConfig(**meta["sensor"]), meta.get("depth_encoding", "metric"))
+    except (ConfigError, ModelError, TypeError, KeyError) as exc:
+        raise SupervisedError(f"{path}: sensor or depth-encoding metadata is invalid: {exc}") from None
     if architecture_fingerprint(net) != meta.get("fingerprint"):
         raise SupervisedError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its architecture")
     try:

@@ -6,8 +6,9 @@ import torch
 import torch.nn.functional as F
 
 from shared.config import ModelConfig, SensorConfig
-from shared.model import (DEPTH_SCALE_M, InferenceRunner, ModelError, QNetwork, SupervisedNet,
-                          architecture_fingerprint, copy_conv_weights, forward_flops, layer_summary,
+from shared.config import ConfigError
+from shared.model import (DEPTH_SCALE_M, INVERSE_DEPTH_NEAR_M, InferenceRunner, ModelError, QNetwork, SupervisedNet,
+                          architecture_fingerprint, copy_conv_weights, encode_depth, forward_flops, layer_summary,
                           load_tensors, pool3_shape, preprocess_depth, weights_to_tensors)
 
 TINY = SensorConfig(width=40, height=30)
@@ -58,6 +59,37 @@ def test_preprocess_metres_and_millimetres_agree_and_keep_zero():
     assert a[0, 0, 1, 1] == 1.0  # clipped beyond the scale
     assert preprocess_depth(torch.from_numpy(depth_m)).equal(a)
     assert preprocess_depth(np.array([[np.nan, 1.0]], dtype=np.float32))[0, 0, 0, 0] == 0.0
+
+
+def test_inverse_depth_encoding_is_monotone_keeps_no_return_and_is_inside_the_network():
+    depth_m = np.array([[0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 9.0]], dtype=np.float32)
+    x = preprocess_depth(depth_m)
+    assert torch.equal(encode_depth(x, "metric"), x)
+    inv = encode_depth(x, "inverse")[0, 0, 0].tolist()
+    assert inv[0] == 0.0  # no return: free space, as far as it gets
+    assert inv[1] == inv[2] == 1.0  # at and inside the near distance: capped
+    for d, v in zip(depth_m[0, 3:], inv[3:]):
+        assert v == pytest.approx(INVERSE_DEPTH_NEAR_M / min(d, DEPTH_SCALE_M))
+    assert all(a > b for a, b in zip(inv[2:6], inv[3:6]))  # nearer is always larger, up to the range
+    assert inv[6] == inv[5]  # beyond the 4 m scale: clipped, as in the metric input
+    with pytest.raises(ModelError, match="unknown depth encoding"):
+        encode_depth(x, "log")
+
+    # the encoding is part of the network: same weights, different Q-values and fingerprints
+    torch.manual_seed(0)
+    metric = QNetwork(SMALL, TINY).eval()
+    inverse = QNetwork(ModelConfig(fc1=32, fc2=16, depth_encoding="inverse"), TINY).eval()
+    load_tensors(inverse, weights_to_tensors(metric))
+    batch = preprocess_depth(np.random.default_rng(5).random((2, 30, 40)).astype(np.float32) * 4)
+    with torch.no_grad():
+        assert not torch.allclose(metric(batch), inverse(batch))
+        assert torch.allclose(inverse(batch), metric(encode_depth(batch, "inverse")))
+    assert architecture_fingerprint(metric) != architecture_fingerprint(inverse)
+    with pytest.raises(ModelError, match="trained on 'metric' depth input"):
+        copy_conv_weights(SupervisedNet(TINY), inverse)
+    copy_conv_weights(SupervisedNet(TINY, "inverse"), inverse)
+    with pytest.raises(ConfigError, match="depth_encoding"):
+        ModelConfig(depth_encoding="disparity")
 
 
 def test_preprocess_rejects_bad_shapes():

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
 
@@ -55,6 +56,32 @@ def test_model_export_half_precision_keeps_the_greedy_policy(tmp_path: Path, cap
         q_full, q_half = full(depth), half(depth)
     assert torch.allclose(q_full, q_half, atol=1e-2 * q_full.abs().max().item() + 1e-4)
     assert (q_full.argmax(1) == q_half.argmax(1)).float().mean() >= 0.95
+
+
+def test_model_export_averages_several_checkpoints(tmp_path: Path, capsys) -> None:
+    cfg = load_preset("tiny")
+    paths = []
+    for seed, version in ((1, 100), (2, 200), (3, 300)):
+        agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=seed)
+        agent.update_count = agent.policy_version = version
+        paths.append(CheckpointManager(tmp_path / f"run{seed}").save(agent, config=cfg.to_dict()))
+    out = tmp_path / "avg.safetensors"
+    assert main(["model", "export", *map(str, paths), "--out", str(out)]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert printed["averaged"] == 3 and printed["policy_version"] == 300
+    avg, meta = load_exported_weights(out)
+    assert [a["policy_version"] for a in meta["averaged_from"]] == [100, 200, 300]
+    nets = [load_model(p).net for p in paths]
+    for name, t in avg.state_dict().items():
+        want = sum(n.state_dict()[name] for n in nets) / 3
+        assert torch.allclose(t, want, atol=1e-6), name
+
+    other = load_preset("tiny").with_overrides({"model.fc1": 24})
+    agent = DQNAgent(other.model, other.sensor, other.dqn, device="cpu")
+    odd = CheckpointManager(tmp_path / "odd").save(agent, config=other.to_dict())
+    assert main(["model", "export", str(paths[0]), str(odd), "--out", str(tmp_path / "x.safetensors")]) == 2
+    assert "different architectures" in capsys.readouterr().err
+    assert not (tmp_path / "x.safetensors").exists()
 
 
 def test_model_export_errors_are_clear(tmp_path: Path, capsys) -> None:
@@ -110,20 +137,24 @@ def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: P
     assert results.meta["policy"] == "sl" and len(results.episodes) == 1
 
 
-def test_fast_80x60_recipe_builds_the_shipped_network_from_the_shipped_sl_model() -> None:
-    """The shipped DRL model's preset starts from the shipped supervised model (`pretrained:sl`)
-    and has the shipped model's architecture, so the model card's recipe reproduces it."""
+@pytest.mark.parametrize("preset", ["fast-40x30", "fast-80x60"])
+def test_fast_recipes_start_from_the_shipped_sl_model(preset: str) -> None:
+    """Both fast recipes start from the shipped supervised model (`pretrained:sl`; conv weights
+    fit any image size), and `fast-40x30` builds the shipped DRL model's architecture and sensor,
+    so the model card's recipe reproduces it."""
     from shared.model import architecture_fingerprint
     from shared.supervised import init_agent_conv, load_supervised
 
-    cfg = load_preset("fast-80x60")
+    cfg = load_preset(preset)
     assert cfg.train.init_conv_from == "pretrained:sl"
     agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
     meta = init_agent_conv(agent, cfg.train.init_conv_from)
-    assert meta["sensor"]["width"] == cfg.sensor.width
     sl_net, _ = load_supervised(PRETRAINED_DIR / "sl.safetensors")
     for mine, theirs in zip(agent.online.trunk.parameters(), sl_net.trunk.parameters(), strict=True):
         assert torch.equal(mine, theirs)
     for mine, target in zip(agent.online.parameters(), agent.target.parameters(), strict=True):
         assert torch.equal(mine, target)
-    assert architecture_fingerprint(agent.online) == architecture_fingerprint(load_model("pretrained").net)
+    if preset == "fast-40x30":  # the shipped model's own recipe
+        shipped = load_model("pretrained").net
+        assert architecture_fingerprint(agent.online) == architecture_fingerprint(shipped)
+        assert meta["sensor"] == dataclasses.asdict(cfg.sensor) == dataclasses.asdict(shipped.sensor_cfg)

@@ -237,6 +237,24 @@ def test_transfer_copies_exactly_the_conv_weights_and_a_resume_wins(trained, tmp
         assert torch.equal(t, plain.agent.online.state_dict()[name]), name
 
 
+def test_transfer_needs_the_same_depth_encoding(trained, tmp_path):
+    from services.learner.core import LearnerCore
+    from shared.model import SupervisedNet
+
+    _net, _card, metric_path = trained
+    base = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30,
+                                                "model.depth_encoding": "inverse"})
+    with pytest.raises(SupervisedError, match="trained on 'metric' depth input"):
+        LearnerCore(base.with_overrides({"train.init_conv_from": str(metric_path)}), device="cpu")
+    inverse_path = save_supervised(tmp_path / "inv.safetensors", SupervisedNet(SMALL_SENSOR, "inverse"))
+    loaded, meta = load_supervised(inverse_path)
+    assert loaded.trunk.depth_encoding == meta["depth_encoding"] == "inverse"
+    core = LearnerCore(base.with_overrides({"train.init_conv_from": str(inverse_path)}), device="cpu")
+    assert torch.equal(core.agent.online.trunk.conv1.weight, loaded.trunk.conv1.weight)
+    with pytest.raises(SupervisedError, match="depth_encoding"):
+        TrainSettings(depth_encoding="disparity")
+
+
 def test_init_conv_from_is_validated(tmp_path):
     assert TrainConfig().init_conv_from == ""
     with pytest.raises(ConfigError, match="init_conv_from"):
