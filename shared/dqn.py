@@ -48,7 +48,7 @@ import torch.nn.functional as F
 
 from shared.config import DQNConfig, ModelConfig, SensorConfig, mirror_action
 from shared.model import (InferenceRunner, QNetwork, architecture_fingerprint, forward_flops,
-                          load_tensors,
+                          load_tensors, mirror_images,
                           preprocess_depth, reduce_allocator_page_faults, resolve_device,
                           weights_to_tensors)
 from shared.replay import Batch
@@ -111,10 +111,7 @@ def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
     """``tb`` with the transitions where ``flip`` (B,) is true mirrored left-right: both frames
     flipped horizontally and the command swapped (left <-> right, half-left <-> half-right).
     Rewards, returns and episode ends are those of the mirror-image transition unchanged."""
-    def frames(x: torch.Tensor) -> torch.Tensor:
-        return torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(memory_format=torch.channels_last)
-
-    return dataclasses.replace(tb, obs=frames(tb.obs), next_obs=frames(tb.next_obs),
+    return dataclasses.replace(tb, obs=mirror_images(tb.obs, flip), next_obs=mirror_images(tb.next_obs, flip),
                                action=torch.where(flip, mirror_action(tb.action), tb.action))
 
 

@@ -38,7 +38,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shared.config import NUM_ACTIONS, ModelConfig, SensorConfig
+from shared.config import DEPTH_ENCODINGS, NUM_ACTIONS, ModelConfig, SensorConfig
 from shared.depth import MM_PER_M
 from shared.messages import architecture_fingerprint as wire_fingerprint
 
@@ -150,8 +150,14 @@ def encode_depth(x: torch.Tensor, encoding: str) -> torch.Tensor:
         return x
     if encoding == "inverse":
         near = INVERSE_DEPTH_NEAR_M / DEPTH_SCALE_M
-        return torch.where(x > 0, (near / x.clamp(min=near)), torch.zeros((), dtype=x.dtype, device=x.device))
+        return torch.where(x > 0, near / x.clamp(min=near), 0.0)
     raise ModelError(f"unknown depth encoding {encoding!r}")
+
+
+def mirror_images(x: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
+    """Network input (B, 1, H, W) with the images where ``flip`` (B,) is true mirrored left-right
+    (channels-last, as the networks take it)."""
+    return torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(memory_format=torch.channels_last)
 
 
 class ConvTrunk(nn.Module):
@@ -159,7 +165,8 @@ class ConvTrunk(nn.Module):
 
     def __init__(self, depth_encoding: str = "metric") -> None:
         super().__init__()
-        encode_depth(torch.zeros(1), depth_encoding)  # unknown names fail here, not mid-training
+        if depth_encoding not in DEPTH_ENCODINGS:  # fail here, not at the first forward
+            raise ModelError(f"unknown depth encoding {depth_encoding!r}")
         self.depth_encoding = depth_encoding
         c1, c2, c3 = CONV_CHANNELS
         pad = CONV_KERNEL // 2
@@ -266,7 +273,8 @@ def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
 
 def architecture_fingerprint(net: nn.Module) -> str:
     """Hash of the class, parameter names and shapes (and a non-metric depth encoding): equal iff
-    weights are interchangeable (the wire's definition, shared.messages.architecture_fingerprint, applied to ``net``)."""
+    weights are interchangeable (the wire's definition, shared.messages.architecture_fingerprint,
+    applied to ``net``)."""
     shapes = {n: tuple(t.shape) for n, t in net.state_dict().items()}
     extra = {"class": type(net).__name__}
     encoding = getattr(getattr(net, "trunk", None), "depth_encoding", "metric")

@@ -69,6 +69,7 @@ from shared.model import (
     architecture_fingerprint,
     copy_conv_weights,
     load_tensors,
+    mirror_images,
     preprocess_depth,
     reduce_allocator_page_faults,
     resolve_device,
@@ -741,8 +742,7 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
                 y = torch.from_numpy(labels_all[idx].astype(np.int64)).to(device)
                 if s.mirror:
                     flip = torch.from_numpy(rng.random(len(idx)) < 0.5).to(device)
-                    x = torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(
-                        memory_format=torch.channels_last)
+                    x = mirror_images(x, flip)
                     y = torch.where(flip, mirror_action(y), y)
                 logits = net(x)
                 loss = F.cross_entropy(logits, y, weight=class_weights)
