@@ -68,7 +68,8 @@ class Progress:
         with self.lock:
             self.episodes += 1
             self.env_steps += stats.steps
-            self.recent_steps.append(stats.steps)
+            if not stats.extra.get("expert_guided"):  # the network's episodes, not the expert's
+                self.recent_steps.append(stats.steps)
 
 
 class Launcher:

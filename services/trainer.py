@@ -28,11 +28,12 @@ from shared.checkpoint import CheckpointManager
 from shared.config import RunConfig
 from shared.env import ExploreEnv
 from shared.policy import EpsilonGreedyPolicy, EpsilonSchedule
+from shared.supervised import ExpertGuide
 
 log = logging.getLogger("cogexplore.train")
 
 EPISODE_COLUMNS = ("episode", "env_step", "update", "start_index", "steps", "return", "epsilon",
-                   "collision_cause", "distance_m", "path_length_m", "time_s")
+                   "collision_cause", "distance_m", "path_length_m", "time_s", "expert_guided")
 
 
 def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
@@ -46,6 +47,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     resumed = resume_from(checkpoints, core)
     env = ExploreEnv(cfg.env, cfg.sensor)
     policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=cfg.train.seed + 1)
+    guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2)
     config_dict = cfg.to_dict()
     deadline = time.monotonic() + max_minutes * 60 if max_minutes else None
     started = time.monotonic()
@@ -66,9 +68,10 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
         episode = 0
         recent_lengths: list[int] = []
         obs, info = env.reset(seed=cfg.train.seed + (core.received if resumed else 0))
+        guide.begin_episode()
         episode_return = 0.0
         while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            choice = policy.act(obs, step=env_step)
+            choice = policy.act(obs, step=env_step, guide_action=guide.action(info["pose"]))
             next_obs, reward, terminated, truncated, info = env.step(choice.action)
             core.add_transition("env", obs, choice.action, reward, None if terminated else next_obs,
                                 terminated, truncated)
@@ -90,17 +93,20 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                                      extra={"transitions_received": core.received})
             obs = next_obs
             if terminated or truncated:
-                recent_lengths = (recent_lengths + [info["step"]])[-20:]
+                if not guide.active:  # the bar shows the network's episodes, not the expert's
+                    recent_lengths = (recent_lengths + [info["step"]])[-20:]
                 episode_log.writerow([episode, env_step, core.updates, info["start_index"], info["step"],
                                       episode_return, f"{choice.epsilon:.4f}", info["collision_cause"] or "",
                                       f"{info['distance_from_start_m']:.3f}", f"{info['path_length_m']:.3f}",
-                                      round(time.monotonic() - started, 3)])
+                                      round(time.monotonic() - started, 3), int(guide.active)])
                 ef.flush()
                 episode += 1
                 loss, mean_q = core.recent()
-                bar.set_postfix_str(f"eps {choice.epsilon:.2f} | steps/ep {sum(recent_lengths) / len(recent_lengths):5.1f}"
+                mean_steps = sum(recent_lengths) / max(len(recent_lengths), 1)
+                bar.set_postfix_str(f"eps {choice.epsilon:.2f} | steps/ep {mean_steps:5.1f}"
                                     f" | loss {loss if loss is not None else float('nan'):.3g}", refresh=False)
                 obs, info = env.reset()
+                guide.begin_episode()
                 episode_return = 0.0
         bar.close()
     final = checkpoints.save(core.agent, replay=core.replay, config=config_dict,

@@ -315,10 +315,15 @@ class ExploreConfig:
     """Ape-X base epsilon."""
     apex_alpha: float = 7.0
     """Ape-X alpha."""
+    expert_episode_prob: float = 0.0
+    """Fraction of training episodes in which the privileged map expert
+    (shared.supervised.CommandExpert, the supervised labels' source) chooses the non-random actions
+    instead of the Q-network: demonstrations that reach the parts of the world an epsilon-greedy
+    episode rarely does. The network still sees only depth; 0 is the paper's plain epsilon-greedy."""
 
     def __post_init__(self) -> None:
         s = "explore"
-        for name in ("eps_start", "eps_end", "apex_base"):
+        for name in ("eps_start", "eps_end", "apex_base", "expert_episode_prob"):
             v = getattr(self, name)
             _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
         _check(type(self.eps_decay_steps) is int and self.eps_decay_steps >= 0, s,

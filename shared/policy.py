@@ -89,14 +89,19 @@ class EpsilonGreedyPolicy:
     def epsilon(self, step: int) -> float:
         return 0.0 if self.schedule is None else self.schedule(step)
 
-    def act(self, depth_m: np.ndarray, step: int = 0) -> ActionChoice:
-        """Choose an action for one (H, W) depth image at environment step ``step``."""
+    def act(self, depth_m: np.ndarray, step: int = 0, guide_action: int | None = None) -> ActionChoice:
+        """Choose an action for one (H, W) depth image at environment step ``step``.
+        ``guide_action`` (an expert's command) replaces the greedy one, not the random one."""
         q = self._runner.q_values(depth_m)
         eps = self.epsilon(step)
         # draw both numbers every step so the random stream does not depend on the Q-values
         u, rand_action = self.rng.random(), int(self.rng.integers(NUM_ACTIONS))
         if u < eps:
             return ActionChoice(rand_action, q, eps, True)
+        if guide_action is not None:
+            if not (isinstance(guide_action, (int, np.integer)) and 0 <= guide_action < NUM_ACTIONS):
+                raise PolicyError(f"guide_action must be an action index in [0, {NUM_ACTIONS}), got {guide_action!r}")
+            return ActionChoice(int(guide_action), q, eps, False)
         return ActionChoice(greedy_action(q), q, eps, False)
 
     def greedy(self, depth_m: np.ndarray) -> ActionChoice:

@@ -327,6 +327,32 @@ class CommandExpert:
         return int(safe.max())
 
 
+class ExpertGuide:
+    """Chooses which training episodes the expert drives (``explore.expert_episode_prob``) and
+    gives the expert's command in them; None in the others. One per environment."""
+
+    def __init__(self, env: Any, prob: float, seed: int | None = None):
+        if not (isinstance(prob, (int, float)) and 0.0 <= prob <= 1.0):
+            raise SupervisedError(f"expert episode probability must be in [0, 1], got {prob!r}")
+        self.prob = float(prob)
+        # the map is read once, and only when some episode may need it
+        self.expert = CommandExpert(env.world, env.env_config, env.sensor_config) if prob > 0 else None
+        self.rng = np.random.default_rng(seed)
+        self.active = False
+
+    def begin_episode(self) -> bool:
+        """Draw whether the episode now starting is expert-driven."""
+        self.active = self.expert is not None and self.rng.random() < self.prob
+        return self.active
+
+    def action(self, pose: Sequence[float]) -> int | None:
+        """The expert's command at ``pose`` (x, y, yaw) in an expert-driven episode, else None."""
+        if not self.active:
+            return None
+        x, y, yaw = pose
+        return self.expert.label(float(x), float(y), float(yaw))
+
+
 # ---------------------------------------------------------------------------------------------
 # The dataset
 # ---------------------------------------------------------------------------------------------

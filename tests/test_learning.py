@@ -5,6 +5,7 @@ couple of minutes on 2 cores; the trained greedy policy is then put through the 
 protocol next to the random policy, with the same seeds.
 """
 
+import csv
 from pathlib import Path
 
 import pytest
@@ -35,3 +36,21 @@ def test_tiny_training_beats_random_by_a_clear_margin(tmp_path: Path):
     random = evaluate_policy(make_policy("random", seed=123), **protocol).summary["overall"]["mean_steps"]
     print(f"mean moving steps over 4 starts x 5 episodes (cap 100): trained {trained:.1f}, random {random:.1f}")
     assert trained >= 2 * random and trained >= random + 10
+
+
+def test_trainer_lets_the_expert_drive_the_drawn_episodes(tmp_path: Path):
+    """explore.expert_episode_prob: with epsilon 0 the expert's episodes run to the step cap
+    collision-free, the untrained network's do not, and episodes.csv says which were which."""
+    torch.manual_seed(0)
+    cfg = load_preset("tiny").with_overrides({
+        "explore.expert_episode_prob": 0.5, "explore.eps_start": 0.0, "explore.eps_end": 0.0,
+        "env.max_episode_steps": 40, "train.total_updates": 20, "train.warmup_transitions": 500,
+        "train.checkpoint_every": 1000})
+    train_single_process(cfg, RunPaths(tmp_path / "guided"), progress=False)
+    with open(tmp_path / "guided" / "stats" / "episodes.csv") as f:
+        episodes = list(csv.DictReader(f))
+    guided = [e for e in episodes if e["expert_guided"] == "1"]
+    plain = [e for e in episodes if e["expert_guided"] == "0"]
+    assert guided and plain and len(guided) + len(plain) == len(episodes)
+    assert all(e["collision_cause"] == "" and e["steps"] == "40" for e in guided)
+    assert sum(int(e["steps"]) for e in plain) / len(plain) < 30

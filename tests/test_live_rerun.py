@@ -40,8 +40,10 @@ from services.evaluator.rerun_log import (
 from services.evaluator.service import EvaluatorService, recording_path
 from shared.config import load_preset
 from shared.keys import RunKeys
+from shared.messages import EpisodeStats, RejectCounter
 from shared.model import QNetwork
-from shared.transport import ZenohSettings, declare_alive, free_tcp_port, open_router, open_session
+from shared.transport import (ZenohSettings, declare_alive, free_tcp_port, open_router, open_session,
+                              subscribe_messages)
 from shared.weights import to_message
 from shared.world import load_world
 
@@ -268,15 +270,35 @@ def router() -> str:
         yield endpoint
 
 
-def run_small_actor(router: str, rerun_url: str, max_steps: int, every: int) -> dict:
+def run_small_actor(router: str, rerun_url: str | None, max_steps: int, every: int = 1,
+                    overrides: dict | None = None, on_episode=None) -> dict:
     """run_actor on the smoke preset (box-room, 40 x 30, 50-step episodes) with a learner's
-    liveliness token present, so it steps instead of pausing."""
-    cfg = load_preset("smoke")
+    liveliness token present, so it steps instead of pausing; ``on_episode`` gets its
+    EpisodeStats messages."""
+    cfg = load_preset("smoke").with_overrides(overrides or {})
     settings = ZenohSettings(connect=(router,))
     with open_session(settings) as session:
         token = declare_alive(session, RunKeys("live").alive("learner", "L"))  # noqa: F841
+        sub = (subscribe_messages(session, RunKeys("live").all_stats("episode"), EpisodeStats, on_episode,  # noqa: F841
+                                  RejectCounter("episode stats")) if on_episode else None)
         return run_actor(cfg, "live", "a-1", settings, threading.Event(), max_steps=max_steps, seed=3,
                          rerun_url=rerun_url, rerun_every_episodes=every, rerun_image_every=2)
+
+
+def test_actor_lets_the_expert_drive_the_drawn_episodes(router: str) -> None:
+    """explore.expert_episode_prob = 1 with epsilon 0: every episode is the expert's, runs to
+    the 50-step cap without a collision, and its stats say it was guided."""
+    episodes: list[EpisodeStats] = []
+    counters = run_small_actor(router, None, max_steps=150, on_episode=lambda m, _k: episodes.append(m),
+                               overrides={"explore.expert_episode_prob": 1.0, "explore.eps_start": 0.0,
+                                          "explore.eps_end": 0.0})
+    assert counters["episodes"] == 3, counters
+    deadline = time.monotonic() + 10
+    while len(episodes) < 3 and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert len(episodes) == 3
+    for e in episodes:
+        assert e.extra["expert_guided"] == 1.0 and e.truncated and not e.terminated and e.steps == 50, e
 
 
 def test_actor_streams_every_nth_episode_as_one_recording(router: str, tmp_path: Path) -> None:

@@ -73,3 +73,17 @@ def test_epsilon_greedy_explores_uniformly_and_is_seeded():
     assert all(c.action == greedy and not c.explored and c.epsilon == 0.0 for c in late)
     mid = [p1.act(depth, step=500) for _ in range(600)]
     assert 0.4 < np.mean([c.explored for c in mid]) < 0.6
+
+
+def test_guide_action_replaces_the_greedy_choice_not_the_random_one():
+    half = EpsilonSchedule(ExploreConfig(eps_start=0.5, eps_end=0.5, eps_decay_steps=0))
+    depth = np.ones((30, 40), dtype=np.float32)
+    guided, plain = EpsilonGreedyPolicy(net(), half, seed=3), EpsilonGreedyPolicy(net(), half, seed=3)
+    guide = (plain.greedy(depth).action + 1) % 5  # never the greedy action
+    choices = [(guided.act(depth, guide_action=guide), plain.act(depth)) for _ in range(200)]
+    assert 60 < sum(p.explored for _, p in choices) < 140
+    for g, p in choices:
+        assert g.explored == p.explored  # the same random stream with or without a guide
+        assert g.action == (p.action if p.explored else guide)
+    with pytest.raises(PolicyError, match="guide_action"):
+        guided.act(depth, guide_action=5)

@@ -18,6 +18,7 @@ from shared.supervised import (
     CommandExpert,
     DriveConfig,
     ExpertConfig,
+    ExpertGuide,
     SupervisedDataset,
     SupervisedError,
     TrainSettings,
@@ -115,6 +116,30 @@ def test_expert_drives_box_room_without_collision():
             assert not terminated, f"start {start}: collision ({info['collision_cause']}) at step {info['step']}"
             if truncated:
                 break
+
+
+def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_commands():
+    from shared.config import ExploreConfig
+    from shared.env import ExploreEnv
+
+    env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=40)
+    off = ExpertGuide(env, 0.0, seed=0)
+    assert off.expert is None and not off.begin_episode() and off.action((0.0, 0.0, 0.0)) is None
+    share = ExpertGuide(env, 0.3, seed=0)
+    drawn = [share.begin_episode() for _ in range(2000)]
+    assert 0.27 < np.mean(drawn) < 0.33
+    always = ExpertGuide(env, 1.0, seed=0)
+    _, info = env.reset(seed=0, options={"start_index": 0})
+    assert always.begin_episode()
+    for _ in range(40):  # the guide's commands are the expert's, and they keep the robot clear
+        action = always.action(info["pose"])
+        assert action == always.expert.label(*info["pose"])
+        _, _, terminated, truncated, info = env.step(action)
+        assert not terminated, info["collision_cause"]
+    with pytest.raises(SupervisedError, match="probability"):
+        ExpertGuide(env, 1.5)
+    with pytest.raises(ConfigError, match="expert_episode_prob"):
+        ExploreConfig(expert_episode_prob=-0.1)
 
 
 def test_expert_config_is_validated():

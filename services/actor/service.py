@@ -38,6 +38,7 @@ from shared.keys import RunKeys
 from shared.messages import EpisodeStats, FlowControl, MessageError, RejectCounter, WeightsMessage
 from shared.model import QNetwork, architecture_fingerprint, resolve_device
 from shared.policy import EpsilonGreedyPolicy, EpsilonSchedule
+from shared.supervised import ExpertGuide
 from shared.transport import (
     LivelinessWatch, declare_alive, declare_reliable_publisher, open_session, query_latest,
     subscribe_messages,
@@ -150,6 +151,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     # The schedule runs on this actor's steps times the fleet size: an estimate of the global
     # env-step count that needs no message from anyone.
     policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed)
+    guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=seed + 7_919)
     batcher = TransitionBatcher(actor_id, batch_steps)
     slot = WeightSlot(architecture_fingerprint(net))
     rejects = RejectCounter("weights message", log)
@@ -184,6 +186,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
         threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
 
         obs, info = env.reset(seed=seed)
+        guide.begin_episode()
         batcher.begin_episode(obs, info["start_index"])
         if stream is not None:
             stream.begin_episode(batcher.episode, info["start_index"])
@@ -218,7 +221,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 policy_version = message.policy_version
                 counters["weights_loaded"] += 1
 
-            choice = policy.act(obs, step=counters["env_steps"] * num_actors)
+            choice = policy.act(obs, step=counters["env_steps"] * num_actors, guide_action=guide.action(info["pose"]))
             action, epsilon = choice.action, choice.epsilon
             if stream is not None:  # info is still obs's: the pose the decision was taken at
                 stream.log_step(info["step"], info["pose"], obs, choice.q_values, action)
@@ -238,7 +241,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                     truncated=truncated, collision_cause=info["collision_cause"],
                     path_length_m=info["path_length_m"], distance_from_start_m=info["distance_from_start_m"],
                     epsilon=epsilon, policy_version=policy_version,
-                    duration_s=time.monotonic() - episode_start)
+                    duration_s=time.monotonic() - episode_start, extra={"expert_guided": float(guide.active)})
                 stats_publisher.put(stats.encode())
                 counters["episodes"] += 1
                 if stream is not None:
@@ -247,6 +250,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                         "distance_m": info["distance_from_start_m"],
                                         "path_length_m": info["path_length_m"]}, final_pose=info["pose"])
                 obs, info = env.reset()
+                guide.begin_episode()
                 batcher.begin_episode(obs, info["start_index"])
                 if stream is not None:
                     stream.begin_episode(batcher.episode, info["start_index"])
