@@ -270,7 +270,8 @@ class DQNConfig:
     n_step: int = 1
     """n-step returns."""
     loss: str = "mse"
-    """'mse' (paper) or 'huber'."""
+    """'mse' (paper) or 'huber' (slope 1 beyond an error of 1: meant for rewards clipped to +-1; on
+    the unclipped -100 collision reward it fits a median and under-weights rare collisions)."""
     grad_clip_norm: float = 0.0
     """Clip the gradient's global norm to this value (0 = off)."""
     mirror_augment: bool = False

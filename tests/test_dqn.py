@@ -142,6 +142,24 @@ def test_mirror_augment_teaches_the_mirror_image_of_each_transition():
     assert q_right[True] < -50 and q_right[True] < q_right[False] - 30, q_right
 
 
+def test_mse_weighs_a_rare_collision_and_huber_ignores_it():
+    """One scene: 'left' always earns +1; 'half-left' earns +2 but collides (-100) one time in
+    five. The mean return (-18.4) says avoid it, which MSE learns; Huber with the rewards
+    unclipped learns a median-like +1.75 and prefers the risky command."""
+    batch = make_batch(20, seed=5, terminated=np.ones(20, bool))
+    batch.obs[:] = batch.obs[0]
+    batch.action[:] = [0] * 10 + [1] * 10
+    batch.rewards[:, 0] = [1.0] * 10 + [2.0] * 8 + [-100.0] * 2
+    q = {}
+    for loss in ("mse", "huber"):
+        agent = DQNAgent(SMALL, TINY, DQNConfig(optimizer="adam", lr=1e-2, loss=loss), device="cpu", seed=0)
+        for _ in range(60):
+            agent.update(batch)
+        q[loss] = agent.q_values(torch.from_numpy(batch.obs[:1].copy()))[0, :2].tolist()
+    assert q["mse"][1] < q["mse"][0] - 10 and q["mse"][1] == pytest.approx(-18.4, abs=3), q
+    assert q["huber"][1] > q["huber"][0] and q["huber"][1] == pytest.approx(1.75, abs=0.5), q
+
+
 def test_conv_layers_learn_slower_and_can_be_frozen():
     agent = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3, conv_lr_scale=0.1), device="cpu", seed=0)
     lrs = {g["name"]: g["lr"] for g in agent.optimizer.param_groups}
