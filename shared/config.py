@@ -271,7 +271,7 @@ class DQNConfig:
     """n-step returns."""
     loss: str = "mse"
     """'mse' (paper) or 'huber' (slope 1 beyond an error of 1: meant for rewards clipped to +-1; on
-    the unclipped -100 collision reward it fits a median and under-weights rare collisions)."""
+    the unclipped -100 collision reward it fits close to a median and under-weights rare collisions)."""
     grad_clip_norm: float = 0.0
     """Clip the gradient's global norm to this value (0 = off)."""
     mirror_augment: bool = False
