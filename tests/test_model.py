@@ -5,8 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from shared.config import ModelConfig, SensorConfig
-from shared.config import ConfigError
+from shared.config import ConfigError, ModelConfig, SensorConfig
 from shared.model import (DEPTH_SCALE_M, INVERSE_DEPTH_NEAR_M, InferenceRunner, ModelError, QNetwork, SupervisedNet,
                           architecture_fingerprint, copy_conv_weights, encode_depth, forward_flops, layer_summary,
                           load_tensors, pool3_shape, preprocess_depth, weights_to_tensors)
