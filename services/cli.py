@@ -240,11 +240,22 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return int(args.handler(args) or 0)
-    except (ConfigError, WorldError) as exc:
-        print(f"cogexplore: error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         return 130
+    except Exception as exc:
+        if not isinstance(exc, (ConfigError, WorldError, *_loaded_user_errors())):
+            raise
+        print(f"cogexplore: error: {exc}", file=sys.stderr)
+        return 2
+
+
+_USER_ERRORS = (("shared.checkpoint", "CheckpointError"), ("shared.supervised", "SupervisedError"))
+"""Errors that name a bad file or setting (train.init_from, init_conv_from): a message, not a traceback."""
+
+
+def _loaded_user_errors() -> tuple[type[BaseException], ...]:
+    # only modules already imported can have raised; importing them here would pull in torch
+    return tuple(getattr(sys.modules[m], name) for m, name in _USER_ERRORS if m in sys.modules)
 
 
 if __name__ == "__main__":

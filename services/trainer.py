@@ -33,7 +33,7 @@ from shared.supervised import ExpertGuide
 log = logging.getLogger("cogexplore.train")
 
 EPISODE_COLUMNS = ("episode", "env_step", "update", "start_index", "steps", "return", "epsilon",
-                   "collision_cause", "distance_m", "path_length_m", "time_s", "expert_guided")
+                   "collision_cause", "distance_m", "path_length_m", "time_s", "expert_guided", "world")
 
 
 def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
@@ -98,7 +98,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                 episode_log.writerow([episode, env_step, core.updates, info["start_index"], info["step"],
                                       episode_return, f"{choice.epsilon:.4f}", info["collision_cause"] or "",
                                       f"{info['distance_from_start_m']:.3f}", f"{info['path_length_m']:.3f}",
-                                      round(time.monotonic() - started, 3), int(guide.active)])
+                                      round(time.monotonic() - started, 3), int(guide.active), info["world"]])
                 ef.flush()
                 episode += 1
                 loss, mean_q = core.recent()

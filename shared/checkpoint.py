@@ -379,5 +379,29 @@ def pretrained_path(name: str | Path) -> Path | None:
     return path
 
 
+def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
+    """Fine-tuning (``train.init_from``): the agent's online and target networks from a weights
+    export or ``pretrained`` (the shipped DRL model). Raises CheckpointError when the file's
+    network or image is not the agent's. Returns the file's metadata."""
+    path = pretrained_path(source) or Path(source)
+    if not path.is_file():
+        raise CheckpointError(f"train.init_from = {str(source)!r}: no such file")
+    try:
+        net, meta = load_exported_weights(path)
+    except CheckpointError as exc:
+        raise CheckpointError(f"train.init_from: {exc} (a training checkpoint becomes a weights file with "
+                              "`cogexplore model export CKPT --out FILE`)") from None
+    theirs, ours = net.sensor_cfg, agent.sensor_cfg
+    if architecture_fingerprint(net) != agent.fingerprint or (theirs.width, theirs.height, theirs.max_range_m) != (
+            ours.width, ours.height, ours.max_range_m):
+        raise CheckpointError(f"train.init_from = {str(source)!r}: its network ({meta['model']}, "
+                              f"{theirs.width} x {theirs.height} px, {theirs.max_range_m} m) is not this run's "
+                              f"({_asdict(agent.model_cfg)}, {ours.width} x {ours.height} px, {ours.max_range_m} m)")
+    with torch.no_grad():
+        agent.online.load_state_dict(net.state_dict())
+    agent.sync_target()
+    return meta
+
+
 def _asdict(cfg: Any) -> dict[str, Any]:
     return asdict(cfg)

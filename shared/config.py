@@ -107,6 +107,37 @@ class SensorConfig:
                self.dropout_prob, "a probability in [0, 1)")
 
 
+PROCEDURAL_PREFIX = "procedural:"
+"""World names ``procedural:<seed>`` are generated layouts (shared.world.procedural_world)."""
+MAX_WORLD_LIST = 10_000
+"""Most world names ``parse_world_list`` expands a list to."""
+
+
+def parse_world_list(text: str) -> tuple[str, ...]:
+    """``"paper-indoor, procedural:1000-1003"`` -> the names, seed ranges expanded, in order and
+    without repeats. Only the syntax is checked here: the worlds are built when first played."""
+    names: dict[str, None] = {}
+    for part in (p.strip() for p in text.split(",")):
+        if not part:
+            continue
+        if part.startswith(PROCEDURAL_PREFIX):
+            first, dash, last = part[len(PROCEDURAL_PREFIX):].partition("-")
+            if not all(t.isascii() and t.isdigit() for t in ((first, last) if dash else (first,))):
+                raise ValueError(f"{part!r}: use 'procedural:<seed>' or 'procedural:<first>-<last>', "
+                                 "seeds integers >= 0")
+            if not dash:
+                names[part] = None
+                continue
+            if int(last) < int(first):
+                raise ValueError(f"{part!r}: the last seed is below the first")
+            if int(last) - int(first) + 1 + len(names) > MAX_WORLD_LIST:
+                raise ValueError(f"{part!r}: more than {MAX_WORLD_LIST} worlds")
+            names.update(dict.fromkeys(f"{PROCEDURAL_PREFIX}{seed}" for seed in range(int(first), int(last) + 1)))
+        else:
+            names[part] = None
+    return tuple(names)
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """The exploration task: world, robot motion, reward and episode end."""
@@ -144,6 +175,14 @@ class EnvConfig:
     random_start_clearance_m: float = 0.6
     """Least distance (m) from a random start to any obstacle (the collision threshold l_s is
     also checked on the first image)."""
+    extra_worlds: str = ""
+    """More training worlds, comma-separated: names as in ``world``, and
+    'procedural:<first>-<last>' for a range of procedural seeds. An episode that does not fix its
+    start plays one of them, drawn uniformly, with probability ``extra_world_prob``, and ``world``
+    otherwise. Keep the seeds used for evaluation (procedural 101-110, validation 201-210) out of
+    the list."""
+    extra_world_prob: float = 0.0
+    """Share of episodes played in one of ``extra_worlds`` (0: always ``world``)."""
 
     def __post_init__(self) -> None:
         s = "env"
@@ -174,6 +213,21 @@ class EnvConfig:
                self.random_start_prob, "a probability in [0, 1]")
         _check(_finite(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
                "random_start_clearance_m", self.random_start_clearance_m, "metres in (0, 5)")
+        _check(isinstance(self.extra_worlds, str), s, "extra_worlds", self.extra_worlds,
+               "a comma-separated list of world names")
+        try:
+            names = parse_world_list(self.extra_worlds)
+        except ValueError as exc:
+            raise ConfigError(f"env.extra_worlds = {self.extra_worlds!r} is invalid: {exc}") from None
+        _check(_finite(self.extra_world_prob) and 0 <= self.extra_world_prob <= 1, s, "extra_world_prob",
+               self.extra_world_prob, "a probability in [0, 1]")
+        _check(self.extra_world_prob == 0 or names, s, "extra_world_prob", self.extra_world_prob,
+               "0 while env.extra_worlds is empty")
+
+    @property
+    def extra_world_names(self) -> tuple[str, ...]:
+        """``extra_worlds`` as a tuple of world names, seed ranges expanded."""
+        return parse_world_list(self.extra_worlds)
 
     @property
     def substeps(self) -> int:
@@ -359,6 +413,12 @@ class TrainConfig:
     """A supervised model file (``cogexplore pretrain``) whose conv layers initialise the
     Q-network when a run starts fresh (the paper's transfer); 'pretrained:sl' = the shipped one
     (80 x 60 images); '' = random initialisation. A resumed run keeps its checkpoint's weights."""
+    init_from: str = ""
+    """Fine-tuning: a Q-network weights file (``cogexplore model export``) or 'pretrained' (the
+    shipped DRL model) whose weights initialise the whole network, online and target, when a run
+    starts fresh; its architecture and image must be the run's. '' = no such start. When set,
+    ``init_conv_from`` is not used (these weights include the conv layers). A resumed run keeps
+    its checkpoint's weights."""
 
     def __post_init__(self) -> None:
         s = "train"
@@ -379,6 +439,10 @@ class TrainConfig:
                self.init_conv_from.strip() == self.init_conv_from and self.init_conv_from.endswith(".safetensors"))),
                s, "init_conv_from", self.init_conv_from,
                "'' (random conv layers), 'pretrained:sl' or the path of a supervised model .safetensors file")
+        _check(isinstance(self.init_from, str) and (self.init_from in ("", "pretrained", "pretrained:drl") or (
+               self.init_from.strip() == self.init_from and self.init_from.endswith(".safetensors"))),
+               s, "init_from", self.init_from,
+               "'', 'pretrained' or the path of a Q-network weights .safetensors file (`cogexplore model export`)")
 
 
 # ---------------------------------------------------------------------------

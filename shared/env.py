@@ -14,25 +14,57 @@ bootstrap through it.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+import zlib
 from typing import Any
 
 import gymnasium as gym
 import mujoco
 import numpy as np
 
-from shared.config import ACTION_NAMES, NUM_ACTIONS, SPEED_TABLES, EnvConfig, SensorConfig
+from shared.config import ACTION_NAMES, NUM_ACTIONS, PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig
 from shared.robot import Robot, build_model
 from shared.sensor import DepthCamera
-from shared.world import World, load_world
+from shared.world import World, WorldError, load_world
 
 ENV_ID = "cogexplore/Explore-v0"
+log = logging.getLogger("cogexplore.env")
 
 
 def min_valid_depth(depth_m: np.ndarray) -> float:
     """Smallest non-zero depth in the image (inf if no pixel has a return)."""
     valid = depth_m[depth_m > 0]
     return float(valid.min()) if valid.size else math.inf
+
+
+@dataclasses.dataclass
+class _Scene:
+    """One world's MuJoCo model with the robot, its data and camera, and (built on first need)
+    the cells a random start may use."""
+
+    world: World
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    robot: Robot
+    camera: DepthCamera
+    _clear: tuple[Any, np.ndarray] | None = None
+
+    @classmethod
+    def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
+        model = build_model(world.mjcf, cfg, sensor)
+        data = mujoco.MjData(model)
+        return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
+
+    def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:
+        """The 5 cm occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
+        if self._clear is None:
+            from shared.maps import clearance_map, occupancy_grid
+
+            grid = occupancy_grid(self.world, 0.05)
+            clearance = clearance_map(grid.occupied, grid.resolution_m)
+            self._clear = grid, np.argwhere(clearance >= clearance_m)
+        return self._clear
 
 
 class ExploreEnv(gym.Env):
@@ -62,14 +94,17 @@ class ExploreEnv(gym.Env):
             raise ValueError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
         self.render_mode = render_mode
 
-        self.world = world_obj if isinstance(world_obj, World) else load_world(cfg.world)
-        if cfg.start_index is not None and cfg.start_index >= len(self.world.starts):
-            raise ValueError(f"start_index {cfg.start_index} out of range: world {self.world.name!r} "
-                             f"has {len(self.world.starts)} starts")
-        self.model = build_model(self.world.mjcf, cfg, self.sensor_config)
-        self.data = mujoco.MjData(self.model)
-        self.robot = Robot(self.model, self.data)
-        self.camera = DepthCamera(self.model, self.sensor_config)
+        world = world_obj if isinstance(world_obj, World) else load_world(cfg.world)
+        if cfg.start_index is not None and cfg.start_index >= len(world.starts):
+            raise ValueError(f"start_index {cfg.start_index} out of range: world {world.name!r} "
+                             f"has {len(world.starts)} starts")
+        self._main_scene = _Scene.build(world, cfg, self.sensor_config)
+        self._scenes = {world.name: self._main_scene}  # extra worlds are built when first drawn
+        self._extra_world_names = cfg.extra_world_names if cfg.extra_world_prob > 0 else ()
+        for name in self._extra_world_names:
+            if not name.startswith(PROCEDURAL_PREFIX):  # procedural names are checked by the config
+                load_world(name)  # a bad name or a broken file fails here, not episodes into a run
+        self._use(self._main_scene)
         self.angular_rps, self.linear_mps = SPEED_TABLES[cfg.speed_table]
 
         s = self.sensor_config
@@ -83,16 +118,23 @@ class ExploreEnv(gym.Env):
         self._path_length = 0.0
         self._steps = 0
         self._random_start = False
-        self._clear_cells: np.ndarray | None = None  # cells a random start may use, built on first need
-        self._grid = None
+        self._noise_seed: int | None = None  # drawn at each seeded reset
 
     # -- Gymnasium API ------------------------------------------------------------------
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
         if seed is not None:
-            self.camera.reseed(int(self.np_random.integers(2**63)))
+            self._noise_seed = int(self.np_random.integers(2**63))
+            for name, scene in self._scenes.items():
+                scene.camera.reseed(self._camera_seed(name))
         options = options or {}
+        fixed = "start_index" in options or self.env_config.start_index is not None
+        scene = self._main_scene
+        extra = self._extra_world_names
+        if not fixed and extra and self.np_random.random() < self.env_config.extra_world_prob:
+            scene = self._extra_scene(extra[int(self.np_random.integers(len(extra)))]) or scene
+        self._use(scene)
         index = options.get("start_index", self.env_config.start_index)
         n_starts = len(self.world.starts)
         if index is None:
@@ -101,7 +143,6 @@ class ExploreEnv(gym.Env):
             raise ValueError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
         pose = None  # a random free pose (it leaves the robot there and its image in self._depth)
-        fixed = "start_index" in options or self.env_config.start_index is not None
         if not fixed and self.env_config.random_start_prob > 0 and \
                 self.np_random.random() < self.env_config.random_start_prob:
             pose = self._random_free_pose()
@@ -141,26 +182,58 @@ class ExploreEnv(gym.Env):
         return None
 
     def close(self):
-        self.camera.close()
+        for scene in self._scenes.values():
+            scene.camera.close()
+
+    @property
+    def main_world(self) -> World:
+        """``env.world``'s World; ``self.world`` is the world of the episode now playing."""
+        return self._main_scene.world
 
     # -- helpers ---------------------------------------------------------------------
+
+    def _use(self, scene: _Scene) -> None:
+        """Make ``scene`` the world the robot drives in (its own model, data and camera)."""
+        self._scene = scene
+        self.world, self.model, self.data = scene.world, scene.model, scene.data
+        self.robot, self.camera = scene.robot, scene.camera
+
+    def _extra_scene(self, name: str) -> _Scene | None:
+        """The scene of extra world ``name``, built on first use; None (and the world is dropped
+        from the draw, with a warning) when it cannot be built: a training run goes on."""
+        scene = self._scenes.get(name)
+        if scene is None:
+            try:
+                world = load_world(name)
+                scene = _Scene.build(world, self.env_config, self.sensor_config)
+            except (WorldError, ValueError) as exc:
+                log.warning("env.extra_worlds: dropping %r, which cannot be built (%s); its episodes "
+                            "play %r", name, exc, self.main_world.name)
+                self._extra_world_names = tuple(n for n in self._extra_world_names if n != name)
+                return None
+            self._scenes[name] = scene
+            if self._noise_seed is not None:
+                scene.camera.reseed(self._camera_seed(name))
+        return scene
+
+    def _camera_seed(self, name: str) -> int:
+        """The depth-noise seed of world ``name`` after a seeded reset: the same whichever worlds
+        were built before, so a seed replays the same episodes on a fresh or a used env."""
+        if name == self.main_world.name:
+            return self._noise_seed
+        return int(np.random.default_rng([self._noise_seed, zlib.crc32(name.encode())]).integers(2**63))
 
     def _random_free_pose(self, tries: int = 50) -> tuple[float, float, float] | None:
         """Move the robot to a random pose ``random_start_clearance_m`` from every obstacle whose
         first image (kept in ``self._depth``) is above the collision threshold with a 10 cm
         margin; None when no such pose turns up (the caller then places the robot)."""
-        if self._clear_cells is None:
-            from shared.maps import clearance_map, occupancy_grid
-
-            self._grid = occupancy_grid(self.world, 0.05)
-            clearance = clearance_map(self._grid.occupied, self._grid.resolution_m)
-            self._clear_cells = np.argwhere(clearance >= self.env_config.random_start_clearance_m)
-        if len(self._clear_cells) == 0:
+        grid, clear_cells = self._scene.clear_cells(self.env_config.random_start_clearance_m)
+        if len(clear_cells) == 0:
             return None
-        half = self._grid.resolution_m / 2
+        half = grid.resolution_m / 2
         for _ in range(tries):
-            iy, ix = self._clear_cells[self.np_random.integers(len(self._clear_cells))]
-            cx, cy = self._grid.cell_to_world(ix, iy)
+            iy, ix = clear_cells[self.np_random.integers(len(clear_cells))]
+            cx, cy = grid.cell_to_world(ix, iy)
             pose = (float(cx + self.np_random.uniform(-half, half)), float(cy + self.np_random.uniform(-half, half)),
                     float(self.np_random.uniform(-math.pi, math.pi)))
             self.robot.set_pose(*pose)
@@ -174,6 +247,7 @@ class ExploreEnv(gym.Env):
         x, y, yaw = self.robot.pose()
         return {
             "pose": (x, y, yaw),
+            "world": self.world.name,
             "start_index": self._start_index,
             "random_start": self._random_start,
             "collision_cause": cause,

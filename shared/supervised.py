@@ -335,22 +335,26 @@ class ExpertGuide:
         if not (isinstance(prob, (int, float)) and 0.0 <= prob <= 1.0):
             raise SupervisedError(f"expert episode probability must be in [0, 1], got {prob!r}")
         self.prob = float(prob)
-        # the map is read once, and only when some episode may need it
-        self.expert = CommandExpert(env.world, env.env_config, env.sensor_config) if prob > 0 else None
+        self.env = env
+        self._experts: dict[str, CommandExpert] = {}  # per world, built when first needed
         self.rng = np.random.default_rng(seed)
         self.active = False
 
     def begin_episode(self) -> bool:
         """Draw whether the episode now starting is expert-driven."""
-        self.active = self.expert is not None and self.rng.random() < self.prob
+        self.active = self.prob > 0 and self.rng.random() < self.prob
         return self.active
 
     def action(self, pose: Sequence[float]) -> int | None:
         """The expert's command at ``pose`` (x, y, yaw) in an expert-driven episode, else None."""
         if not self.active:
             return None
+        world = self.env.world  # the world of the episode now playing (env.extra_worlds)
+        expert = self._experts.get(world.name)
+        if expert is None:
+            expert = self._experts[world.name] = CommandExpert(world, self.env.env_config, self.env.sensor_config)
         x, y, yaw = pose
-        return self.expert.label(float(x), float(y), float(yaw))
+        return expert.label(float(x), float(y), float(yaw))
 
 
 # ---------------------------------------------------------------------------------------------

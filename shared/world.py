@@ -23,7 +23,7 @@ import mujoco
 import numpy as np
 
 from shared import maps
-from shared.config import SPEED_TABLES, EnvConfig, SensorConfig
+from shared.config import PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig
 from shared.robot import FLOOR_GEOM, ROBOT_BODY, Robot, build_model
 from shared.sensor import DepthCamera
 
@@ -387,7 +387,6 @@ BUILTIN_WORLDS = {
 # Procedural worlds
 # ---------------------------------------------------------------------------
 
-PROCEDURAL_PREFIX = "procedural:"
 _DOOR_KEEPOUT_M = 0.8  # clutter stays this far from door centres
 
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from shared.checkpoint import (CheckpointError, CheckpointManager, export_weights, load_checkpoint,
-                               load_exported_weights, save_checkpoint)
+                               load_exported_weights, pretrained_path, save_checkpoint)
 from shared.config import DQNConfig, ModelConfig, ReplayConfig, RunConfig, SensorConfig
 from shared.dqn import DQNAgent
 from shared.replay import ReplayMemory
@@ -177,3 +177,40 @@ def test_weights_only_export_round_trip(tmp_path):
     assert os.path.getsize(path) < 0.6 * os.path.getsize(save_checkpoint(tmp_path / "c.safetensors", agent))
     with pytest.raises(CheckpointError, match="cogexplore-weights"):
         load_exported_weights(tmp_path / "c.safetensors")
+
+
+def test_init_from_starts_the_whole_network_from_a_weights_file_and_refuses_misfits(tmp_path, capsys):
+    """train.init_from (fine-tuning): online and target start as the file's network; a network of
+    another image size, a training checkpoint or a missing file is a clear error, also from the CLI."""
+    from services.cli import main
+    from services.learner.core import LearnerCore
+    from shared.config import ConfigError, TrainConfig, load_preset
+
+    base = load_preset("tiny").with_overrides({"replay.capacity": 500})
+    source = LearnerCore(base.with_overrides({"train.seed": 7}), device="cpu").agent
+    path = export_weights(tmp_path / "w.safetensors", source.online)
+    core = LearnerCore(base.with_overrides({"train.init_from": str(path)}), device="cpu")
+    fresh = LearnerCore(base, device="cpu")
+    for name, tensor in source.online.state_dict().items():
+        assert torch.equal(core.agent.online.state_dict()[name], tensor), name
+        assert torch.equal(core.agent.target.state_dict()[name], tensor), name
+        assert not torch.equal(fresh.agent.online.state_dict()[name], tensor) or "bias" in name, name
+
+    wide = base.with_overrides({"sensor.width": 48, "sensor.height": 36})
+    with pytest.raises(CheckpointError, match="40 x 30 px.*is not this run.s.*48 x 36 px"):
+        LearnerCore(wide.with_overrides({"train.init_from": str(path)}), device="cpu")
+    ckpt = save_checkpoint(tmp_path / "ckpt.safetensors", source)
+    with pytest.raises(CheckpointError, match="model export"):
+        LearnerCore(base.with_overrides({"train.init_from": str(ckpt)}), device="cpu")
+    code = main(["train", "--single-process", "--preset", "tiny", "--runs-dir", str(tmp_path / "runs"),
+                 "--run", "bad", "--updates", "1", "--quiet", "--set", f"train.init_from={tmp_path}/none.safetensors"])
+    assert code == 2 and "no such file" in capsys.readouterr().err
+
+    with pytest.raises(ConfigError, match="init_from"):
+        TrainConfig(init_from="model.pt")
+    # the shipped model into its own recipe, whose conv transfer then stands aside
+    shipped = load_preset("fast-40x30").with_overrides({"replay.capacity": 500, "train.init_from": "pretrained"})
+    assert shipped.train.init_conv_from == "pretrained:sl"
+    net, _ = load_exported_weights(pretrained_path("pretrained"))
+    core = LearnerCore(shipped, device="cpu")
+    assert all(torch.equal(core.agent.online.state_dict()[n], t) for n, t in net.state_dict().items())

@@ -177,3 +177,77 @@ def test_random_start_config_is_validated():
         EnvConfig(random_start_prob=1.5)
     with pytest.raises(ConfigError, match="random_start_clearance_m"):
         EnvConfig(random_start_clearance_m=float("nan"))
+
+
+def test_extra_worlds_share_the_episodes_and_fixed_starts_stay_in_the_main_world(tmp_path, caplog):
+    import logging
+
+    from shared.config import SensorConfig
+    from shared.world import WorldError
+
+    env = ExploreEnv(EnvConfig(world="box-room", extra_worlds="corridor, procedural:7-8", extra_world_prob=0.6,
+                               max_episode_steps=3), sensor=SensorConfig(width=40, height=30))
+    worlds = []
+    for episode in range(60):
+        obs, info = env.reset(seed=0 if episode == 0 else None)
+        start = env.world.starts[info["start_index"]]
+        assert info["pose"][:2] == pytest.approx((start.x, start.y), abs=1e-9)  # a start of the world drawn
+        _, _, _, _, info = env.step(2)
+        worlds.append(info["world"])
+    counts = {name: worlds.count(name) for name in set(worlds)}
+    assert set(counts) == {"box-room", "corridor", "procedural:7", "procedural:8"}, counts
+    assert 0.45 < 1 - counts["box-room"] / 60 < 0.75
+    # what evaluation passes, an explicit start, always plays the main world
+    assert all(env.reset(options={"start_index": 0})[1]["world"] == "box-room" for _ in range(10))
+    # the same seed draws the same worlds, starts and depth noise, on a used env and a fresh one
+    def episodes(env: ExploreEnv) -> list:
+        seen = []
+        for k in range(8):
+            _, info = env.reset(seed=3) if k == 0 else env.reset()
+            seen.append((info["world"], info["start_index"], env.step(2)[0].tobytes()))
+        assert len({world for world, _, _ in seen}) > 1
+        return seen
+
+    noisy = SensorConfig(width=40, height=30, noise_std_m=0.01)
+    used = ExploreEnv(env.env_config, sensor=noisy)
+    for _ in range(20):
+        used.reset()
+    fresh = ExploreEnv(env.env_config, sensor=noisy)
+    assert episodes(used) == episodes(fresh)
+    for e in (env, used, fresh):
+        e.close()
+    # a world name that does not resolve fails when the env is made, not episodes into a run
+    broken = tmp_path / "broken.xml"
+    broken.write_text("<mujoco><worldbody><geom type='box'")
+    for name in ("no-such-world", str(broken)):
+        with pytest.raises(WorldError):
+            ExploreEnv(EnvConfig(world="box-room", extra_worlds=name, extra_world_prob=0.5))
+    # one that breaks later is dropped with a warning when drawn, and its episodes play the main world
+    later = tmp_path / "later.xml"
+    later.write_text('<mujoco><worldbody><geom name="floor" type="plane" size="0 0 1"/>'
+                     '<geom type="box" pos="0 3 1" size="3 0.1 1"/><geom type="box" pos="0 -3 1" size="3 0.1 1"/>'
+                     '<geom type="box" pos="3 0 1" size="0.1 3 1"/><geom type="box" pos="-3 0 1" size="0.1 3 1"/>'
+                     '<site name="start_a" pos="0 0 0"/></worldbody></mujoco>')
+    env = ExploreEnv(EnvConfig(world="box-room", extra_worlds=f"{later}, corridor", extra_world_prob=1.0))
+    later.write_text("<mujoco><worldbody><geom type='box'")
+    with caplog.at_level(logging.WARNING, logger="cogexplore.env"):
+        played = [env.reset(seed=k)[1]["world"] for k in range(12)]
+    assert set(played) == {"box-room", "corridor"} and played.count("box-room") == 1, played
+    assert sum("dropping" in r.getMessage() for r in caplog.records) == 1
+    env.close()
+
+
+def test_extra_world_lists_parse_and_bad_ones_are_config_errors():
+    from shared.config import ConfigError, parse_world_list
+
+    assert parse_world_list(" corridor,procedural:3-5, procedural:4 ,,procedural:9") == (
+        "corridor", "procedural:3", "procedural:4", "procedural:5", "procedural:9")
+    assert EnvConfig(extra_worlds="procedural:1000-1199").extra_world_names[-1] == "procedural:1199"
+    for text, match in (("procedural:x", "seed"), ("procedural:5-3", "below"), ("procedural:1-3-4", "seed"),
+                        ("procedural:0-20000", "more than")):
+        with pytest.raises(ConfigError, match=match):
+            EnvConfig(extra_worlds=text)
+    with pytest.raises(ConfigError, match="extra_world_prob"):
+        EnvConfig(extra_world_prob=0.5)  # no extra worlds to play
+    with pytest.raises(ConfigError, match="extra_world_prob"):
+        EnvConfig(extra_worlds="corridor", extra_world_prob=float("nan"))

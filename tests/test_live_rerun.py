@@ -287,18 +287,21 @@ def run_small_actor(router: str, rerun_url: str | None, max_steps: int, every: i
 
 def test_actor_lets_the_expert_drive_the_drawn_episodes(router: str) -> None:
     """explore.expert_episode_prob = 1 with epsilon 0: every episode is the expert's, runs to
-    the 50-step cap without a collision, and its stats say it was guided."""
+    the 50-step cap without a collision, and its stats say it was guided -- in the main world
+    and in the extra one (env.extra_worlds), which the stats mark."""
     episodes: list[EpisodeStats] = []
-    counters = run_small_actor(router, None, max_steps=150, on_episode=lambda m, _k: episodes.append(m),
+    counters = run_small_actor(router, None, max_steps=300, on_episode=lambda m, _k: episodes.append(m),
                                overrides={"explore.expert_episode_prob": 1.0, "explore.eps_start": 0.0,
-                                          "explore.eps_end": 0.0})
-    assert counters["episodes"] == 3, counters
+                                          "explore.eps_end": 0.0, "env.extra_worlds": "corridor",
+                                          "env.extra_world_prob": 0.5})
+    assert counters["episodes"] == 6, counters
     deadline = time.monotonic() + 10
-    while len(episodes) < 3 and time.monotonic() < deadline:
+    while len(episodes) < 6 and time.monotonic() < deadline:
         time.sleep(0.1)
-    assert len(episodes) == 3
+    assert len(episodes) == 6
     for e in episodes:
         assert e.extra["expert_guided"] == 1.0 and e.truncated and not e.terminated and e.steps == 50, e
+    assert {e.extra["extra_world"] for e in episodes} == {0.0, 1.0}
 
 
 def test_actor_streams_every_nth_episode_as_one_recording(router: str, tmp_path: Path) -> None:

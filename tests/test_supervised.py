@@ -124,16 +124,20 @@ def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_comman
 
     env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=40)
     off = ExpertGuide(env, 0.0, seed=0)
-    assert off.expert is None and not off.begin_episode() and off.action((0.0, 0.0, 0.0)) is None
+    assert not off.begin_episode() and off.action((0.0, 0.0, 0.0)) is None
     share = ExpertGuide(env, 0.3, seed=0)
     drawn = [share.begin_episode() for _ in range(2000)]
     assert 0.27 < np.mean(drawn) < 0.33
+    # in a run with extra worlds the guide follows the expert of the world the episode plays
+    env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=40, extra_worlds="corridor",
+                     extra_world_prob=1.0)
     always = ExpertGuide(env, 1.0, seed=0)
-    _, info = env.reset(seed=0, options={"start_index": 0})
-    assert always.begin_episode()
+    _, info = env.reset(seed=0)
+    assert info["world"] == "corridor" and always.begin_episode()
+    corridor_expert = CommandExpert(env.world, env.env_config, env.sensor_config)
     for _ in range(40):  # the guide's commands are the expert's, and they keep the robot clear
         action = always.action(info["pose"])
-        assert action == always.expert.label(*info["pose"])
+        assert action == corridor_expert.label(*info["pose"])
         _, _, terminated, truncated, info = env.step(action)
         assert not terminated, info["collision_cause"]
     with pytest.raises(SupervisedError, match="probability"):

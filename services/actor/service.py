@@ -189,7 +189,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
         guide.begin_episode()
         batcher.begin_episode(obs, info["start_index"])
         if stream is not None:
-            stream.begin_episode(batcher.episode, info["start_index"])
+            stream.begin_episode(batcher.episode, info["start_index"], env.world)
         episode_return, episode_start = 0.0, time.monotonic()
         paused_since: float | None = None
         while not stop.is_set() and (max_steps is None or counters["env_steps"] < max_steps):
@@ -241,7 +241,9 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                     truncated=truncated, collision_cause=info["collision_cause"],
                     path_length_m=info["path_length_m"], distance_from_start_m=info["distance_from_start_m"],
                     epsilon=epsilon, policy_version=policy_version,
-                    duration_s=time.monotonic() - episode_start, extra={"expert_guided": float(guide.active)})
+                    duration_s=time.monotonic() - episode_start,
+                    extra={"expert_guided": float(guide.active),
+                           "extra_world": float(info["world"] != env.main_world.name)})
                 stats_publisher.put(stats.encode())
                 counters["episodes"] += 1
                 if stream is not None:
@@ -253,7 +255,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 guide.begin_episode()
                 batcher.begin_episode(obs, info["start_index"])
                 if stream is not None:
-                    stream.begin_episode(batcher.episode, info["start_index"])
+                    stream.begin_episode(batcher.episode, info["start_index"], env.world)
                 episode_return, episode_start = 0.0, time.monotonic()
         learners.close()
     env.close()

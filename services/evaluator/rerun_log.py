@@ -583,7 +583,7 @@ class EpisodeStream:
         """Items the env loop could not queue (the worker fell behind)."""
         self._active = False  # env-loop side: the current episode is being streamed
         self._frame = 0  # worker side: the next eval_frame of the shared recording
-        self._grid: OccupancyGrid | None = None
+        self._grids: dict[str, OccupancyGrid] = {}  # per world, built when first streamed
         self._failed_once = False
         self._queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=queue_size)
         self._closed = False
@@ -592,11 +592,12 @@ class EpisodeStream:
 
     # -- env-loop side: copies and a non-blocking put, nothing else ------------------------
 
-    def begin_episode(self, episode: int, start_index: int) -> bool:
-        """A new episode of the actor; returns whether it is streamed (every n-th is)."""
+    def begin_episode(self, episode: int, start_index: int, world: World | None = None) -> bool:
+        """A new episode of the actor, in ``world`` (default: the stream's); returns whether it is
+        streamed (every n-th is)."""
         self._active = not self._closed and int(episode) % self.every_episodes == 0
         if self._active:
-            self._put(("begin", int(episode), int(start_index)))
+            self._put(("begin", int(episode), int(start_index), world or self.world))
         return self._active
 
     def log_step(self, step: int, pose: Sequence[float], depth_m: np.ndarray | None,
@@ -664,11 +665,11 @@ class EpisodeStream:
                 if kind == "begin":
                     self._finish(recorder)  # an 'end' that was dropped
                     recorder = None
-                    _, episode, start_index = item
+                    _, episode, start_index, world = item
                     if not self.link.up():
                         self.episodes_skipped += 1
                         continue
-                    recorder = self._open()
+                    recorder = self._open(world)
                     recorder.set_position(episode, self._frame)
                     recorder.begin_episode(start_index, episode)
                     trajectory = []
@@ -698,12 +699,13 @@ class EpisodeStream:
                 recorder = None
         self._finish(recorder)
 
-    def _open(self) -> EvalRecorder:
-        if self._grid is None:
+    def _open(self, world: World) -> EvalRecorder:
+        grid = self._grids.get(world.name)
+        if grid is None:
             from shared.maps import occupancy_grid
 
-            self._grid = occupancy_grid(self.world)
-        return EvalRecorder(None, self.world, self._grid, self.sensor_cfg, connect_url=self.url,
+            grid = self._grids[world.name] = occupancy_grid(world)
+        return EvalRecorder(None, world, grid, self.sensor_cfg, connect_url=self.url,
                             recording_name=self.recording_name, recording_id=self.recording_id,
                             robot_radius_m=self.robot_radius_m)
 

@@ -26,8 +26,12 @@ class LearnerCore:
     def __init__(self, cfg: RunConfig, device: str = "auto"):
         self.cfg = cfg
         self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
-        if cfg.train.init_conv_from:
-            # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
+        # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
+        if cfg.train.init_from:  # fine-tuning: the whole network, conv layers included
+            from shared.checkpoint import init_agent_weights
+
+            init_agent_weights(self.agent, cfg.train.init_from)
+        elif cfg.train.init_conv_from:
             from shared.supervised import init_agent_conv
 
             init_agent_conv(self.agent, cfg.train.init_conv_from)
