@@ -120,14 +120,12 @@ def parse_world_list(text: str) -> tuple[str, ...]:
     for part in (p.strip() for p in text.split(",")):
         if not part:
             continue
-        if part.startswith(PROCEDURAL_PREFIX):
-            first, dash, last = part[len(PROCEDURAL_PREFIX):].partition("-")
-            if not all(t.isascii() and t.isdigit() for t in ((first, last) if dash else (first,))):
-                raise ValueError(f"{part!r}: use 'procedural:<seed>' or 'procedural:<first>-<last>', "
-                                 "seeds integers >= 0")
-            if not dash:
-                names[part] = None
-                continue
+        procedural = part.startswith(PROCEDURAL_PREFIX)
+        first, dash, last = part.removeprefix(PROCEDURAL_PREFIX).partition("-")
+        if procedural and not all(t.isascii() and t.isdigit() for t in ((first, last) if dash else (first,))):
+            raise ValueError(f"{part!r}: use 'procedural:<seed>' or 'procedural:<first>-<last>', "
+                             "seeds integers >= 0")
+        if procedural and dash:
             if int(last) < int(first):
                 raise ValueError(f"{part!r}: the last seed is below the first")
             if int(last) - int(first) + 1 + len(names) > MAX_WORLD_LIST:

@@ -104,7 +104,7 @@ class ExploreEnv(gym.Env):
         for name in self._extra_world_names:
             if not name.startswith(PROCEDURAL_PREFIX):  # procedural names are checked by the config
                 load_world(name)  # a bad name or a broken file fails here, not episodes into a run
-        self._use(self._main_scene)
+        self._scene = self._main_scene  # the world of the episode now playing
         self.angular_rps, self.linear_mps = SPEED_TABLES[cfg.speed_table]
 
         s = self.sensor_config
@@ -134,7 +134,7 @@ class ExploreEnv(gym.Env):
         extra = self._extra_world_names
         if not fixed and extra and self.np_random.random() < self.env_config.extra_world_prob:
             scene = self._extra_scene(extra[int(self.np_random.integers(len(extra)))]) or scene
-        self._use(scene)
+        self._scene = scene
         index = options.get("start_index", self.env_config.start_index)
         n_starts = len(self.world.starts)
         if index is None:
@@ -190,13 +190,14 @@ class ExploreEnv(gym.Env):
         """``env.world``'s World; ``self.world`` is the world of the episode now playing."""
         return self._main_scene.world
 
-    # -- helpers ---------------------------------------------------------------------
+    # The episode's world and its MuJoCo model, data, robot and camera.
+    world = property(lambda self: self._scene.world)
+    model = property(lambda self: self._scene.model)
+    data = property(lambda self: self._scene.data)
+    robot = property(lambda self: self._scene.robot)
+    camera = property(lambda self: self._scene.camera)
 
-    def _use(self, scene: _Scene) -> None:
-        """Make ``scene`` the world the robot drives in (its own model, data and camera)."""
-        self._scene = scene
-        self.world, self.model, self.data = scene.world, scene.model, scene.data
-        self.robot, self.camera = scene.robot, scene.camera
+    # -- helpers ---------------------------------------------------------------------
 
     def _extra_scene(self, name: str) -> _Scene | None:
         """The scene of extra world ``name``, built on first use; None (and the world is dropped
