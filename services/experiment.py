@@ -18,9 +18,13 @@ resumes from its run's latest checkpoint):
    to ``<out>/models/drl-<u>.safetensors``;
 4. ``eval-<model>``: the full test protocol (``--episodes-per-start`` 10 episodes from every start,
    ``--max-steps`` 200, test speeds) for SL, RL, every DRL checkpoint, reactive and random;
-5. the report, rewritten every time: ``table.md`` (Count / Distance / Coverage per start),
-   ``heatmaps.png`` (all models side by side), ``wallclock.md`` (how long each stage took) and
-   ``report.md`` linking them.
+5. ``eval-<model>@<world>`` for each of ``--unseen-worlds`` (default ``procedural:101-103``,
+   worlds that neither the runs nor the SL data played): the same protocol there, the paper's
+   generalisation question;
+6. the report, rewritten every time: ``table.md`` (Count / Distance / Coverage per start),
+   ``heatmaps.png`` (all models side by side), ``generalisation.md`` (mean steps per model and
+   unseen world) with ``heatmaps-<world>.png``, ``wallclock.md`` (how long each stage took) and
+   ``report.md`` linking them. Unseen worlds can be added when resuming.
 
 ``--minutes-per-stage`` caps each training stage's wall time (the stage then ends early at the
 update it reached, which the tables say). Every size is an option, so a tiny version runs in CI.
@@ -44,7 +48,7 @@ from typing import Any
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
-from shared.config import RunConfig, load_preset, parse_override
+from shared.config import RunConfig, load_preset, parse_override, parse_world_list
 
 log = logging.getLogger("cogexplore.experiment")
 
@@ -52,6 +56,8 @@ STATE_FILE = "state.json"
 STATE_FORMAT = "cogexplore-experiment"
 STATE_VERSION = 1
 EXPERIMENTS = ("paper",)
+# The shipped models' test worlds (shared/pretrained/MODEL_CARD.md); 201+ are for choosing models.
+DEFAULT_UNSEEN_WORLDS = "procedural:101-103"
 DRL_RUN = "drl"
 RL_RUN = "rl"
 # Options that fix what the finished stages computed: a resumed experiment must not change them.
@@ -91,6 +97,7 @@ class Options:
     sl_frames: int
     sl_epochs: int
     rl_updates: int
+    unseen_worlds: list[str]
     episodes_per_start: int
     max_steps: int
     seed: int
@@ -155,6 +162,7 @@ class Experiment:
         self.echo = echo or (lambda msg: print(f"[experiment] {msg}", file=sys.stderr, flush=True))
         self.state = ExperimentState(self.out / STATE_FILE, opts)
         self.cfg = self._config()
+        self._check_unseen()
         self.ran: list[str] = []
         self.skipped: list[str] = []
 
@@ -164,6 +172,15 @@ class Experiment:
         parsed = dict(parse_override(x) for x in self.o.overrides)
         parsed["env.world"] = self.o.world
         return cfg.with_overrides(parsed)
+
+    def _check_unseen(self) -> None:
+        trained = {self.o.world, *parse_world_list(self.cfg.env.extra_worlds)}
+        if not self.o.sl_model:
+            trained.update(self.o.sl_worlds)
+        seen = [w for w in self.o.unseen_worlds if w in trained]
+        if seen:
+            raise ExperimentError(f"--unseen-worlds {', '.join(seen)}: the runs or the SL data play "
+                                  + ("it" if len(seen) == 1 else "them") + "; choose worlds never trained on")
 
     def _eval_overrides(self) -> list[str]:
         return [x for x in self.o.overrides if x.strip().startswith(("sensor.", "env."))]
@@ -295,22 +312,26 @@ class Experiment:
         rows += [("reactive", "reactive", None), ("random", "random", None)]
         return rows
 
-    def _evaluate(self, label: str, policy: str, checkpoint: str | None) -> dict[str, Any]:
+    def _evaluate(self, label: str, policy: str, checkpoint: str | None, world: str | None = None
+                  ) -> dict[str, Any]:
+        """The protocol for one model on ``world`` (default: the training world)."""
         from services.evaluator.evaluate import evaluate_policy, setup_evaluation
         from services.evaluator.report import slug
         from services.evaluator.results import save_results
 
-        setup = setup_evaluation(policy, checkpoint, world=self.o.world, preset=self.o.preset,
+        world = world or self.o.world
+        setup = setup_evaluation(policy, checkpoint, world=world, preset=self.o.preset,
                                  overrides=self._eval_overrides(), seed=self.o.seed, device="cpu")
-        results = evaluate_policy(setup.policy_fn, world=self.o.world, sensor_cfg=setup.sensor_cfg,
+        results = evaluate_policy(setup.policy_fn, world=world, sensor_cfg=setup.sensor_cfg,
                                   env_cfg=setup.env_cfg, episodes_per_start=self.o.episodes_per_start,
                                   max_steps=self.o.max_steps, seed=self.o.seed, progress=not self.o.quiet,
                                   meta={**setup.meta(), "model": label})
-        path = self.out / "eval" / f"{slug(label)}.json"
+        folder = self.out / "eval" if world == self.o.world else self.out / "eval" / slug(world)
+        path = folder / f"{slug(label)}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
         save_results(results, path)
         overall = results.summary["overall"]
-        return {"label": label, "results": str(path), "mean_steps": overall["mean_steps"],
+        return {"label": label, "world": world, "results": str(path), "mean_steps": overall["mean_steps"],
                 "mean_distance_m": overall["mean_distance_m"]}
 
     # -- report -------------------------------------------------------------------------------
@@ -332,6 +353,7 @@ class Experiment:
                                               ncols=min(4, len(results)))
         wall = self.wallclock_markdown()
         (self.out / "wallclock.md").write_text(wall)
+        unseen = self.write_generalisation()
         sl = self.state.done("sl") or {}
         lines = [f"# Experiment `{self.o.experiment}`: SL, RL, DRL and baselines on `{self.o.world}`", "",
                  f"Preset `{self.o.preset}`" + (f", overrides `{' '.join(self.o.overrides)}`" if self.o.overrides
@@ -343,8 +365,12 @@ class Experiment:
                       + (f" (balanced {sl['balanced_accuracy']:.3f}, {sl['frames']} frames)"
                          if "balanced_accuracy" in sl else "") + ".", ""]
         lines += ["## Count / Distance / Coverage per start (Table III)", "", table,
-                  "## Trajectory heatmaps (Fig. 6)", "", f"![heatmaps]({heatmaps.name})", "",
-                  "## Wall clock", "", wall]
+                  "## Trajectory heatmaps (Fig. 6)", "", f"![heatmaps]({heatmaps.name})", ""]
+        if unseen:
+            lines += ["## Generalisation: worlds never trained on", "",
+                      "Mean moving steps per episode, same protocol; no run and no SL data played these worlds.",
+                      "", unseen]
+        lines += ["## Wall clock", "", wall]
         early = [n for n, info in self.state.data["stages"].items() if info.get("stopped_early")]
         if early:
             lines += ["", "Stopped early by --minutes-per-stage: " + ", ".join(
@@ -352,6 +378,47 @@ class Experiment:
         path = self.out / "report.md"
         path.write_text("\n".join(lines) + "\n")
         return path
+
+    def write_generalisation(self) -> str:
+        """``generalisation.md`` (mean steps per model and unseen world, and their mean) and one
+        ``heatmaps-<world>.png`` per unseen world; returns the Markdown ('' without unseen worlds)."""
+        from services.evaluator.figures import save_heatmaps_side_by_side
+        from services.evaluator.report import slug
+        from services.evaluator.results import load_results
+        from shared.maps import occupancy_grid
+        from shared.world import load_world
+
+        worlds = self.o.unseen_worlds
+        if not worlds:
+            return ""
+        steps: dict[str, dict[str, float]] = {}
+        figures = []
+        for world in worlds:
+            results = {}
+            for label, _policy, _ckpt in self.models():
+                info = self.state.done(f"eval-{label}@{world}")
+                if info is not None:
+                    results[label] = load_results(info["results"])
+                    steps.setdefault(label, {})[world] = float(info["mean_steps"])
+            if results:
+                w = load_world(world)
+                figures.append(save_heatmaps_side_by_side(w, occupancy_grid(w), results,
+                                                          self.out / f"heatmaps-{slug(world)}.png",
+                                                          ncols=min(4, len(results))))
+        cols = [*worlds, "Mean"]
+        rows = {label: [per.get(w) for w in worlds] + [sum(per.values()) / len(per)
+                                                         if len(per) == len(worlds) else None]
+                for label, per in steps.items()}
+        best = [max((r[i] for r in rows.values() if r[i] is not None), default=None) for i in range(len(cols))]
+        lines = ["| Model | " + " | ".join(f"`{c}`" if c != "Mean" else c for c in cols) + " |",
+                 "|---|" + "---:|" * len(cols)]
+        for label, values in rows.items():
+            cells = ["-" if v is None else (f"**{v:.1f}**" if v == best[i] else f"{v:.1f}")
+                     for i, v in enumerate(values)]
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+        text = "\n".join(lines) + "\n" + "".join(f"\n![{f.stem}]({f.name})\n" for f in figures)
+        (self.out / "generalisation.md").write_text(text)
+        return text
 
     def wallclock_markdown(self) -> str:
         lines = ["| Stage | Seconds | Updates | Cumulative DRL seconds |", "|---|---:|---:|---:|"]
@@ -379,6 +446,10 @@ class Experiment:
             self._stage(f"drl-{u}", lambda u=u: self._train_drl(u))
         for label, policy, checkpoint in self.models():
             self._stage(f"eval-{label}", lambda a=(label, policy, checkpoint): self._evaluate(*a))
+        for world in self.o.unseen_worlds:
+            for label, policy, checkpoint in self.models():
+                self._stage(f"eval-{label}@{world}",
+                            lambda a=(label, policy, checkpoint, world): self._evaluate(*a))
         path = self.write_report()
         self.echo(f"report: {path}")
         return path
@@ -414,6 +485,10 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     sl.add_argument("--sl-epochs", type=int, default=3, help="SL training epochs (default 3)")
     parser.add_argument("--rl-updates", type=int, default=None,
                         help="updates of the RL baseline (default: the last DRL checkpoint's)")
+    parser.add_argument("--unseen-worlds", default=DEFAULT_UNSEEN_WORLDS, metavar="WORLDS",
+                        help="worlds no run or SL data plays, where every model is tested too (generalisation): "
+                             f"comma list, seed ranges like procedural:101-110; '' = none (default "
+                             f"{DEFAULT_UNSEEN_WORLDS})")
     parser.add_argument("--episodes-per-start", type=int, default=10, help="test episodes per start (default 10)")
     parser.add_argument("--max-steps", type=int, default=200, help="steps per test episode at most (default 200)")
     parser.add_argument("--seed", type=int, default=0)
@@ -437,7 +512,8 @@ def options_from_args(args: argparse.Namespace) -> Options:
                    minutes_per_stage=args.minutes_per_stage,
                    sl_model=str(Path(args.sl_model).resolve()) if args.sl_model else None,
                    sl_worlds=parse_worlds(args.sl_worlds), sl_frames=args.sl_frames, sl_epochs=args.sl_epochs,
-                   rl_updates=args.rl_updates or checkpoints[-1], episodes_per_start=args.episodes_per_start,
+                   rl_updates=args.rl_updates or checkpoints[-1],
+                   unseen_worlds=list(parse_world_list(args.unseen_worlds)), episodes_per_start=args.episodes_per_start,
                    max_steps=args.max_steps, seed=args.seed, device=args.device, quiet=args.quiet)
 
 
@@ -448,7 +524,8 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
     try:
         opts = options_from_args(args)
-        load_world(opts.world)  # an unknown world fails now, not after the pretraining
+        for world in (opts.world, *opts.unseen_worlds):
+            load_world(world)  # an unknown world fails now, not after the pretraining
         experiment = Experiment(opts)
         report = experiment.run()
     except ValueError as exc:  # every bad-input error of the project is one (options, world, model, state)

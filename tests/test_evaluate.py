@@ -29,6 +29,7 @@ from services.evaluator.policies import PolicyError, RandomPolicy, ReactivePolic
 from services.evaluator.results import SCHEMA_ID, validate_results_json
 from shared.config import SensorConfig, load_preset
 from shared.sensor import intrinsics
+from shared.world import load_world
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
@@ -253,8 +254,31 @@ def test_evaluate_baseline_out_of_the_box(tmp_path: Path) -> None:
     assert results.meta["sensor"]["width"] == 64
 
 
+def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> None:
+    run = make_run(tmp_path / "run")
+    status = run_evaluate(parse(["--checkpoint", str(run), "--world", "box-room,corridor", "--episodes-per-start",
+                                 "1", "--max-steps", "5", "--json", str(tmp_path / "r.json"), "--device", "cpu",
+                                 "--quiet"]))
+    assert status == 0
+    printed = capsys.readouterr().out
+    assert "## box-room" in printed and "## corridor" in printed
+    per_world = {}
+    for world, starts in (("box-room", 4), ("corridor", len(load_world("corridor").starts))):
+        results = validate_results_json((tmp_path / f"r-{world}.json").read_text())
+        assert results.meta["world"] == world and len(results.episodes) == starts
+        assert results.meta["policy_version"] == 1000  # the same network in every world
+        per_world[world] = results.summary["overall"]["mean_steps"]
+    last = json.loads(printed.strip().splitlines()[-1])
+    assert last["per_world_mean_steps"] == pytest.approx(per_world)
+    assert last["mean_steps_over_worlds"] == pytest.approx(sum(per_world.values()) / 2)
+    assert not (tmp_path / "r.json").exists()
+
+
 @pytest.mark.parametrize("argv,message", [
     ([], "give --checkpoint"),
+    (["--policy", "random", "--world", "box-room,corridor", "--rrd", "x.rrd"], "--rrd take one world"),
+    (["--policy", "random", "--world", "procedural:3-x"], "--world: "),
+    (["--policy", "random", "--world", " , "], "names no world"),
     (["--policy", "greedy"], "needs --checkpoint"),
     (["--policy", "random", "--world", "nowhere"], "unknown world"),
     (["--policy", "random", "--set", "dqn.lr=1"], "only takes sensor"),

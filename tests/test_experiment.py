@@ -22,7 +22,7 @@ from services.experiment import (
 
 TINY = ["paper", "--preset", "smoke", "--world", "box-room", "--actors", "1", "--sl-worlds", "box-room",
         "--sl-frames", "120", "--sl-epochs", "1", "--rl-updates", "20", "--episodes-per-start", "1",
-        "--max-steps", "10", "--device", "cpu", "--quiet"]
+        "--max-steps", "10", "--device", "cpu", "--quiet", "--unseen-worlds", "corridor"]
 
 
 def run(out: Path, checkpoints: str, *extra: str) -> Experiment:
@@ -45,8 +45,8 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
 
     out = tmp_path / "exp"
     first = run(out, "20")
-    assert first.ran == ["sl", "rl", "drl-20", "eval-SL", "eval-RL", "eval-DRL-20", "eval-reactive",
-                         "eval-random"]
+    labels = ["SL", "RL", "DRL-20", "reactive", "random"]
+    assert first.ran == ["sl", "rl", "drl-20", *(f"eval-{m}" for m in labels), *(f"eval-{m}@corridor" for m in labels)]
     table = (out / "table.md").read_text()
     for label in ("SL", "RL", "DRL-20", "reactive", "random"):
         assert f"| {label} |" in table
@@ -54,7 +54,17 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
     assert (out / "heatmaps.png").stat().st_size > 1000
     wall = (out / "wallclock.md").read_text()
     assert "| drl-20 |" in wall and "| rl |" in wall
-    assert "![heatmaps](heatmaps.png)" in (out / "report.md").read_text()
+    report = (out / "report.md").read_text()
+    assert "![heatmaps](heatmaps.png)" in report and "## Generalisation" in report
+    # Every model on the unseen world, with its own results file and heatmaps.
+    general = (out / "generalisation.md").read_text()
+    assert "| Model | `corridor` | Mean |" in general
+    for label in labels:
+        info = json.loads((out / "state.json").read_text())["stages"][f"eval-{label}@corridor"]
+        results = json.loads(Path(info["results"]).read_text())
+        assert results["meta"]["world"] == "corridor" and results["meta"]["model"] == label
+        assert f"| {label} | " in general and f"{info['mean_steps']:.1f}" in general
+    assert (out / "heatmaps-corridor.png").stat().st_size > 1000
     for label in ("SL", "RL", "DRL-20"):
         results = json.loads((out / "eval" / f"{label}.json").read_text())
         assert results["meta"]["model"] == label and len(results["episodes"]) == 4  # box-room: 4 starts
@@ -73,7 +83,7 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
 
     # The next stage resumes the same DRL run; finished stages are skipped.
     second = run(out, "20,40")
-    assert second.ran == ["drl-40", "eval-DRL-40"]
+    assert second.ran == ["drl-40", "eval-DRL-40", "eval-DRL-40@corridor"]
     assert set(second.skipped) >= {"sl", "rl", "drl-20", "eval-SL", "eval-RL", "eval-DRL-20"}
     learner_log = (out / "runs" / "drl" / "logs" / "learner.log").read_text()
     assert "resumed from ckpt-000000020.safetensors" in learner_log
@@ -85,6 +95,10 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
     # Nothing left to do: a third invocation only rewrites the report.
     third = run(out, "20,40")
     assert third.ran == []
+    # An unseen world added on resume is evaluated for every model; nothing else reruns.
+    fourth = run(out, "20,40", "--unseen-worlds", "corridor,procedural:7")
+    assert fourth.ran == [f"eval-{m}@procedural:7" for m in ("SL", "RL", "DRL-20", "DRL-40", "reactive", "random")]
+    assert "| Model | `corridor` | `procedural:7` | Mean |" in (out / "generalisation.md").read_text()
 
     # Other options than the state's are refused, through the command too.
     with pytest.raises(ExperimentError, match="other options"):
@@ -100,4 +114,12 @@ def test_checkpoint_list_and_options_are_validated(tmp_path, capsys):
     assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--world", "nowhere"]) == 2
     assert "nowhere" in capsys.readouterr().err
     assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--actors", "0"]) == 2
+    assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--unseen-worlds", "procedural:x"]) == 2
+    assert "procedural:x" in capsys.readouterr().err
     assert not (tmp_path / "x" / "state.json").exists()
+    # A world the runs or the SL data play is not unseen.
+    for seen in (["--unseen-worlds", "box-room"], ["--unseen-worlds", "corridor", "--sl-worlds", "box-room,corridor"],
+                 ["--unseen-worlds", "procedural:7", "--set", "env.extra_worlds=procedural:5-9"]):
+        assert main([*TINY, "--out", str(tmp_path / "y"), "--checkpoints", "20", *seen]) == 2
+        assert "never trained on" in capsys.readouterr().err
+    assert not (tmp_path / "y" / "state.json").exists()

@@ -50,7 +50,16 @@ from services.evaluator.results import (
     save_results,
     table_markdown,
 )
-from shared.config import ConfigError, EnvConfig, RunConfig, SensorConfig, from_dict, load_preset, parse_override
+from shared.config import (
+    ConfigError,
+    EnvConfig,
+    RunConfig,
+    SensorConfig,
+    from_dict,
+    load_preset,
+    parse_override,
+    parse_world_list,
+)
 from shared.world import load_world
 
 log = logging.getLogger("cogexplore.evaluate")
@@ -349,7 +358,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                              "greedy, labelled RL)")
     parser.add_argument("--world", default=None,
                         help="built-in world, procedural:<seed> or an MJCF file (default: the checkpoint's "
-                             f"training world, else {DEFAULT_WORLD})")
+                             f"training world, else {DEFAULT_WORLD}); several, comma-separated or as seed "
+                             "ranges (procedural:101-110), are evaluated one after the other and averaged")
     parser.add_argument("--episodes-per-start", type=int, default=PAPER_EPISODES_PER_START,
                         help=f"episodes from each start pose (default {PAPER_EPISODES_PER_START})")
     parser.add_argument("--max-steps", type=int, default=PAPER_MAX_STEPS,
@@ -357,7 +367,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--starts", type=int, nargs="+", default=None, metavar="I",
                         help="only these start indices (0-based; default: all)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and the random policy")
-    parser.add_argument("--json", dest="json_out", metavar="PATH", help="write the results JSON here")
+    parser.add_argument("--json", dest="json_out", metavar="PATH",
+                        help="write the results JSON here (several worlds: one file each, PATH-<world>.json)")
     parser.add_argument("--rrd", metavar="PATH", help="write a Rerun recording here")
     parser.add_argument("--image-every", type=int, default=1, metavar="N",
                         help="record every N-th depth image only (default 1)")
@@ -481,52 +492,66 @@ def _serve_until_stopped(seconds: float | None) -> None:
         stop.wait(1.0 if left is None else min(left, 1.0))
 
 
+def _worlds_of(args: argparse.Namespace) -> list[str | None]:
+    """--world as a list (None: the checkpoint's own world); several worlds take no recording."""
+    if args.world is None:
+        return [None]
+    try:
+        worlds = list(parse_world_list(args.world))
+    except ValueError as exc:
+        raise EvaluateError(f"--world: {exc}") from None
+    if not worlds:
+        raise EvaluateError("--world names no world")
+    if len(worlds) > 1:
+        given = [flag for flag, on in (("--rrd", args.rrd), ("--rerun-connect", args.rerun_connect),
+                                       ("--rerun-serve", args.rerun_serve), ("--starts", args.starts)) if on]
+        if given:
+            raise EvaluateError(f"{', '.join(given)} take one world; --world names {len(worlds)}")
+    return worlds
+
+
+def _json_path(path: str, world: str, several: bool) -> Path:
+    from services.evaluator.report import slug
+
+    p = Path(path)
+    return p.with_name(f"{p.stem}-{slug(world)}{p.suffix or '.json'}") if several else p
+
+
 def run_evaluate(args: argparse.Namespace) -> int:
     """``cogexplore evaluate``: returns a process exit status."""
-    recorder = None
-    ok = False
+    recorder = None  # only with --rerun-serve, which takes one world
+    done: list[tuple[EvalSetup, EvalResults]] = []
     try:
         _check_live_options(args)
-        setup = setup_evaluation(args.policy, args.checkpoint, world=args.world, preset=args.preset,
-                                 overrides=args.overrides, seed=args.seed, device=args.device)
-        log.info("evaluating %s on %s", setup.meta()["model"], setup.world)
-        recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"
-        if args.rerun_serve:
-            # Opened here, not in evaluate_policy: the server must outlive the evaluation.
-            recorder = open_recorder(setup.world, setup.sensor_cfg,
-                                     protocol_env_config(setup.env_cfg, setup.world, args.max_steps), args.rrd,
-                                     connect_url=live_viewer_url(args.rerun_connect, args.rrd is not None),
-                                     serve=True, serve_port=args.rerun_port,
-                                     web_port=args.rerun_web_port, image_every=args.image_every,
-                                     recording_name=recording_name)
-            print(f"rerun: open {recorder.web_url} in a browser, or run `rerun --connect {recorder.viewer_url}` "
-                  "(from another machine, put this machine's name in place of localhost/127.0.0.1)", flush=True)
-        results = evaluate_policy(
-            setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg, env_cfg=setup.env_cfg,
-            episodes_per_start=args.episodes_per_start, max_steps=args.max_steps, seed=args.seed,
-            starts=args.starts, rrd=None if recorder is not None else args.rrd,
-            rerun_connect=None if recorder is not None else args.rerun_connect, recorder=recorder,
-            image_every=args.image_every, policy_version=setup.model.policy_version if setup.model else 0,
-            recording_name=recording_name, progress=not args.quiet, meta=setup.meta())
-        ok = True
+        model = None
+        for world in _worlds_of(args):
+            setup, results, recorder = _evaluate_one(args, world, model)
+            done.append((setup, results))
+            model = setup.model  # loaded once for every world
     except ValueError as exc:  # every error of bad input here is one (checkpoint, world, config, policy)
         print(f"cogexplore evaluate: error: {exc}", file=sys.stderr)
         return 2
-    finally:
-        if recorder is not None and not ok:
-            recorder.close()
-            if recorder.path is not None:
-                recorder.path.unlink(missing_ok=True)
-    if args.json_out:
-        save_results(results, args.json_out)
-    summary = aggregate(results.episodes)["overall"]
-    print(table_markdown({setup.meta()["model"]: results}), end="")
-    print(json.dumps({"model": setup.meta()["model"], "world": setup.world, **{k: summary[k] for k in (
-        "episodes", "mean_steps", "mean_distance_m", "mean_path_length_m", "mean_coverage_pct",
-        "collisions", "reached_cap")}}, default=float))
-    for what, path in (("results", args.json_out), ("recording", args.rrd)):
-        if path:
-            print(f"{what}: {path}")
+    several = len(done) > 1
+    for setup, results in done:
+        json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None
+        if json_path is not None:
+            save_results(results, json_path)
+        summary = aggregate(results.episodes)["overall"]
+        if several:
+            print(f"## {setup.world}")
+        print(table_markdown({setup.meta()["model"]: results}), end="")
+        print(json.dumps({"model": setup.meta()["model"], "world": setup.world, **{k: summary[k] for k in (
+            "episodes", "mean_steps", "mean_distance_m", "mean_path_length_m", "mean_coverage_pct",
+            "collisions", "reached_cap")}}, default=float))
+        if json_path is not None:
+            print(f"results: {json_path}")
+    if several:
+        per_world = {setup.world: float(results.summary["overall"]["mean_steps"]) for setup, results in done}
+        print(json.dumps({"model": done[0][0].meta()["model"], "worlds": len(per_world),
+                          "mean_steps_over_worlds": sum(per_world.values()) / len(per_world),
+                          "per_world_mean_steps": per_world}))
+    if args.rrd:
+        print(f"recording: {args.rrd}")
     if recorder is not None:
         try:
             recorder.rec.flush(timeout_sec=30.0)  # everything on disk and in the server while we serve
@@ -540,6 +565,42 @@ def run_evaluate(args: argparse.Namespace) -> int:
         finally:
             recorder.close()
     return 0
+
+
+def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedModel | None
+                  ) -> tuple[EvalSetup, EvalResults, Any]:
+    """One world of ``cogexplore evaluate``: (setup, results, the live-served recorder or None)."""
+    setup = setup_evaluation(args.policy, None if model is not None else args.checkpoint, world=world,
+                             preset=args.preset, overrides=args.overrides, seed=args.seed, device=args.device,
+                             model=model)
+    log.info("evaluating %s on %s", setup.meta()["model"], setup.world)
+    recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"
+    recorder = None
+    if args.rerun_serve:
+        # Opened here, not in evaluate_policy: the server must outlive the evaluation.
+        recorder = open_recorder(setup.world, setup.sensor_cfg,
+                                 protocol_env_config(setup.env_cfg, setup.world, args.max_steps), args.rrd,
+                                 connect_url=live_viewer_url(args.rerun_connect, args.rrd is not None),
+                                 serve=True, serve_port=args.rerun_port,
+                                 web_port=args.rerun_web_port, image_every=args.image_every,
+                                 recording_name=recording_name)
+        print(f"rerun: open {recorder.web_url} in a browser, or run `rerun --connect {recorder.viewer_url}` "
+              "(from another machine, put this machine's name in place of localhost/127.0.0.1)", flush=True)
+    try:
+        results = evaluate_policy(
+            setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg, env_cfg=setup.env_cfg,
+            episodes_per_start=args.episodes_per_start, max_steps=args.max_steps, seed=args.seed,
+            starts=args.starts, rrd=None if recorder is not None else args.rrd,
+            rerun_connect=None if recorder is not None else args.rerun_connect, recorder=recorder,
+            image_every=args.image_every, policy_version=setup.model.policy_version if setup.model else 0,
+            recording_name=recording_name, progress=not args.quiet, meta=setup.meta())
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+            if recorder.path is not None:
+                recorder.path.unlink(missing_ok=True)
+        raise
+    return setup, results, recorder
 
 
 def main(argv: list[str] | None = None) -> int:
