@@ -23,8 +23,9 @@ resumes from its run's latest checkpoint):
    generalisation question;
 6. the report, rewritten every time: ``table.md`` (Count / Distance / Coverage per start),
    ``heatmaps.png`` (all models side by side), ``generalisation.md`` (mean steps per model and
-   unseen world) with ``heatmaps-<world>.png``, ``wallclock.md`` (how long each stage took) and
-   ``report.md`` linking them. Unseen worlds can be added when resuming.
+   unseen world) with ``heatmaps-<world>.png``, ``learning_curve.png`` (DRL checkpoints against
+   updates and minutes, beside the baselines and the paper's Table III), ``wallclock.md`` (how
+   long each stage took) and ``report.md`` linking them. Unseen worlds can be added when resuming.
 
 ``--minutes-per-stage`` caps each training stage's wall time (the stage then ends early at the
 update it reached, which the tables say). Every size is an option, so a tiny version runs in CI.
@@ -60,6 +61,9 @@ EXPERIMENTS = ("paper",)
 DEFAULT_UNSEEN_WORLDS = "procedural:101-103"
 DRL_RUN = "drl"
 RL_RUN = "rl"
+# The paper's Table III, mean moving steps of 200 over its 12 starts: the baselines and DRL per update count.
+PAPER_BASELINE_STEPS = {"SL": 14.6, "RL": 20.9}
+PAPER_DRL_STEPS = {500: 9.3, 4000: 21.6, 7500: 27.3, 40000: 92.6}
 # Options that fix what the finished stages computed: a resumed experiment must not change them.
 FIXED_OPTIONS = ("experiment", "world", "preset", "overrides", "sl_model", "sl_worlds", "sl_frames", "sl_epochs",
                  "rl_updates", "episodes_per_start", "max_steps", "seed")
@@ -354,6 +358,7 @@ class Experiment:
         wall = self.wallclock_markdown()
         (self.out / "wallclock.md").write_text(wall)
         unseen = self.write_generalisation()
+        curve = self.save_learning_curve()
         sl = self.state.done("sl") or {}
         lines = [f"# Experiment `{self.o.experiment}`: SL, RL, DRL and baselines on `{self.o.world}`", "",
                  f"Preset `{self.o.preset}`" + (f", overrides `{' '.join(self.o.overrides)}`" if self.o.overrides
@@ -366,6 +371,13 @@ class Experiment:
                          if "balanced_accuracy" in sl else "") + ".", ""]
         lines += ["## Count / Distance / Coverage per start (Table III)", "", table,
                   "## Trajectory heatmaps (Fig. 6)", "", f"![heatmaps]({heatmaps.name})", ""]
+        if curve is not None:
+            lines += ["## Learning curve", "", "Mean moving steps of each DRL checkpoint against updates and "
+                      "training wall time, the baselines as lines, the paper's Table III as grey marks.", "",
+                      f"![learning curve]({curve.name})", "",
+                      "The paper (Table III, its own world): " + ", ".join(
+                          [f"{k} {v}" for k, v in PAPER_BASELINE_STEPS.items()]
+                          + [f"DRL-{k} {v}" for k, v in PAPER_DRL_STEPS.items()]) + ".", ""]
         if unseen:
             lines += ["## Generalisation: worlds never trained on", "",
                       "Mean moving steps per episode, same protocol; no run and no SL data played these worlds.",
@@ -419,6 +431,60 @@ class Experiment:
         text = "\n".join(lines) + "\n" + "".join(f"\n![{f.stem}]({f.name})\n" for f in figures)
         (self.out / "generalisation.md").write_text(text)
         return text
+
+    def save_learning_curve(self) -> Path | None:
+        """``learning_curve.png``: every evaluated DRL checkpoint's mean steps (training world, and
+        the unseen worlds' mean) against updates and cumulative training minutes, with the
+        baselines and the paper's figures; None before any DRL checkpoint is evaluated."""
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        from services.evaluator.results import PAPER_MAX_STEPS
+
+        points = []  # (updates, cumulative minutes, steps on the training world, unseen mean or None)
+        minutes = 0.0
+        for u in self.o.checkpoints:
+            stage = self.state.done(f"drl-{u}")
+            if stage is None:
+                break
+            minutes += stage["seconds"] / 60
+            label = f"DRL-{stage['updates']}"
+            ev = self.state.done(f"eval-{label}")
+            if ev is None:
+                continue
+            unseen = [self.state.done(f"eval-{label}@{w}") for w in self.o.unseen_worlds]
+            points.append((stage["updates"], minutes, ev["mean_steps"],
+                           sum(x["mean_steps"] for x in unseen) / len(unseen)
+                           if unseen and all(unseen) else None))
+        if not points:
+            return None
+        fig = Figure(figsize=(11.0, 4.0))
+        FigureCanvasAgg(fig)
+        axes = fig.subplots(1, 2, sharey=True)
+        for ax, col, xlabel in ((axes[0], 0, "DRL updates"), (axes[1], 1, "DRL training wall time (min)")):
+            xs = [p[col] for p in points]
+            ax.plot(xs, [p[2] for p in points], "o-", color="C0", lw=1.8, label=f"DRL on {self.o.world}")
+            if all(p[3] is not None for p in points):
+                ax.plot(xs, [p[3] for p in points], "s--", color="C1", lw=1.4, label="DRL, unseen worlds' mean")
+            for i, name in enumerate(("SL", "RL", "reactive", "random")):
+                ev = self.state.done(f"eval-{name}")
+                if ev is not None:
+                    ax.axhline(ev["mean_steps"], color=f"C{i + 2}", lw=1, ls=":", label=name)
+            if col == 0 and self.o.max_steps == PAPER_MAX_STEPS:  # the paper's figures are of 200 steps
+                ax.plot(list(PAPER_DRL_STEPS), list(PAPER_DRL_STEPS.values()), "x", color="gray", ms=8,
+                        mew=2, label="paper's DRL (Table III)")
+            if col == 0:
+                ax.set_xscale("log")
+            ax.axhline(self.o.max_steps, color="gray", lw=0.8, ls="--")
+            ax.set_xlabel(xlabel)
+            ax.grid(alpha=0.3)
+        axes[0].set_ylabel(f"mean moving steps (of {self.o.max_steps})")
+        axes[0].legend(fontsize=8, loc="upper left")
+        fig.suptitle(f"Experiment {self.o.experiment}: DRL learning curve on {self.o.world}")
+        fig.tight_layout()
+        path = self.out / "learning_curve.png"
+        fig.savefig(path, dpi=110)
+        return path
 
     def wallclock_markdown(self) -> str:
         lines = ["| Stage | Seconds | Updates | Cumulative DRL seconds |", "|---|---:|---:|---:|"]

@@ -65,6 +65,7 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
         assert results["meta"]["world"] == "corridor" and results["meta"]["model"] == label
         assert f"| {label} | " in general and f"{info['mean_steps']:.1f}" in general
     assert (out / "heatmaps-corridor.png").stat().st_size > 1000
+    assert "![learning curve](learning_curve.png)" in report and (out / "learning_curve.png").stat().st_size > 1000
     for label in ("SL", "RL", "DRL-20"):
         results = json.loads((out / "eval" / f"{label}.json").read_text())
         assert results["meta"]["model"] == label and len(results["episodes"]) == 4  # box-room: 4 starts
