@@ -13,7 +13,9 @@ A checkpoint directory holds::
 
 Every file is written to a temporary name, fsynced, renamed into place and the directory
 fsynced, replay before checkpoint before ``latest``, so a crash at any point leaves ``latest``
-naming a complete checkpoint; the last ``keep`` checkpoints stay on disk. Loading verifies the
+naming a complete checkpoint; the last ``keep`` checkpoints stay on disk, and the replay memory
+with the newest ``keep_replays`` of them only (a replay is the bulk of a checkpoint's bytes and
+only a resume reads it; an older checkpoint resumes with an empty replay). Loading verifies the
 format and the digest: a truncated or corrupt file raises :class:`CheckpointError` and
 ``CheckpointManager.load_latest`` falls back to the newest older checkpoint that loads.
 
@@ -172,6 +174,9 @@ class Checkpoint:
         if replay is not None:
             if self.replay_path is None:
                 raise CheckpointError(f"{self.path} was saved without its replay memory")
+            if not self.replay_path.exists():
+                raise CheckpointError(f"{self.path}'s replay memory was not kept ({self.replay_path.name}: only "
+                                      "the newest checkpoints keep theirs)")
             arrays, meta = load_tensors_file(self.replay_path, FORMAT + "-replay", framework="numpy")
             if meta.get("digest") != self.replay_digest:
                 raise CheckpointError(f"{self.replay_path} belongs to another checkpoint")
@@ -228,16 +233,20 @@ def load_checkpoint(path: Path | str) -> Checkpoint:
 
 @dataclass
 class CheckpointManager:
-    """Numbered checkpoints in one directory with a ``latest`` pointer; keeps the last ``keep``."""
+    """Numbered checkpoints in one directory with a ``latest`` pointer; keeps the last ``keep``,
+    the replay memory with the last ``keep_replays`` of them."""
 
     directory: Path
     keep: int = 3
+    keep_replays: int = 2
     skipped: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.directory = Path(self.directory)
-        if not (isinstance(self.keep, int) and self.keep >= 1):
-            raise CheckpointError(f"keep must be an integer >= 1, got {self.keep!r}")
+        for name in ("keep", "keep_replays"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise CheckpointError(f"{name} must be an integer >= 1, got {value!r}")
 
     def path_for(self, update_count: int) -> Path:
         return self.directory / f"ckpt-{update_count:09d}.safetensors"
@@ -273,7 +282,7 @@ class CheckpointManager:
         for old in ckpts[: max(0, len(ckpts) - (self.keep - 1))]:
             old.unlink(missing_ok=True)
         live_replays = set()
-        for p in self.checkpoints():
+        for p in self.checkpoints()[-self.keep_replays:]:
             try:
                 rinfo = _read_meta(p, FORMAT).get("replay")
             except CheckpointError:
@@ -281,7 +290,7 @@ class CheckpointManager:
             if rinfo:
                 live_replays.add(rinfo["file"])
         for p in self.directory.iterdir():
-            # orphans: replays of pruned or re-saved checkpoints, temporaries of crashed writers
+            # orphans: replays of pruned, re-saved or older checkpoints, temporaries of crashed writers
             orphan_replay = _REPLAY_RE.match(p.name) and p.name not in live_replays
             stale_tmp = p.name.startswith(".") and ".tmp-" in p.name and not p.name.endswith(
                 f".tmp-{os.getpid()}")

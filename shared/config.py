@@ -400,7 +400,8 @@ class TrainConfig:
     """Updates between checkpoints."""
     keep_checkpoints: int = 3
     """How many of the newest checkpoints stay on disk (raise it to evaluate a learning curve
-    afterwards: each one holds weights, target weights and optimiser state)."""
+    afterwards: each one holds weights, target weights and optimiser state; the replay memory,
+    the bulk of the bytes, stays with the newest two only)."""
     log_every: int = 50
     """Updates between log rows."""
     seed: int = 0

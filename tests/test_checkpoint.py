@@ -107,6 +107,41 @@ def test_manager_keeps_last_k_and_points_latest_at_the_newest(tmp_path):
     assert mem2.transitions_added == mem.transitions_added
 
 
+def test_only_the_newest_checkpoints_keep_their_replay_and_an_older_one_resumes_without(tmp_path, caplog):
+    from services.learner.core import LearnerCore
+    from services.learner.service import resume_from
+
+    agent, mem = setup(DQNConfig())
+    fill(mem)
+    cm = CheckpointManager(tmp_path, keep=10)  # a learning curve's worth of checkpoints
+    for _ in range(4):
+        step(agent, mem)
+        cm.save(agent, replay=mem)
+    assert [p.name for p in cm.checkpoints()] == [f"ckpt-00000000{u}.safetensors" for u in (1, 2, 3, 4)]
+    assert sorted(p.name[:14] for p in tmp_path.glob("*.replay-*")) == ["ckpt-000000003", "ckpt-000000004"]
+    agent2, mem2 = setup(DQNConfig(), seed=5)
+    cm.load(cm.path_for(3)).restore(agent2, mem2)
+    assert mem2.transitions_added == mem.transitions_added
+    old = cm.load(cm.path_for(1))
+    with pytest.raises(CheckpointError, match="replay memory was not kept"):
+        old.restore(agent2, mem2)
+    old.restore(agent2)  # the agent alone restores exactly
+    assert agent2.update_count == 1
+
+    # A run whose only checkpoint left lost its replay resumes its network with an empty replay.
+    for u in (2, 3, 4):
+        cm.path_for(u).unlink()
+    (tmp_path / "latest").write_text(cm.path_for(1).name + "\n")
+    cfg = RunConfig(sensor=TINY, model=MODEL, replay=ReplayConfig(capacity=64))
+    core = LearnerCore(cfg, device="cpu")
+    with caplog.at_level("WARNING"):
+        assert resume_from(cm, core)
+    assert core.updates == 1 and len(core.replay) == 0
+    assert "resuming with an empty replay memory" in caplog.text
+    with pytest.raises(CheckpointError, match="keep_replays"):
+        CheckpointManager(tmp_path, keep_replays=0)
+
+
 def test_partial_write_leaves_the_previous_checkpoint_usable(tmp_path):
     agent, mem = setup(DQNConfig())
     fill(mem)

@@ -227,8 +227,12 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
         log.warning("skipped a checkpoint: %s", reason)
     if checkpoint is None:
         return False
+    with_replay = checkpoint.replay_path is not None and checkpoint.replay_path.exists()
+    if checkpoint.replay_path is not None and not with_replay:
+        log.warning("%s's replay memory was not kept (only the newest checkpoints keep theirs): resuming with "
+                    "an empty replay memory", checkpoint.path.name)
     try:
-        checkpoint.restore(core.agent, core.replay if checkpoint.replay_path is not None else None)
+        checkpoint.restore(core.agent, core.replay if with_replay else None)
     except CheckpointError as exc:
         log.error("cannot resume from %s: %s; starting fresh", checkpoint.path, exc)
         return False
