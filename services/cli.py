@@ -49,6 +49,39 @@ def _worlds_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _worlds_starts(args: argparse.Namespace) -> int:
+    from shared.config import ACTION_NAMES, ConfigError, EnvConfig, SensorConfig
+    from shared.supervised import CommandExpert, ExpertConfig, SupervisedError
+    from shared.world import load_world
+
+    try:
+        world = load_world(args.world)
+        if not (1 <= args.horizon <= 1000):
+            raise ConfigError(f"--horizon must be in [1, 1000], got {args.horizon}")
+        # Fine map cells and view-wedge samples: an escape may pass within centimetres of the thresholds.
+        expert = CommandExpert(world, EnvConfig(world=args.world, speed_table=args.speed), SensorConfig(),
+                               ExpertConfig(contact_margin_m=args.margin_m, depth_margin_m=args.margin_m,
+                                            wedge_spacing_m=0.01, resolution_m=0.02))
+    except (ValueError, SupervisedError) as exc:
+        print(f"cogexplore worlds starts: error: {exc}", file=sys.stderr)
+        return 2
+    rows = []
+    width = max((len(s.name or "") for s in world.starts), default=0)
+    for i, start in enumerate(world.starts):
+        steps = expert.survival_steps(start.x, start.y, start.yaw, horizon=args.horizon)
+        rows.append({"start": i + 1, "name": start.name, "pose": [start.x, start.y, start.yaw],
+                     "survival_steps": int(steps.max()), "trap": bool(steps.max() < args.horizon),
+                     "per_command": dict(zip(ACTION_NAMES, (int(v) for v in steps)))})
+        if not args.json:
+            r = rows[-1]
+            verdict = (f"ok (survives {args.horizon} steps)" if not r["trap"] else
+                       f"TRAP: collides within {r['survival_steps'] + 1} steps whatever it commands")
+            print(f"start {r['start']:2d} {r['name'] or '':<{width}}  {verdict}", flush=True)
+    if args.json:
+        _print_json(rows)
+    return 0
+
+
 # -- model -------------------------------------------------------------------------------
 
 def _model_summary(args: argparse.Namespace) -> int:
@@ -174,6 +207,17 @@ def build_parser() -> argparse.ArgumentParser:
     p = add("show", "draw a top-down map with start poses and headings", _worlds_show, wsub)
     p.add_argument("world", help="built-in name, procedural:<seed> or an MJCF path")
     p.add_argument("--out", default="map.png", help="PNG path (default: map.png)")
+
+    p = add("starts", "check that every start pose can survive: a beam search over command sequences on the "
+            "map (exact kinematics, the depth-collision rule) for the longest survival from each start", _worlds_starts,
+            wsub)
+    p.add_argument("world", help="built-in name, procedural:<seed> or an MJCF path")
+    p.add_argument("--speed", choices=("test", "train"), default="test",
+                   help="speed table (default test: the protocol's)")
+    p.add_argument("--horizon", type=int, default=60, help="steps a start must survive (default 60)")
+    p.add_argument("--margin-m", type=float, default=0.0,
+                   help="extra clearance and depth every step must keep (default 0: the task's exact thresholds)")
+    p.add_argument("--json", action="store_true", help="print JSON")
 
     model = add("model", "inspect the Q-network")
     msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)

@@ -118,6 +118,39 @@ def test_expert_drives_box_room_without_collision():
                 break
 
 
+def test_survival_search_agrees_with_the_env_and_finds_the_dead_end_trap(capsys):
+    from services.cli import main
+    from shared.env import ExploreEnv
+
+    exact = ExpertConfig(contact_margin_m=0.0, depth_margin_m=0.0, wedge_spacing_m=0.01, resolution_m=0.02)
+    train = EnvConfig(speed_table="train")
+    env = ExploreEnv(train, SMALL_SENSOR, world="box-room")
+    box = CommandExpert(env.world, train, SMALL_SENSOR, exact)
+    # 0.8 m from a wall, facing it: the env's first step ends in a collision for the same commands.
+    steps = box.survival_steps(1.2, 0.0, 0.0, horizon=5)
+    for a in range(5):
+        env.reset(seed=0)
+        env.robot.set_pose(1.2, 0.0, 0.0)
+        terminated = env.step(a)[2]
+        assert terminated == (steps[a] == 0), (a, steps)
+    assert steps.max() >= 1  # straight is the one command still safe there
+
+    # paper-indoor's start 6 (a 1.4 m dead end) is a trap at the training speeds; start 1 is not.
+    world = load_world("paper-indoor")
+    paper = CommandExpert(world, train, SMALL_SENSOR, exact)
+    open_start, dead_end = world.starts[0], world.starts[5]
+    assert dead_end.name == "dead-end"
+    assert paper.survival_steps(open_start.x, open_start.y, open_start.yaw, horizon=40).max() == 40
+    assert 15 < paper.survival_steps(dead_end.x, dead_end.y, dead_end.yaw, horizon=40).max() < 40
+
+    assert main(["worlds", "starts", "box-room", "--horizon", "8", "--json"]) == 0
+    rows = json.loads(capsys.readouterr().out)
+    assert len(rows) == 4 and all(r["survival_steps"] == 8 and not r["trap"] for r in rows)
+    for bad in (["nowhere"], ["box-room", "--horizon", "0"], ["box-room", "--margin-m", "-1"]):
+        assert main(["worlds", "starts", *bad]) == 2
+        assert "error" in capsys.readouterr().err
+
+
 def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_commands():
     from shared.config import ExploreConfig
     from shared.env import ExploreEnv
