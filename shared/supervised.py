@@ -327,8 +327,8 @@ class CommandExpert:
         whatever it commands next (up to ``horizon``; 0: the first step already fails), by a beam
         search over command sequences on the clearance map with the same step checks as the
         plans. Poses are merged per (cell_m, heading_deg) cell; at most ``beam`` per first command
-        are kept at each depth (a seeded random sample). A lower bound: a wider beam can only
-        find more. Finds trap starts, such as a dead end too narrow to turn around in."""
+        are kept at each depth (a seeded random sample), so it is a lower bound: the beam may miss a
+        sequence. Finds trap starts, such as a dead end too narrow to turn around in."""
         c, e = self.cfg, self.env_cfg
         frac = (np.arange(1, c.substeps + 1) / c.substeps) * e.control_period_s
         need = e.robot_radius_m + c.contact_margin_m
