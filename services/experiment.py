@@ -316,14 +316,12 @@ class Experiment:
         rows += [("reactive", "reactive", None), ("random", "random", None)]
         return rows
 
-    def _evaluate(self, label: str, policy: str, checkpoint: str | None, world: str | None = None
-                  ) -> dict[str, Any]:
-        """The protocol for one model on ``world`` (default: the training world)."""
+    def _evaluate(self, label: str, policy: str, checkpoint: str | None, world: str) -> dict[str, Any]:
+        """The protocol for one model on ``world``."""
         from services.evaluator.evaluate import evaluate_policy, setup_evaluation
         from services.evaluator.report import slug
         from services.evaluator.results import save_results
 
-        world = world or self.o.world
         setup = setup_evaluation(policy, checkpoint, world=world, preset=self.o.preset,
                                  overrides=self._eval_overrides(), seed=self.o.seed, device="cpu")
         results = evaluate_policy(setup.policy_fn, world=world, sensor_cfg=setup.sensor_cfg,
@@ -339,22 +337,37 @@ class Experiment:
                 "mean_distance_m": overall["mean_distance_m"]}
 
     # -- report -------------------------------------------------------------------------------
-    def write_report(self) -> Path:
-        from services.evaluator.figures import save_heatmaps_side_by_side
-        from services.evaluator.results import load_results, table_markdown
-        from shared.maps import occupancy_grid
-        from shared.world import load_world
+    def eval_stage(self, label: str, world: str | None = None) -> str:
+        """The stage name of one model's evaluation on ``world`` (default: the training world)."""
+        return f"eval-{label}" if world in (None, self.o.world) else f"eval-{label}@{world}"
+
+    def _results_on(self, world: str | None = None) -> dict[str, Any]:
+        """{model label: EvalResults} of every model evaluated on ``world``, in table order."""
+        from services.evaluator.results import load_results
 
         results = {}
         for label, _policy, _ckpt in self.models():
-            info = self.state.done(f"eval-{label}")
+            info = self.state.done(self.eval_stage(label, world))
             if info is not None:
                 results[label] = load_results(info["results"])
+        return results
+
+    def _heatmaps(self, world: str, results: dict[str, Any], name: str) -> Path:
+        from services.evaluator.figures import save_heatmaps_side_by_side
+        from shared.maps import occupancy_grid
+        from shared.world import load_world
+
+        w = load_world(world)
+        return save_heatmaps_side_by_side(w, occupancy_grid(w), results, self.out / name,
+                                          ncols=min(4, len(results)))
+
+    def write_report(self) -> Path:
+        from services.evaluator.results import table_markdown
+
+        results = self._results_on()
         table = table_markdown(results)
         (self.out / "table.md").write_text(table)
-        world = load_world(self.o.world)
-        heatmaps = save_heatmaps_side_by_side(world, occupancy_grid(world), results, self.out / "heatmaps.png",
-                                              ncols=min(4, len(results)))
+        heatmaps = self._heatmaps(self.o.world, results, "heatmaps.png")
         wall = self.wallclock_markdown()
         (self.out / "wallclock.md").write_text(wall)
         unseen = self.write_generalisation()
@@ -394,11 +407,7 @@ class Experiment:
     def write_generalisation(self) -> str:
         """``generalisation.md`` (mean steps per model and unseen world, and their mean) and one
         ``heatmaps-<world>.png`` per unseen world; returns the Markdown ('' without unseen worlds)."""
-        from services.evaluator.figures import save_heatmaps_side_by_side
         from services.evaluator.report import slug
-        from services.evaluator.results import load_results
-        from shared.maps import occupancy_grid
-        from shared.world import load_world
 
         worlds = self.o.unseen_worlds
         if not worlds:
@@ -406,17 +415,11 @@ class Experiment:
         steps: dict[str, dict[str, float]] = {}
         figures = []
         for world in worlds:
-            results = {}
-            for label, _policy, _ckpt in self.models():
-                info = self.state.done(f"eval-{label}@{world}")
-                if info is not None:
-                    results[label] = load_results(info["results"])
-                    steps.setdefault(label, {})[world] = float(info["mean_steps"])
+            results = self._results_on(world)
+            for label in results:
+                steps.setdefault(label, {})[world] = float(self.state.done(self.eval_stage(label, world))["mean_steps"])
             if results:
-                w = load_world(world)
-                figures.append(save_heatmaps_side_by_side(w, occupancy_grid(w), results,
-                                                          self.out / f"heatmaps-{slug(world)}.png",
-                                                          ncols=min(4, len(results))))
+                figures.append(self._heatmaps(world, results, f"heatmaps-{slug(world)}.png"))
         cols = [*worlds, "Mean"]
         rows = {label: [per.get(w) for w in worlds] + [sum(per.values()) / len(per)
                                                          if len(per) == len(worlds) else None]
@@ -449,10 +452,10 @@ class Experiment:
                 break
             minutes += stage["seconds"] / 60
             label = f"DRL-{stage['updates']}"
-            ev = self.state.done(f"eval-{label}")
+            ev = self.state.done(self.eval_stage(label))
             if ev is None:
                 continue
-            unseen = [self.state.done(f"eval-{label}@{w}") for w in self.o.unseen_worlds]
+            unseen = [self.state.done(self.eval_stage(label, w)) for w in self.o.unseen_worlds]
             points.append((stage["updates"], minutes, ev["mean_steps"],
                            sum(x["mean_steps"] for x in unseen) / len(unseen)
                            if unseen and all(unseen) else None))
@@ -467,7 +470,7 @@ class Experiment:
             if all(p[3] is not None for p in points):
                 ax.plot(xs, [p[3] for p in points], "s--", color="C1", lw=1.4, label="DRL, unseen worlds' mean")
             for i, name in enumerate(("SL", "RL", "reactive", "random")):
-                ev = self.state.done(f"eval-{name}")
+                ev = self.state.done(self.eval_stage(name))
                 if ev is not None:
                     ax.axhline(ev["mean_steps"], color=f"C{i + 2}", lw=1, ls=":", label=name)
             if col == 0 and self.o.max_steps == PAPER_MAX_STEPS:  # the paper's figures are of 200 steps
@@ -510,11 +513,9 @@ class Experiment:
         self._stage("rl", self._train_rl)
         for u in self.o.checkpoints:
             self._stage(f"drl-{u}", lambda u=u: self._train_drl(u))
-        for label, policy, checkpoint in self.models():
-            self._stage(f"eval-{label}", lambda a=(label, policy, checkpoint): self._evaluate(*a))
-        for world in self.o.unseen_worlds:
+        for world in (self.o.world, *self.o.unseen_worlds):
             for label, policy, checkpoint in self.models():
-                self._stage(f"eval-{label}@{world}",
+                self._stage(self.eval_stage(label, world),
                             lambda a=(label, policy, checkpoint, world): self._evaluate(*a))
         path = self.write_report()
         self.echo(f"report: {path}")
