@@ -69,6 +69,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
         recent_lengths: list[int] = []
         obs, info = env.reset(seed=cfg.train.seed + (core.received if resumed else 0))
         guide.begin_episode()
+        policy.reset()
         episode_return = 0.0
         while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             choice = policy.act(obs, step=env_step, guide_action=guide.action(info["pose"]))
@@ -107,6 +108,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                                     f" | loss {loss if loss is not None else float('nan'):.3g}", refresh=False)
                 obs, info = env.reset()
                 guide.begin_episode()
+                policy.reset()
                 episode_return = 0.0
         bar.close()
     final = checkpoints.save(core.agent, replay=core.replay, config=config_dict,

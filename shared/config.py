@@ -260,6 +260,12 @@ class ModelConfig:
     (beyond range) is 0, next to a wall at the collision distance (0.14). 'inverse':
     0.5 m / depth capped at 1, so near obstacles give large values, free space beyond range
     stays 0 and the input falls monotonically with distance (see shared.model.encode_depth)."""
+    previous_action: bool = False
+    """fc1 also reads the previous moving command (one-hot; zeros at an episode's first step).
+    One depth image does not show how the robot is turning: mid U-turn, facing a wall, the image
+    is nearly symmetric and a single-frame policy flips between left and right. The command
+    fixes the robot's motion over the last step (every command has the same linear speed), so
+    it carries what a second frame would, at no image cost. Off in the paper preset."""
 
     def __post_init__(self) -> None:
         s = "model"
@@ -270,6 +276,8 @@ class ModelConfig:
         _check(_finite(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
                "a probability in [0, 1)")
         _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
+        _check(isinstance(self.previous_action, bool), s, "previous_action", self.previous_action,
+               "true or false")
         _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
                f"one of {', '.join(DEPTH_ENCODINGS)}")
 

@@ -105,14 +105,21 @@ class TensorBatch:
     terminated: torch.Tensor
     next_obs: torch.Tensor
     weights: torch.Tensor
+    previous_action: torch.Tensor  # (B,) int64, -1: none
+    next_previous_action: torch.Tensor  # (B,) int64
 
 
 def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
     """``tb`` with the transitions where ``flip`` (B,) is true mirrored left-right: both frames
-    flipped horizontally and the command swapped (left <-> right, half-left <-> half-right).
-    Rewards, returns and episode ends are those of the mirror-image transition unchanged."""
+    flipped horizontally and the commands swapped (left <-> right, half-left <-> half-right), the
+    previous ones too. Rewards, returns and episode ends are those of the mirror-image transition
+    unchanged."""
+    def mirror(action: torch.Tensor) -> torch.Tensor:
+        return torch.where(flip & (action >= 0), mirror_action(action), action)
+
     return dataclasses.replace(tb, obs=mirror_images(tb.obs, flip), next_obs=mirror_images(tb.next_obs, flip),
-                               action=torch.where(flip, mirror_action(tb.action), tb.action))
+                               action=mirror(tb.action), previous_action=mirror(tb.previous_action),
+                               next_previous_action=mirror(tb.next_previous_action))
 
 
 class DQNAgent:
@@ -176,19 +183,21 @@ class DQNAgent:
             terminated=torch.as_tensor(batch.terminated, dtype=torch.bool, device=dev),
             next_obs=preprocess_depth(batch.next_obs, dev),
             weights=torch.as_tensor(batch.weights, dtype=torch.float32, device=dev),
+            previous_action=torch.as_tensor(batch.previous_action, dtype=torch.int64, device=dev),
+            next_previous_action=torch.as_tensor(batch.next_previous_action, dtype=torch.int64, device=dev),
         )
 
     # ------------------------------------------------------------------ update
     @torch.no_grad()
     def compute_targets(self, tb: TensorBatch) -> torch.Tensor:
         """TD targets y (B,) with theta^- (and theta, eval mode, for Double DQN)."""
-        next_q_target = self.target(tb.next_obs)
+        next_q_target = self.target(tb.next_obs, tb.next_previous_action)
         next_q_online = None
         if self.cfg.double_dqn:
             was_training = self.online.training
             self.online.eval()
             try:
-                next_q_online = self.online(tb.next_obs)
+                next_q_online = self.online(tb.next_obs, tb.next_previous_action)
             finally:
                 self.online.train(was_training)
         return td_targets(tb.rewards, tb.n_steps, tb.terminated, next_q_target, self.cfg.gamma,
@@ -206,7 +215,7 @@ class DQNAgent:
             tb = mirror_batch(tb, torch.rand(len(tb.action), device=tb.action.device) < 0.5)
         y = self.compute_targets(tb)
         self.online.train()
-        q_all = self.online(tb.obs)
+        q_all = self.online(tb.obs, tb.previous_action)
         q = q_all.gather(1, tb.action[:, None]).squeeze(1)
         if self.cfg.loss == "huber":
             per_sample = F.smooth_l1_loss(q, y, reduction="none", beta=1.0)
@@ -249,9 +258,10 @@ class DQNAgent:
                 pt.copy_(po)
 
     # ------------------------------------------------------------------ acting and weights
-    def q_values(self, depth: Any) -> np.ndarray:
-        """Greedy-time Q-values of the online net (dropout off) for (H, W) or (B, H, W) depth."""
-        return self._runner.q_values(depth)
+    def q_values(self, depth: Any, previous_action: Any = None) -> np.ndarray:
+        """Greedy-time Q-values of the online net (dropout off) for (H, W) or (B, H, W) depth
+        (and the previous commands, for a ``model.previous_action`` net)."""
+        return self._runner.q_values(depth, previous_action)
 
     def weights(self) -> dict[str, torch.Tensor]:
         """Online weights as CPU tensors (for weight messages and exports)."""

@@ -160,6 +160,21 @@ def mirror_images(x: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
     return torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(memory_format=torch.channels_last)
 
 
+def previous_action_input(previous_action: Any, batch: int, device: torch.device | str | None = None,
+                          dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(B, 5) one-hot of the previous commands (``model.previous_action``): ``previous_action`` is
+    None (no previous command: every row zeros), an int, or (B,) ints where -1 means none."""
+    if previous_action is None:
+        return torch.zeros(batch, NUM_ACTIONS, dtype=dtype, device=device)
+    prev = torch.as_tensor(previous_action, dtype=torch.int64, device=device).reshape(-1)
+    if prev.numel() == 1 and batch != 1:
+        prev = prev.expand(batch)
+    if prev.shape != (batch,) or bool(((prev < -1) | (prev >= NUM_ACTIONS)).any()):
+        raise ModelError(f"previous_action must be None, or {batch} command indices in [-1, {NUM_ACTIONS}) "
+                         f"(-1: none), got {previous_action!r}")
+    return F.one_hot(prev.clamp(min=0), NUM_ACTIONS).to(dtype) * (prev >= 0).to(dtype)[:, None]
+
+
 class ConvTrunk(nn.Module):
     """Depth encoding, then conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
 
@@ -185,7 +200,13 @@ class ConvTrunk(nn.Module):
 
 
 class QNetwork(nn.Module):
-    """Depth image -> 5 Q-values (left, half-left, straight, half-right, right)."""
+    """Depth image -> 5 Q-values (left, half-left, straight, half-right, right).
+
+    With ``model.previous_action`` the previous command also enters fc1, through its own
+    bias-free layer (``previous_action_fc``) added to fc1's output: the same as widening fc1's
+    input by the one-hot, while fc1 keeps the shape the frozen-conv and probe code expect.
+    ``previous_action=None`` reads as "no previous command" (an episode's first step).
+    """
 
     def __init__(self, model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None):
         super().__init__()
@@ -196,6 +217,7 @@ class QNetwork(nn.Module):
         cfg = self.model_cfg
         self.trunk = ConvTrunk(cfg.depth_encoding)
         self.fc1 = nn.Linear(flat, cfg.fc1)
+        self.previous_action_fc = nn.Linear(NUM_ACTIONS, cfg.fc1, bias=False) if cfg.previous_action else None
         self.fc2 = nn.Linear(cfg.fc1, cfg.fc2)
         self.dropout = nn.Dropout(cfg.dropout)
         if cfg.dueling:
@@ -210,19 +232,21 @@ class QNetwork(nn.Module):
         self._check_input(x)
         return self.trunk(x)
 
-    def head(self, pool3: torch.Tensor) -> torch.Tensor:
-        """pool3 activations -> (B, 5) Q-values."""
+    def head(self, pool3: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        """pool3 activations (and the previous commands, see the class) -> (B, 5) Q-values."""
         # flatten in NCHW order whatever the memory format, so fc1 weights are format-independent
-        h = torch.flatten(pool3.contiguous(), 1)
-        h = self.dropout(F.relu(self.fc1(h), inplace=True))
+        h = self.fc1(torch.flatten(pool3.contiguous(), 1))
+        if self.previous_action_fc is not None:
+            h = h + self.previous_action_fc(previous_action_input(previous_action, h.shape[0], h.device, h.dtype))
+        h = self.dropout(F.relu(h, inplace=True))
         h = self.dropout(F.relu(self.fc2(h), inplace=True))
         if self.model_cfg.dueling:
             adv = self.advantage(h)
             return self.value(h) + adv - adv.mean(dim=1, keepdim=True)
         return self.fc3(h)
 
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.head(self.features(x))
+    def forward(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        return self.head(self.features(x), previous_action)
 
     def _check_input(self, x: torch.Tensor) -> None:
         want = (1, self.sensor_cfg.height, self.sensor_cfg.width)
@@ -331,14 +355,15 @@ class InferenceRunner:
     def device(self) -> torch.device:
         return next(self.net.parameters()).device
 
-    def q_values(self, depth: Any) -> np.ndarray:
-        """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy."""
+    def q_values(self, depth: Any, previous_action: Any = None) -> np.ndarray:
+        """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy; ``previous_action``
+        (None, an int or (B,) ints, -1 = none) is read only by a ``model.previous_action`` net."""
         single = getattr(depth, "ndim", 0) == 2
         was_training = self.net.training
         self.net.eval()
         try:
             with torch.inference_mode():
-                q = self.net(preprocess_depth(depth, self.device))
+                q = self.net(preprocess_depth(depth, self.device), previous_action)
         finally:
             self.net.train(was_training)
         out = q.float().cpu().numpy()
@@ -370,6 +395,8 @@ def layer_summary(model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig
                 x = row(f"conv{i}", F.relu(conv(x)), conv)
                 x = row(f"pool{i}", F.max_pool2d(x, 2))
             h = torch.flatten(x, 1)
+            if net.previous_action_fc is not None:
+                row("previous_action_fc", net.previous_action_fc(torch.zeros(1, NUM_ACTIONS)), net.previous_action_fc)
             h = row("fc1", F.relu(net.fc1(h)), net.fc1)
             h = row("fc2", F.relu(net.fc2(h)), net.fc2)
             if net.model_cfg.dueling:

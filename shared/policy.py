@@ -77,6 +77,8 @@ class EpsilonGreedyPolicy:
 
     The network is shared, not copied: load new weights into ``net`` and the next ``act`` uses
     them. Random draws come from the policy's own generator (seeded), never the global ones.
+    The policy remembers the command it chose last (``previous_action``, which a
+    ``model.previous_action`` network reads); call ``reset()`` when an episode starts.
     """
 
     def __init__(self, net: QNetwork, schedule: EpsilonSchedule | None = None,
@@ -85,6 +87,15 @@ class EpsilonGreedyPolicy:
         self.schedule = schedule
         self.rng = np.random.default_rng(seed)
         self._runner = InferenceRunner(net)
+        self.previous_action: int | None = None
+
+    def reset(self) -> None:
+        """A new episode: no previous command."""
+        self.previous_action = None
+
+    def _chose(self, choice: ActionChoice) -> ActionChoice:
+        self.previous_action = choice.action
+        return choice
 
     def epsilon(self, step: int) -> float:
         return 0.0 if self.schedule is None else self.schedule(step)
@@ -92,19 +103,19 @@ class EpsilonGreedyPolicy:
     def act(self, depth_m: np.ndarray, step: int = 0, guide_action: int | None = None) -> ActionChoice:
         """Choose an action for one (H, W) depth image at environment step ``step``.
         ``guide_action`` (an expert's command) replaces the greedy one, not the random one."""
-        q = self._runner.q_values(depth_m)
+        q = self._runner.q_values(depth_m, self.previous_action)
         eps = self.epsilon(step)
         # draw both numbers every step so the random stream does not depend on the Q-values
         u, rand_action = self.rng.random(), int(self.rng.integers(NUM_ACTIONS))
         if u < eps:
-            return ActionChoice(rand_action, q, eps, True)
+            return self._chose(ActionChoice(rand_action, q, eps, True))
         if guide_action is not None:
             if not (isinstance(guide_action, (int, np.integer)) and 0 <= guide_action < NUM_ACTIONS):
                 raise PolicyError(f"guide_action must be an action index in [0, {NUM_ACTIONS}), got {guide_action!r}")
-            return ActionChoice(int(guide_action), q, eps, False)
-        return ActionChoice(greedy_action(q), q, eps, False)
+            return self._chose(ActionChoice(int(guide_action), q, eps, False))
+        return self._chose(ActionChoice(greedy_action(q), q, eps, False))
 
     def greedy(self, depth_m: np.ndarray) -> ActionChoice:
         """The greedy action (test protocol)."""
-        q = self._runner.q_values(depth_m)
-        return ActionChoice(greedy_action(q), q, 0.0, False)
+        q = self._runner.q_values(depth_m, self.previous_action)
+        return self._chose(ActionChoice(greedy_action(q), q, 0.0, False))

@@ -9,7 +9,9 @@ Transitions arrive as streams: ``add(stream_id, ...)`` takes an id per actor/epi
 interleaved streams from several actors keep their own episode chains. A stream's next
 transition reuses the previous next_obs frame when its obs is that same image (checked, so a lost
 transition never links the wrong frames). The per-stream chain (``next`` links) is what n-step
-returns are computed from at sampling time, for any n.
+returns are computed from at sampling time, for any n. It also gives each transition its
+previous command (the action of its predecessor in the chain, -1 at an episode's start or after
+a broken link), for networks that read it (``model.previous_action``).
 
 Frames and transitions are both FIFO rings. The frame ring has some slack over the transition
 capacity (one extra frame per truncated episode); when a frame is overwritten, every transition
@@ -36,7 +38,6 @@ from shared.depth import depth_to_mm
 
 PRIORITY_EPS = 1e-3
 """Added to |TD error| so that no valid transition's probability falls to 0."""
-_META_BYTES = 8 * 4 + 4 + 1 + 1 + 1 + 1  # tid, obs_fid, next_fid, next_tid, reward, action, flags, valid
 
 
 class ReplayError(ValueError):
@@ -58,6 +59,8 @@ class Batch:
     n_steps: np.ndarray  # (B,) int64, 1..n
     terminated: np.ndarray  # (B,) bool
     next_obs: np.ndarray  # (B, H, W) uint16 mm; zeros where terminated
+    previous_action: np.ndarray  # (B,) int64 command before obs (-1: none, an episode's start)
+    next_previous_action: np.ndarray  # (B,) int64 command before next_obs (the chain's last action)
     weights: np.ndarray  # (B,) float32 importance-sampling weights (ones when uniform)
     indices: np.ndarray  # (B,) int64 transition ids, for update_priorities
 
@@ -131,6 +134,7 @@ class ReplayMemory:
         self._next_tid = np.full(n, -1, dtype=np.int64)
         self._reward = np.zeros(n, dtype=np.float32)
         self._action = np.zeros(n, dtype=np.uint8)
+        self._previous_action = np.full(n, -1, dtype=np.int8)
         self._terminated = np.zeros(n, dtype=bool)
         self._truncated = np.zeros(n, dtype=bool)
         self._valid = np.zeros(n, dtype=bool)
@@ -154,7 +158,8 @@ class ReplayMemory:
     @property
     def nbytes(self) -> int:
         arrays = (self._frames, self._frame_id, self._frame_refs, self._tid, self._obs_fid,
-                  self._next_fid, self._next_tid, self._reward, self._action, self._terminated,
+                  self._next_fid, self._next_tid, self._reward, self._action, self._previous_action,
+                  self._terminated,
                   self._truncated, self._valid)
         tree = self._tree.tree.nbytes if self._tree is not None else 0
         return sum(a.nbytes for a in arrays) + tree
@@ -247,6 +252,9 @@ class ReplayMemory:
         self._next_tid[slot] = -1
         self._reward[slot] = reward
         self._action[slot] = int(action)
+        prev_slot = prev_tid % self.capacity
+        self._previous_action[slot] = (self._action[prev_slot] if prev_tid >= 0 and self._tid[prev_slot] == prev_tid
+                                       else -1)
         self._terminated[slot] = bool(terminated)
         self._truncated[slot] = bool(truncated)
         self._valid[slot] = True
@@ -347,7 +355,9 @@ class ReplayMemory:
         next_obs = self._frames[np.where(next_fid >= 0, next_fid, 0) % self.frame_capacity]
         next_obs[terminated] = 0
         return Batch(obs=obs, action=self._action[slots].astype(np.int64), rewards=rewards,
-                     n_steps=n_steps, terminated=terminated, next_obs=next_obs, weights=weights,
+                     n_steps=n_steps, terminated=terminated, next_obs=next_obs,
+                     previous_action=self._previous_action[slots].astype(np.int64),
+                     next_previous_action=self._action[last].astype(np.int64), weights=weights,
                      indices=self._tid[slots].copy())
 
     def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray) -> None:
@@ -383,7 +393,8 @@ class ReplayMemory:
             "frames": self._frames[:filled_f], "frame_id": self._frame_id,
             "frame_refs": self._frame_refs, "tid": self._tid, "obs_fid": self._obs_fid,
             "next_fid": self._next_fid, "next_tid": self._next_tid, "reward": self._reward,
-            "action": self._action, "terminated": self._terminated, "truncated": self._truncated,
+            "action": self._action, "previous_action": self._previous_action,
+            "terminated": self._terminated, "truncated": self._truncated,
             "valid": self._valid,
         }
         if self._tree is not None:
@@ -411,6 +422,8 @@ class ReplayMemory:
             for name in ("frame_id", "frame_refs", "tid", "obs_fid", "next_fid", "next_tid",
                          "reward", "action", "terminated", "truncated", "valid"):
                 getattr(self, f"_{name}")[...] = arrays[name]
+            # replays saved before previous commands were kept: every transition reads "none"
+            self._previous_action[...] = arrays.get("previous_action", -1)
             if self._tree is not None:
                 self._tree.tree[...] = arrays["tree"]
         except (KeyError, ValueError) as exc:

@@ -90,3 +90,21 @@ def test_flow_gate_forgets_transitions_lost_in_flight():
     gate.sent(32, now=100.0)  # e.g. sent before the learner subscribed: never counted
     assert not gate.open(now=105.0)
     assert gate.open(now=111.0), "after the horizon, unacknowledged transitions count as lost"
+
+
+def test_ingested_batches_give_each_transition_its_previous_command_across_batch_borders():
+    core = LearnerCore(load_preset("smoke"), device="cpu")
+    h, w = core.cfg.sensor.height, core.cfg.sensor.width
+    batcher = TransitionBatcher("a", batch_steps=2)
+    actions = [4, 0, 3, 1, 2]
+    for episode in range(2):  # the second episode starts without a previous command again
+        batcher.begin_episode(np.full((h, w), 1.0 + episode, np.float32), start_index=0)
+        for k, action in enumerate(actions):
+            last = k == len(actions) - 1
+            depth = np.full((h, w), 1.0 + episode + 0.1 * (k + 1), np.float32)
+            batch = batcher.add(action, -100.0 if last else 1.0, depth, last, False, 0, (0.0, 0.0, 0.0))
+            if batch is not None:
+                core.ingest(TransitionBatch.decode(batch.encode()))  # through the wire format
+    got = core.replay._gather(np.arange(10), 1, np.ones(10, np.float32))
+    np.testing.assert_array_equal(got.action, actions * 2)
+    np.testing.assert_array_equal(got.previous_action, [-1, 4, 0, 3, 1] * 2)

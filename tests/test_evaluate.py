@@ -94,6 +94,36 @@ def test_protocol_runs_every_start_times_episodes_within_the_cap() -> None:
     assert all(e.truncated and not e.terminated for e in circling.episodes)
 
 
+def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one() -> None:
+    import torch
+
+    from services.evaluator.policies import GreedyPolicy
+    from shared.config import ModelConfig
+    from shared.model import QNetwork
+
+    sensor = SensorConfig(width=40, height=30)
+    torch.manual_seed(0)
+    policy = GreedyPolicy(QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor))
+    seen: list[int | None] = []  # the previous command of each call
+    chosen: list[int] = []
+    runner = policy.policy._runner
+    q_values = runner.q_values
+
+    def spy(depth, previous_action=None):
+        seen.append(previous_action)
+        q = q_values(depth, previous_action)
+        chosen.append(int(np.argmax(q)))
+        return q
+
+    runner.q_values = spy
+    # through the cancellable wrapper that evaluate_policy puts around a policy with a stop event
+    results = evaluate_policy(policy, world="box-room", sensor_cfg=sensor, starts=[1, 2], episodes_per_start=2,
+                              max_steps=4, progress=False, stop=threading.Event())
+    firsts = set(np.cumsum([0] + [e.steps for e in results.episodes])[:-1].tolist())
+    assert len(firsts) == 4 and all(seen[i] is None for i in firsts)
+    assert all(seen[i] == chosen[i - 1] for i in range(len(seen)) if i not in firsts)
+
+
 def test_random_policy_repeats_under_a_seed() -> None:
     sensor = SensorConfig(width=64, height=48)
 

@@ -186,3 +186,28 @@ def test_inference_runner_matches_eval_forward_and_restores_mode():
         ref = net.eval()(preprocess_depth(depth))[0].numpy()
     np.testing.assert_array_equal(q, ref)
     assert runner.q_values(np.stack([depth, depth])).shape == (2, 5)
+
+
+def test_previous_action_input_changes_q_and_none_means_no_previous_command():
+    torch.manual_seed(0)
+    net = QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True), TINY).eval()
+    plain = QNetwork(SMALL, TINY)
+    assert architecture_fingerprint(net) != architecture_fingerprint(plain)  # weights never mix
+    assert [r["layer"] for r in layer_summary(net=net)].count("previous_action_fc") == 1
+    x = preprocess_depth(np.random.default_rng(1).random((5, 30, 40)).astype(np.float32) * 4)
+    with torch.no_grad():
+        none, minus_one = net(x), net(x, torch.full((5,), -1))
+        each = net(x, torch.arange(5))
+        single = net(x[:1], 3)
+    assert torch.equal(none, minus_one)
+    assert not torch.allclose(each, none)
+    torch.testing.assert_close(single[0], net(x[:1], torch.tensor([3]))[0])
+    runner = InferenceRunner(net)
+    depth = np.random.default_rng(2).random((30, 40)).astype(np.float32) * 4
+    assert not np.allclose(runner.q_values(depth, 0), runner.q_values(depth, 4))
+    np.testing.assert_array_equal(runner.q_values(depth), runner.q_values(depth, None))
+    for bad in (5, -2, torch.arange(3)):
+        with pytest.raises(ModelError, match="previous_action"):
+            net(x, bad)
+    with pytest.raises(ConfigError, match="previous_action"):
+        ModelConfig(previous_action=1)

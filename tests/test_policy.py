@@ -87,3 +87,24 @@ def test_guide_action_replaces_the_greedy_choice_not_the_random_one():
         assert g.action == (p.action if p.explored else guide)
     with pytest.raises(PolicyError, match="guide_action"):
         guided.act(depth, guide_action=5)
+
+
+def test_the_policy_feeds_its_last_command_back_and_forgets_it_at_reset():
+    torch.manual_seed(0)
+    n = QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), TINY)
+    with torch.no_grad():  # the previous command's weight dominates: the policy repeats itself
+        for layer in (n.fc1, n.fc2, n.fc3):
+            layer.weight.zero_()
+            layer.bias.zero_()
+        n.fc3.bias.copy_(torch.tensor([0.0, 0.0, 1.0, 0.0, 0.0]))  # straight without a previous command
+        n.fc2.weight[:5, :5] = torch.eye(5)
+        n.fc3.weight[:, :5] = 10 * torch.eye(5)
+        n.previous_action_fc.weight[:5, :] = 10 * torch.eye(5)
+    depth = np.zeros((30, 40), np.float32)
+    policy = EpsilonGreedyPolicy(n, EpsilonSchedule(ExploreConfig(eps_start=1.0, eps_end=1.0)), seed=0)
+    first = policy.act(depth)  # random: eps 1
+    assert policy.previous_action == first.action
+    policy.schedule = None
+    assert [policy.act(depth).action for _ in range(3)] == [first.action] * 3  # repeats its last command
+    policy.reset()
+    assert policy.previous_action is None and policy.greedy(depth).action == 2

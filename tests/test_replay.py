@@ -179,6 +179,25 @@ def test_uniform_sampling_is_uniform_and_weights_are_one():
     np.testing.assert_allclose(np.bincount(b.indices) / 4000, 0.2, atol=0.03)
 
 
+def test_previous_commands_follow_each_stream_chain_and_restart_with_each_episode():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE, seed=0)
+    # interleaved streams; add_episode's actions are k % 5, so stream "a" plays 0, 1, 2, 3
+    a = add_episode(mem, "a", 0, 4, "collision")
+    b = [mem.add("b", frame(300), 4, 1.0, frame(301), False), mem.add("b", frame(301), 3, 1.0, frame(302), False)]
+    a2 = add_episode(mem, "a", 100, 2, "open")  # the same stream's next episode
+    lost = mem.add("b", frame(999), 2, 1.0, frame(1000), False)  # a lost transition breaks b's chain
+    got = mem._gather(np.array(a + b + a2 + [lost]), 1, np.ones(9, np.float32))
+    np.testing.assert_array_equal(got.previous_action, [-1, 0, 1, 2, -1, 4, -1, 0, -1])
+    np.testing.assert_array_equal(got.next_previous_action, got.action)  # one step: this command
+    three = mem._gather(np.array([a[0], a[2]]), 3, np.ones(2, np.float32))
+    np.testing.assert_array_equal(three.next_previous_action, [2, 3])  # the chain's last command
+    # a replay saved before previous commands were kept restores with "none" everywhere
+    arrays, meta = mem.state_dict()
+    old = ReplayMemory(ReplayConfig(capacity=100), SHAPE)
+    old.load_state_dict({k: v for k, v in arrays.items() if k != "previous_action"}, meta)
+    assert np.all(old._gather(np.array(a), 1, np.ones(4, np.float32)).previous_action == -1)
+
+
 def test_state_dict_round_trip_restores_contents_streams_and_rng():
     cfg = ReplayConfig(capacity=16, prioritized=True)
     mem = ReplayMemory(cfg, SHAPE, seed=9)
@@ -189,7 +208,8 @@ def test_state_dict_round_trip_restores_contents_streams_and_rng():
     other = ReplayMemory(cfg, SHAPE, seed=0)
     other.load_state_dict(arrays, meta)
     b1, b2 = mem.sample(8, n_step=3), other.sample(8, n_step=3)
-    for name in ("obs", "action", "rewards", "n_steps", "terminated", "next_obs", "weights", "indices"):
+    for name in ("obs", "action", "rewards", "n_steps", "terminated", "next_obs", "previous_action",
+                 "next_previous_action", "weights", "indices"):
         np.testing.assert_array_equal(getattr(b1, name), getattr(b2, name))
     # the open stream continues on the restored memory: its next obs reuses the stored frame
     n = other._frames_written

@@ -187,6 +187,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
 
         obs, info = env.reset(seed=seed)
         guide.begin_episode()
+        policy.reset()
         batcher.begin_episode(obs, info["start_index"])
         if stream is not None:
             stream.begin_episode(batcher.episode, info["start_index"], env.world)
@@ -253,6 +254,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                         "path_length_m": info["path_length_m"]}, final_pose=info["pose"])
                 obs, info = env.reset()
                 guide.begin_episode()
+                policy.reset()
                 batcher.begin_episode(obs, info["start_index"])
                 if stream is not None:
                     stream.begin_episode(batcher.episode, info["start_index"], env.world)

@@ -279,6 +279,8 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
             if stop.is_set():
                 raise EvaluationCancelled("evaluation cancelled")
             return policy_fn(depth_m)
+        if hasattr(policy_fn, "reset"):
+            fn.reset = policy_fn.reset  # type: ignore[attr-defined]
 
     owns_recorder = recorder is None
     if recorder is None:

@@ -2,7 +2,8 @@
 
 Every policy is a callable ``policy(depth_m) -> (action, scores or None)`` as
 ``results.run_protocol`` wants it, with ``depth_m`` a float32 (H, W) image in metres
-(0 = no return) and ``action`` an index into ``shared.config.ACTION_NAMES``.
+(0 = no return) and ``action`` an index into ``shared.config.ACTION_NAMES``. A policy with
+memory across steps also has ``reset()``, which the protocol calls at each episode's start.
 
 - ``greedy``: argmax of a QNetwork's Q-values, dropout off (the paper's test protocol).
 - ``sl``: the supervised model (the authors' IROS 2016 baseline, ``shared.supervised``): argmax
@@ -53,20 +54,24 @@ def _check_depth(depth_m: Any, sensor_cfg: SensorConfig | None) -> np.ndarray:
 
 
 class GreedyPolicy:
-    """Argmax of a Q-network's values (eval mode: dropout off); returns the Q-values too."""
+    """Argmax of a Q-network's values (eval mode: dropout off); returns the Q-values too.
+    Remembers its last command for a ``model.previous_action`` network."""
 
     name = "greedy"
 
     def __init__(self, net: Any):
-        from shared.model import InferenceRunner
+        from shared.policy import EpsilonGreedyPolicy
 
         self.net = net
-        self.runner = InferenceRunner(net)
+        self.policy = EpsilonGreedyPolicy(net)  # no schedule: greedy, with the actors' memory
+
+    def reset(self) -> None:
+        self.policy.reset()
 
     def __call__(self, depth_m: np.ndarray) -> tuple[int, np.ndarray]:
-        q = self.runner.q_values(_check_depth(depth_m, self.net.sensor_cfg))
         # argmax takes the first maximum: ties (a fresh net rarely has any) break toward "left".
-        return int(np.argmax(q)), q
+        choice = self.policy.greedy(_check_depth(depth_m, self.net.sensor_cfg))
+        return choice.action, choice.q_values
 
 
 class RLPolicy(GreedyPolicy):

@@ -394,7 +394,8 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
     paper's protocol); ``make_env()`` returns an ``ExploreEnv`` (test speeds for the paper),
     built once and reset per episode with ``episode_seed(seed, start, episode)``. ``starts``
     are start indices (None: all of the world's). Each episode stops at a collision or after
-    ``max_steps`` steps, whichever comes first. ``recorder`` (an ``EvalRecorder``) gets
+    ``max_steps`` steps, whichever comes first; a ``policy_fn`` with a ``reset()`` method (one that
+    remembers its last command) is reset before each episode. ``recorder`` (an ``EvalRecorder``) gets
     ``begin_episode`` / ``log_step`` / ``end_episode``. Deterministic for a deterministic policy.
     """
     if not (_is_int(episodes_per_start) and episodes_per_start >= 1):
@@ -437,6 +438,8 @@ def _run_episode(env: Any, policy_fn: PolicyFn, start_index: int, episode: int, 
                  reset_seed: int, coverage: _Coverage, recorder: Any,
                  keep_trajectory: bool) -> EpisodeResult:
     depth, info = env.reset(seed=reset_seed, options={"start_index": start_index})
+    if hasattr(policy_fn, "reset"):
+        policy_fn.reset()
     coverage.reset()
     pose = info["pose"]
     coverage.observe(pose, depth)
