@@ -99,24 +99,17 @@ def _model_summary(args: argparse.Namespace) -> int:
 
 
 def _model_export(args: argparse.Namespace) -> int:
-    from services.evaluator.evaluate import EvaluateError, load_model
+    from services.evaluator.evaluate import EvaluateError, average_models, load_model
     from shared.checkpoint import export_weights
-    from shared.model import ModelError, average_weights, load_tensors
 
     try:
-        sources = [load_model(c) for c in args.checkpoint]
+        loaded = average_models([load_model(c) for c in args.checkpoint])
     except EvaluateError as exc:
         print(f"cogexplore: error: {exc}", file=sys.stderr)
         return 2
-    loaded = sources[-1]
     extra: dict[str, Any] = {}
-    if len(sources) > 1:
-        try:
-            load_tensors(loaded.net, average_weights([s.net for s in sources]))
-        except ModelError as exc:
-            print(f"cogexplore: error: {exc}", file=sys.stderr)
-            return 2
-        extra["averaged_from"] = [{"source": str(s.path), "policy_version": s.policy_version} for s in sources]
+    if loaded.averaged_from:
+        extra["averaged_from"] = list(loaded.averaged_from)
     card = {}
     if args.card:
         try:
@@ -131,7 +124,27 @@ def _model_export(args: argparse.Namespace) -> int:
         extra["card"] = card
     out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
     _print_json({"out": str(out), "bytes": out.stat().st_size, "policy_version": loaded.policy_version,
-                 "source": str(loaded.path), "averaged": len(sources), "half": args.half})
+                 "source": str(loaded.path), "averaged": max(1, len(loaded.averaged_from)), "half": args.half})
+    return 0
+
+
+def _model_select(args: argparse.Namespace) -> int:
+    from services.evaluator.selection import SelectOptions, select
+    from shared.config import parse_world_list
+
+    try:
+        opts = SelectOptions(run=Path(args.run), out=Path(args.out), window=args.window, stride=args.stride,
+                             first_end=args.first, last_end=args.last, gate_world=args.gate_world,
+                             gate_min=args.gate_min, validation_worlds=parse_world_list(args.validate),
+                             test_worlds=parse_world_list(args.test) if args.test else (),
+                             episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
+                             half=args.half, device=args.device)
+        summary = select(opts, echo=lambda msg: print(msg, file=sys.stderr, flush=True))
+    except ValueError as exc:  # bad worlds, windows, checkpoints (SelectionError, EvaluateError)
+        print(f"cogexplore: error: {exc}", file=sys.stderr)
+        return 2
+    print(summary.pop("table"), end="", file=sys.stderr)
+    _print_json(summary)
     return 0
 
 
@@ -232,6 +245,32 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="output .safetensors path")
     p.add_argument("--half", action="store_true", help="store float16 (half the size)")
     p.add_argument("--card", metavar="JSON", help="a JSON object stored in the file's metadata (model card)")
+    p = add("select", "choose the model to ship from a run: the mean of N consecutive checkpoints' weights "
+            "that reaches --gate-min on --gate-world and, among those, scores best on the --validate worlds "
+            "(writes the weights, <out>-windows.png and a resumable <out>-windows.jsonl)", _model_select, msub)
+    p.add_argument("run", help="run folder or its checkpoints directory (train with train.keep_checkpoints "
+                               "large enough to keep the windows)")
+    p.add_argument("--out", required=True, help="output .safetensors path of the chosen window")
+    p.add_argument("--window", type=int, default=4, help="consecutive checkpoints averaged (default 4)")
+    p.add_argument("--stride", type=int, default=1, help="score every N-th window, counted back from the "
+                                                         "newest (default 1)")
+    p.add_argument("--first", type=int, default=0, metavar="UPDATES",
+                   help="only windows ending at or after this update")
+    p.add_argument("--last", type=int, default=None, metavar="UPDATES",
+                   help="only windows ending at or before this update")
+    p.add_argument("--gate-world", default="paper-indoor", help="the world a window must pass (default paper-indoor)")
+    p.add_argument("--gate-min", type=float, default=150.0,
+                   help="mean steps a window needs on the gate world (default 150: the goal)")
+    p.add_argument("--validate", default="procedural:201-210",
+                   help="validation worlds, never trained on and never test worlds (default procedural:201-210)")
+    p.add_argument("--test", default=None, metavar="WORLDS",
+                   help="test worlds the chosen window alone plays after the choice, reported apart "
+                        "(e.g. procedural:301-330)")
+    p.add_argument("--episodes-per-start", type=int, default=1,
+                   help="episodes per start (default 1: the protocol is deterministic without sensor noise)")
+    p.add_argument("--max-steps", type=int, default=200, help="moving steps per episode at most (default 200)")
+    p.add_argument("--half", action="store_true", help="store float16")
+    p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
 
     bench = add("bench", "benchmarks (print JSON)")
     bsub = bench.add_subparsers(dest="bench_command", metavar="TARGET", required=True)

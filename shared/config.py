@@ -323,6 +323,12 @@ class DQNConfig:
     """Learning rate of the fully connected layers (see shared/dqn.py for the Caffe mapping)."""
     conv_lr_scale: float = 0.1
     """Learning rate of the conv layers as a fraction of lr (the paper trains them slower)."""
+    lr_decay_updates: int = 0
+    """Updates over which both learning rates fall linearly to ``lr_final_scale`` times their
+    start, then stay (0: constant, the paper's). Smaller late steps are meant to steady the greedy
+    policy, which swings from checkpoint to checkpoint at a constant rate."""
+    lr_final_scale: float = 0.1
+    """The learning rates after ``lr_decay_updates``, as a fraction of their start."""
     momentum: float = 0.99
     """SGD momentum (paper: 0.99)."""
     double_dqn: bool = False
@@ -349,6 +355,10 @@ class DQNConfig:
         _check(_finite(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
         _check(_finite(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
                self.conv_lr_scale, "a number in [0, 10] (0 freezes the conv layers)")
+        _check(type(self.lr_decay_updates) is int and self.lr_decay_updates >= 0, s, "lr_decay_updates",
+               self.lr_decay_updates, "an integer >= 0 (0: constant learning rate)")
+        _check(_finite(self.lr_final_scale) and 0 < self.lr_final_scale <= 1, s, "lr_final_scale",
+               self.lr_final_scale, "a number in (0, 1]")
         _check(_finite(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
                "a number in [0, 1)")
         _check(isinstance(self.double_dqn, bool), s, "double_dqn", self.double_dqn, "true or false")

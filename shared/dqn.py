@@ -75,6 +75,15 @@ def n_step_returns(rewards: torch.Tensor, n_steps: torch.Tensor, gamma: float) -
     return (rewards * discounts * mask).sum(dim=1)
 
 
+def lr_factor(update_count: int, decay_updates: int, final_scale: float) -> float:
+    """The learning-rate multiplier at ``update_count``: 1 falling linearly to ``final_scale`` at
+    ``decay_updates``, then constant (1 throughout when ``decay_updates`` is 0)."""
+    if decay_updates <= 0:
+        return 1.0
+    done = min(1.0, max(0, update_count) / decay_updates)
+    return 1.0 - (1.0 - final_scale) * done
+
+
 def td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.Tensor,
                next_q_target: torch.Tensor, gamma: float,
                next_q_online: torch.Tensor | None = None) -> torch.Tensor:
@@ -167,6 +176,12 @@ class DQNAgent:
             return torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum)
         return torch.optim.Adam(groups, lr=cfg.lr)
 
+    def _set_lr(self, factor: float) -> None:
+        # From the config, not from the groups: a restored optimizer state brings its own lr.
+        for group in self.optimizer.param_groups:
+            scale = self.cfg.conv_lr_scale if group.get("name") == "conv" else 1.0
+            group["lr"] = self.cfg.lr * scale * factor
+
     # ------------------------------------------------------------------ data
     def to_tensors(self, batch: Batch) -> TensorBatch:
         if len(batch) < 1:
@@ -225,6 +240,8 @@ class DQNAgent:
         if not torch.isfinite(loss):
             raise DQNError(f"non-finite loss {loss.item()} at update {self.update_count + 1}: "
                            "the learning rate is probably too high")
+        if self.cfg.lr_decay_updates > 0:
+            self._set_lr(lr_factor(self.update_count, self.cfg.lr_decay_updates, self.cfg.lr_final_scale))
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         params = [p for p in self.online.parameters() if p.grad is not None]

@@ -5,8 +5,8 @@ import pytest
 import torch
 
 from shared.config import DQNConfig, ModelConfig, ReplayConfig, SensorConfig, load_preset
-from shared.dqn import (DQNAgent, DQNError, caffe_lr_to_torch, mirror_batch, n_step_returns, td_targets,
-                        update_flops)
+from shared.dqn import (DQNAgent, DQNError, caffe_lr_to_torch, lr_factor, mirror_batch, n_step_returns,
+                        td_targets, update_flops)
 from shared.model import QNetwork, forward_flops
 from shared.replay import Batch, ReplayMemory
 
@@ -176,6 +176,32 @@ def test_conv_layers_learn_slower_and_can_be_frozen():
     assert torch.equal(frozen.online.trunk.conv2.weight, conv_before)
     assert not torch.equal(frozen.online.fc1.weight, fc_before)
 
+
+
+def test_learning_rates_fall_linearly_to_the_final_scale_and_resume_on_schedule():
+    assert [lr_factor(u, 100, 0.1) for u in (0, 50, 100, 500)] == pytest.approx([1.0, 0.55, 0.1, 0.1])
+    assert lr_factor(10**6, 0, 0.1) == 1.0  # off: the paper's constant rate
+    cfg = DQNConfig(optimizer="adam", lr=1e-3, conv_lr_scale=0.5, lr_decay_updates=4, lr_final_scale=0.25)
+    agent = DQNAgent(SMALL, TINY, cfg, device="cpu", seed=0)
+    seen = []
+    for _ in range(6):
+        agent.update(make_batch())
+        seen.append({g["name"]: g["lr"] for g in agent.optimizer.param_groups})
+    # the step that makes update u+1 runs at lr_factor(u)
+    for u, lrs in enumerate(seen):
+        f = lr_factor(u, 4, 0.25)
+        assert lrs == {"fc": pytest.approx(1e-3 * f), "conv": pytest.approx(5e-4 * f)}, u
+    # a resumed agent carries on from its update count, whatever lr its saved optimizer holds
+    tensors, meta = agent.state_tensors()
+    resumed = DQNAgent(SMALL, TINY, cfg, device="cpu", seed=1)
+    resumed.load_state_tensors(tensors, meta)
+    resumed.update(make_batch())
+    assert {g["name"]: g["lr"] for g in resumed.optimizer.param_groups} == {
+        "fc": pytest.approx(2.5e-4), "conv": pytest.approx(1.25e-4)}
+    with pytest.raises(ValueError, match="lr_final_scale"):
+        DQNConfig(lr_final_scale=0.0)
+    with pytest.raises(ValueError, match="lr_decay_updates"):
+        DQNConfig(lr_decay_updates=-1)
 
 def test_importance_weights_scale_each_sample():
     a = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3), device="cpu", seed=0)

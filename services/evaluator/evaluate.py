@@ -24,6 +24,7 @@ pieces the evaluator service and the report reuse.
 from __future__ import annotations
 
 import argparse
+import copy
 import dataclasses
 import hashlib
 import json
@@ -98,6 +99,8 @@ class LoadedModel:
     """The run config stored in a checkpoint (None for weights-only exports)."""
     name: str | None = None
     """A fixed table name (the baselines: 'SL', 'RL'); None: derived from the path."""
+    averaged_from: tuple[dict[str, Any], ...] = ()
+    """For a mean of several checkpoints (:func:`average_models`): each source and its update."""
 
     @property
     def label(self) -> str:
@@ -208,6 +211,26 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
         raise EvaluateError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
     return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
                        weights_sha256(net), None)
+
+
+def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
+    """The element-wise mean of several loaded models' weights (one run's later checkpoints),
+    labelled with the last one's file, update and run config; one model is returned as is."""
+    from shared.model import ModelError, average_weights, load_tensors
+
+    if len(models) == 1:
+        return models[0]
+    if not models:
+        raise EvaluateError("nothing to average")
+    last = models[-1]
+    net = copy.deepcopy(last.net)
+    try:
+        load_tensors(net, average_weights([m.net for m in models]))
+    except ModelError as exc:
+        raise EvaluateError(f"cannot average these checkpoints: {exc}") from None
+    return dataclasses.replace(last, net=net.eval(), weights_sha256=weights_sha256(net),
+                               averaged_from=tuple({"source": str(m.path), "policy_version": m.policy_version}
+                                                   for m in models))
 
 
 def load_supervised_model(source: str | Path, device: str | torch.device = "cpu") -> LoadedModel:

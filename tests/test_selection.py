@@ -1,0 +1,156 @@
+"""``cogexplore model select``: the window rule as pure code, and the whole selection on a real
+run folder (real checkpoints, real env, the exported file and its cache read back)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+
+from services.cli import main
+from services.evaluator.evaluate import load_model
+from services.evaluator.selection import (SelectionError, SelectOptions, WindowScore, choose, select,
+                                          wall_minutes, window_rows_markdown, windows)
+from shared.checkpoint import CheckpointManager, load_exported_weights
+from shared.config import load_preset
+from shared.dqn import DQNAgent
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def score(end: int, gate: float, validation: float | None) -> WindowScore:
+    return WindowScore(end, f"sha{end}", gate, validation, {"g": gate}, (f"ckpt-{end}",))
+
+
+def test_windows_are_consecutive_checkpoints_counted_back_from_the_newest() -> None:
+    ckpts = [(u, Path(f"c{u}")) for u in (5000, 1000, 3000, 2000, 4000)]  # any order
+    got = windows(ckpts, 3)
+    assert [w.end_update for w in got] == [3000, 4000, 5000]
+    assert got[0].paths == (Path("c1000"), Path("c2000"), Path("c3000"))
+    # every second window, counted back from the newest: the newest is always scored
+    assert [w.end_update for w in windows(ckpts, 2, stride=2)] == [3000, 5000]
+    assert [w.end_update for w in windows(ckpts, 1, first_end=2000, last_end=4000)] == [2000, 3000, 4000]
+    assert windows(ckpts, 6) == []
+    for bad in ({"size": 0}, {"size": 2, "stride": 0}):
+        with pytest.raises(SelectionError):
+            windows(ckpts, bad["size"], stride=bad.get("stride", 1))
+    with pytest.raises(SelectionError, match="share an update"):
+        windows(ckpts + [(1000, Path("again"))], 2)
+
+
+def test_choose_gates_first_then_takes_the_best_validation() -> None:
+    scores = [score(1000, 170, 80.0), score(2000, 140, None), score(3000, 155, 95.0), score(4000, 190, 90.0)]
+    best, rule = choose(scores, 150)
+    assert best.end_update == 3000  # not the best gate score (4000), nor a window that missed the gate
+    assert "3 of 4 windows" in rule and "95.0" in rule
+    # ties on validation go to the later window
+    best, _ = choose(scores + [score(5000, 151, 95.0)], 150)
+    assert best.end_update == 5000
+    # nobody passes: the best gate score, said so
+    best, rule = choose([score(1000, 90, None), score(2000, 120, None)], 150)
+    assert best.end_update == 2000 and rule.startswith("no window")
+    with pytest.raises(SelectionError):
+        choose([], 150)
+    table = window_rows_markdown(scores, scores[2], "paper-indoor")
+    assert "| **3000** | **155.0** | **95.0** |" in table and "| 2000 | 140.0 | — |" in table
+
+
+
+def test_wall_minutes_carry_the_clock_across_a_resume(tmp_path: Path) -> None:
+    csv = tmp_path / "learner.csv"
+    csv.write_text("time_s,update,loss\n60,100,1\n120,200,1\n6,250,1\nbad,300,1\n66,300,1\n")
+    updates, minutes = wall_minutes(csv)
+    assert updates.tolist() == [100, 200, 250, 300]
+    assert minutes.tolist() == pytest.approx([1.0, 2.0, 2.1, 3.1])  # the resumed run started at 2 min
+    assert wall_minutes(tmp_path / "missing.csv") is None
+    (tmp_path / "short.csv").write_text("time_s,update\n1,1\n")
+    assert wall_minutes(tmp_path / "short.csv") is None
+
+def make_run(root: Path, updates: tuple[int, ...]) -> Path:
+    """A run folder with one checkpoint per update count, each a different random network."""
+    cfg = load_preset("tiny")
+    manager = CheckpointManager(root / "checkpoints", keep=len(updates))
+    for seed, u in enumerate(updates):
+        agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=seed)
+        agent.update_count = agent.policy_version = u
+        manager.save(agent, config=cfg.to_dict())
+    return root
+
+
+def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run", (100, 200, 300, 400))
+    out = tmp_path / "sel" / "best.safetensors"
+    opts = SelectOptions(run=run, out=out, window=2, gate_world="box-room", gate_min=0.0,
+                         validation_worlds=("corridor", "box-room"), test_worlds=("procedural:0",), max_steps=6)
+    lines: list[str] = []
+    summary = select(opts, echo=lines.append)
+
+    rows = [json.loads(line)["score"] for line in (tmp_path / "sel" / "best-windows.jsonl").read_text().splitlines()]
+    scores = [WindowScore.from_json(r) for r in rows]
+    assert [s.end_update for s in scores] == [200, 300, 400]
+    assert all(s.validation == pytest.approx((s.per_world["corridor"] + s.per_world["box-room"]) / 2)
+               for s in scores)
+    chosen, rule = choose(scores, 0.0)
+    assert summary["chosen"]["end_update"] == chosen.end_update and summary["rule"] == rule
+    # the test world is played once, by the chosen window only, after the choice
+    assert len(lines) == 4 and lines[-1].startswith(f"testing the window ending at {chosen.end_update}")
+    assert list(summary["test"]["per_world"]) == ["procedural:0"]
+    assert 1 <= summary["test"]["mean"] <= 6
+
+    # the export is the mean of the chosen window's checkpoints, with where it came from
+    net, meta = load_exported_weights(out)
+    sources = [load_model(p).net for p in chosen.sources]
+    for name, t in net.state_dict().items():
+        assert torch.allclose(t, (sources[0].state_dict()[name] + sources[1].state_dict()[name]) / 2, atol=1e-6)
+    assert meta["selection"]["end_update"] == chosen.end_update and meta["policy_version"] == chosen.end_update
+    assert meta["selection"]["test"] == summary["test"]
+    assert [a["policy_version"] for a in meta["averaged_from"]] == [chosen.end_update - 100, chosen.end_update]
+    assert Path(summary["figure"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert summary["chosen_minutes"] is None and summary["first_gate_update"] == 200  # no learner.csv here
+
+    # a rerun with one more checkpoint plays only the new window
+    make_run(tmp_path / "more", (500,))
+    (tmp_path / "more" / "checkpoints" / "ckpt-000000500.safetensors").rename(
+        run / "checkpoints" / "ckpt-000000500.safetensors")
+    lines.clear()
+    again = select(opts, echo=lines.append)
+    assert [line.endswith("(cached)") for line in lines[:4]] == [True, True, True, False]
+    assert again["windows"] == 4
+
+
+def test_select_falls_back_to_the_best_gate_score_without_playing_validation(tmp_path: Path) -> None:
+    run = make_run(tmp_path / "run", (100, 200, 300))
+    (run / "stats").mkdir()
+    (run / "stats" / "learner.csv").write_text("time_s,update\n0,0\n600,300\n")  # 2 s per update
+    out = tmp_path / "best.safetensors"
+    summary = select(SelectOptions(run=run, out=out, window=1, gate_world="box-room", gate_min=1e9,
+                                   validation_worlds=("corridor",), max_steps=6))
+    assert summary["rule"].startswith("no window of 3 reaches")
+    assert summary["chosen_minutes"] == pytest.approx(summary["chosen"]["end_update"] * 2 / 60, abs=0.05)
+    assert summary["first_gate_update"] is None and Path(summary["figure"]).stat().st_size > 10_000
+    rows = [json.loads(line)["score"] for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
+    assert all(r["validation"] is None and list(r["per_world"]) == ["box-room"] for r in rows)
+    assert summary["chosen"]["gate"] == max(r["gate"] for r in rows)
+
+
+def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "best.safetensors"
+    assert main(["model", "select", str(tmp_path / "nothing"), "--out", str(out)]) == 2
+    assert "neither a run folder nor a checkpoints directory" in capsys.readouterr().err
+    run = make_run(tmp_path / "run", (100, 200))
+    for argv, message in ((["--window", "3"], "no window of 3 checkpoints"),
+                          (["--window", "0"], "window size must be"),
+                          (["--gate-world", "no-such-world"], "no-such-world"),
+                          (["--validate", "procedural:x"], "procedural"),
+                          (["--gate-min", "nan"], "finite"),
+                          (["--test", "paper-indoor"], "a test world is also the gate")):
+        assert main(["model", "select", str(run), "--out", str(out), *argv]) == 2, argv
+        assert message in capsys.readouterr().err, argv
+    assert not out.exists()
+    # a damaged cache line is skipped, not fatal
+    out.with_name("best-windows.jsonl").write_text("{not json\n")
+    assert main(["model", "select", str(run), "--out", str(out), "--window", "2", "--gate-world", "box-room",
+                 "--gate-min", "0", "--validate", "box-room", "--max-steps", "4"]) == 0
+    assert json.loads(capsys.readouterr().out)["chosen"]["end_update"] == 200 and out.exists()
