@@ -159,8 +159,7 @@ class ReplayMemory:
     def nbytes(self) -> int:
         arrays = (self._frames, self._frame_id, self._frame_refs, self._tid, self._obs_fid,
                   self._next_fid, self._next_tid, self._reward, self._action, self._previous_action,
-                  self._terminated,
-                  self._truncated, self._valid)
+                  self._terminated, self._truncated, self._valid)
         tree = self._tree.tree.nbytes if self._tree is not None else 0
         return sum(a.nbytes for a in arrays) + tree
 

@@ -255,7 +255,6 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     Returns the summary that ``cogexplore model select`` prints."""
     from services.evaluator.evaluate import average_models, evaluate_policy, load_model, setup_evaluation
     from shared.checkpoint import export_weights
-    from shared.config import parse_world_list
     from shared.world import load_world
 
     echo = echo or (lambda _msg: None)
@@ -267,7 +266,6 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
         raise SelectionError("a test world is also the gate or a validation world: "
                              + ", ".join(sorted(set(o.test_worlds) & {o.gate_world, *o.validation_worlds})))
     for w in (o.gate_world, *o.validation_worlds, *o.test_worlds):
-        parse_world_list(w)  # syntax
         load_world(w)  # a bad name or a broken file fails before any window is played
     todo = windows(run_checkpoints(o.run), o.window, first_end=o.first_end, last_end=o.last_end, stride=o.stride)
     if not todo:
