@@ -22,6 +22,45 @@ def _print_json(obj: Any) -> None:
 
 # -- worlds ------------------------------------------------------------------------------
 
+def _worlds_demo(args: argparse.Namespace) -> int:
+    import dataclasses
+    import time
+
+    from shared.config import load_preset
+    from shared.demos import plan_commands, plan_summary, record_demonstration, save_demonstrations
+    from shared.env import ExploreEnv
+
+    rc = load_preset(args.preset)
+    # The planner's own step cap: a horizon beyond the run's episode length must not truncate it.
+    env_cfg = dataclasses.replace(rc.env, world=args.world, speed_table=args.speed, start_index=None,
+                                  random_start_prob=0.0, extra_worlds="", extra_world_prob=0.0,
+                                  max_episode_steps=max(rc.env.max_episode_steps, args.horizon + 1))
+    env = ExploreEnv(env_cfg, rc.sensor)
+    demos, plans = [], []
+    try:
+        for start in args.start:
+            began = time.monotonic()
+
+            def progress(depth: int, kept: int) -> None:
+                if not args.quiet and (depth % 10 == 0 or depth == args.horizon):
+                    print(f"  start {start}: depth {depth}/{args.horizon}, {kept} sequences kept, "
+                          f"{time.monotonic() - began:.0f} s", file=sys.stderr, flush=True)
+
+            plan = plan_commands(env, start - 1, horizon=args.horizon, beam=args.beam, progress=progress)
+            if plan.survived_steps < args.horizon:
+                print(f"cogexplore worlds demo: warning: from start {start} no sequence the beam kept survives "
+                      f"{args.horizon} steps; the demonstration ends after {plan.survived_steps}, before a "
+                      "collision no command avoids (a trap: see `cogexplore worlds starts`)",
+                      file=sys.stderr)
+            demos.append(record_demonstration(env, plan.start_index, plan.actions))
+            plans.append(dict(plan_summary(plan), start=start, seconds=round(time.monotonic() - began, 1)))
+            print(json.dumps(plans[-1]), flush=True)
+    finally:
+        env.close()
+    print(save_demonstrations(args.out, demos, {"plans": plans, "preset": args.preset}))
+    return 0
+
+
 def _worlds_list(args: argparse.Namespace) -> int:
     from shared.world import BUILTIN_WORLDS, world_summary
 
@@ -135,7 +174,8 @@ def _model_select(args: argparse.Namespace) -> int:
     try:
         opts = SelectOptions(run=Path(args.run), out=Path(args.out), window=args.window, stride=args.stride,
                              first_end=args.first, last_end=args.last, gate_world=args.gate_world,
-                             gate_min=args.gate_min, validation_worlds=parse_world_list(args.validate),
+                             gate_min=args.gate_min, gate_start_min=args.gate_start_min,
+                             validation_worlds=parse_world_list(args.validate),
                              test_worlds=parse_world_list(args.test) if args.test else (),
                              episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
                              half=args.half, device=args.device)
@@ -232,6 +272,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="extra clearance and depth every step must keep (default 0: the task's exact thresholds)")
     p.add_argument("--json", action="store_true", help="print JSON")
 
+    p = add("demo", "plan demonstrations for training (train.demos): a beam search in the environment itself "
+            "from each --start for the smoothest command sequence that survives --horizon steps and ends "
+            "farthest away, recorded as images, commands and rewards (shared/demos.py)", _worlds_demo, wsub)
+    p.add_argument("world", help="built-in name, procedural:<seed> or an MJCF path")
+    p.add_argument("--start", type=int, action="append", required=True,
+                   help="start number, 1-based as in the tables (repeat for several)")
+    p.add_argument("--out", required=True, help="demonstration file to write (.npz)")
+    p.add_argument("--preset", default="fast-40x30",
+                   help="preset whose sensor and robot the demonstrations use (default fast-40x30)")
+    p.add_argument("--speed", choices=("test", "train"), default="test",
+                   help="speed table (default test: the protocol's; some escapes exist only there)")
+    p.add_argument("--horizon", type=int, default=80, help="steps to plan (default 80)")
+    p.add_argument("--beam", type=int, default=2000, help="command sequences kept per step (default 2000)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+
     model = add("model", "inspect the Q-network")
     msub = model.add_subparsers(dest="model_command", metavar="ACTION", required=True)
     p = add("summary", "each layer's output shape and parameter count", _model_summary, msub)
@@ -261,6 +316,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gate-world", default="paper-indoor", help="the world a window must pass (default paper-indoor)")
     p.add_argument("--gate-min", type=float, default=150.0,
                    help="mean steps a window needs on the gate world (default 150: the goal)")
+    p.add_argument("--gate-start-min", type=float, default=0.0,
+                   help="mean steps every start of the gate world needs too (the goal: 60; default 0: none)")
     p.add_argument("--validate", default="procedural:201-210",
                    help="validation worlds, never trained on and never test worlds (default procedural:201-210)")
     p.add_argument("--test", default=None, metavar="WORLDS",
@@ -332,7 +389,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
 
 
-_USER_ERRORS = (("shared.checkpoint", "CheckpointError"), ("shared.supervised", "SupervisedError"))
+_USER_ERRORS = (("shared.checkpoint", "CheckpointError"), ("shared.supervised", "SupervisedError"),
+                ("shared.demos", "DemoError"))
 """Errors that name a bad file or setting (train.init_from, init_conv_from): a message, not a traceback."""
 
 

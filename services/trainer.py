@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from services.common import RunPaths, resolve_config, save_config, setup_logging, stop_event_on_signals
 from services.learner.core import LearnerCore, RateMeter
-from services.learner.service import STATS_COLUMNS, resume_from
+from services.learner.service import STATS_COLUMNS, format_agreement, resume_from
 from shared.checkpoint import CheckpointManager
 from shared.config import RunConfig
 from shared.env import ExploreEnv
@@ -87,7 +87,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                     learner_log.writerow([round(time.monotonic() - started, 3), core.updates,
                                           core.agent.policy_version, f"{loss:.6g}", f"{mean_q:.6g}",
                                           f"{update_rate.rate():.3f}", core.received, "", len(core.replay),
-                                          0, 1, 0])
+                                          0, 1, 0, format_agreement(core.recent_demo_agreement(cfg.train.log_every))])
                     lf.flush()
                 if core.updates % cfg.train.checkpoint_every == 0:
                     checkpoints.save(core.agent, replay=core.replay, config=config_dict,
@@ -104,8 +104,10 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                 episode += 1
                 loss, mean_q = core.recent()
                 mean_steps = sum(recent_lengths) / max(len(recent_lengths), 1)
+                agreement = core.recent_demo_agreement()
                 bar.set_postfix_str(f"eps {choice.epsilon:.2f} | steps/ep {mean_steps:5.1f}"
-                                    f" | loss {loss if loss is not None else float('nan'):.3g}", refresh=False)
+                                    f" | loss {loss if loss is not None else float('nan'):.3g}"
+                                    + ("" if agreement is None else f" | demo {agreement:.2f}"), refresh=False)
                 obs, info = env.reset()
                 guide.begin_episode()
                 policy.reset()

@@ -343,6 +343,15 @@ class DQNConfig:
     mirror_augment: bool = False
     """Mirror a random half of each batch left-right (both frames flipped, left <-> right
     commands swapped): the task is symmetric, so every transition teaches its mirror image too."""
+    demo_batch: int = 0
+    """Demonstration transitions (``train.demos``) added to every batch, on top of
+    ``batch_size`` from the replay memory (0: none, the paper's)."""
+    demo_margin: float = 0.8
+    """Large-margin loss on demonstration samples (DQfD, shared.demos): the demonstrated command's
+    Q-value should lead every other command's by this much (DQfD: 0.8)."""
+    demo_weight: float = 1.0
+    """Weight of the large-margin loss against the TD loss (DQfD: 1; 0: demonstrations only add
+    TD targets)."""
 
     def __post_init__(self) -> None:
         s = "dqn"
@@ -368,6 +377,12 @@ class DQNConfig:
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
         _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
+        _check(type(self.demo_batch) is int and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
+               "an integer in [0, 4096]")
+        _check(_finite(self.demo_margin) and 0 <= self.demo_margin <= 100, s, "demo_margin", self.demo_margin,
+               "a number in [0, 100]")
+        _check(_finite(self.demo_weight) and 0 <= self.demo_weight <= 100, s, "demo_weight", self.demo_weight,
+               "a number in [0, 100]")
 
 
 @dataclass(frozen=True)
@@ -437,6 +452,12 @@ class TrainConfig:
     ``init_conv_from`` is not used (these weights include the conv layers). A resumed run keeps
     its checkpoint's weights."""
 
+    demos: str = ""
+    """Planner demonstration files (``cogexplore worlds demo``, .npz), comma-separated, or
+    'pretrained:demos' (the shipped ones, paper-indoor): their transitions stay in the learner
+    for good and ``dqn.demo_batch`` of them join every batch (shared/demos.py). '' = none. Needs
+    ``dqn.demo_batch`` > 0."""
+
     def __post_init__(self) -> None:
         s = "train"
         for name in ("total_updates", "warmup_transitions", "checkpoint_every", "keep_checkpoints", "log_every",
@@ -460,6 +481,15 @@ class TrainConfig:
                self.init_from.strip() == self.init_from and self.init_from.endswith(".safetensors"))),
                s, "init_from", self.init_from,
                "'', 'pretrained' or the path of a Q-network weights .safetensors file (`cogexplore model export`)")
+        _check(isinstance(self.demos, str) and all(p.strip().endswith(".npz") or p.strip() == "pretrained:demos"
+                                                   for p in self.demos.split(",") if p.strip()), s, "demos",
+               self.demos, "'' or comma-separated .npz demonstration files (`cogexplore worlds demo`) or "
+               "'pretrained:demos'")
+
+    @property
+    def demo_paths(self) -> tuple[str, ...]:
+        """``demos`` as a tuple of paths."""
+        return tuple(p.strip() for p in self.demos.split(",") if p.strip())
 
 
 # ---------------------------------------------------------------------------
@@ -478,6 +508,10 @@ class RunConfig:
     dqn: DQNConfig = field(default_factory=DQNConfig)
     explore: ExploreConfig = field(default_factory=ExploreConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+
+    def __post_init__(self) -> None:
+        _check(bool(self.train.demo_paths) == (self.dqn.demo_batch > 0), "dqn", "demo_batch", self.dqn.demo_batch,
+               "> 0 exactly when train.demos names demonstration files")
 
     def to_dict(self) -> dict[str, dict[str, Any]]:
         return dataclasses.asdict(self)

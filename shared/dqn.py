@@ -103,6 +103,18 @@ def td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.T
     return torch.where(terminated, returns, returns + discount * bootstrap)
 
 
+def demo_margin_loss(q_all: torch.Tensor, demo_action: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
+    """DQfD's large-margin loss (Hester et al. 2018): mean over samples of
+    max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E), zero once the demonstrated command a_E leads
+    every other by ``margin``; and the share of samples whose argmax already is a_E."""
+    penalty = torch.full_like(q_all, float(margin))
+    penalty.scatter_(1, demo_action[:, None], 0.0)
+    q_demo = q_all.gather(1, demo_action[:, None]).squeeze(1)
+    loss = ((q_all + penalty).max(dim=1).values - q_demo).mean()
+    agreement = float((q_all.detach().argmax(dim=1) == demo_action).float().mean())
+    return loss, agreement
+
+
 @dataclass
 class TensorBatch:
     """A replay Batch on the agent's device, preprocessed."""
@@ -116,6 +128,7 @@ class TensorBatch:
     weights: torch.Tensor
     previous_action: torch.Tensor  # (B,) int64, -1: none
     next_previous_action: torch.Tensor  # (B,) int64
+    demo: torch.Tensor | None = None  # (B,) bool: demonstration samples (large-margin loss)
 
 
 def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
@@ -200,6 +213,7 @@ class DQNAgent:
             weights=torch.as_tensor(batch.weights, dtype=torch.float32, device=dev),
             previous_action=torch.as_tensor(batch.previous_action, dtype=torch.int64, device=dev),
             next_previous_action=torch.as_tensor(batch.next_previous_action, dtype=torch.int64, device=dev),
+            demo=None if batch.demo is None else torch.as_tensor(batch.demo, dtype=torch.bool, device=dev),
         )
 
     # ------------------------------------------------------------------ update
@@ -227,7 +241,13 @@ class DQNAgent:
         """
         tb = batch if isinstance(batch, TensorBatch) else self.to_tensors(batch)
         if self.cfg.mirror_augment:
-            tb = mirror_batch(tb, torch.rand(len(tb.action), device=tb.action.device) < 0.5)
+            flip = torch.rand(len(tb.action), device=tb.action.device) < 0.5
+            if tb.demo is not None:
+                # A demonstration commits to one of two mirror-image manoeuvres; in a symmetric
+                # scene (paper-indoor's start 6 sees an exactly symmetric dead end) its mirror
+                # would teach the other turn on the same image, and the two would tie.
+                flip &= ~tb.demo
+            tb = mirror_batch(tb, flip)
         y = self.compute_targets(tb)
         self.online.train()
         q_all = self.online(tb.obs, tb.previous_action)
@@ -237,6 +257,11 @@ class DQNAgent:
         else:
             per_sample = (q - y).square()
         loss = (per_sample * tb.weights).mean()
+        demo_metrics: dict[str, float] = {}
+        if tb.demo is not None and self.cfg.demo_weight > 0 and bool(tb.demo.any()):
+            margin_loss, agreement = demo_margin_loss(q_all[tb.demo], tb.action[tb.demo], self.cfg.demo_margin)
+            loss = loss + self.cfg.demo_weight * margin_loss
+            demo_metrics = {"demo_margin_loss": float(margin_loss.detach()), "demo_agreement": agreement}
         if not torch.isfinite(loss):
             raise DQNError(f"non-finite loss {loss.item()} at update {self.update_count + 1}: "
                            "the learning rate is probably too high")
@@ -266,6 +291,7 @@ class DQNAgent:
             "grad_norm": float(grad_norm),
             "synced_target": synced,
             "td_errors": td.cpu().numpy(),
+            **demo_metrics,
         }
 
     def sync_target(self) -> None:

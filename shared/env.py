@@ -176,6 +176,21 @@ class ExploreEnv(gym.Env):
         reward = cfg.reward_collision if terminated else cfg.reward_move
         return self._depth, float(reward), terminated, truncated, self._info(cause, min_depth)
 
+    def snapshot(self) -> tuple[Any, ...]:
+        """The episode's state now (robot physics, step count, path, image): :meth:`restore`
+        puts the episode back exactly there, so a planner can try several commands from one
+        pose (shared.demos). Only within the episode and world it was taken in."""
+        return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
+                self._depth.copy())
+
+    def restore(self, snapshot: tuple[Any, ...]) -> None:
+        """Return to a :meth:`snapshot` of the current episode."""
+        scene, state, self._steps, self._path_length, self._last_xy, depth = snapshot
+        if scene is not self._scene:
+            raise ValueError("a snapshot can only be restored in the episode's own world")
+        self.robot.set_state(state)
+        self._depth = depth.copy()
+
     def render(self):
         if self.render_mode == "depth_array":
             return self._depth.copy()

@@ -63,9 +63,23 @@ class Batch:
     next_previous_action: np.ndarray  # (B,) int64 command before next_obs (the chain's last action)
     weights: np.ndarray  # (B,) float32 importance-sampling weights (ones when uniform)
     indices: np.ndarray  # (B,) int64 transition ids, for update_priorities
+    demo: np.ndarray | None = None  # (B,) bool: from a demonstration (shared.demos); None: none are
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
+
+
+def concat_batches(batch: Batch, demo_batch: Batch) -> Batch:
+    """``batch`` followed by ``demo_batch``, the latter's samples marked as demonstrations (the
+    update adds the large-margin loss on them). Both must have the same n-step width."""
+    if batch.rewards.shape[1] != demo_batch.rewards.shape[1]:
+        raise ReplayError(f"n-step widths differ: {batch.rewards.shape[1]} and {demo_batch.rewards.shape[1]}")
+    joined = {name: np.concatenate([getattr(batch, name), getattr(demo_batch, name)])
+              for name in ("obs", "action", "rewards", "n_steps", "terminated", "next_obs", "previous_action",
+                           "next_previous_action", "weights", "indices")}
+    demo = np.concatenate([np.zeros(len(batch), bool) if batch.demo is None else batch.demo,
+                           np.ones(len(demo_batch), bool)])
+    return Batch(**joined, demo=demo)
 
 
 class SumTree:

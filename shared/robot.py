@@ -106,6 +106,17 @@ class Robot:
         self.data.qpos[self._qadr] = (x, y, yaw)
         mujoco.mj_forward(self.model, self.data)
 
+    def state(self) -> np.ndarray:
+        """The robot's full physical state (positions and velocities of its three joints)."""
+        return np.concatenate([self.data.qpos[self._qadr], self.data.qvel[self._dadr]])
+
+    def set_state(self, state: np.ndarray) -> None:
+        """Restore a :meth:`state` exactly (velocities included, unlike :meth:`set_pose`)."""
+        mujoco.mj_resetData(self.model, self.data)
+        self.data.qpos[self._qadr] = state[:3]
+        self.data.qvel[self._dadr] = state[3:]
+        mujoco.mj_forward(self.model, self.data)
+
     def pose(self) -> tuple[float, float, float]:
         """(x, y, yaw) with yaw wrapped to (-pi, pi]."""
         x, y, yaw = self.data.qpos[self._qadr]

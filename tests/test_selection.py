@@ -20,8 +20,8 @@ from shared.dqn import DQNAgent
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def score(end: int, gate: float, validation: float | None) -> WindowScore:
-    return WindowScore(end, f"sha{end}", gate, validation, {"g": gate}, (f"ckpt-{end}",))
+def score(end: int, gate: float, validation: float | None, worst: float | None = None) -> WindowScore:
+    return WindowScore(end, f"sha{end}", gate, validation, {"g": gate}, (f"ckpt-{end}",), worst)
 
 
 def test_windows_are_consecutive_checkpoints_counted_back_from_the_newest() -> None:
@@ -54,7 +54,19 @@ def test_choose_gates_first_then_takes_the_best_validation() -> None:
     with pytest.raises(SelectionError):
         choose([], 150)
     table = window_rows_markdown(scores, scores[2], "paper-indoor")
-    assert "| **3000** | **155.0** | **95.0** |" in table and "| 2000 | 140.0 | — |" in table
+    assert "| **3000** | **155.0** | **—** | **95.0** |" in table and "| 2000 | 140.0 | — | — |" in table
+
+
+def test_a_worst_start_gate_keeps_only_windows_whose_every_start_reaches_it() -> None:
+    scores = [score(1000, 170, 99.0, worst=27.0), score(2000, 155, 90.0, worst=64.0), score(3000, 190, None, worst=20.0)]
+    best, rule = choose(scores, 150, gate_start_min=60)
+    assert best.end_update == 2000 and "1 of 3 windows" in rule and "every start 60" in rule
+    assert choose(scores, 150)[0].end_update == 1000  # without it, the best validation
+    best, rule = choose([score(1000, 170, None, worst=27.0)], 150, gate_start_min=60)
+    assert rule.startswith("no window")
+    assert not score(1, 170, None).passes(150, 60)  # a score cached without its worst start does not pass
+    assert "| 2000 | 155.0 | 64.0 | 90.0 |" in window_rows_markdown(scores)
+    assert WindowScore.from_json(scores[1].to_json()) == scores[1]
 
 
 
@@ -133,6 +145,12 @@ def test_select_falls_back_to_the_best_gate_score_without_playing_validation(tmp
     rows = [json.loads(line)["score"] for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
     assert all(r["validation"] is None and list(r["per_world"]) == ["box-room"] for r in rows)
     assert summary["chosen"]["gate"] == max(r["gate"] for r in rows)
+    assert all(0 <= r["gate_worst_start"] <= r["gate"] for r in rows)
+    # a worst-start gate no window reaches: validation is not played either
+    strict = select(SelectOptions(run=run, out=out, window=1, gate_world="box-room", gate_min=0.0, gate_start_min=1e9,
+                                  validation_worlds=("corridor",), max_steps=6))
+    assert strict["rule"].startswith("no window of 3 reaches 0 (every start 1e+09)")
+    assert strict["chosen"]["validation"] is None
 
 
 def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -> None:

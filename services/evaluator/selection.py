@@ -5,7 +5,8 @@ the mean of ``window`` consecutive checkpoints' weights (``shared.model.average_
 the window is chosen by a rule fixed before any test world is played:
 
 1. every window is scored on the *gate* world (``paper-indoor``: the training world, the
-   paper's protocol) and kept when it reaches ``gate_min`` mean steps (the goal, 150);
+   paper's protocol) and kept when it reaches ``gate_min`` mean steps (the goal, 150) and, with
+   ``gate_start_min``, every start of it reaches that many (the goal: 60);
 2. the kept windows are scored on the *validation* worlds (procedural worlds never trained on
    and never used as test worlds) and the best mean over them wins (ties: the later window);
 3. when no window reaches the gate, the best gate score wins (and the report says so).
@@ -59,6 +60,12 @@ class WindowScore:
     (the validation worlds are not played then)."""
     per_world: dict[str, float]
     sources: tuple[str, ...]
+    gate_worst_start: float | None = None
+    """The lowest per-start mean steps on the gate world (None in scores cached before it was kept)."""
+
+    def passes(self, gate_min: float, gate_start_min: float = 0.0) -> bool:
+        """Whether the window reaches the gate: the mean and, when asked, every start."""
+        return self.gate >= gate_min and (gate_start_min <= 0 or (self.gate_worst_start or 0.0) >= gate_start_min)
 
     def to_json(self) -> dict[str, Any]:
         return {**dataclasses.asdict(self), "sources": list(self.sources)}
@@ -67,7 +74,8 @@ class WindowScore:
     def from_json(cls, d: dict[str, Any]) -> "WindowScore":
         return cls(int(d["end_update"]), str(d["weights_sha256"]), float(d["gate"]),
                    None if d["validation"] is None else float(d["validation"]),
-                   {str(k): float(v) for k, v in d["per_world"].items()}, tuple(d["sources"]))
+                   {str(k): float(v) for k, v in d["per_world"].items()}, tuple(d["sources"]),
+                   None if d.get("gate_worst_start") is None else float(d["gate_worst_start"]))
 
 
 def windows(checkpoints: Sequence[tuple[int, Path]], size: int, *, first_end: int = 0,
@@ -88,27 +96,30 @@ def windows(checkpoints: Sequence[tuple[int, Path]], size: int, *, first_end: in
     return [Window(ordered[i][0], tuple(p for _, p in ordered[i - size + 1:i + 1])) for i in ends]
 
 
-def choose(scores: Sequence[WindowScore], gate_min: float) -> tuple[WindowScore, str]:
+def choose(scores: Sequence[WindowScore], gate_min: float, gate_start_min: float = 0.0
+           ) -> tuple[WindowScore, str]:
     """The chosen window and the rule that chose it (see the module doc)."""
     if not scores:
         raise SelectionError("no window was scored")
-    passed = [s for s in scores if s.gate >= gate_min and s.validation is not None]
+    gate = f"{gate_min:g}" + (f" (every start {gate_start_min:g})" if gate_start_min > 0 else "")
+    passed = [s for s in scores if s.passes(gate_min, gate_start_min) and s.validation is not None]
     if passed:
         best = max(passed, key=lambda s: (s.validation, s.end_update))
-        return best, (f"{len(passed)} of {len(scores)} windows reach {gate_min:g} on the gate world; "
+        return best, (f"{len(passed)} of {len(scores)} windows reach {gate} on the gate world; "
                       f"the best validation mean ({best.validation:.1f})")
     best = max(scores, key=lambda s: (s.gate, s.end_update))
-    return best, (f"no window of {len(scores)} reaches {gate_min:g} on the gate world; "
+    return best, (f"no window of {len(scores)} reaches {gate} on the gate world; "
                   f"the best gate score ({best.gate:.1f})")
 
 
 def window_rows_markdown(scores: Sequence[WindowScore], chosen: WindowScore | None = None,
                          gate_world: str = "gate") -> str:
     """A Markdown table of every window's scores, the chosen one in bold."""
-    lines = [f"| window ending at | {gate_world} | validation mean |", "|---:|---:|---:|"]
+    lines = [f"| window ending at | {gate_world} | worst start | validation mean |", "|---:|---:|---:|---:|"]
     for s in sorted(scores, key=lambda s: s.end_update):
         val = "—" if s.validation is None else f"{s.validation:.1f}"
-        row = [str(s.end_update), f"{s.gate:.1f}", val]
+        worst = "—" if s.gate_worst_start is None else f"{s.gate_worst_start:.1f}"
+        row = [str(s.end_update), f"{s.gate:.1f}", worst, val]
         if chosen is not None and s.end_update == chosen.end_update:
             row = [f"**{c}**" for c in row]
         lines.append("| " + " | ".join(row) + " |")
@@ -204,6 +215,8 @@ class SelectOptions:
     last_end: int | None = None
     gate_world: str = "paper-indoor"
     gate_min: float = 150.0
+    gate_start_min: float = 0.0
+    """Every start of the gate world must reach this many mean steps too (0: no such condition)."""
     validation_worlds: tuple[str, ...] = tuple(f"procedural:{s}" for s in range(201, 211))
     test_worlds: tuple[str, ...] = ()
     """Played by the chosen window only, after the choice (none: no test)."""
@@ -214,7 +227,8 @@ class SelectOptions:
 
 
 def _protocol_key(o: SelectOptions) -> dict[str, Any]:
-    return {"gate_world": o.gate_world, "gate_min": o.gate_min, "validation_worlds": list(o.validation_worlds),
+    return {"gate_world": o.gate_world, "gate_min": o.gate_min, "gate_start_min": o.gate_start_min,
+            "validation_worlds": list(o.validation_worlds),
             "episodes_per_start": o.episodes_per_start, "max_steps": o.max_steps}
 
 
@@ -258,8 +272,10 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     from shared.world import load_world
 
     echo = echo or (lambda _msg: None)
-    if not (isinstance(o.gate_min, (int, float)) and math.isfinite(o.gate_min)):
-        raise SelectionError(f"gate minimum must be a finite number, got {o.gate_min!r}")
+    for name in ("gate_min", "gate_start_min"):
+        value = getattr(o, name)
+        if not (isinstance(value, (int, float)) and math.isfinite(value)):
+            raise SelectionError(f"{name.replace('_', ' ')} must be a finite number, got {value!r}")
     if not o.validation_worlds:
         raise SelectionError("give at least one validation world")
     if set(o.test_worlds) & {o.gate_world, *o.validation_worlds}:
@@ -275,11 +291,17 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     cache = _load_cache(cache_path, key)
     scores: list[WindowScore] = []
 
-    def mean_steps(setup: Any, world: str) -> float:
+    def steps(setup: Any, world: str) -> tuple[float, float]:
+        """(mean steps, the lowest start's mean steps)."""
         results = evaluate_policy(setup.policy_fn, world=world, sensor_cfg=setup.sensor_cfg, env_cfg=setup.env_cfg,
                                   episodes_per_start=o.episodes_per_start, max_steps=o.max_steps, progress=False,
                                   meta=setup.meta())
-        return float(results.summary["overall"]["mean_steps"])
+        summary = results.summary
+        return (float(summary["overall"]["mean_steps"]),
+                float(min(p["mean_steps"] for p in summary["per_start"])))
+
+    def mean_steps(setup: Any, world: str) -> float:
+        return steps(setup, world)[0]
 
     for i, win in enumerate(todo, 1):
         model = average_models([load_model(p, o.device) for p in win.paths])
@@ -288,26 +310,28 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
             score = dataclasses.replace(cached, end_update=win.end_update)
         else:
             setup = setup_evaluation("greedy", world=o.gate_world, model=model, device=o.device)
-            gate = mean_steps(setup, o.gate_world)
+            gate, worst = steps(setup, o.gate_world)
             per_world = {o.gate_world: gate}
-            validation = None
-            if gate >= o.gate_min:
+            score = WindowScore(win.end_update, model.weights_sha256, gate, None, per_world,
+                                tuple(str(p) for p in win.paths), worst)
+            if score.passes(o.gate_min, o.gate_start_min):
                 for w in o.validation_worlds:
                     per_world[w] = mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w)
-                validation = sum(per_world[w] for w in o.validation_worlds) / len(o.validation_worlds)
-            score = WindowScore(win.end_update, model.weights_sha256, gate, validation, per_world,
-                                tuple(str(p) for p in win.paths))
+                score = dataclasses.replace(
+                    score, validation=sum(per_world[w] for w in o.validation_worlds) / len(o.validation_worlds))
             cache_path.parent.mkdir(parents=True, exist_ok=True)
             with cache_path.open("a") as f:
                 f.write(json.dumps({"protocol": key, "score": score.to_json()}) + "\n")
         scores.append(score)
         val = "" if score.validation is None else f", validation {score.validation:.1f}"
-        echo(f"[{i}/{len(todo)}] window ending at {win.end_update}: {o.gate_world} {score.gate:.1f}{val}"
+        worst = "" if score.gate_worst_start is None else f" (worst start {score.gate_worst_start:.1f})"
+        echo(f"[{i}/{len(todo)}] window ending at {win.end_update}: {o.gate_world} {score.gate:.1f}{worst}{val}"
              + (" (cached)" if cached is not None else ""))
-    chosen, rule = choose(scores, o.gate_min)
+    chosen, rule = choose(scores, o.gate_min, o.gate_start_min)
     model = average_models([load_model(p, o.device) for p in chosen.sources])
     selection = {"rule": rule, "window": o.window, "end_update": chosen.end_update, "gate_world": o.gate_world,
-                 "gate_min": o.gate_min, "gate": chosen.gate, "validation_worlds": list(o.validation_worlds),
+                 "gate_min": o.gate_min, "gate_start_min": o.gate_start_min, "gate": chosen.gate,
+                 "gate_worst_start": chosen.gate_worst_start, "validation_worlds": list(o.validation_worlds),
                  "validation": chosen.validation, "windows_scored": len(scores)}
     if o.test_worlds:
         echo(f"testing the window ending at {chosen.end_update} on {len(o.test_worlds)} test world(s)")
@@ -320,7 +344,8 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     clock = wall_minutes(run_dir / "stats" / "learner.csv")
     png = save_selection_png(scores, o.out.with_name(o.out.stem + "-windows.png"), gate_min=o.gate_min,
                              chosen=chosen, gate_world=o.gate_world, clock=clock)
-    first = min((s for s in scores if s.gate >= o.gate_min), key=lambda s: s.end_update, default=None)
+    first = min((s for s in scores if s.passes(o.gate_min, o.gate_start_min)), key=lambda s: s.end_update,
+                default=None)
     minutes = (lambda update: None) if clock is None else (lambda update: round(float(np.interp(update, *clock)), 1))
     timing = {"chosen_minutes": minutes(chosen.end_update),
               "first_gate_update": None if first is None else first.end_update,

@@ -19,7 +19,7 @@ import numpy as np
 from shared.config import RunConfig
 from shared.dqn import DQNAgent
 from shared.messages import TransitionBatch
-from shared.replay import ReplayMemory
+from shared.replay import ReplayMemory, concat_batches
 
 
 class LearnerCore:
@@ -35,13 +35,23 @@ class LearnerCore:
             from shared.supervised import init_agent_conv
 
             init_agent_conv(self.agent, cfg.train.init_conv_from)
-        self.replay = ReplayMemory(cfg.replay, (cfg.sensor.height, cfg.sensor.width), seed=cfg.train.seed)
+        frame_shape = (cfg.sensor.height, cfg.sensor.width)
+        self.replay = ReplayMemory(cfg.replay, frame_shape, seed=cfg.train.seed)
+        # Planner demonstrations (train.demos) live apart and are never overwritten; they are
+        # read from their files at every start, so checkpoints do not carry them.
+        self.demo_replay: ReplayMemory | None = None
+        if cfg.train.demo_paths:
+            from shared.demos import demo_replay, load_demonstrations
+
+            demos = [d for p in cfg.train.demo_paths for d in load_demonstrations(p, frame_shape)]
+            self.demo_replay = demo_replay(demos, frame_shape, seed=cfg.train.seed + 3)
         self.received = 0
         # Latest policy version seen in each actor's transitions: the weight lag is
         # policy_version - this.
         self.actor_versions: dict[str, int] = {}
         self.received_by_actor: collections.Counter = collections.Counter()
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
+        self._demo_window: collections.deque = collections.deque(maxlen=1000)  # demo_agreement
         self._last_metrics: dict[str, Any] = {}
 
     # -- data in ---------------------------------------------------------------------------
@@ -97,10 +107,15 @@ class LearnerCore:
         """Sample a batch and do one DQN update (prioritised replay priorities refreshed)."""
         dqn = self.cfg.dqn
         batch = self.replay.sample(dqn.batch_size, dqn.n_step)
-        metrics = self.agent.update(batch)
-        if self.cfg.replay.prioritized:
-            self.replay.update_priorities(batch.indices, metrics["td_errors"])
+        if self.demo_replay is not None:
+            metrics = self.agent.update(concat_batches(batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step)))
+        else:
+            metrics = self.agent.update(batch)
+        if self.cfg.replay.prioritized:  # the replay memory's own samples come first
+            self.replay.update_priorities(batch.indices, metrics["td_errors"][:len(batch)])
         self._window.append((metrics["loss"], metrics["q_mean"]))
+        if "demo_agreement" in metrics:
+            self._demo_window.append(metrics["demo_agreement"])
         self._last_metrics = metrics
         return metrics
 
@@ -110,6 +125,13 @@ class LearnerCore:
             return None, None
         items = list(self._window)[-n:]
         return float(np.mean([x[0] for x in items])), float(np.mean([x[1] for x in items]))
+
+    def recent_demo_agreement(self, n: int = 100) -> float | None:
+        """Share of demonstration samples whose greedy command was the demonstrated one, over the
+        last ``n`` updates (None without demonstrations)."""
+        if not self._demo_window:
+            return None
+        return float(np.mean(list(self._demo_window)[-n:]))
 
     def weight_lag(self) -> dict[str, int]:
         return {actor: self.agent.policy_version - v for actor, v in self.actor_versions.items()}

@@ -39,7 +39,15 @@ from shared.weights import to_message
 log = logging.getLogger("cogexplore.learner")
 
 STATS_COLUMNS = ("time_s", "update", "policy_version", "loss", "mean_q", "updates_per_s", "transitions",
-                 "transitions_per_s", "replay_size", "rejected", "actors_alive", "mean_weight_lag")
+                 "transitions_per_s", "replay_size", "rejected", "actors_alive", "mean_weight_lag",
+                 "demo_agreement")
+"""``demo_agreement``: share of the demonstration samples (train.demos) whose greedy command is the
+demonstrated one, over the last updates; empty without demonstrations."""
+
+
+def format_agreement(agreement: float | None) -> str:
+    """The ``demo_agreement`` cell."""
+    return "" if agreement is None else f"{agreement:.3f}"
 
 
 class LatestSender:
@@ -162,6 +170,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 last_flow = now
             if now - last_stats >= stats_every_s:
                 loss, mean_q = core.recent()
+                agreement = core.recent_demo_agreement()
                 lag = core.weight_lag()
                 live = len(actors.alive)
                 stats = LearnerStats(
@@ -171,6 +180,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                     updates_per_s=update_rate.rate(now), transitions_per_s=transition_rate.rate(now),
                     uptime_s=now - started, rejects=rejects.counts,
                     extra={"actors_alive": live,
+                           **({} if agreement is None else {"demo_agreement": agreement}),
                            "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
                            **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[:24]},
                            **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[:24]}})
@@ -178,7 +188,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 writer.writerow([round(now - started, 3), core.updates, core.agent.policy_version,
                                  "" if loss is None else f"{loss:.6g}", "" if mean_q is None else f"{mean_q:.6g}",
                                  f"{stats.updates_per_s:.3f}", core.received, f"{stats.transitions_per_s:.1f}",
-                                 len(core.replay), rejects.total, live, f"{stats.extra['mean_weight_lag']:.2f}"])
+                                 len(core.replay), rejects.total, live, f"{stats.extra['mean_weight_lag']:.2f}",
+                                 format_agreement(agreement)])
                 stats_fh.flush()
                 last_stats = now
             if not drained and not due:
