@@ -153,17 +153,23 @@ def wall_minutes(learner_csv: str | Path) -> tuple[np.ndarray, np.ndarray] | Non
 
 
 def save_selection_png(scores: Sequence[WindowScore], out_path: str | Path, *, gate_min: float,
-                       chosen: WindowScore | None = None, gate_world: str = "gate",
+                       gate_start_min: float = 0.0, chosen: WindowScore | None = None, gate_world: str = "gate",
                        title: str | None = None, clock: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
     """Gate and validation scores of every window against updates, the gate threshold dashed and
-    the chosen window starred (the model card's learning curve); with ``clock`` (see
+    the chosen window starred (the model card's learning curve), with ``gate_start_min`` the worst
+    start's score and that threshold too; with ``clock`` (see
     :func:`wall_minutes`) a top axis in minutes of training."""
     from matplotlib.figure import Figure
 
     rows = sorted(scores, key=lambda s: s.end_update)
-    fig = Figure(figsize=(8, 4.2), dpi=110)
+    fig = Figure(figsize=(10, 4.2), dpi=110)
     ax = fig.add_subplot(1, 1, 1)
     ax.plot([s.end_update for s in rows], [s.gate for s in rows], "o-", ms=3, label=gate_world)
+    worst = [s for s in rows if s.gate_worst_start is not None]
+    if worst and gate_start_min > 0:
+        ax.plot([s.end_update for s in worst], [s.gate_worst_start for s in worst], ".:", ms=3, lw=0.8,
+                color="tab:green", label=f"{gate_world}, worst start")
+        ax.axhline(gate_start_min, ls=":", color="tab:green", lw=1, label=f"every start {gate_start_min:g}")
     val = [s for s in rows if s.validation is not None]
     if val:
         ax.plot([s.end_update for s in val], [s.validation for s in val], "s", ms=4, label="validation mean")
@@ -178,7 +184,7 @@ def save_selection_png(scores: Sequence[WindowScore], out_path: str | Path, *, g
     ax.set_ylabel("mean moving steps (of 200)")
     ax.set_ylim(0, 205)
     ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)  # outside: the lines fill the plot
     ax.set_title(title or "mean of consecutive checkpoints' weights, by window")
     fig.tight_layout()
     out = Path(out_path)
@@ -343,7 +349,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     run_dir = o.run.parent if o.run.name == "checkpoints" else o.run
     clock = wall_minutes(run_dir / "stats" / "learner.csv")
     png = save_selection_png(scores, o.out.with_name(o.out.stem + "-windows.png"), gate_min=o.gate_min,
-                             chosen=chosen, gate_world=o.gate_world, clock=clock)
+                             gate_start_min=o.gate_start_min, chosen=chosen, gate_world=o.gate_world, clock=clock)
     first = min((s for s in scores if s.passes(o.gate_min, o.gate_start_min)), key=lambda s: s.end_update,
                 default=None)
     minutes = (lambda update: None) if clock is None else (lambda update: round(float(np.interp(update, *clock)), 1))
