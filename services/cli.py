@@ -27,7 +27,7 @@ def _worlds_demo(args: argparse.Namespace) -> int:
     import time
 
     from shared.config import load_preset
-    from shared.demos import plan_commands, plan_summary, record_demonstration, save_demonstrations
+    from shared.demos import DemoError, plan_commands, plan_summary, record_demonstration, save_demonstrations
     from shared.env import ExploreEnv
 
     rc = load_preset(args.preset)
@@ -38,6 +38,10 @@ def _worlds_demo(args: argparse.Namespace) -> int:
     env = ExploreEnv(env_cfg, rc.sensor)
     demos, plans = [], []
     try:
+        n_starts = len(env.main_world.starts)
+        bad = [s for s in args.start if not 1 <= s <= n_starts]
+        if bad:
+            raise DemoError(f"--start {bad[0]}: {args.world} has starts 1-{n_starts}")
         for start in args.start:
             began = time.monotonic()
 
@@ -391,7 +395,8 @@ def main(argv: list[str] | None = None) -> int:
 
 _USER_ERRORS = (("shared.checkpoint", "CheckpointError"), ("shared.supervised", "SupervisedError"),
                 ("shared.demos", "DemoError"))
-"""Errors that name a bad file or setting (train.init_from, init_conv_from): a message, not a traceback."""
+"""Errors that name a bad file or setting (train.init_from, init_conv_from, train.demos): a message, not a
+traceback."""
 
 
 def _loaded_user_errors() -> tuple[type[BaseException], ...]:

@@ -179,7 +179,8 @@ class ExploreEnv(gym.Env):
     def snapshot(self) -> tuple[Any, ...]:
         """The episode's state now (robot physics, step count, path, image): :meth:`restore`
         puts the episode back exactly there, so a planner can try several commands from one
-        pose (shared.demos). Only within the episode and world it was taken in."""
+        pose (shared.demos). Only within the episode and world it was taken in; the sensor's noise
+        draws (``SensorConfig.noise_std_m``) are not rewound."""
         return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
                 self._depth.copy())
 

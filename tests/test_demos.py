@@ -206,7 +206,7 @@ def test_worlds_demo_command_writes_a_loadable_file_and_refuses_bad_input(tmp_pa
     demo, = load_demonstrations(out, (30, 40))  # fast-40x30's sensor
     assert demo.world == "corridor" and demo.speed_table == "test" and len(demo) == 6
     assert main(["worlds", "demo", "corridor", "--start", "99", "--out", str(out)]) == 2
-    assert "out of range" in capsys.readouterr().err
+    assert "corridor has starts 1-" in capsys.readouterr().err
 
 
 def test_demonstrations_are_not_mirrored_so_a_symmetric_scene_keeps_its_demonstrated_turn(one_torch_thread):

@@ -58,7 +58,8 @@ def test_choose_gates_first_then_takes_the_best_validation() -> None:
 
 
 def test_a_worst_start_gate_keeps_only_windows_whose_every_start_reaches_it() -> None:
-    scores = [score(1000, 170, 99.0, worst=27.0), score(2000, 155, 90.0, worst=64.0), score(3000, 190, None, worst=20.0)]
+    scores = [score(1000, 170, 99.0, worst=27.0), score(2000, 155, 90.0, worst=64.0),
+              score(3000, 190, None, worst=20.0)]
     best, rule = choose(scores, 150, gate_start_min=60)
     assert best.end_update == 2000 and "1 of 3 windows" in rule and "every start 60" in rule
     assert choose(scores, 150)[0].end_update == 1000  # without it, the best validation
