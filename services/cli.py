@@ -26,15 +26,15 @@ def _worlds_demo(args: argparse.Namespace) -> int:
     import dataclasses
     import time
 
+    from services.evaluator.evaluate import protocol_env_config
     from shared.config import load_preset
     from shared.demos import DemoError, plan_commands, plan_summary, record_demonstration, save_demonstrations
     from shared.env import ExploreEnv
 
     rc = load_preset(args.preset)
-    # The planner's own step cap: a horizon beyond the run's episode length must not truncate it.
-    env_cfg = dataclasses.replace(rc.env, world=args.world, speed_table=args.speed, start_index=None,
-                                  random_start_prob=0.0, extra_worlds="", extra_world_prob=0.0,
-                                  max_episode_steps=max(rc.env.max_episode_steps, args.horizon + 1))
+    # The protocol's env (fixed starts: no random poses or extra worlds), at --speed, with a step
+    # cap the horizon cannot reach.
+    env_cfg = dataclasses.replace(protocol_env_config(rc.env, args.world, args.horizon + 1), speed_table=args.speed)
     env = ExploreEnv(env_cfg, rc.sensor)
     demos, plans = [], []
     try:

@@ -481,10 +481,9 @@ class TrainConfig:
                self.init_from.strip() == self.init_from and self.init_from.endswith(".safetensors"))),
                s, "init_from", self.init_from,
                "'', 'pretrained' or the path of a Q-network weights .safetensors file (`cogexplore model export`)")
-        _check(isinstance(self.demos, str) and all(p.strip().endswith(".npz") or p.strip() == "pretrained:demos"
-                                                   for p in self.demos.split(",") if p.strip()), s, "demos",
-               self.demos, "'' or comma-separated .npz demonstration files (`cogexplore worlds demo`) or "
-               "'pretrained:demos'")
+        _check(isinstance(self.demos, str) and all(p.endswith(".npz") or p == "pretrained:demos"
+                                                   for p in self.demo_paths), s, "demos", self.demos,
+               "'' or comma-separated .npz demonstration files (`cogexplore worlds demo`) or 'pretrained:demos'")
 
     @property
     def demo_paths(self) -> tuple[str, ...]:

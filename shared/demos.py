@@ -3,7 +3,7 @@
 Some starts need a manoeuvre that epsilon-greedy exploration practically never finds. Start 6 of
 ``paper-indoor`` faces a 1.4 m wide dead end: at the protocol's test speeds the robot survives only
 if it turns about some 2.8 m before the end wall, on a path that clears the 0.55 m depth rule by
-about 1.5 cm (at the faster training speeds no escape exists at all, ``cogexplore worlds starts
+about a centimetre (at the faster training speeds no escape exists at all, ``cogexplore worlds starts
 paper-indoor --speed train``). No training run learned it (MODEL_CARD.md, Limits).
 
 **The planner** (:func:`plan_commands`) searches the environment itself, not a map: from a start
@@ -11,8 +11,8 @@ pose it tries every command from every kept pose (:meth:`ExploreEnv.snapshot` / 
 it applies the env's exact collision rule, image by image. It is a beam search over command
 sequences; poses are merged per (``cell_m``, ``heading_deg``) cell, and per cell (and in the
 beam) the sequence with the fewest command switches wins, then the one with the most depth
-margin: the plans it keeps are smooth (a half-right, six straights, six lefts, straight out),
-which a network can imitate. Of the sequences that survive longest, the one ending farthest from
+margin: the plans it keeps are smooth (start 6: a half-right, six straights, a half-left, five
+lefts, straight out), which a network can imitate. Of the sequences that survive longest, the one ending farthest from
 the start is the demonstration.
 
 **The demonstration** (:func:`record_demonstration`) replays the commands in the env from the
@@ -99,10 +99,6 @@ class Demonstration:
         return {"world": self.world, "start_index": self.start_index, "speed_table": self.speed_table,
                 "steps": len(self), "terminated": self.terminated,
                 "frame_shape": list(self.depth_mm.shape[1:])}
-
-
-def _switches(actions: Sequence[int]) -> int:
-    return sum(1 for a, b in zip(actions, actions[1:]) if a != b)
 
 
 def plan_commands(env: ExploreEnv, start_index: int, *, horizon: int = 80, beam: int = 2000,
@@ -213,7 +209,7 @@ def load_demonstrations(path: str | Path, frame_shape: tuple[int, int] | None = 
     try:
         meta = json.loads(arrays["meta"].tobytes().decode())
         entries = meta["demos"]
-    except (KeyError, ValueError, UnicodeDecodeError) as exc:
+    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as exc:
         raise DemoError(f"{path}: missing or damaged metadata ({exc})") from None
     if meta.get("format") != DEMO_FORMAT or meta.get("version") != VERSION:
         raise DemoError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
