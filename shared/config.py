@@ -12,15 +12,18 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any, Mapping, get_type_hints
 
+import tomllib
+
+from shared.errors import CogexploreError
+
 PRESET_DIR = Path(__file__).with_name("presets")
 
 
-class ConfigError(ValueError):
+class ConfigError(CogexploreError):
     """A configuration value is missing, of the wrong type or out of range."""
 
 
@@ -108,7 +111,7 @@ class SensorConfig:
 
 
 PROCEDURAL_PREFIX = "procedural:"
-"""World names ``procedural:<seed>`` are generated layouts (shared.world.procedural_world)."""
+"""World names ``procedural:<seed>`` are generated layouts (shared.sim.world.procedural_world)."""
 MAX_WORLD_LIST = 10_000
 """Most world names ``parse_world_list`` expands a list to."""
 
@@ -123,13 +126,13 @@ def parse_world_list(text: str) -> tuple[str, ...]:
         procedural = part.startswith(PROCEDURAL_PREFIX)
         first, dash, last = part.removeprefix(PROCEDURAL_PREFIX).partition("-")
         if procedural and not all(t.isascii() and t.isdigit() for t in ((first, last) if dash else (first,))):
-            raise ValueError(f"{part!r}: use 'procedural:<seed>' or 'procedural:<first>-<last>', "
+            raise ConfigError(f"{part!r}: use 'procedural:<seed>' or 'procedural:<first>-<last>', "
                              "seeds integers >= 0")
         if procedural and dash:
             if int(last) < int(first):
-                raise ValueError(f"{part!r}: the last seed is below the first")
+                raise ConfigError(f"{part!r}: the last seed is below the first")
             if int(last) - int(first) + 1 + len(names) > MAX_WORLD_LIST:
-                raise ValueError(f"{part!r}: more than {MAX_WORLD_LIST} worlds")
+                raise ConfigError(f"{part!r}: more than {MAX_WORLD_LIST} worlds")
             names.update(dict.fromkeys(f"{PROCEDURAL_PREFIX}{seed}" for seed in range(int(first), int(last) + 1)))
         else:
             names[part] = None
@@ -240,7 +243,7 @@ class EnvConfig:
 
 
 DEPTH_ENCODINGS: tuple[str, ...] = ("metric", "inverse")
-"""ModelConfig.depth_encoding values (shared.model.encode_depth)."""
+"""ModelConfig.depth_encoding values (shared.learning.model.encode_depth)."""
 
 
 @dataclass(frozen=True)
@@ -259,7 +262,7 @@ class ModelConfig:
     """How depth enters the conv layers. 'metric' (the paper's): depth / 4 m, so "no return"
     (beyond range) is 0, next to a wall at the collision distance (0.14). 'inverse':
     0.5 m / depth capped at 1, so near obstacles give large values, free space beyond range
-    stays 0 and the input falls monotonically with distance (see shared.model.encode_depth)."""
+    stays 0 and the input falls monotonically with distance (see shared.learning.model.encode_depth)."""
     previous_action: bool = False
     """fc1 also reads the previous moving command (one-hot; zeros at an episode's first step).
     One depth image does not show how the robot is turning: mid U-turn, facing a wall, the image
@@ -347,7 +350,7 @@ class DQNConfig:
     """Demonstration transitions (``train.demos``) added to every batch, on top of
     ``batch_size`` from the replay memory (0: none, the paper's)."""
     demo_margin: float = 0.8
-    """Large-margin loss on demonstration samples (DQfD, shared.demos): the demonstrated command's
+    """Large-margin loss on demonstration samples (DQfD, shared.learning.demos): the demonstrated command's
     Q-value should lead every other command's by this much (DQfD: 0.8)."""
     demo_weight: float = 1.0
     """Weight of the large-margin loss against the TD loss (DQfD: 1; 0: demonstrations only add
@@ -403,7 +406,7 @@ class ExploreConfig:
     """Ape-X alpha."""
     expert_episode_prob: float = 0.0
     """Fraction of training episodes in which the privileged map expert
-    (shared.supervised.CommandExpert, the supervised labels' source) chooses the non-random actions
+    (shared.expert.expert.CommandExpert, the supervised labels' source) chooses the non-random actions
     instead of the Q-network: demonstrations that reach the parts of the world an epsilon-greedy
     episode rarely does. The network still sees only depth; 0 is the paper's plain epsilon-greedy."""
 

@@ -5,9 +5,9 @@ import pytest
 
 from services.actor.batcher import TransitionBatcher
 from services.actor.service import FlowGate
-from services.learner.core import LearnerCore
 from shared.config import load_preset
-from shared.messages import FlowControl, MessageError, TransitionBatch
+from shared.learning.learner import LearnerCore
+from shared.wire.messages import FlowControl, MessageError, TransitionBatch
 
 
 def _frame(value: float) -> np.ndarray:

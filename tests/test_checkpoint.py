@@ -7,11 +7,18 @@ import numpy as np
 import pytest
 import torch
 
-from shared.checkpoint import (CheckpointError, CheckpointManager, export_weights, load_checkpoint,
-                               load_exported_weights, pretrained_path, save_checkpoint)
 from shared.config import DQNConfig, ModelConfig, ReplayConfig, RunConfig, SensorConfig
-from shared.dqn import DQNAgent
-from shared.replay import ReplayMemory
+from shared.learning.checkpoints import (
+    CheckpointError,
+    CheckpointManager,
+    export_weights,
+    load_checkpoint,
+    load_exported_weights,
+    pretrained_path,
+    save_checkpoint,
+)
+from shared.learning.dqn import DQNAgent
+from shared.learning.replay import ReplayMemory
 
 TINY = SensorConfig(width=40, height=30)
 MODEL = ModelConfig(fc1=32, fc2=16, dropout=0.5)  # dropout on: resume must restore the RNG too
@@ -108,8 +115,7 @@ def test_manager_keeps_last_k_and_points_latest_at_the_newest(tmp_path):
 
 
 def test_only_the_newest_checkpoints_keep_their_replay_and_an_older_one_resumes_without(tmp_path, caplog):
-    from services.learner.core import LearnerCore
-    from services.learner.service import resume_from
+    from shared.learning.learner import LearnerCore, resume_from
 
     agent, mem = setup(DQNConfig())
     fill(mem)
@@ -218,8 +224,8 @@ def test_init_from_starts_the_whole_network_from_a_weights_file_and_refuses_misf
     """train.init_from (fine-tuning): online and target start as the file's network; a network of
     another image size, a training checkpoint or a missing file is a clear error, also from the CLI."""
     from services.cli import main
-    from services.learner.core import LearnerCore
     from shared.config import ConfigError, TrainConfig, load_preset
+    from shared.learning.learner import LearnerCore
 
     base = load_preset("tiny").with_overrides({"replay.capacity": 500})
     source = LearnerCore(base.with_overrides({"train.seed": 7}), device="cpu").agent

@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from shared.transport import ZenohSettings, parse_endpoints
+from services.bus.session import ZenohSettings, parse_endpoints
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = ROOT / "docker-compose.yml"

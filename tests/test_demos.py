@@ -7,12 +7,19 @@ import pytest
 import torch
 
 from shared.config import ConfigError, DQNConfig, ModelConfig, SensorConfig, load_preset
-from shared.demos import (DemoError, Demonstration, demo_replay, load_demonstrations, plan_commands,
-                          record_demonstration, save_demonstrations)
-from shared.dqn import DQNAgent, demo_margin_loss
-from shared.env import ExploreEnv
-from shared.replay import concat_batches
-from shared.world import SceneBuilder, StartPose
+from shared.learning.demos import (
+    DemoError,
+    Demonstration,
+    demo_replay,
+    load_demonstrations,
+    plan_commands,
+    record_demonstration,
+    save_demonstrations,
+)
+from shared.learning.dqn import DQNAgent, demo_margin_loss
+from shared.learning.replay import concat_batches
+from shared.sim.env import ExploreEnv
+from shared.sim.world import SceneBuilder, StartPose
 
 TINY = SensorConfig(width=40, height=30)
 SMALL = ModelConfig(fc1=32, fc2=16, dropout=0.0, previous_action=True)
@@ -172,7 +179,7 @@ def test_the_margin_loss_teaches_the_demonstrated_commands(one_torch_thread):
 
 
 def test_the_learner_core_mixes_demonstrations_into_every_batch(tmp_path, one_torch_thread):
-    from services.learner.core import LearnerCore
+    from shared.learning.learner import LearnerCore
 
     path = save_demonstrations(tmp_path / "d.npz", [_demo(10)])
     cfg = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30, "train.demos": str(path),
@@ -232,7 +239,7 @@ def test_the_shipped_demonstration_still_replays_in_todays_world():
     """pretrained:demos was recorded in paper-indoor with fast-40x30's sensor at the test speeds: the
     same commands must still give the same images (a changed world, robot or sensor needs
     `cogexplore worlds demo paper-indoor --start 6 --out shared/pretrained/paper-indoor-demos.npz`)."""
-    from services.evaluator.evaluate import protocol_env_config
+    from shared.evaluation.protocol import protocol_env_config
 
     rc = load_preset("fast-40x30")
     shipped = load_demonstrations("pretrained:demos", (rc.sensor.height, rc.sensor.width))

@@ -4,11 +4,25 @@ import numpy as np
 import pytest
 import torch
 
-from shared.config import DQNConfig, ModelConfig, ReplayConfig, SensorConfig, load_preset
-from shared.dqn import (DQNAgent, DQNError, caffe_lr_to_torch, lr_factor, mirror_batch, n_step_returns,
-                        td_targets, update_flops)
-from shared.model import QNetwork, forward_flops
-from shared.replay import Batch, ReplayMemory
+from shared.config import (
+    DQNConfig,
+    ModelConfig,
+    ReplayConfig,
+    SensorConfig,
+    load_preset,
+)
+from shared.learning.dqn import (
+    DQNAgent,
+    DQNError,
+    caffe_lr_to_torch,
+    lr_factor,
+    mirror_batch,
+    n_step_returns,
+    td_targets,
+    update_flops,
+)
+from shared.learning.model import QNetwork, forward_flops
+from shared.learning.replay import Batch, ReplayMemory
 
 TINY = SensorConfig(width=40, height=30)
 SMALL = ModelConfig(fc1=32, fc2=16, dropout=0.0)

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-import shared.env  # noqa: F401  (registers cogexplore/Explore-v0)
-from shared.config import EnvConfig, SPEED_TABLES
-from shared.env import ENV_ID, ExploreEnv
-from shared.world import SceneBuilder, StartPose
+import shared.sim.env  # noqa: F401  (registers cogexplore/Explore-v0)
+from shared.config import SPEED_TABLES, EnvConfig
+from shared.sim.env import ENV_ID, ExploreEnv
+from shared.sim.world import SceneBuilder, StartPose
 
 
 def _corridor_world(face_distances: list[float]):
@@ -141,7 +141,7 @@ def test_info_tracks_distance_and_path_length():
 
 def test_random_starts_are_clear_varied_and_never_used_by_the_test_protocol():
     from shared.config import SensorConfig
-    from shared.maps import occupancy_grid
+    from shared.sim.maps import occupancy_grid
 
     env = ExploreEnv(EnvConfig(world="paper-indoor", random_start_prob=1.0, random_start_clearance_m=0.6),
                      sensor=SensorConfig(width=40, height=30))
@@ -156,7 +156,7 @@ def test_random_starts_are_clear_varied_and_never_used_by_the_test_protocol():
         assert (x, y) not in named
         # 0.6 m from every occupied cell (less half a cell of jitter), and not a collision at once
         assert np.hypot(occupied_xy[:, 0] - x, occupied_xy[:, 1] - y).min() > 0.6 - 0.05
-        assert shared.env.min_valid_depth(obs) >= 0.55 + 0.1
+        assert shared.sim.env.min_valid_depth(obs) >= 0.55 + 0.1
         assert info["distance_from_start_m"] == 0.0
         poses.append((round(x, 2), round(y, 2)))
     assert len(set(poses)) == 8
@@ -183,7 +183,7 @@ def test_extra_worlds_share_the_episodes_and_fixed_starts_stay_in_the_main_world
     import logging
 
     from shared.config import SensorConfig
-    from shared.world import WorldError
+    from shared.sim.world import WorldError
 
     env = ExploreEnv(EnvConfig(world="box-room", extra_worlds="corridor, procedural:7-8", extra_world_prob=0.6,
                                max_episode_steps=3), sensor=SensorConfig(width=40, height=30))

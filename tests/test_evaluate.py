@@ -3,7 +3,6 @@ JSON, checkpoints of every kind, the baselines and the recorded .rrd (real env, 
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -16,20 +15,20 @@ import numpy as np
 import pytest
 from rerun.chunk import RrdReader
 
-from services.evaluator.evaluate import (
-    EvaluateError,
-    EvaluationCancelled,
-    add_evaluate_arguments,
-    evaluate_policy,
-    load_model,
-    run_evaluate,
-    weights_sha256,
-)
-from services.evaluator.policies import PolicyError, RandomPolicy, ReactivePolicy, make_policy
-from services.evaluator.results import SCHEMA_ID, validate_results_json
+from services.cli import main
+from services.viz.rerun import evaluate_recorded
 from shared.config import SensorConfig, load_preset
-from shared.sensor import intrinsics
-from shared.world import load_world
+from shared.evaluation.policies import (
+    PolicyError,
+    RandomPolicy,
+    ReactivePolicy,
+    make_policy,
+)
+from shared.evaluation.protocol import EvaluationCancelled, evaluate_policy
+from shared.evaluation.results import SCHEMA_ID, validate_results_json
+from shared.learning.checkpoints import CheckpointError, load_model, weights_sha256
+from shared.sim.sensor import intrinsics
+from shared.sim.world import load_world
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
@@ -41,8 +40,8 @@ def small_config():
 
 def make_run(root: Path, policy_version: int = 1000, seed: int = 0) -> Path:
     """A run folder with one checkpoint of a fresh network and a weights export next to it."""
-    from shared.checkpoint import CheckpointManager, export_weights
-    from shared.dqn import DQNAgent
+    from shared.learning.checkpoints import CheckpointManager, export_weights
+    from shared.learning.dqn import DQNAgent
 
     cfg = small_config()
     agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=seed)
@@ -52,10 +51,9 @@ def make_run(root: Path, policy_version: int = 1000, seed: int = 0) -> Path:
     return root
 
 
-def parse(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser()
-    add_evaluate_arguments(parser)
-    return parser.parse_args(argv)
+def evaluate(argv: list[str]) -> int:
+    """``cogexplore evaluate ARGV``: the exit status."""
+    return main(["evaluate", *argv])
 
 
 def verify_rrd(path: Path) -> None:
@@ -97,9 +95,9 @@ def test_protocol_runs_every_start_times_episodes_within_the_cap() -> None:
 def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one() -> None:
     import torch
 
-    from services.evaluator.policies import GreedyPolicy
     from shared.config import ModelConfig
-    from shared.model import QNetwork
+    from shared.evaluation.policies import GreedyPolicy
+    from shared.learning.model import QNetwork
 
     sensor = SensorConfig(width=40, height=30)
     torch.manual_seed(0)
@@ -149,8 +147,8 @@ def test_stop_cancels_within_a_step_and_drops_the_partial_recording(tmp_path: Pa
 
     rrd = tmp_path / "partial.rrd"
     with pytest.raises(EvaluationCancelled):
-        evaluate_policy(policy, world="box-room", sensor_cfg=sensor, max_steps=50, rrd=rrd, progress=False,
-                        stop=stop)
+        evaluate_recorded(policy, world="box-room", sensor_cfg=sensor, max_steps=50, rrd=rrd, progress=False,
+                          stop=stop)
     assert len(calls) == 3 and not rrd.exists()
 
 
@@ -205,7 +203,7 @@ def test_policy_errors_are_clear() -> None:
 
 
 def test_every_kind_of_checkpoint_loads_the_same_network(tmp_path: Path) -> None:
-    from shared.checkpoint import CheckpointManager
+    from shared.learning.checkpoints import CheckpointManager
 
     run = make_run(tmp_path / "run")
     ckpt_file = CheckpointManager(run / "checkpoints").latest()
@@ -225,14 +223,14 @@ def test_every_kind_of_checkpoint_loads_the_same_network(tmp_path: Path) -> None
 
 
 def test_bad_checkpoints_are_named_in_the_error(tmp_path: Path) -> None:
-    with pytest.raises(EvaluateError, match="does not exist"):
+    with pytest.raises(CheckpointError, match="does not exist"):
         load_model(tmp_path / "missing")
     (tmp_path / "empty").mkdir()
-    with pytest.raises(EvaluateError, match="holds no checkpoint"):
+    with pytest.raises(CheckpointError, match="holds no checkpoint"):
         load_model(tmp_path / "empty")
     junk = tmp_path / "junk.safetensors"
     junk.write_bytes(b"not a safetensors file")
-    with pytest.raises(EvaluateError, match="neither a checkpoint nor a weights export"):
+    with pytest.raises(CheckpointError, match="neither a checkpoint nor a weights export"):
         load_model(junk)
 
 
@@ -242,7 +240,7 @@ def test_bad_checkpoints_are_named_in_the_error(tmp_path: Path) -> None:
 def test_evaluate_writes_results_json_and_a_verified_recording(tmp_path: Path, capsys) -> None:
     run = make_run(tmp_path / "run")
     out_json, out_rrd = tmp_path / "out" / "results.json", tmp_path / "out" / "eval.rrd"
-    status = run_evaluate(parse(["--checkpoint", str(run), "--episodes-per-start", "1", "--max-steps", "5",
+    status = evaluate((["--checkpoint", str(run), "--episodes-per-start", "1", "--max-steps", "5",
                                  "--json", str(out_json), "--rrd", str(out_rrd), "--device", "cpu", "--quiet"]))
     assert status == 0
     printed = capsys.readouterr().out
@@ -275,7 +273,7 @@ def test_evaluate_writes_results_json_and_a_verified_recording(tmp_path: Path, c
 
 def test_evaluate_baseline_out_of_the_box(tmp_path: Path) -> None:
     out = tmp_path / "random.json"
-    status = run_evaluate(parse(["--policy", "reactive", "--world", "box-room", "--episodes-per-start", "2",
+    status = evaluate((["--policy", "reactive", "--world", "box-room", "--episodes-per-start", "2",
                                  "--max-steps", "5", "--json", str(out), "--set", "sensor.width=64",
                                  "--set", "sensor.height=48", "--quiet"]))
     assert status == 0
@@ -286,7 +284,7 @@ def test_evaluate_baseline_out_of_the_box(tmp_path: Path) -> None:
 
 def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> None:
     run = make_run(tmp_path / "run")
-    status = run_evaluate(parse(["--checkpoint", str(run), "--world", "box-room,corridor", "--episodes-per-start",
+    status = evaluate((["--checkpoint", str(run), "--world", "box-room,corridor", "--episodes-per-start",
                                  "1", "--max-steps", "5", "--json", str(tmp_path / "r.json"), "--device", "cpu",
                                  "--quiet"]))
     assert status == 0
@@ -315,7 +313,7 @@ def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> 
     (["--policy", "random", "--episodes-per-start", "0", "--world", "box-room"], "episodes_per_start"),
 ])
 def test_evaluate_refuses_bad_options_clearly(argv: list[str], message: str, capsys) -> None:
-    assert run_evaluate(parse(argv + ["--quiet"])) == 2
+    assert evaluate(argv + ["--quiet"]) == 2
     assert message in capsys.readouterr().err
 
 

@@ -16,15 +16,21 @@ from pathlib import Path
 import pytest
 import zenoh
 
+from services.bus.session import (
+    LivelinessWatch,
+    ZenohSettings,
+    free_tcp_port,
+    open_router,
+    open_session,
+    put_reliable,
+    serve_latest,
+)
 from services.evaluator.service import EvaluatorService, recording_path
 from shared.config import load_preset
-from shared.keys import RunKeys
-from shared.messages import EvalResult
-from shared.model import QNetwork
-from shared.transport import (
-    LivelinessWatch, ZenohSettings, free_tcp_port, open_router, open_session, put_reliable, serve_latest,
-)
-from shared.weights import to_message
+from shared.learning.model import QNetwork
+from shared.learning.weights import to_message
+from shared.wire.keys import RunKeys
+from shared.wire.messages import EvalResult
 
 REPO = Path(__file__).resolve().parents[1]
 RERUN_CLI = Path(sys.executable).with_name("rerun")

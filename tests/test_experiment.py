@@ -11,14 +11,19 @@ from pathlib import Path
 import pytest
 import torch
 
-from services.experiment import (
+from services.cli import main as cli
+from services.tools.experiment import (
     Experiment,
     ExperimentError,
-    add_experiment_arguments,
-    main,
     options_from_args,
     parse_checkpoints,
 )
+from services.tools.options import add_experiment_arguments
+
+
+def main(argv: list[str]) -> int:
+    """``cogexplore experiment ARGV``: the exit status."""
+    return cli(["experiment", *argv])
 
 TINY = ["paper", "--preset", "smoke", "--world", "box-room", "--actors", "1", "--sl-worlds", "box-room",
         "--sl-frames", "120", "--sl-epochs", "1", "--rl-updates", "20", "--episodes-per-start", "1",
@@ -40,8 +45,11 @@ def conv(tensors: dict[str, torch.Tensor], prefix: str = "") -> dict[str, torch.
 
 
 def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
-    from shared.checkpoint import CheckpointManager, load_exported_weights
-    from shared.supervised import load_supervised
+    from shared.learning.checkpoints import (
+        CheckpointManager,
+        load_exported_weights,
+        load_supervised,
+    )
 
     out = tmp_path / "exp"
     first = run(out, "20")

@@ -8,7 +8,7 @@ import matplotlib.image as mpimg
 import numpy as np
 import pytest
 
-from services.evaluator.figures import (
+from services.viz.figures import (
     FigureError,
     load_loss_log,
     q_value_table_markdown,
@@ -19,9 +19,9 @@ from services.evaluator.figures import (
     trajectory_heatmap,
     trajectory_points,
 )
-from services.evaluator.results import EpisodeResult, EvalResults
-from shared.maps import occupancy_grid
-from shared.world import load_world
+from shared.evaluation.results import EpisodeResult, EvalResults
+from shared.sim.maps import occupancy_grid
+from shared.sim.world import load_world
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

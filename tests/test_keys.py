@@ -5,8 +5,14 @@ from __future__ import annotations
 import pytest
 import zenoh
 
-from shared.keys import (MAX_NAME_LEN, KeyExprError, ParsedKey, RunKeys, parse_key,
-                         validate_name)
+from shared.wire.keys import (
+    MAX_NAME_LEN,
+    KeyExprError,
+    ParsedKey,
+    RunKeys,
+    parse_key,
+    validate_name,
+)
 
 
 def test_keys_follow_the_documented_layout() -> None:

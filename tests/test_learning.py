@@ -11,12 +11,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from services.common import RunPaths
-from services.evaluator.evaluate import evaluate_policy, load_model
-from services.evaluator.policies import make_policy
-from services.trainer import train_single_process
-from shared.checkpoint import CheckpointManager
+from services.runs import RunPaths
+from services.tools.train import train_single_process
 from shared.config import load_preset
+from shared.evaluation.policies import make_policy
+from shared.evaluation.protocol import evaluate_policy
+from shared.learning.checkpoints import CheckpointManager, load_model
 
 
 @pytest.mark.timeout(900)

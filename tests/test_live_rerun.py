@@ -28,8 +28,17 @@ import rerun_cli
 from rerun.chunk import RrdReader
 
 from services.actor.service import run_actor
-from services.evaluator import evaluate as evaluate_cmd
-from services.evaluator.rerun_log import (
+from services.bus.session import (
+    ZenohSettings,
+    declare_alive,
+    free_tcp_port,
+    open_router,
+    open_session,
+    subscribe_messages,
+)
+from services.cli import main as cli
+from services.evaluator.service import EvaluatorService, recording_path
+from services.viz.rerun import (
     EpisodeStream,
     RerunLogError,
     ViewerLink,
@@ -37,15 +46,12 @@ from services.evaluator.rerun_log import (
     parse_viewer_url,
     viewer_reachable,
 )
-from services.evaluator.service import EvaluatorService, recording_path
 from shared.config import load_preset
-from shared.keys import RunKeys
-from shared.messages import EpisodeStats, RejectCounter
-from shared.model import QNetwork
-from shared.transport import (ZenohSettings, declare_alive, free_tcp_port, open_router, open_session,
-                              subscribe_messages)
-from shared.weights import to_message
-from shared.world import load_world
+from shared.learning.model import QNetwork
+from shared.learning.weights import to_message
+from shared.sim.world import load_world
+from shared.wire.keys import RunKeys
+from shared.wire.messages import EpisodeStats, RejectCounter
 
 REPO = Path(__file__).resolve().parents[1]
 RERUN_BIN = Path(rerun_cli.__file__).with_name("rerun")  # the binary itself: a signal reaches it
@@ -160,7 +166,7 @@ def test_viewer_urls_are_parsed_and_bad_ones_named() -> None:
     (["--rerun-serve", "--rerun-port", "9999", "--rerun-web-port", "9999"], "both 9999"),
 ])
 def test_evaluate_refuses_bad_live_options(argv: list[str], message: str, capsys) -> None:
-    assert evaluate_cmd.main([*EVAL_ARGS, *argv]) == 2
+    assert cli(["evaluate", *EVAL_ARGS, *argv]) == 2
     assert message in capsys.readouterr().err
 
 
@@ -171,8 +177,8 @@ def test_evaluate_streams_live_to_a_running_viewer(tmp_path: Path) -> None:
     server = ViewerServer(tmp_path / "server.rrd")
     with server:
         # Control: without --rerun-connect nothing may reach the viewer.
-        assert evaluate_cmd.main([*EVAL_ARGS, "--rrd", str(tmp_path / "file-only.rrd")]) == 0
-        assert evaluate_cmd.main([*EVAL_ARGS, "--rrd", str(tmp_path / "live.rrd"),
+        assert cli(["evaluate", *EVAL_ARGS, "--rrd", str(tmp_path / "file-only.rrd")]) == 0
+        assert cli(["evaluate", *EVAL_ARGS, "--rrd", str(tmp_path / "live.rrd"),
                                   "--rerun-connect", server.url]) == 0
     received = only_recording(server.path)
     assert received["name"] == "evaluate random on box-room"
@@ -186,7 +192,7 @@ def test_evaluate_streams_live_to_a_running_viewer(tmp_path: Path) -> None:
 def test_evaluate_without_a_viewer_warns_and_writes_the_file_without_stalling(tmp_path: Path, caplog) -> None:
     caplog.set_level(logging.WARNING)
     started = time.monotonic()
-    assert evaluate_cmd.main([*EVAL_ARGS, "--rrd", str(tmp_path / "e.rrd"), "--rerun-connect", closed_port_url()]) == 0
+    assert cli(["evaluate", *EVAL_ARGS, "--rrd", str(tmp_path / "e.rrd"), "--rerun-connect", closed_port_url()]) == 0
     # Handing the URL to Rerun's client unchecked costs >= 10 s (5 s connect in set_sinks, 5 s in
     # disconnect); the check before it costs a refused TCP connect.
     assert time.monotonic() - started < 8.0

@@ -7,11 +7,11 @@ import mujoco
 import numpy as np
 import pytest
 
-from shared import maps
 from shared.config import EnvConfig, SensorConfig
-from shared.robot import Robot, build_model
-from shared.sensor import DepthCamera
-from shared.world import SceneBuilder, StartPose, World, load_world
+from shared.sim import maps
+from shared.sim.robot import Robot, build_model
+from shared.sim.sensor import DepthCamera
+from shared.sim.world import SceneBuilder, StartPose, World, load_world
 
 
 def _one_box_world() -> World:

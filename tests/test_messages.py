@@ -12,11 +12,19 @@ import msgpack
 import numpy as np
 import pytest
 
-from shared import messages as m
-from shared.messages import (EpisodeStats, EvalResult, LearnerStats, MessageError, RejectCounter,
-                             TransitionBatch, WeightsMessage, architecture_fingerprint,
-                             decode_message)
 from shared.depth import depth_from_mm, depth_to_mm
+from shared.wire import messages as m
+from shared.wire.messages import (
+    EpisodeStats,
+    EvalResult,
+    LearnerStats,
+    MessageError,
+    RejectCounter,
+    TransitionBatch,
+    WeightsMessage,
+    decode_message,
+    shape_fingerprint,
+)
 
 H, W = 12, 16  # small frames keep the tests fast; the layout does not depend on the size
 
@@ -41,7 +49,7 @@ def make_batch(steps: int = 4, *, terminated: bool = False, truncated: bool = Fa
 def make_weights(version: int = 3) -> WeightsMessage:
     tensors = {"conv1.weight": np.linspace(-1, 1, 32 * 9, dtype=np.float32).reshape(32, 1, 3, 3),
                "fc.bias": np.zeros(5, dtype=np.float16)}
-    fp = architecture_fingerprint({k: v.shape for k, v in tensors.items()})
+    fp = shape_fingerprint({k: v.shape for k, v in tensors.items()})
     return WeightsMessage(policy_version=version, architecture_fingerprint=fp, tensors=tensors)
 
 
@@ -157,25 +165,25 @@ def test_weights_round_trip_and_fingerprint() -> None:
     assert back.named_shapes() == {"conv1.weight": (32, 1, 3, 3), "fc.bias": (5,)}
     back.check_fingerprint(weights.architecture_fingerprint)
     with pytest.raises(MessageError) as info:
-        back.check_fingerprint(architecture_fingerprint({"other": (1,)}))
+        back.check_fingerprint(shape_fingerprint({"other": (1,)}))
     assert info.value.cause == m.FINGERPRINT
 
 
-def test_architecture_fingerprint_is_stable_and_sensitive() -> None:
+def test_shape_fingerprint_is_stable_and_sensitive() -> None:
     shapes = {"a.weight": (4, 3), "a.bias": (4,)}
-    fp = architecture_fingerprint(shapes)
-    assert fp == architecture_fingerprint(dict(reversed(list(shapes.items()))))
-    assert fp == architecture_fingerprint({k: list(v) for k, v in shapes.items()})
-    assert fp != architecture_fingerprint({"a.weight": (4, 2), "a.bias": (4,)})
-    assert fp != architecture_fingerprint({"b.weight": (4, 3), "a.bias": (4,)})
-    assert fp != architecture_fingerprint(shapes, {"fc1": 512})
-    assert architecture_fingerprint(shapes, {"fc1": 512}) == architecture_fingerprint(shapes, {"fc1": 512})
+    fp = shape_fingerprint(shapes)
+    assert fp == shape_fingerprint(dict(reversed(list(shapes.items()))))
+    assert fp == shape_fingerprint({k: list(v) for k, v in shapes.items()})
+    assert fp != shape_fingerprint({"a.weight": (4, 2), "a.bias": (4,)})
+    assert fp != shape_fingerprint({"b.weight": (4, 3), "a.bias": (4,)})
+    assert fp != shape_fingerprint(shapes, {"fc1": 512})
+    assert shape_fingerprint(shapes, {"fc1": 512}) == shape_fingerprint(shapes, {"fc1": 512})
     with pytest.raises(ValueError):
-        architecture_fingerprint({})
+        shape_fingerprint({})
 
 
 def test_wire_modules_do_not_import_torch_or_mujoco() -> None:
-    code = ("import sys, shared.messages, shared.keys, shared.transport; "
+    code = ("import sys, shared.wire.messages, shared.wire.keys, services.bus.session; "
             "bad = [m for m in ('torch', 'mujoco') if m in sys.modules]; "
             "assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

@@ -6,9 +6,23 @@ import torch
 import torch.nn.functional as F
 
 from shared.config import ConfigError, ModelConfig, SensorConfig
-from shared.model import (DEPTH_SCALE_M, INVERSE_DEPTH_NEAR_M, InferenceRunner, ModelError, QNetwork, SupervisedNet,
-                          architecture_fingerprint, copy_conv_weights, encode_depth, forward_flops, layer_summary,
-                          load_tensors, pool3_shape, preprocess_depth, weights_to_tensors)
+from shared.learning.model import (
+    DEPTH_SCALE_M,
+    INVERSE_DEPTH_NEAR_M,
+    InferenceRunner,
+    ModelError,
+    QNetwork,
+    SupervisedNet,
+    architecture_fingerprint,
+    copy_conv_weights,
+    encode_depth,
+    forward_flops,
+    layer_summary,
+    load_tensors,
+    pool3_shape,
+    preprocess_depth,
+    weights_to_tensors,
+)
 
 TINY = SensorConfig(width=40, height=30)
 SMALL = ModelConfig(fc1=32, fc2=16)

@@ -157,9 +157,9 @@ def test_actor_in_another_namespace_over_veth(tmp_path: Path) -> None:
 def monitor(endpoint: str, run: str, actor: str, timeout_s: float) -> int:
     """Watch until the learner reports transitions from ``actor`` and the actor's transitions
     carry a weights version > 0; print one JSON line of what was seen. Exit 0 when both."""
-    from shared.keys import RunKeys
-    from shared.messages import LearnerStats, RejectCounter, TransitionBatch
-    from shared.transport import ZenohSettings, open_session, subscribe_messages
+    from services.bus.session import ZenohSettings, open_session, subscribe_messages
+    from shared.wire.keys import RunKeys
+    from shared.wire.messages import LearnerStats, RejectCounter, TransitionBatch
 
     keys = RunKeys(run)
     lock = threading.Lock()

@@ -5,9 +5,15 @@ import pytest
 import torch
 
 from shared.config import ExploreConfig, ModelConfig, SensorConfig
-from shared.model import QNetwork, preprocess_depth
-from shared.policy import (EpsilonGreedyPolicy, EpsilonSchedule, PolicyError, apex_epsilon,
-                           greedy_action, linear_epsilon)
+from shared.learning.model import QNetwork, preprocess_depth
+from shared.learning.policy import (
+    EpsilonGreedyPolicy,
+    EpsilonSchedule,
+    PolicyError,
+    apex_epsilon,
+    greedy_action,
+    linear_epsilon,
+)
 
 TINY = SensorConfig(width=40, height=30)
 

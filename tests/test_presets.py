@@ -2,10 +2,18 @@
 
 import pytest
 
-from shared.config import (ConfigError, DQNConfig, ExploreConfig, ModelConfig, ReplayConfig,
-                           TrainConfig, load_preset, preset_names)
-from shared.dqn import caffe_lr_to_torch
-from shared.model import QNetwork, pool3_shape
+from shared.config import (
+    ConfigError,
+    DQNConfig,
+    ExploreConfig,
+    ModelConfig,
+    ReplayConfig,
+    TrainConfig,
+    load_preset,
+    preset_names,
+)
+from shared.learning.dqn import caffe_lr_to_torch
+from shared.learning.model import QNetwork, pool3_shape
 
 
 def test_required_presets_exist_and_all_load():

@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 from pathlib import Path
@@ -13,20 +12,22 @@ import pytest
 import torch
 
 from services.cli import main
-from services.evaluator.evaluate import EvaluateError, add_evaluate_arguments, load_model, run_evaluate
-from services.evaluator.results import validate_results_json
-from shared.checkpoint import (PRETRAINED_DIR, PRETRAINED_FILES, CheckpointError, CheckpointManager,
-                               load_exported_weights, pretrained_path)
 from shared.config import ModelConfig, SensorConfig, load_preset
-from shared.dqn import DQNAgent
+from shared.evaluation.results import validate_results_json
+from shared.learning.checkpoints import (
+    PRETRAINED_DIR,
+    PRETRAINED_FILES,
+    CheckpointError,
+    CheckpointManager,
+    load_exported_weights,
+    load_model,
+    pretrained_path,
+)
+from shared.learning.dqn import DQNAgent
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-def evaluate_args(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser()
-    add_evaluate_arguments(parser)
-    return parser.parse_args(argv)
 
 
 def test_model_export_half_precision_keeps_the_greedy_policy(tmp_path: Path, capsys) -> None:
@@ -106,7 +107,7 @@ def test_pretrained_names_resolve_to_shipped_files() -> None:
     assert pretrained_path("pretrained:sl") == PRETRAINED_DIR / "sl.safetensors"
     with pytest.raises(CheckpointError, match="unknown shipped model 'pretrained:big'.*pretrained:sl"):
         pretrained_path("pretrained:big")
-    with pytest.raises(EvaluateError, match="unknown shipped model"):
+    with pytest.raises(CheckpointError, match="unknown shipped model"):
         load_model("pretrained:big")
 
 
@@ -122,17 +123,16 @@ def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: P
     assert f"{card['eval']['paper-indoor']['mean_steps']:.1f}" in card_md
 
     out = tmp_path / "drl.json"
-    assert run_evaluate(evaluate_args(["--checkpoint", "pretrained", "--starts", "0", "--episodes-per-start", "1",
-                                       "--max-steps", "10", "--json", str(out), "--device", "cpu",
-                                       "--quiet"])) == 0
+    assert main(["evaluate", "--checkpoint", "pretrained", "--starts", "0", "--episodes-per-start", "1",
+                 "--max-steps", "10", "--json", str(out), "--device", "cpu", "--quiet"]) == 0
     results = validate_results_json(out.read_text())
     assert results.meta["world"] == "paper-indoor" and results.meta["policy_version"] == drl.policy_version
     assert results.meta["sensor"]["width"] == drl.net.sensor_cfg.width
 
     out = tmp_path / "sl.json"
-    assert run_evaluate(evaluate_args(["--policy", "sl", "--checkpoint", "pretrained", "--starts", "0",
-                                       "--episodes-per-start", "1", "--max-steps", "10", "--json", str(out),
-                                       "--device", "cpu", "--quiet"])) == 0
+    assert main(["evaluate", "--policy", "sl", "--checkpoint", "pretrained", "--starts", "0",
+                 "--episodes-per-start", "1", "--max-steps", "10", "--json", str(out), "--device", "cpu",
+                 "--quiet"]) == 0
     results = validate_results_json(out.read_text())
     assert results.meta["policy"] == "sl" and len(results.episodes) == 1
 
@@ -142,8 +142,8 @@ def test_fast_recipes_start_from_the_shipped_sl_model(preset: str) -> None:
     """Both fast recipes start from the shipped supervised model (`pretrained:sl`; conv weights
     fit any image size), and `fast-40x30` builds the shipped DRL model's architecture and sensor,
     so the model card's recipe reproduces it."""
-    from shared.model import architecture_fingerprint
-    from shared.supervised import init_agent_conv, load_supervised
+    from shared.learning.checkpoints import init_agent_conv, load_supervised
+    from shared.learning.model import architecture_fingerprint
 
     cfg = load_preset(preset)
     assert cfg.train.init_conv_from == "pretrained:sl"

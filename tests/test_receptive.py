@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from services.evaluator.receptive import (
+from services.tools.receptive import (
     ReceptiveFieldError,
     bilinear_kernel,
     command_arrow_angle_deg,
@@ -121,7 +121,7 @@ def test_mask_rejects_nan() -> None:
 
 
 def test_receptive_field_of_real_qnetwork() -> None:
-    from shared.model import QNetwork
+    from shared.learning.model import QNetwork
 
     torch.manual_seed(0)
     net = QNetwork(ModelConfig(), SensorConfig())
@@ -134,7 +134,7 @@ def test_receptive_field_of_real_qnetwork() -> None:
     assert q.shape == (5,) and action == int(np.argmax(q))
     assert net.training  # the training flag is restored
     # Same numbers as running the pieces by hand in eval mode.
-    from shared.model import preprocess_depth
+    from shared.learning.model import preprocess_depth
 
     net.eval()
     with torch.no_grad():
@@ -144,7 +144,7 @@ def test_receptive_field_of_real_qnetwork() -> None:
 
 
 def test_receptive_field_rejects_batch() -> None:
-    from shared.model import QNetwork
+    from shared.learning.model import QNetwork
 
     with pytest.raises(ReceptiveFieldError, match="one"):
         receptive_field(QNetwork(), np.zeros((2, 120, 160), dtype=np.float32))

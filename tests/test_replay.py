@@ -5,7 +5,7 @@ import pytest
 
 from shared.config import ReplayConfig
 from shared.depth import depth_to_mm
-from shared.replay import Batch, ReplayError, ReplayMemory
+from shared.learning.replay import Batch, ReplayError, ReplayMemory
 
 SHAPE = (6, 8)
 

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import re
 from pathlib import Path
@@ -11,7 +10,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from services.evaluator.probes import (
+from services.cli import main
+from services.tools.report import build_report
+from shared.config import SensorConfig, load_preset, to_toml
+from shared.evaluation.probes import (
     PROBE_DIR,
     PROBE_SCENES,
     ProbeError,
@@ -19,9 +21,6 @@ from services.evaluator.probes import (
     load_probe_image,
     load_probes,
 )
-from services.evaluator.evaluate import add_evaluate_arguments, run_evaluate
-from services.evaluator.report import add_report_arguments, build_report, run_report
-from shared.config import SensorConfig, load_preset, to_toml
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
@@ -33,8 +32,8 @@ def small_config():
 
 def make_run(root: Path, policy_version: int = 1000) -> Path:
     """A run folder with one checkpoint of a fresh network, as the learner writes it."""
-    from shared.checkpoint import CheckpointManager
-    from shared.dqn import DQNAgent
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.dqn import DQNAgent
 
     cfg = small_config()
     agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
@@ -109,11 +108,9 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
 
 def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_path: Path) -> None:
     # `cogexplore up` ends with `evaluate --checkpoint RUN --json RUN/stats/final-eval.json`, then `report RUN`.
-    parser = argparse.ArgumentParser()
-    add_evaluate_arguments(parser)
     final = run_dir / "stats" / "final-eval.json"
-    assert run_evaluate(parser.parse_args(["--checkpoint", str(run_dir), "--episodes-per-start", "1", "--max-steps",
-                                        "4", "--json", str(final), "--device", "cpu", "--quiet"])) == 0
+    assert main(["evaluate", "--checkpoint", str(run_dir), "--episodes-per-start", "1", "--max-steps", "4",
+                 "--json", str(final), "--device", "cpu", "--quiet"]) == 0
     report = build_report(run_dir, out_dir=tmp_path / "r", episodes_per_start=1, max_steps=4, baselines=(),
                           device="cpu", progress=False)
     assert report.results == {"exp@1000": final}
@@ -131,10 +128,9 @@ def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
     assert "| reactive |" in text and (run / "report" / "heatmaps.png").is_file()
 
 
-def parse(argv: list[str]) -> argparse.Namespace:
-    parser = argparse.ArgumentParser()
-    add_report_arguments(parser)
-    return parser.parse_args(argv)
+def report(argv: list[str]) -> int:
+    """``cogexplore report ARGV``: the exit status."""
+    return main(["report", *argv])
 
 
 def test_report_command_refuses_bad_input(run_dir: Path, tmp_path: Path, capsys) -> None:
@@ -142,10 +138,10 @@ def test_report_command_refuses_bad_input(run_dir: Path, tmp_path: Path, capsys)
     depth = np.ones((48, 64), np.float32)
     depth[3, 4] = np.nan
     np.save(nan, depth)
-    assert run_report(parse([str(run_dir), "--probe", str(nan), "--episodes-per-start", "1", "--max-steps", "2",
-                             "--out", str(tmp_path / "r"), "--quiet", "--device", "cpu"])) == 2
+    assert report([str(run_dir), "--probe", str(nan), "--episodes-per-start", "1", "--max-steps", "2",
+                   "--out", str(tmp_path / "r"), "--quiet", "--device", "cpu"]) == 2
     assert "NaN" in capsys.readouterr().err
-    assert run_report(parse([str(tmp_path / "no-such-run")])) == 2
+    assert report([str(tmp_path / "no-such-run")]) == 2
     assert "does not exist" in capsys.readouterr().err
 
 
@@ -153,7 +149,7 @@ def test_report_command_refuses_bad_input(run_dir: Path, tmp_path: Path, capsys)
 
 
 def test_stored_probes_equal_the_regenerated_ones(tmp_path: Path) -> None:
-    # If this fails after a change to paper-indoor: python -m services.evaluator.probes
+    # If this fails after a change to paper-indoor: python -m shared.evaluation.probes
     generate_probes(tmp_path)
     stored = sorted(p.name for p in PROBE_DIR.iterdir())
     assert sorted(p.name for p in tmp_path.iterdir()) == stored

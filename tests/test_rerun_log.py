@@ -13,7 +13,7 @@ import pytest
 import rerun as rr
 from rerun.chunk import RrdReader
 
-from services.evaluator.rerun_log import (
+from services.viz.rerun import (
     ACTION,
     DEPTH,
     RECEPTIVE,
@@ -23,11 +23,11 @@ from services.evaluator.rerun_log import (
     q_entity,
     trajectory_entity,
 )
-from services.evaluator.results import run_protocol
 from shared.config import ACTION_NAMES, SensorConfig
-from shared.env import ExploreEnv
-from shared.maps import occupancy_grid
-from shared.world import load_world
+from shared.evaluation.protocol import run_protocol
+from shared.sim.env import ExploreEnv
+from shared.sim.maps import occupancy_grid
+from shared.sim.world import load_world
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 

@@ -9,22 +9,21 @@ import math
 import numpy as np
 import pytest
 
-from services.evaluator.results import (
+from shared.config import SensorConfig
+from shared.evaluation.protocol import episode_seed, run_protocol
+from shared.evaluation.results import (
     SCHEMA_ID,
     EpisodeResult,
     EvalResults,
     ResultsError,
     aggregate,
-    episode_seed,
     load_results,
-    run_protocol,
     save_results,
     table_markdown,
     to_json,
     validate_results_json,
 )
-from shared.config import SensorConfig
-from shared.env import ExploreEnv
+from shared.sim.env import ExploreEnv
 
 
 def ep(start: int, k: int, steps: int, cause: str | None = None, cap: bool = False, dist: float = 1.0,

@@ -10,12 +10,23 @@ import pytest
 import torch
 
 from services.cli import main
-from services.evaluator.evaluate import load_model
-from services.evaluator.selection import (SelectionError, SelectOptions, WindowScore, choose, select,
-                                          wall_minutes, window_rows_markdown, windows)
-from shared.checkpoint import CheckpointManager, load_exported_weights
+from services.tools.selection import (
+    SelectionError,
+    SelectOptions,
+    WindowScore,
+    choose,
+    select,
+    wall_minutes,
+    window_rows_markdown,
+    windows,
+)
 from shared.config import load_preset
-from shared.dqn import DQNAgent
+from shared.learning.checkpoints import (
+    CheckpointManager,
+    load_exported_weights,
+    load_model,
+)
+from shared.learning.dqn import DQNAgent
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from shared.config import EnvConfig, SensorConfig
-from shared.robot import Robot, build_model
-from shared.sensor import GL_TOLERANCE_M, DepthCamera, column_angles, intrinsics
-from shared.world import SceneBuilder, StartPose
+from shared.sim.robot import Robot, build_model
+from shared.sim.sensor import GL_TOLERANCE_M, DepthCamera, column_angles, intrinsics
+from shared.sim.world import SceneBuilder, StartPose
 
 TALL = 2.0  # obstacles taller than any in-range ray: the camera may use its column fast path
 

@@ -3,7 +3,6 @@ and the ``sl`` / ``rl`` evaluation policies (real worlds, real env, real files; 
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 
@@ -11,26 +10,29 @@ import numpy as np
 import pytest
 import torch
 
-from services.evaluator.evaluate import add_evaluate_arguments, run_evaluate
 from shared.config import ConfigError, EnvConfig, SensorConfig, TrainConfig, load_preset
-from shared.maps import clearance_map
-from shared.supervised import (
-    CommandExpert,
+from shared.expert.dataset import (
     DriveConfig,
-    ExpertConfig,
-    ExpertGuide,
     SupervisedDataset,
-    SupervisedError,
-    TrainSettings,
-    card_path,
     dataset_request,
     generate_dataset,
-    load_supervised,
     open_or_generate,
-    save_supervised,
-    train_supervised,
 )
-from shared.world import SceneBuilder, StartPose, load_world
+from shared.expert.expert import (
+    CommandExpert,
+    ExpertConfig,
+    ExpertGuide,
+    SupervisedError,
+)
+from shared.expert.supervised import TrainSettings, train_supervised
+from shared.learning.checkpoints import (
+    CheckpointError,
+    card_path,
+    load_supervised,
+    save_supervised,
+)
+from shared.sim.maps import clearance_map
+from shared.sim.world import SceneBuilder, StartPose, load_world
 
 SMALL_SENSOR = SensorConfig(width=40, height=30)
 TEST_ENV = EnvConfig(speed_table="test")
@@ -105,7 +107,7 @@ def test_expert_turns_toward_the_free_side(open_side, wanted):
 
 
 def test_expert_drives_box_room_without_collision():
-    from shared.env import ExploreEnv
+    from shared.sim.env import ExploreEnv
 
     env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=60)
     expert = CommandExpert(env.world, env.env_config, SMALL_SENSOR)
@@ -120,7 +122,7 @@ def test_expert_drives_box_room_without_collision():
 
 def test_survival_search_agrees_with_the_env_and_finds_the_dead_end_trap(capsys):
     from services.cli import main
-    from shared.env import ExploreEnv
+    from shared.sim.env import ExploreEnv
 
     exact = ExpertConfig(contact_margin_m=0.0, depth_margin_m=0.0, wedge_spacing_m=0.01, resolution_m=0.02)
     train = EnvConfig(speed_table="train")
@@ -153,7 +155,7 @@ def test_survival_search_agrees_with_the_env_and_finds_the_dead_end_trap(capsys)
 
 def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_commands():
     from shared.config import ExploreConfig
-    from shared.env import ExploreEnv
+    from shared.sim.env import ExploreEnv
 
     env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=40)
     off = ExpertGuide(env, 0.0, seed=0)
@@ -264,9 +266,9 @@ def test_model_file_round_trips_with_its_card(trained, tmp_path):
     data = bytearray(path.read_bytes())
     data[-10] ^= 0xFF
     broken.write_bytes(bytes(data))
-    with pytest.raises(SupervisedError):
+    with pytest.raises(CheckpointError):
         load_supervised(broken)
-    with pytest.raises(SupervisedError, match="safetensors"):
+    with pytest.raises(CheckpointError, match="safetensors"):
         save_supervised(tmp_path / "model.pt", net)
 
 
@@ -274,9 +276,8 @@ def test_model_file_round_trips_with_its_card(trained, tmp_path):
 
 
 def test_transfer_copies_exactly_the_conv_weights_and_a_resume_wins(trained, tmp_path):
-    from services.learner.core import LearnerCore
-    from services.learner.service import resume_from
-    from shared.checkpoint import CheckpointManager
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.learner import LearnerCore, resume_from
 
     sl_net, _card, path = trained
     base = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30})
@@ -300,13 +301,13 @@ def test_transfer_copies_exactly_the_conv_weights_and_a_resume_wins(trained, tmp
 
 
 def test_transfer_needs_the_same_depth_encoding(trained, tmp_path):
-    from services.learner.core import LearnerCore
-    from shared.model import SupervisedNet
+    from shared.learning.learner import LearnerCore
+    from shared.learning.model import SupervisedNet
 
     _net, _card, metric_path = trained
     base = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30,
                                                 "model.depth_encoding": "inverse"})
-    with pytest.raises(SupervisedError, match="trained on 'metric' depth input"):
+    with pytest.raises(CheckpointError, match="trained on 'metric' depth input"):
         LearnerCore(base.with_overrides({"train.init_conv_from": str(metric_path)}), device="cpu")
     inverse_path = save_supervised(tmp_path / "inv.safetensors", SupervisedNet(SMALL_SENSOR, "inverse"))
     loaded, meta = load_supervised(inverse_path)
@@ -323,9 +324,9 @@ def test_init_conv_from_is_validated(tmp_path):
         TrainConfig(init_conv_from="model.pt")
     with pytest.raises(ConfigError, match="init_conv_from"):
         load_preset("smoke").with_overrides({"train.init_conv_from": 3})
-    from services.learner.core import LearnerCore
+    from shared.learning.learner import LearnerCore
 
-    with pytest.raises(SupervisedError, match="no such file"):
+    with pytest.raises(CheckpointError, match="no such file"):
         LearnerCore(load_preset("smoke").with_overrides({"train.init_conv_from": str(tmp_path / "x.safetensors")}),
                     device="cpu")
 
@@ -334,15 +335,15 @@ def test_init_conv_from_is_validated(tmp_path):
 
 
 def _evaluate(argv: list[str]) -> int:
-    parser = argparse.ArgumentParser()
-    add_evaluate_arguments(parser)
-    return run_evaluate(parser.parse_args(argv))
+    from services.cli import main
+
+    return main(["evaluate", *argv])
 
 
 def test_evaluate_policy_sl_and_rl(trained, tmp_path, capsys):
-    from services.evaluator.results import load_results
-    from shared.checkpoint import CheckpointManager
-    from shared.dqn import DQNAgent
+    from shared.evaluation.results import load_results
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.dqn import DQNAgent
 
     _net, _card, path = trained
     common = ["--world", "box-room", "--episodes-per-start", "1", "--max-steps", "5", "--quiet", "--device", "cpu"]

@@ -12,10 +12,20 @@ from pathlib import Path
 
 import pytest
 
-from shared.keys import RunKeys
-from shared.messages import LearnerStats, RejectCounter, TransitionBatch, WeightsMessage
-from shared.transport import (
-    ZenohSettings, free_tcp_port, open_session, put_reliable, query_latest, subscribe_messages,
+from services.bus.session import (
+    ZenohSettings,
+    free_tcp_port,
+    open_session,
+    put_reliable,
+    query_latest,
+    subscribe_messages,
+)
+from shared.wire.keys import RunKeys
+from shared.wire.messages import (
+    LearnerStats,
+    RejectCounter,
+    TransitionBatch,
+    WeightsMessage,
 )
 
 REPO = Path(__file__).resolve().parents[1]

@@ -16,16 +16,33 @@ import numpy as np
 import pytest
 import zenoh
 
-from services.benchmarks import transport as bench
-from services.router import READY_LINE, main as router_main
-from shared.keys import RunKeys
-from shared.messages import (GARBAGE, RejectCounter, TransitionBatch, WeightsMessage,
-                             architecture_fingerprint)
-from shared.transport import (DEFAULT_CONNECT, LivelinessWatch, TransportConfigError,
-                              TransportError, ZenohSettings, declare_alive,
-                              declare_reliable_publisher, free_tcp_port, open_router,
-                              open_session, put_reliable, query_latest, serve_latest,
-                              subscribe_messages)
+from services.bench import transport as bench
+from services.bus import DEFAULT_CONNECT
+from services.bus.session import (
+    LivelinessWatch,
+    TransportConfigError,
+    TransportError,
+    ZenohSettings,
+    declare_alive,
+    declare_reliable_publisher,
+    free_tcp_port,
+    open_router,
+    open_session,
+    put_reliable,
+    query_latest,
+    serve_latest,
+    subscribe_messages,
+)
+from services.router.options import READY_LINE
+from services.router.service import main as router_main
+from shared.wire.keys import RunKeys
+from shared.wire.messages import (
+    GARBAGE,
+    RejectCounter,
+    TransitionBatch,
+    WeightsMessage,
+    shape_fingerprint,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 KEYS = RunKeys("test-transport")
@@ -55,7 +72,7 @@ def small_batch(episode: int) -> TransitionBatch:
 def weights(version: int) -> WeightsMessage:
     tensors = {"w": np.full((4, 4), float(version), dtype=np.float32)}
     return WeightsMessage(policy_version=version,
-                          architecture_fingerprint=architecture_fingerprint({"w": (4, 4)}),
+                          architecture_fingerprint=shape_fingerprint({"w": (4, 4)}),
                           tensors=tensors)
 
 

@@ -5,11 +5,22 @@ from pathlib import Path
 
 import pytest
 
-from shared import maps
 from shared.config import EnvConfig
-from shared.env import ExploreEnv
-from shared.world import (BUILTIN_WORLDS, NUM_STARTS, SceneBuilder, StartPose, World, WorldError, load_world,
-                          obstacle_geom_count, procedural_world, validate_starts, world_summary)
+from shared.sim import maps
+from shared.sim.env import ExploreEnv
+from shared.sim.world import (
+    BUILTIN_WORLDS,
+    NUM_STARTS,
+    SceneBuilder,
+    StartPose,
+    World,
+    WorldError,
+    load_world,
+    obstacle_geom_count,
+    procedural_world,
+    validate_starts,
+    world_summary,
+)
 
 RADIUS = EnvConfig().robot_radius_m
 
@@ -246,7 +257,7 @@ def test_names_the_robot_needs_are_reported_when_taken(tmp_path):
 
 
 def test_the_example_world_file_loads():
-    path = Path(__file__).resolve().parents[1] / "shared" / "worlds" / "two_rooms.xml"
+    path = Path(__file__).resolve().parents[1] / "shared" / "sim" / "worlds" / "two_rooms.xml"
     world = load_world(str(path))
     assert [s.name for s in world.starts] == ["start_west_room", "start_door", "start_east_room",
                                               "start_north_east"]

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 
 from shared.depth import depth_to_mm
-from shared.messages import MAX_BATCH_STEPS, TransitionBatch
+from shared.wire.messages import MAX_BATCH_STEPS, TransitionBatch
 
 
 class TransitionBatcher:
     """Collects the steps of one episode and cuts them into batches of at most
-    ``batch_steps`` transitions; a batch never spans two episodes (see shared.messages).
+    ``batch_steps`` transitions; a batch never spans two episodes (see shared.wire.messages).
 
     Call ``begin_episode`` after each reset with the first observation, then ``add`` after
     every step; ``add`` returns a batch when one is complete, else None.

@@ -21,66 +21,38 @@ import argparse
 import collections
 import hashlib
 import logging
-import os
 import threading
 import time
+from typing import Any
 
 import torch
 
 from services.actor.batcher import TransitionBatcher
-from services.common import (
-    add_service_arguments, default_process_id, resolve_config, run_paths, setup_logging,
-    stop_event_on_signals, zenoh_settings,
+from services.actor.options import (
+    DEFAULT_RERUN_EVERY_EPISODES,
+    DEFAULT_RERUN_IMAGE_EVERY,
 )
-from shared.config import ConfigError, RunConfig
-from shared.env import ExploreEnv
-from shared.keys import RunKeys
-from shared.messages import EpisodeStats, FlowControl, MessageError, RejectCounter, WeightsMessage
-from shared.model import QNetwork, architecture_fingerprint, resolve_device
-from shared.policy import EpsilonGreedyPolicy, EpsilonSchedule
-from shared.supervised import ExpertGuide
-from shared.transport import (
-    LivelinessWatch, declare_alive, declare_reliable_publisher, open_session, query_latest,
+from services.bus.follower import WeightFollower
+from services.bus.session import (
+    LivelinessWatch,
+    declare_alive,
+    declare_reliable_publisher,
+    open_session,
     subscribe_messages,
+    zenoh_settings,
 )
-from shared.weights import load_message
+from services.process import default_process_id, setup_logging, stop_event_on_signals
+from services.runs import resolve_config, run_paths
+from shared.config import ConfigError, RunConfig
+from shared.expert.expert import ExpertGuide
+from shared.learning.model import QNetwork, architecture_fingerprint, resolve_device
+from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
+from shared.rollout import Episode, Rollout, Step
+from shared.sim.env import ExploreEnv
+from shared.wire.keys import RunKeys
+from shared.wire.messages import EpisodeStats, FlowControl, RejectCounter
 
 log = logging.getLogger("cogexplore.actor")
-
-ENV_RERUN_URL = "COGEXPLORE_RERUN_URL"
-ENV_RERUN_EVERY_EPISODES = "COGEXPLORE_RERUN_EVERY_EPISODES"
-DEFAULT_RERUN_EVERY_EPISODES = 20
-DEFAULT_RERUN_IMAGE_EVERY = 5
-
-
-class WeightSlot:
-    """The newest weights seen, parked by Zenoh threads and taken by the env loop.
-
-    Holding only the newest means a slow actor skips versions instead of queueing them.
-    """
-
-    def __init__(self, fingerprint: str):
-        self.fingerprint = fingerprint
-        self._lock = threading.Lock()
-        self._newest: WeightsMessage | None = None
-        self.refused = 0
-
-    def offer(self, message: WeightsMessage, _key: str = "") -> None:
-        try:
-            message.check_fingerprint(self.fingerprint)
-        except MessageError as exc:
-            if self.refused == 0:
-                log.error("refusing weights: %s (is the learner running another model config?)", exc)
-            self.refused += 1
-            return
-        with self._lock:
-            if self._newest is None or message.policy_version > self._newest.policy_version:
-                self._newest = message
-
-    def take_newer_than(self, version: int) -> WeightsMessage | None:
-        with self._lock:
-            message = self._newest
-        return message if message is not None and message.policy_version > version else None
 
 
 class FlowGate:
@@ -135,6 +107,68 @@ class FlowGate:
             return self._credit - in_flight > 0
 
 
+class Outbox:
+    """Rollout observer: what an actor publishes. Each step goes into the episode's current batch
+    (``TransitionBatcher``), sent when full or when the episode ends; each finished episode goes
+    out as ``EpisodeStats``. ``policy_version`` is the version of the weights acting now."""
+
+    def __init__(self, actor_id: str, batcher: TransitionBatcher, publisher: Any, stats_publisher: Any,
+                 gate: FlowGate, guide: ExpertGuide, main_world: str):
+        self.actor_id = actor_id
+        self.batcher = batcher
+        self.publisher = publisher
+        self.stats_publisher = stats_publisher
+        self.gate = gate
+        self.guide = guide
+        self.main_world = main_world
+        self.policy_version = 0
+        self.batches = 0
+
+    def begin_episode(self, episode: Episode) -> None:
+        self.batcher.begin_episode(episode.first_obs, episode.first_info["start_index"])
+
+    def on_step(self, step: Step) -> None:
+        batch = self.batcher.add(step.action, step.reward, step.next_obs, step.terminated, step.truncated,
+                                 self.policy_version, step.next_info["pose"])
+        if batch is not None:
+            self.publisher.put(batch.encode())
+            self.gate.sent(batch.steps)
+            self.batches += 1
+
+    def end_episode(self, episode: Episode) -> None:
+        info = episode.info
+        stats = EpisodeStats(
+            actor_id=self.actor_id, episode=episode.index, start_index=info["start_index"],
+            steps=info["step"], episode_return=episode.episode_return, terminated=episode.terminated,
+            truncated=episode.truncated, collision_cause=info["collision_cause"],
+            path_length_m=info["path_length_m"], distance_from_start_m=info["distance_from_start_m"],
+            epsilon=episode.last_step.choice.epsilon, policy_version=self.policy_version,
+            duration_s=time.monotonic() - episode.started_s,
+            extra={"expert_guided": float(self.guide.active), "extra_world": float(info["world"] != self.main_world)})
+        self.stats_publisher.put(stats.encode())
+
+
+class LiveEpisodes:
+    """Rollout observer: a sample of the episodes to a live Rerun viewer (``EpisodeStream``)."""
+
+    def __init__(self, stream: Any, env: ExploreEnv):
+        self.stream = stream
+        self.env = env
+
+    def begin_episode(self, episode: Episode) -> None:
+        self.stream.begin_episode(episode.index, episode.first_info["start_index"], self.env.world)
+
+    def on_step(self, step: Step) -> None:  # the pose the decision was taken at
+        self.stream.log_step(step.info["step"], step.info["pose"], step.obs, step.q_values, step.action)
+
+    def end_episode(self, episode: Episode) -> None:
+        info = episode.info
+        self.stream.end_episode({"steps": info["step"], "truncated": episode.truncated,
+                                 "collision_cause": info["collision_cause"],
+                                 "distance_m": info["distance_from_start_m"],
+                                 "path_length_m": info["path_length_m"]}, final_pose=info["pose"])
+
+
 def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
               actor_index: int = 0, num_actors: int = 1, batch_steps: int = 16,
               max_steps: int | None = None, seed: int | None = None, rerun_url: str | None = None,
@@ -148,20 +182,17 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     seed = cfg.train.seed * 1000 + actor_index + 1 if seed is None else seed
     env = ExploreEnv(cfg.env, cfg.sensor)
     net = QNetwork(cfg.model, cfg.sensor).to(device)
-    # The schedule runs on this actor's steps times the fleet size: an estimate of the global
-    # env-step count that needs no message from anyone.
-    policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed)
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=seed + 7_919)
-    batcher = TransitionBatcher(actor_id, batch_steps)
-    slot = WeightSlot(architecture_fingerprint(net))
+    policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed,
+                                 guide=guide, step_scale=num_actors)
     rejects = RejectCounter("weights message", log)
+    follower = WeightFollower(architecture_fingerprint(net), rejects)
     gate = FlowGate(actor_id)
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
-    policy_version = 0
     stream = None
     if rerun_url:
-        from services.evaluator.rerun_log import EpisodeStream
+        from services.viz.rerun import EpisodeStream
 
         stream = EpisodeStream(rerun_url, env.world, cfg.sensor, recording_name=f"actor {actor_id} ({run})",
                                every_episodes=rerun_every_episodes, image_every=rerun_image_every,
@@ -171,27 +202,13 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     with open_session(settings, wait_s=30.0) as session:
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
         learners = LivelinessWatch(session, keys.all_alive("learner"))
-        weights_sub = subscribe_messages(session, keys.weights, WeightsMessage, slot.offer, rejects)  # noqa: F841
+        weights_sub = follower.subscribe(session, keys)  # noqa: F841
         flow_sub = subscribe_messages(session, keys.flow, FlowControl, gate.on_flow, rejects)  # noqa: F841
-        publisher = declare_reliable_publisher(session, keys.transitions(actor_id))
-        stats_publisher = session.declare_publisher(keys.episode_stats(actor_id))
-
-        def fetch_latest() -> None:  # on its own thread: the env loop never waits on a query
-            payload = query_latest(session, keys.weights_latest, timeout_s=5.0)
-            if payload is not None:
-                message = rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
-                if message is not None:
-                    slot.offer(message)
-
-        threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
-
-        obs, info = env.reset(seed=seed)
-        guide.begin_episode()
-        policy.reset()
-        batcher.begin_episode(obs, info["start_index"])
-        if stream is not None:
-            stream.begin_episode(batcher.episode, info["start_index"], env.world)
-        episode_return, episode_start = 0.0, time.monotonic()
+        outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps),
+                        declare_reliable_publisher(session, keys.transitions(actor_id)),
+                        session.declare_publisher(keys.episode_stats(actor_id)), gate, guide, env.main_world.name)
+        loop = Rollout(env, policy, [guide, outbox] + ([LiveEpisodes(stream, env)] if stream is not None else []))
+        loop.begin_episode(seed=seed)
         paused_since: float | None = None
         while not stop.is_set() and (max_steps is None or counters["env_steps"] < max_steps):
             if not learners.alive:
@@ -205,7 +222,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 paused_since = None
                 log.info("learner is back: resuming")
                 gate.reset()
-                threading.Thread(target=fetch_latest, name="weights-query", daemon=True).start()
+                follower.fetch_latest(session, keys, background=True)
 
             if not gate.open():
                 # The learner is behind the replay ratio: wait for its next credit rather than
@@ -216,83 +233,24 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 counters["throttled_s"] += time.monotonic() - held
                 continue
 
-            message = slot.take_newer_than(policy_version)
-            if message is not None:
-                load_message(net, message)
-                policy_version = message.policy_version
+            message = follower.take()
+            if message is not None and follower.load(net, message):
+                outbox.policy_version = message.policy_version
                 counters["weights_loaded"] += 1
 
-            choice = policy.act(obs, step=counters["env_steps"] * num_actors, guide_action=guide.action(info["pose"]))
-            action, epsilon = choice.action, choice.epsilon
-            if stream is not None:  # info is still obs's: the pose the decision was taken at
-                stream.log_step(info["step"], info["pose"], obs, choice.q_values, action)
-            next_obs, reward, terminated, truncated, info = env.step(action)
+            step = loop.step()
             counters["env_steps"] += 1
-            episode_return += reward
-            batch = batcher.add(action, reward, next_obs, terminated, truncated, policy_version, info["pose"])
-            if batch is not None:
-                publisher.put(batch.encode())
-                gate.sent(batch.steps)
-                counters["batches"] += 1
-            obs = next_obs
-            if terminated or truncated:
-                stats = EpisodeStats(
-                    actor_id=actor_id, episode=batcher.episode, start_index=info["start_index"],
-                    steps=info["step"], episode_return=episode_return, terminated=terminated,
-                    truncated=truncated, collision_cause=info["collision_cause"],
-                    path_length_m=info["path_length_m"], distance_from_start_m=info["distance_from_start_m"],
-                    epsilon=epsilon, policy_version=policy_version,
-                    duration_s=time.monotonic() - episode_start,
-                    extra={"expert_guided": float(guide.active),
-                           "extra_world": float(info["world"] != env.main_world.name)})
-                stats_publisher.put(stats.encode())
+            if step.last:
                 counters["episodes"] += 1
-                if stream is not None:
-                    stream.end_episode({"steps": info["step"], "truncated": truncated,
-                                        "collision_cause": info["collision_cause"],
-                                        "distance_m": info["distance_from_start_m"],
-                                        "path_length_m": info["path_length_m"]}, final_pose=info["pose"])
-                obs, info = env.reset()
-                guide.begin_episode()
-                policy.reset()
-                batcher.begin_episode(obs, info["start_index"])
-                if stream is not None:
-                    stream.begin_episode(batcher.episode, info["start_index"], env.world)
-                episode_return, episode_start = 0.0, time.monotonic()
+                loop.begin_episode()
         learners.close()
     env.close()
-    counters["policy_version"] = policy_version
-    counters["rejected_weights"] = rejects.total + slot.refused
+    counters.update(batches=outbox.batches, policy_version=outbox.policy_version, rejected_weights=rejects.total)
     if stream is not None:
         stream.close()
         counters.update(rerun_episodes_streamed=stream.episodes_streamed, rerun_steps_streamed=stream.steps_logged,
                         rerun_episodes_skipped=stream.episodes_skipped, rerun_dropped=stream.dropped)
     return counters
-
-
-def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
-    add_service_arguments(parser)
-    parser.add_argument("--actor-id", default=None, help="unique id (default: actor-<hostname>-<pid>)")
-    parser.add_argument("--actor-index", type=int, default=None,
-                        help="index i of this actor among --num-actors (per-actor epsilon, seed); default: "
-                             "derived from the actor id, so scaled replicas differ")
-    parser.add_argument("--num-actors", type=int, default=int(os.environ.get("COGEXPLORE_NUM_ACTORS", "1")),
-                        help="number of actors N, for per-actor epsilon (env COGEXPLORE_NUM_ACTORS; default 1)")
-    parser.add_argument("--batch-steps", type=int, default=16, help="transitions per published batch")
-    parser.add_argument("--max-steps", type=int, default=None, help="stop after this many env steps")
-    live = parser.add_argument_group("Rerun live", "watch a sample of this actor's episodes")
-    live.add_argument("--rerun-connect", metavar="URL", default=os.environ.get(ENV_RERUN_URL) or None,
-                      help=f"stream every N-th episode to the Rerun viewer at URL, e.g. "
-                           f"rerun+http://127.0.0.1:9876/proxy (env {ENV_RERUN_URL}; default: none); a viewer "
-                           "that does not answer is skipped")
-    live.add_argument("--rerun-every-episodes", type=int, metavar="N",
-                      # A string default goes through type=int: a bad env value is an option error.
-                      default=os.environ.get(ENV_RERUN_EVERY_EPISODES) or str(DEFAULT_RERUN_EVERY_EPISODES),
-                      help=f"stream every N-th episode (env {ENV_RERUN_EVERY_EPISODES}; default "
-                           f"{DEFAULT_RERUN_EVERY_EPISODES})")
-    live.add_argument("--rerun-image-every", type=int, default=DEFAULT_RERUN_IMAGE_EVERY, metavar="K",
-                      help=f"depth image of every K-th step of a streamed episode (default {DEFAULT_RERUN_IMAGE_EVERY})")
-    parser.add_argument("--log-level", default="INFO")
 
 
 def run_actor_command(args: argparse.Namespace) -> int:
@@ -310,7 +268,7 @@ def run_actor_command(args: argparse.Namespace) -> int:
         if value < 1:
             raise ConfigError(f"{option} must be >= 1, got {value}")
     if args.rerun_connect:
-        from services.evaluator.rerun_log import parse_viewer_url
+        from services.viz.rerun import parse_viewer_url
 
         parse_viewer_url(args.rerun_connect)  # a malformed URL fails here, before the session opens
     # A stable hash (not Python's salted hash()) so that a restarted actor keeps its slot.

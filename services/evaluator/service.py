@@ -3,9 +3,10 @@
     cogexplore evaluator --run NAME --connect tcp/<router-host>:7447 [--every-updates 1000] [--full] [--once]
     python -m services.evaluator ...            (the same)
 
-On start it announces itself (liveliness ``alive/evaluator/<id>``), asks the learner's
-queryable for its newest weights, then follows the ``weights`` stream. The Zenoh callback only
-parks the newest message; the main loop takes it and evaluates it when it is due: the first
+On start it follows the ``weights`` stream, announces itself (liveliness ``alive/evaluator/<id>``)
+and asks the learner's queryable for its newest weights (``services.bus.follower.WeightFollower``,
+as the actors do). Zenoh threads only park the newest message; the main loop takes it and
+evaluates it when it is due: the first
 weights it sees, then whenever the policy version (the learner's update count at publication)
 enters a new multiple of ``--every-updates``. A message for another architecture (fingerprint)
 or one that does not decode is counted by cause and dropped; the service carries on.
@@ -43,31 +44,39 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 
 import torch
 
-from services.common import (
-    add_service_arguments, default_process_id, resolve_config, run_paths, setup_logging,
-    stop_event_on_signals, zenoh_settings,
+from services.bus.follower import WeightFollower
+from services.bus.session import (
+    TransportError,
+    ZenohSettings,
+    declare_alive,
+    open_session,
+    put_reliable,
+    zenoh_settings,
 )
-from services.evaluator.evaluate import EvaluationCancelled, evaluate_policy, weights_sha256
-from services.evaluator.policies import GreedyPolicy
-from services.evaluator.rerun_log import ViewerLink
-from services.evaluator.results import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS, EvalResults, save_results
-from shared.config import RunConfig
-from shared.keys import RunKeys, validate_name
-from shared.messages import SHAPE, EvalResult, MessageError, RejectCounter, WeightsMessage
-from shared.model import ModelError, QNetwork, architecture_fingerprint, resolve_device
-from shared.transport import (
-    TransportError, ZenohSettings, declare_alive, open_session, put_reliable, query_latest, subscribe_messages,
+from services.evaluator.options import (
+    CHEAP_EPISODES_PER_START,
+    DEFAULT_EVERY_UPDATES,
+    DEFAULT_IMAGE_EVERY,
+    add_evaluator_arguments,
 )
-from shared.weights import load_message
-from shared.world import load_world
+from services.process import default_process_id, setup_logging, stop_event_on_signals
+from services.runs import resolve_config, run_paths
+from services.viz.rerun import ViewerLink, evaluate_recorded
+from shared.config import ConfigError, RunConfig
+from shared.errors import CogexploreError
+from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation.policies import GreedyPolicy
+from shared.evaluation.protocol import EvaluationCancelled
+from shared.evaluation.results import EvalResults, save_results
+from shared.learning.checkpoints import weights_sha256
+from shared.learning.model import QNetwork, architecture_fingerprint, resolve_device
+from shared.sim.world import load_world
+from shared.wire.keys import RunKeys, validate_name
+from shared.wire.messages import EvalResult, RejectCounter, WeightsMessage
 
 log = logging.getLogger("cogexplore.evaluator")
 
-DEFAULT_EVERY_UPDATES = 1000
-CHEAP_EPISODES_PER_START = 1
-DEFAULT_IMAGE_EVERY = 10
 EVAL_LOG = "eval.jsonl"
-ENV_RERUN_URL = "COGEXPLORE_RERUN_URL"
 
 
 def recording_path(recordings: Path, policy_version: int) -> Path:
@@ -86,7 +95,7 @@ class EvaluatorService:
         for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),
                             ("max_steps", max_steps), ("image_every", image_every)):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+                raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
         self.cfg = cfg
         self.run_name = validate_name(run, "run name")
         self.keys = RunKeys(run)
@@ -110,32 +119,11 @@ class EvaluatorService:
         self.fingerprint = architecture_fingerprint(self.net)
         self.policy = GreedyPolicy(self.net)
         self.rejects = RejectCounter("weights message", log)
+        self.weights = WeightFollower(self.fingerprint, self.rejects)
+        """The newest weights the learner has published (parked by Zenoh threads, taken by the loop)."""
         self.last_version: int | None = None
         self.evaluations: list[dict[str, Any]] = []
         """The JSON rows written so far (newest last)."""
-        self._pending: WeightsMessage | None = None
-        self._arrived = threading.Condition()
-
-    # -- weights in (Zenoh threads) ------------------------------------------------------------
-
-    def offer(self, message: WeightsMessage, key: str = "") -> None:
-        """Park ``message`` if it fits this network and is the newest seen; never evaluates."""
-        try:
-            message.check_fingerprint(self.fingerprint)
-        except MessageError as exc:
-            self.rejects.reject(exc, key or None)
-            return
-        with self._arrived:
-            if self._pending is None or message.policy_version > self._pending.policy_version:
-                self._pending = message
-                self._arrived.notify_all()
-
-    def take(self, timeout_s: float) -> WeightsMessage | None:
-        """The newest parked message (waiting up to ``timeout_s`` for one), or None."""
-        with self._arrived:
-            self._arrived.wait_for(lambda: self._pending is not None, timeout_s)
-            message, self._pending = self._pending, None
-            return message
 
     def due(self, policy_version: int) -> bool:
         """The first weights, then each that enters a new multiple of ``every_updates``."""
@@ -152,13 +140,7 @@ class EvaluatorService:
         """Load ``message`` and run the protocol; write, record and publish the result.
         Returns the JSON row, or None when the weights do not load (counted as a reject)."""
         version = message.policy_version
-        try:
-            load_message(self.net, message)
-        except MessageError as exc:
-            self.rejects.reject(exc, self.keys.weights)
-            return None
-        except ModelError as exc:  # names or shapes that do not fit despite the fingerprint
-            self.rejects.reject(MessageError(SHAPE, str(exc)), self.keys.weights)
+        if not self.weights.load(self.net, message):
             return None
         self.last_version = version
         stats = self.root / "stats"
@@ -170,11 +152,11 @@ class EvaluatorService:
                 "fingerprint": self.fingerprint, "weights_sha256": weights_sha256(self.net),
                 "evaluator_id": self.evaluator_id}
         live = self.viewer.url if self.viewer is not None and self.viewer.up() else None
-        results = evaluate_policy(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
-                                  episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
-                                  seed=self.seed, rrd=rrd, image_every=self.image_every, policy_version=version,
-                                  recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
-                                  stop=stop, rerun_connect=live)
+        results = evaluate_recorded(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
+                                    episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
+                                    seed=self.seed, rrd=rrd, image_every=self.image_every, policy_version=version,
+                                    recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
+                                    stop=stop, rerun_connect=live)
         duration = time.monotonic() - started
         save_results(results, stats / "eval" / f"eval-{version:06d}.json")
         summary = results.summary
@@ -214,30 +196,19 @@ class EvaluatorService:
 
     # -- the loop -----------------------------------------------------------------------------
 
-    def fetch_latest(self, session: Any) -> None:
-        """Ask the learner's queryable for its newest weights and park them."""
-        payload = query_latest(session, self.keys.weights_latest, timeout_s=self.query_timeout_s)
-        if payload is None:
-            log.info("no answer from %s yet: waiting for the weights stream", self.keys.weights_latest)
-            return
-        message = self.rejects.decode(payload, WeightsMessage, source=self.keys.weights_latest)
-        if message is not None:
-            self.offer(message, self.keys.weights_latest)
-
     def run(self, stop: threading.Event, once: bool = False, wait_weights_s: float = 60.0) -> int:
         """Evaluate until ``stop`` is set (or, with ``once``, the latest weights once). Returns
         a process exit status: 0, or 1 when ``once`` found no weights within ``wait_weights_s``."""
         with open_session(self.settings, wait_s=self.connect_wait_s) as session:
-            subscriber = subscribe_messages(session, self.keys.weights, WeightsMessage, self.offer, self.rejects)
+            subscriber = self.weights.subscribe(session, self.keys, self.query_timeout_s)
             # Announced once subscribed: whoever sees the token can publish weights to us.
             token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))
             log.info("evaluator %s on run %r: every %d updates, %d episode(s) per start, world %s",
                      self.evaluator_id, self.run_name, self.every_updates, self.episodes_per_start, self.world)
             try:
-                self.fetch_latest(session)
                 deadline = time.monotonic() + wait_weights_s
                 while not stop.is_set():
-                    message = self.take(timeout_s=0.2)
+                    message = self.weights.take(timeout_s=0.2)
                     if message is None:
                         if once and time.monotonic() > deadline:
                             log.error("no weights for run %r within %.0f s (is the learner running?)",
@@ -266,37 +237,6 @@ class EvaluatorService:
 # ---------------------------------------------------------------------------------------------
 
 
-def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
-    """Options of ``cogexplore evaluator`` (and ``python -m services.evaluator``)."""
-    add_service_arguments(parser)
-    parser.add_argument("--id", default=None, help="evaluator id (default: evaluator-<host>-<pid>)")
-    parser.add_argument("--every-updates", type=int, default=DEFAULT_EVERY_UPDATES, metavar="K",
-                        help=f"evaluate when the policy version enters a new multiple of K (default "
-                             f"{DEFAULT_EVERY_UPDATES})")
-    parser.add_argument("--full", action="store_true",
-                        help=f"the paper's full protocol: {PAPER_EPISODES_PER_START} episodes per start "
-                             f"(default {CHEAP_EPISODES_PER_START})")
-    parser.add_argument("--episodes-per-start", type=int, default=None, metavar="N",
-                        help="episodes per start (overrides --full)")
-    parser.add_argument("--max-steps", type=int, default=PAPER_MAX_STEPS, metavar="N",
-                        help=f"moving steps per episode at most (default {PAPER_MAX_STEPS})")
-    parser.add_argument("--world", default=None, help="world to evaluate in (default: the run config's)")
-    parser.add_argument("--image-every", type=int, default=DEFAULT_IMAGE_EVERY, metavar="N",
-                        help=f"record every N-th depth image (default {DEFAULT_IMAGE_EVERY})")
-    parser.add_argument("--no-record", action="store_true", help="no .rrd recordings (live streaming stays)")
-    parser.add_argument("--rerun-connect", metavar="URL", default=os.environ.get(ENV_RERUN_URL) or None,
-                        help=f"also stream every evaluation live to the Rerun viewer at URL, e.g. "
-                             f"rerun+http://rerun:9876/proxy (env {ENV_RERUN_URL}; default: none). A viewer "
-                             "that does not answer is skipped with a warning; the service goes on")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
-    parser.add_argument("--once", action="store_true", help="evaluate the latest weights once and exit")
-    parser.add_argument("--wait-weights", type=float, default=60.0, metavar="SECONDS",
-                        help="with --once: how long to wait for weights (default 60)")
-    parser.add_argument("--query-timeout", type=float, default=2.0, metavar="SECONDS",
-                        help="timeout of the start-up query for the latest weights (default 2)")
-    parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")
-
-
 def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
     """``cogexplore evaluator``: returns a process exit status (2: bad options, 1: no router or,
     with ``--once``, no weights). ``stop`` (tests) replaces the SIGINT/SIGTERM handlers."""
@@ -313,7 +253,7 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
                                    max_steps=args.max_steps, world=args.world, image_every=args.image_every,
                                    record=not args.no_record, seed=args.seed, device=device,
                                    query_timeout_s=args.query_timeout, rerun_url=args.rerun_connect)
-    except (ValueError, ModelError) as exc:  # config, world, run name, device: the message says which
+    except CogexploreError as exc:  # config, world, run name, device: the message says which
         print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
         return 2
     if torch.get_num_threads() > 2:

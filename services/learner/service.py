@@ -13,7 +13,6 @@ with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIG
 from __future__ import annotations
 
 import argparse
-import csv
 import logging
 import queue
 import threading
@@ -21,33 +20,26 @@ import time
 
 import torch
 
-from services.common import (
-    RunPaths, add_service_arguments, resolve_config, run_paths, save_config,
-    setup_logging, stop_event_on_signals, zenoh_settings,
-)
-from services.learner.core import LearnerCore, RateMeter
-from shared.checkpoint import CheckpointError, CheckpointManager
-from shared.config import RunConfig
-from shared.keys import RunKeys, parse_key
-from shared.messages import FlowControl, LearnerStats, MessageError, RejectCounter, TransitionBatch
-from shared.transport import (
-    LivelinessWatch, declare_alive, declare_reliable_publisher, open_session, serve_latest,
+from services.bus.session import (
+    LivelinessWatch,
+    declare_alive,
+    declare_reliable_publisher,
+    open_session,
+    serve_latest,
     subscribe_messages,
+    zenoh_settings,
 )
-from shared.weights import to_message
+from services.process import setup_logging, stop_event_on_signals
+from services.runs import RunPaths, resolve_config, run_paths, save_config
+from shared.config import RunConfig
+from shared.learning.checkpoints import CheckpointManager
+from shared.learning.learner import LearnerCore, RateMeter, resume_from
+from shared.learning.stats import CsvLog, LearnerRow
+from shared.learning.weights import to_message
+from shared.wire.keys import RunKeys, parse_key
+from shared.wire.messages import FlowControl, LearnerStats, MessageError, RejectCounter, TransitionBatch
 
 log = logging.getLogger("cogexplore.learner")
-
-STATS_COLUMNS = ("time_s", "update", "policy_version", "loss", "mean_q", "updates_per_s", "transitions",
-                 "transitions_per_s", "replay_size", "rejected", "actors_alive", "mean_weight_lag",
-                 "demo_agreement")
-"""``demo_agreement``: share of the demonstration samples (train.demos) whose greedy command is the
-demonstrated one, over the last updates; empty without demonstrations."""
-
-
-def format_agreement(agreement: float | None) -> str:
-    """The ``demo_agreement`` cell."""
-    return "" if agreement is None else f"{agreement:.3f}"
 
 
 class LatestSender:
@@ -105,8 +97,6 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     rejects = RejectCounter("transition batch", log)
     flow_slack = flow_slack if flow_slack is not None else max(256, 4 * cfg.dqn.batch_size)
     update_rate, transition_rate = RateMeter(), RateMeter()
-    stats_file = paths.stats / "learner.csv"
-    new_file = not stats_file.exists()
     started = time.monotonic()
 
     def on_batch(batch: TransitionBatch, key: str) -> None:
@@ -118,10 +108,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         except queue.Full:
             rejects.reject(MessageError("oversize", "learner inbox full"), key)
 
-    with open_session(settings, wait_s=30.0) as session, open(stats_file, "a", newline="") as stats_fh:
-        writer = csv.writer(stats_fh)
-        if new_file:
-            writer.writerow(STATS_COLUMNS)
+    with open_session(settings, wait_s=30.0) as session, CsvLog(paths.stats, LearnerRow) as stats_log:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
@@ -185,12 +172,12 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                            **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[:24]},
                            **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[:24]}})
                 stats_pub.put(stats.encode())
-                writer.writerow([round(now - started, 3), core.updates, core.agent.policy_version,
-                                 "" if loss is None else f"{loss:.6g}", "" if mean_q is None else f"{mean_q:.6g}",
-                                 f"{stats.updates_per_s:.3f}", core.received, f"{stats.transitions_per_s:.1f}",
-                                 len(core.replay), rejects.total, live, f"{stats.extra['mean_weight_lag']:.2f}",
-                                 format_agreement(agreement)])
-                stats_fh.flush()
+                stats_log.write(LearnerRow(
+                    time_s=now - started, update=core.updates, policy_version=core.agent.policy_version, loss=loss,
+                    mean_q=mean_q, updates_per_s=stats.updates_per_s, transitions=core.received,
+                    transitions_per_s=stats.transitions_per_s, replay_size=len(core.replay),
+                    rejected=rejects.total, actors_alive=live, mean_weight_lag=stats.extra["mean_weight_lag"],
+                    demo_agreement=agreement))
                 last_stats = now
             if not drained and not due:
                 time.sleep(0.005)  # idle: wait for data without spinning a core
@@ -203,14 +190,6 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         actors.close()
     return {"updates": core.updates, "transitions": core.received, "rejected": rejects.total,
             "rejects": rejects.counts, "replay_size": len(core.replay)}
-
-
-def add_learner_arguments(parser: argparse.ArgumentParser) -> None:
-    add_service_arguments(parser)
-    parser.add_argument("--learner-id", default="learner", help="learner id (default: learner)")
-    parser.add_argument("--updates", type=int, default=None, help="override train.total_updates")
-    parser.add_argument("--weights-every", type=int, default=25, help="updates between weight publications")
-    parser.add_argument("--log-level", default="INFO")
 
 
 def run_learner_command(args: argparse.Namespace) -> int:
@@ -229,25 +208,3 @@ def run_learner_command(args: argparse.Namespace) -> int:
                          weights_every=args.weights_every)
     log.info("learner done: %s", result)
     return 0
-
-
-def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
-    """Restore the newest checkpoint that loads (agent, and replay when it was saved)."""
-    checkpoint = checkpoints.load_latest()
-    for reason in checkpoints.skipped:
-        log.warning("skipped a checkpoint: %s", reason)
-    if checkpoint is None:
-        return False
-    with_replay = checkpoint.replay_path is not None and checkpoint.replay_path.exists()
-    if checkpoint.replay_path is not None and not with_replay:
-        log.warning("%s's replay memory was not kept (only the newest checkpoints keep theirs): resuming with "
-                    "an empty replay memory", checkpoint.path.name)
-    try:
-        checkpoint.restore(core.agent, core.replay if with_replay else None)
-    except CheckpointError as exc:
-        log.error("cannot resume from %s: %s; starting fresh", checkpoint.path, exc)
-        return False
-    core.received = int(checkpoint.extra.get("transitions_received", len(core.replay)))
-    log.info("resumed from %s at update %d (%d transitions in replay)", checkpoint.path.name,
-             core.updates, len(core.replay))
-    return True

@@ -1,7 +1,7 @@
-"""``python -m services.router``: see :mod:`services.router`."""
+"""``python -m services.router``: see :mod:`services.router.service`."""
 
 import sys
 
-from services.router import main
+from services.router.service import main
 
 sys.exit(main())

@@ -1,0 +1,38 @@
+"""The options of ``cogexplore actor`` (light: importable without torch, MuJoCo or Zenoh)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+from services.options import add_service_arguments
+from services.viz import ENV_RERUN_URL
+
+ENV_RERUN_EVERY_EPISODES = "COGEXPLORE_RERUN_EVERY_EPISODES"
+DEFAULT_RERUN_EVERY_EPISODES = 20
+DEFAULT_RERUN_IMAGE_EVERY = 5
+
+
+def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
+    add_service_arguments(parser)
+    parser.add_argument("--actor-id", default=None, help="unique id (default: actor-<hostname>-<pid>)")
+    parser.add_argument("--actor-index", type=int, default=None,
+                        help="index i of this actor among --num-actors (per-actor epsilon, seed); default: "
+                             "derived from the actor id, so scaled replicas differ")
+    parser.add_argument("--num-actors", type=int, default=int(os.environ.get("COGEXPLORE_NUM_ACTORS", "1")),
+                        help="number of actors N, for per-actor epsilon (env COGEXPLORE_NUM_ACTORS; default 1)")
+    parser.add_argument("--batch-steps", type=int, default=16, help="transitions per published batch")
+    parser.add_argument("--max-steps", type=int, default=None, help="stop after this many env steps")
+    live = parser.add_argument_group("Rerun live", "watch a sample of this actor's episodes")
+    live.add_argument("--rerun-connect", metavar="URL", default=os.environ.get(ENV_RERUN_URL) or None,
+                      help=f"stream every N-th episode to the Rerun viewer at URL, e.g. "
+                           f"rerun+http://127.0.0.1:9876/proxy (env {ENV_RERUN_URL}; default: none); a viewer "
+                           "that does not answer is skipped")
+    live.add_argument("--rerun-every-episodes", type=int, metavar="N",
+                      # A string default goes through type=int: a bad env value is an option error.
+                      default=os.environ.get(ENV_RERUN_EVERY_EPISODES) or str(DEFAULT_RERUN_EVERY_EPISODES),
+                      help=f"stream every N-th episode (env {ENV_RERUN_EVERY_EPISODES}; default "
+                           f"{DEFAULT_RERUN_EVERY_EPISODES})")
+    live.add_argument("--rerun-image-every", type=int, default=DEFAULT_RERUN_IMAGE_EVERY, metavar="K",
+                      help=f"depth image of every K-th step of a streamed episode (default {DEFAULT_RERUN_IMAGE_EVERY})")
+    parser.add_argument("--log-level", default="INFO")

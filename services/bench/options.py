@@ -1,0 +1,33 @@
+"""The options of ``cogexplore bench env|learner|transport`` (``bench system``: services.up.options)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_env_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--world", default="paper-indoor")
+    p.add_argument("--steps", type=int, default=2000)
+    p.add_argument("--backend", choices=["raycast", "gl"], default="raycast")
+    p.add_argument("--per-pixel", action="store_true",
+                   help="cast every pixel's ray (disable the exact column fast path)")
+    p.add_argument("--no-pin", action="store_true", help="do not pin the process to CPU 0")
+    p.add_argument("--json", action="store_true", help="print JSON")
+
+
+def add_learner_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
+    p.add_argument("--repeats", type=int, default=8, help="timed updates per variant (default 8)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--baseline", action="store_true", help="also time a plain PyTorch update")
+    p.add_argument("--json", action="store_true", help="print JSON")
+
+
+def add_transport_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--seconds", type=float, default=5.0, help="duration of each measurement (default 5)")
+    p.add_argument("--batch-steps", type=int, default=16, help="transitions per batch (default 16)")
+    p.add_argument("--height", type=int, default=120, help="image height (default 120)")
+    p.add_argument("--width", type=int, default=160, help="image width (default 160)")
+    p.add_argument("--threads", action="store_true",
+                   help="publisher and subscriber as threads of this process, not spawned processes")
+    p.add_argument("--json", action="store_true", help="print JSON")

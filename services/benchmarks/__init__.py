@@ -1,1 +1,0 @@
-"""Benchmarks run by ``cogexplore bench``; each module has ``run(...) -> dict``."""

@@ -1,0 +1,14 @@
+"""The Zenoh bus every process of a run meets on: sessions and the router (``session``), the
+newest-weights follower of the actors and the evaluator (``follower``). This file holds only where
+the bus is by default, so that command-line options can name it without importing Zenoh."""
+
+MODES: tuple[str, ...] = ("peer", "client", "router")
+DEFAULT_ROUTER_PORT = 7447
+DEFAULT_CONNECT: tuple[str, ...] = (f"tcp/127.0.0.1:{DEFAULT_ROUTER_PORT}",)
+"""Where clients look for the router when nothing else is configured."""
+DEFAULT_ROUTER_LISTEN: tuple[str, ...] = (f"tcp/0.0.0.0:{DEFAULT_ROUTER_PORT}",)
+
+ENV_CONNECT = "COGEXPLORE_ZENOH_CONNECT"
+ENV_LISTEN = "COGEXPLORE_ZENOH_LISTEN"
+ENV_CONFIG = "COGEXPLORE_ZENOH_CONFIG"
+ENV_MODE = "COGEXPLORE_ZENOH_MODE"

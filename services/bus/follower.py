@@ -1,0 +1,105 @@
+"""The newest weights of a run, followed without ever blocking the caller's loop.
+
+In the spirit of Acme's ``VariableClient``: the actors and the evaluator each hold one
+:class:`WeightFollower`. Zenoh threads ``offer`` every ``WeightsMessage`` from the learner's stream
+(and the reply to the latest-weights query); the follower keeps only the newest that fits the
+receiver's architecture, so a slow receiver skips versions instead of queueing them. The
+receiver's own loop ``take``\\s it when it is ready and ``load``\\s it into its network; a message
+that does not fit (another fingerprint, or tensors that do not load despite it) is counted by
+cause in ``rejects`` and dropped, never raised.
+
+    follower = WeightFollower(fingerprint, rejects)
+    follower.subscribe(session, keys)        # the stream, and the query on its own thread
+    ...
+    message = follower.take()                # None until something newer arrives
+    if message is not None and follower.load(net, message):
+        policy_version = message.policy_version
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from typing import Any
+
+from services.bus.session import query_latest, subscribe_messages
+from shared.learning.model import ModelError
+from shared.learning.weights import load_message
+from shared.wire.keys import RunKeys
+from shared.wire.messages import SHAPE, MessageError, RejectCounter, WeightsMessage
+
+log = logging.getLogger("cogexplore.weights")
+
+
+class WeightFollower:
+    """Holds the newest fitting weights offered since the last ``take`` (thread-safe)."""
+
+    def __init__(self, fingerprint: str, rejects: RejectCounter):
+        self.fingerprint = fingerprint
+        self.rejects = rejects
+        self._arrived = threading.Condition()
+        self._newest: WeightsMessage | None = None
+        self._taken_version = -1
+
+    # -- Zenoh threads -------------------------------------------------------------------------
+
+    def offer(self, message: WeightsMessage, key: str = "") -> None:
+        """Park ``message`` if it fits this network and is newer than any parked or taken."""
+        try:
+            message.check_fingerprint(self.fingerprint)
+        except MessageError as exc:
+            self.rejects.reject(exc, key or None)
+            return
+        with self._arrived:
+            newest = self._newest.policy_version if self._newest is not None else self._taken_version
+            if message.policy_version > newest:
+                self._newest = message
+                self._arrived.notify_all()
+
+    def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Any:
+        """Follow the run's weights stream, then ask the learner for its newest weights on a thread
+        of its own (:meth:`fetch_latest`); returns the subscriber (undeclared with the session)."""
+        subscriber = subscribe_messages(session, keys.weights, WeightsMessage, self.offer, self.rejects)
+        self.fetch_latest(session, keys, query_timeout_s, background=True)
+        return subscriber
+
+    def fetch_latest(self, session: Any, keys: RunKeys, timeout_s: float = 5.0, *, background: bool = False) -> None:
+        """Query the learner's latest-weights queryable and offer the reply (none: the stream will
+        bring weights); ``background``: on a daemon thread, so the caller never waits on it."""
+        if background:
+            threading.Thread(target=self.fetch_latest, args=(session, keys, timeout_s), name="weights-query",
+                             daemon=True).start()
+            return
+        payload = query_latest(session, keys.weights_latest, timeout_s=timeout_s)
+        if payload is None:
+            log.info("no answer from %s yet: waiting for the weights stream", keys.weights_latest)
+            return
+        message = self.rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
+        if message is not None:
+            self.offer(message, keys.weights_latest)
+
+    # -- the receiver's loop ---------------------------------------------------------------------
+
+    def take(self, timeout_s: float = 0.0) -> WeightsMessage | None:
+        """The newest parked message, waiting up to ``timeout_s`` for one; None when nothing newer
+        than the last one taken has arrived."""
+        with self._arrived:
+            if timeout_s > 0:
+                self._arrived.wait_for(lambda: self._newest is not None, timeout_s)
+            message, self._newest = self._newest, None
+            if message is not None:
+                self._taken_version = message.policy_version
+            return message
+
+    def load(self, net: Any, message: WeightsMessage) -> bool:
+        """Load ``message`` into ``net``; False (counted as a reject, ``net`` untouched) when its
+        tensors do not fit despite the fingerprint."""
+        try:
+            load_message(net, message)
+        except MessageError as exc:
+            self.rejects.reject(exc, f"weights v{message.policy_version}")
+            return False
+        except ModelError as exc:
+            self.rejects.reject(MessageError(SHAPE, str(exc)), f"weights v{message.policy_version}")
+            return False
+        return True

@@ -1,0 +1,388 @@
+"""Zenoh plumbing: session settings, opening sessions, reliable publishing, the router.
+
+Nothing here opens a session at import time: Zenoh sessions hold threads and sockets that
+do not survive ``fork``, so every process opens its own, after it has started, with
+:func:`open_session` and closes it with ``with``::
+
+    with open_session(ZenohSettings.from_env()) as session:
+        publisher = declare_reliable_publisher(session, RunKeys(run).transitions(actor_id))
+        publisher.put(batch.encode())
+
+Data that must arrive (transitions, weights) goes out with ``CongestionControl.BLOCK``:
+Zenoh's default for ``put`` is DROP, which silently loses samples when a queue is full.
+All processes of a run meet at one router (``python -m services.router``); without a
+config file, multicast scouting is off so that processes only ever talk to the endpoints
+they are given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import re
+import signal
+import socket
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Mapping, Sequence
+
+import zenoh
+
+from services.bus import DEFAULT_CONNECT, DEFAULT_ROUTER_LISTEN, ENV_CONFIG, ENV_CONNECT, ENV_LISTEN, ENV_MODE, MODES
+from shared.errors import CogexploreError
+from shared.wire.messages import Message, RejectCounter
+
+log = logging.getLogger(__name__)
+
+
+# <protocol>/<address>, e.g. tcp/127.0.0.1:7447, udp/[::1]:7447, unixsock-stream/tmp/z.sock
+_ENDPOINT_RE = re.compile(r"[a-z][a-z0-9\-]*/\S+")
+
+
+class TransportConfigError(CogexploreError):
+    """Zenoh settings are invalid (bad mode, endpoint or config file)."""
+
+
+class TransportError(CogexploreError, RuntimeError):
+    """A Zenoh session could not be opened or used; the message names the endpoints."""
+
+
+def parse_endpoints(value: str | Sequence[str], what: str = "endpoint") -> tuple[str, ...]:
+    """Endpoints from a comma-separated string or a sequence; raises TransportConfigError."""
+    items = value.split(",") if isinstance(value, str) else list(value)
+    out = []
+    for item in items:
+        if not isinstance(item, str):
+            raise TransportConfigError(f"{what} endpoint {item!r} must be a string")
+        item = item.strip()
+        if not item:
+            continue
+        if not _ENDPOINT_RE.fullmatch(item):
+            raise TransportConfigError(f"{what} endpoint {item!r} is invalid: expected "
+                                       "<protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+        out.append(item)
+    return tuple(out)
+
+
+@dataclass(frozen=True)
+class ZenohSettings:
+    """How a process joins Zenoh.
+
+    Fields left unset (None / empty) come from ``config_file`` when one is given, else from
+    the defaults: client mode connecting to :data:`DEFAULT_CONNECT`.
+    """
+
+    mode: str | None = None
+    """'peer', 'client' or 'router' (None: the config file's, else 'client')."""
+    connect: tuple[str, ...] = ()
+    """Endpoints to connect to, e.g. ('tcp/10.0.0.5:7447',)."""
+    listen: tuple[str, ...] = ()
+    """Endpoints to listen on (routers; peers that accept connections)."""
+    config_file: str | None = None
+    """A Zenoh JSON5 config file (TLS, credentials, ...); explicit fields override it."""
+
+    def __post_init__(self) -> None:
+        if self.mode is not None and self.mode not in MODES:
+            raise TransportConfigError(f"Zenoh mode {self.mode!r} is invalid: use one of {list(MODES)}")
+        object.__setattr__(self, "connect", parse_endpoints(self.connect, "connect"))
+        object.__setattr__(self, "listen", parse_endpoints(self.listen, "listen"))
+        if self.config_file is not None and not isinstance(self.config_file, (str, os.PathLike)):
+            raise TransportConfigError(f"config_file must be a path, got {self.config_file!r}")
+        if self.config_file is not None:
+            object.__setattr__(self, "config_file", str(self.config_file))
+
+    @classmethod
+    def from_env(cls, environ: Mapping[str, str] | None = None, **defaults: object) -> "ZenohSettings":
+        """Settings from ``COGEXPLORE_ZENOH_{MODE,CONNECT,LISTEN,CONFIG}`` over ``defaults``.
+
+        Endpoint lists are comma-separated. Empty variables count as unset.
+        """
+        env = os.environ if environ is None else environ
+        values: dict[str, object] = dict(defaults)
+        if env.get(ENV_MODE, "").strip():
+            values["mode"] = env[ENV_MODE].strip()
+        if env.get(ENV_CONNECT, "").strip():
+            values["connect"] = parse_endpoints(env[ENV_CONNECT], ENV_CONNECT)
+        if env.get(ENV_LISTEN, "").strip():
+            values["listen"] = parse_endpoints(env[ENV_LISTEN], ENV_LISTEN)
+        if env.get(ENV_CONFIG, "").strip():
+            values["config_file"] = env[ENV_CONFIG].strip()
+        return cls(**values)  # type: ignore[arg-type]
+
+    @property
+    def effective_mode(self) -> str:
+        """The mode the session will run in (a config file's mode is read when set there)."""
+        if self.mode is not None:
+            return self.mode
+        if self.config_file is not None:
+            mode = _json_value(self._base_config(), "mode")
+            if isinstance(mode, str) and mode in MODES:
+                return mode
+        return "client"
+
+    @property
+    def effective_connect(self) -> tuple[str, ...]:
+        """Endpoints set here, else the default router for clients and peers without a file."""
+        if self.connect or self.config_file is not None or self.effective_mode == "router":
+            return self.connect
+        return DEFAULT_CONNECT
+
+    def _base_config(self) -> zenoh.Config:
+        if self.config_file is None:
+            config = zenoh.Config()
+            # Only talk to the endpoints we are given: no surprise links to other runs' peers.
+            config.insert_json5("scouting/multicast/enabled", "false")
+            return config
+        path = Path(self.config_file)
+        if not path.is_file():
+            raise TransportConfigError(f"Zenoh config file {path} does not exist")
+        try:
+            return zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises its own ZError for parse errors
+            raise TransportConfigError(f"Zenoh config file {path} is invalid: {exc}") from None
+
+    def to_config(self) -> zenoh.Config:
+        """A fresh ``zenoh.Config`` (a config is consumed by ``zenoh.open``)."""
+        config = self._base_config()
+        mode = self.effective_mode
+        if self.mode is not None or self.config_file is None:
+            config.insert_json5("mode", json.dumps(mode))
+        connect = self.effective_connect
+        if connect:
+            config.insert_json5("connect/endpoints", json.dumps(list(connect)))
+        if self.listen:
+            config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        return config
+
+    def describe(self) -> str:
+        """One line for logs and errors."""
+        parts = [f"mode={self.mode or 'default'}"]
+        if self.effective_connect:
+            parts.append("connect=" + ",".join(self.effective_connect))
+        if self.listen:
+            parts.append("listen=" + ",".join(self.listen))
+        if self.config_file:
+            parts.append(f"config={self.config_file}")
+        return " ".join(parts)
+
+
+def _json_value(config: zenoh.Config, key: str) -> object:
+    try:
+        return json.loads(config.get_json(key))
+    except Exception:
+        return None
+
+
+def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0) -> zenoh.Session:
+    """Open a Zenoh session (``ZenohSettings.from_env()`` when ``settings`` is None).
+
+    A client fails at once when no router answers; ``wait_s`` > 0 keeps retrying that long,
+    for processes started alongside their router. Use the result as a context manager.
+    """
+    settings = settings if settings is not None else ZenohSettings.from_env()
+    deadline = time.monotonic() + max(0.0, wait_s)
+    while True:
+        try:
+            return zenoh.open(settings.to_config())
+        except zenoh.ZError as exc:
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {exc}") from None
+            time.sleep(min(0.2, remaining))
+
+
+# ---------------------------------------------------------------------------------------------
+# Publishing, subscribing, querying
+# ---------------------------------------------------------------------------------------------
+
+def declare_reliable_publisher(session: zenoh.Session, key_expr: str, *,
+                               priority: zenoh.Priority = zenoh.Priority.DATA) -> zenoh.Publisher:
+    """A publisher that blocks rather than drops when queues are full (transitions, weights)."""
+    return session.declare_publisher(key_expr, congestion_control=zenoh.CongestionControl.BLOCK,
+                                     reliability=zenoh.Reliability.RELIABLE, priority=priority)
+
+
+def put_reliable(session: zenoh.Session, key_expr: str, payload: bytes) -> None:
+    """One ``put`` with BLOCK congestion control (for an occasional message)."""
+    session.put(key_expr, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+
+
+def subscribe_messages(session: zenoh.Session, key_expr: str, cls: type[Message] | None,
+                       on_message: Callable[[Message, str], None],
+                       rejects: RejectCounter) -> zenoh.Subscriber:
+    """Subscribe to ``key_expr``, decoding each sample as ``cls`` (any type when None).
+
+    ``on_message(message, key)`` gets every valid message, on a Zenoh thread; invalid ones
+    are counted in ``rejects`` (logged once per cause) and dropped. An exception raised by
+    ``on_message`` is logged and the subscription carries on.
+    """
+
+    def on_sample(sample: zenoh.Sample) -> None:
+        key = str(sample.key_expr)
+        message = rejects.decode(sample.payload.to_bytes(), cls, source=key)
+        if message is None:
+            return
+        try:
+            on_message(message, key)
+        except Exception:
+            log.exception("handler for %s failed on a message from %s", key_expr, key)
+
+    return session.declare_subscriber(key_expr, on_sample)
+
+
+def serve_latest(session: zenoh.Session, key_expr: str,
+                 latest: Callable[[], bytes | None]) -> zenoh.Queryable:
+    """A queryable on ``key_expr`` answering with ``latest()`` (no reply while it is None).
+
+    ``latest`` runs on a Zenoh thread for every query: return cached bytes, do not encode.
+    """
+
+    def on_query(query: zenoh.Query) -> None:
+        try:
+            payload = latest()
+        except Exception:
+            log.exception("latest() for %s failed", key_expr)
+            return
+        if payload is not None:
+            query.reply(key_expr, payload)
+
+    return session.declare_queryable(key_expr, on_query)
+
+
+def query_latest(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) -> bytes | None:
+    """The payload of the first successful reply to a get on ``key_expr``, or None."""
+    for reply in session.get(key_expr, timeout=timeout_s):
+        if reply.ok is not None:
+            return reply.ok.payload.to_bytes()
+        log.debug("error reply to %s: %s", key_expr, reply.err)
+    return None
+
+
+# ---------------------------------------------------------------------------------------------
+# Liveliness
+# ---------------------------------------------------------------------------------------------
+
+def declare_alive(session: zenoh.Session, key: str) -> zenoh.LivelinessToken:
+    """Announce this process under ``key`` (e.g. ``RunKeys(run).alive("actor", id)``) until
+    the token is undeclared or the session closes. Keep the returned token referenced:
+    dropping it undeclares it."""
+    return session.liveliness().declare_token(key)
+
+
+class LivelinessWatch:
+    """The set of live tokens matching a key expression, kept current by a liveliness
+    subscriber (tokens alive before the watch started are included).
+
+    ``on_change(key, alive)`` (optional) is called on a Zenoh thread for each change.
+    """
+
+    def __init__(self, session: zenoh.Session, key_expr: str,
+                 on_change: Callable[[str, bool], None] | None = None) -> None:
+        self.key_expr = key_expr
+        self._alive: set[str] = set()
+        self._changed = threading.Condition()
+        self._on_change = on_change
+        self._subscriber: zenoh.Subscriber | None = session.liveliness().declare_subscriber(
+            key_expr, self._on_sample, history=True)
+
+    def _on_sample(self, sample: zenoh.Sample) -> None:
+        key, alive = str(sample.key_expr), sample.kind == zenoh.SampleKind.PUT
+        with self._changed:
+            (self._alive.add if alive else self._alive.discard)(key)
+            self._changed.notify_all()
+        if self._on_change is not None:
+            try:
+                self._on_change(key, alive)
+            except Exception:
+                log.exception("liveliness handler for %s failed", self.key_expr)
+
+    @property
+    def alive(self) -> frozenset[str]:
+        with self._changed:
+            return frozenset(self._alive)
+
+    def wait(self, predicate: Callable[[frozenset[str]], bool], timeout_s: float) -> bool:
+        """Block until ``predicate(alive keys)`` holds; False on timeout."""
+        with self._changed:
+            return self._changed.wait_for(lambda: predicate(frozenset(self._alive)), timeout_s)
+
+    def close(self) -> None:
+        """Stop watching (idempotent; harmless after the session has closed)."""
+        subscriber, self._subscriber = self._subscriber, None
+        if subscriber is not None:
+            try:
+                subscriber.undeclare()
+            except zenoh.ZError:
+                pass  # the session is already closed, which undeclared it
+
+    def __enter__(self) -> "LivelinessWatch":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Router
+# ---------------------------------------------------------------------------------------------
+
+def free_tcp_port(host: str = "127.0.0.1") -> int:
+    """A TCP port nothing listens on right now (bind to port 0), for tests and benchmarks."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind((host, 0))
+        return int(sock.getsockname()[1])
+
+
+def open_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *,
+                config_file: str | None = None) -> zenoh.Session:
+    """Open a Zenoh session in router mode listening on ``listen`` (close it to stop)."""
+    settings = ZenohSettings(mode="router", listen=tuple(listen), config_file=config_file)
+    try:
+        return zenoh.open(settings.to_config())
+    except zenoh.ZError as exc:
+        raise TransportError(f"cannot start a Zenoh router ({settings.describe()}): {exc}") from None
+
+
+def run_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *, config_file: str | None = None,
+               stop: threading.Event | None = None,
+               on_ready: Callable[[zenoh.Session], None] | None = None) -> int:
+    """Run a Zenoh router in this process until SIGINT/SIGTERM (or ``stop`` is set).
+
+    Signal handlers are installed only when called from the main thread, and restored on
+    return. The session is always closed. Returns 0 (a process exit status).
+    """
+    stop = stop if stop is not None else threading.Event()
+    previous: dict[int, object] = {}
+    if threading.current_thread() is threading.main_thread():
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            previous[signum] = signal.signal(signum, lambda *_: stop.set())
+    try:
+        with open_router(listen, config_file=config_file) as session:
+            log.info("Zenoh router %s listening on %s", session.zid(), ", ".join(listen))
+            if on_ready is not None:
+                on_ready(session)
+            while not stop.wait(0.2):  # a timed wait keeps the main thread responsive to signals
+                pass
+            log.info("Zenoh router stopping")
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)  # type: ignore[arg-type]
+    return 0
+
+
+def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
+    """Environment variables first, command-line options over them."""
+    overrides: dict[str, object] = {}
+    if args.connect:
+        overrides["connect"] = parse_endpoints(args.connect)
+    if args.listen:
+        overrides["listen"] = parse_endpoints(args.listen)
+    if args.zenoh_mode:
+        overrides["mode"] = args.zenoh_mode
+    if args.zenoh_config:
+        overrides["config_file"] = args.zenoh_config
+    return ZenohSettings.from_env(**overrides)

@@ -1,0 +1,77 @@
+"""A run's folder, ``runs/<run>/``, and the config every process of the run resolves from its
+options (``--preset``, ``--set``, ``--device``) and the folder's saved ``config.toml``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from shared.config import RunConfig, load_preset, parse_override, to_toml
+from shared.wire.keys import validate_name
+
+CONFIG_FILE = "config.toml"
+
+
+@dataclass(frozen=True)
+class RunPaths:
+    """The layout of runs/<run>/."""
+
+    root: Path
+
+    @property
+    def config(self) -> Path:
+        return self.root / CONFIG_FILE
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.root / "checkpoints"
+
+    @property
+    def logs(self) -> Path:
+        return self.root / "logs"
+
+    @property
+    def stats(self) -> Path:
+        return self.root / "stats"
+
+    @property
+    def recordings(self) -> Path:
+        return self.root / "recordings"
+
+    @property
+    def report(self) -> Path:
+        return self.root / "report"
+
+    def make(self) -> "RunPaths":
+        for d in (self.root, self.checkpoints, self.logs, self.stats, self.recordings, self.report):
+            d.mkdir(parents=True, exist_ok=True)
+        return self
+
+
+def run_paths(args: argparse.Namespace) -> RunPaths:
+    validate_name(args.run, "run name")
+    return RunPaths(Path(args.runs_dir) / args.run)
+
+
+def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None) -> RunConfig:
+    """--preset if given, else the run's saved config, else 'paper'; then --set and --device."""
+    source = args.preset
+    if source is None:
+        source = str(paths.config) if paths is not None and paths.config.exists() else "paper"
+    cfg = load_preset(source)
+    overrides = dict(parse_override(o) for o in getattr(args, "overrides", []) or [])
+    if getattr(args, "device", None):
+        overrides["train.device"] = args.device
+    return cfg.with_overrides(overrides) if overrides else cfg
+
+
+def save_config(cfg: RunConfig, paths: RunPaths) -> None:
+    """Write the run's config atomically (services started later read it back)."""
+    paths.root.mkdir(parents=True, exist_ok=True)
+    tmp = paths.config.with_suffix(".tmp")
+    tmp.write_text(to_toml(cfg))
+    os.replace(tmp, paths.config)
+
+

@@ -1,0 +1,69 @@
+"""``cogexplore model summary|export|select``: a Q-network's layers, a weights-only export, and the
+choice of the model to ship from a run's checkpoints."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+from shared.config import ConfigError, parse_world_list
+
+
+def run_summary(args: argparse.Namespace) -> int:
+    from shared.config import load_preset
+    from shared.learning.model import summary
+
+    cfg = load_preset(args.preset)
+    rows = summary(cfg.model, cfg.sensor)
+    if args.json:
+        _print_json(rows)
+    else:
+        for row in rows if isinstance(rows, list) else rows.get("layers", []):
+            print(row)
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    from shared.learning.checkpoints import average_models, export_weights, load_model
+
+    loaded = average_models([load_model(c) for c in args.checkpoint])
+    extra: dict[str, Any] = {}
+    if loaded.averaged_from:
+        extra["averaged_from"] = list(loaded.averaged_from)
+    card = {}
+    if args.card:
+        try:
+            card = json.loads(Path(args.card).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise ConfigError(f"--card {args.card}: {exc}") from None
+        if not isinstance(card, dict):
+            raise ConfigError(f"--card {args.card} must hold a JSON object")
+    if card:
+        extra["card"] = card
+    out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
+    _print_json({"out": str(out), "bytes": out.stat().st_size, "policy_version": loaded.policy_version,
+                 "source": str(loaded.path), "averaged": max(1, len(loaded.averaged_from)), "half": args.half})
+    return 0
+
+
+def run_select(args: argparse.Namespace) -> int:
+    from services.tools.selection import SelectOptions, select
+
+    opts = SelectOptions(run=Path(args.run), out=Path(args.out), window=args.window, stride=args.stride,
+                         first_end=args.first, last_end=args.last, gate_world=args.gate_world,
+                         gate_min=args.gate_min, gate_start_min=args.gate_start_min,
+                         validation_worlds=parse_world_list(args.validate),
+                         test_worlds=parse_world_list(args.test) if args.test else (),
+                         episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
+                         half=args.half, device=args.device)
+    summary = select(opts, echo=lambda msg: print(msg, file=sys.stderr, flush=True))
+    print(summary.pop("table"), end="", file=sys.stderr)
+    _print_json(summary)
+    return 0
+
+
+def _print_json(obj: Any) -> None:
+    print(json.dumps(obj, indent=2, default=float))

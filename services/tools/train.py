@@ -1,0 +1,139 @@
+"""``cogexplore train --single-process``: the paper's Algorithm 1 in one process.
+
+    for each episode: reset at a random start
+        while no collision: act epsilon-greedily, step, store the transition,
+                            run the updates due at the replay ratio (1 per step in the paper)
+
+It is the reference the distributed system is checked against, and its baseline: the same
+LearnerCore (replay + agent + ratio rule) that the learner service drives, fed directly by
+one environment through the rollout loop (``shared.rollout``) instead of by actors over Zenoh.
+Writes runs/<run>/ like the distributed system: config, checkpoints, stats/learner.csv (loss,
+mean Q) and stats/episodes.csv (length, return, epsilon).
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from services.process import setup_logging, stop_event_on_signals
+from services.runs import RunPaths, resolve_config, save_config
+from shared.config import RunConfig
+from shared.expert.expert import ExpertGuide
+from shared.learning.checkpoints import CheckpointManager
+from shared.learning.learner import LearnerCore, RateMeter, resume_from
+from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
+from shared.learning.stats import CsvLog, EpisodeRow, LearnerRow
+from shared.rollout import Episode, Rollout, Step
+from shared.sim.env import ExploreEnv
+from shared.wire.keys import validate_name
+
+log = logging.getLogger("cogexplore.train")
+
+
+class _Training:
+    """Rollout observer: every transition into the learner, the updates it makes due, their log rows
+    and checkpoints; every finished episode to ``episodes.csv`` and the progress bar."""
+
+    def __init__(self, cfg: RunConfig, core: LearnerCore, checkpoints: CheckpointManager, guide: ExpertGuide,
+                 learner_log: CsvLog, episode_log: CsvLog, bar: Any):
+        self.cfg, self.core, self.checkpoints, self.guide = cfg, core, checkpoints, guide
+        self.learner_log, self.episode_log, self.bar = learner_log, episode_log, bar
+        self.started = time.monotonic()
+        self.update_rate = RateMeter()
+        self.config_dict = cfg.to_dict()
+        self.episodes = 0
+        self.recent_lengths: list[int] = []
+
+    def save(self) -> Path:
+        return self.checkpoints.save(self.core.agent, replay=self.core.replay, config=self.config_dict,
+                                     extra={"transitions_received": self.core.received})
+
+    def on_step(self, step: Step) -> None:
+        core, train = self.core, self.cfg.train
+        core.add_transition("env", step.obs, step.action, step.reward, None if step.terminated else step.next_obs,
+                            step.terminated, step.truncated)
+        for _ in range(core.updates_due()):
+            core.train_step()
+            self.update_rate.add(1)
+            self.bar.update(1)
+            if core.updates % train.log_every == 0:
+                loss, mean_q = core.recent(train.log_every)
+                self.learner_log.write(LearnerRow(
+                    time_s=time.monotonic() - self.started, update=core.updates,
+                    policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
+                    updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
+                    replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
+                    demo_agreement=core.recent_demo_agreement(train.log_every)))
+            if core.updates % train.checkpoint_every == 0:
+                self.save()
+
+    def end_episode(self, episode: Episode) -> None:
+        info, epsilon = episode.info, episode.last_step.choice.epsilon
+        if not self.guide.active:  # the bar shows the network's episodes, not the expert's
+            self.recent_lengths = (self.recent_lengths + [info["step"]])[-20:]
+        self.episode_log.write(EpisodeRow(
+            episode=self.episodes, env_step=self.core.received, update=self.core.updates,
+            start_index=info["start_index"], steps=info["step"], episode_return=episode.episode_return,
+            epsilon=epsilon, collision_cause=info["collision_cause"], distance_m=info["distance_from_start_m"],
+            path_length_m=info["path_length_m"], time_s=time.monotonic() - self.started,
+            expert_guided=int(self.guide.active), world=info["world"]))
+        self.episodes += 1
+        loss, _ = self.core.recent()
+        mean_steps = sum(self.recent_lengths) / max(len(self.recent_lengths), 1)
+        agreement = self.core.recent_demo_agreement()
+        self.bar.set_postfix_str(f"eps {epsilon:.2f} | steps/ep {mean_steps:5.1f}"
+                                 f" | loss {loss if loss is not None else float('nan'):.3g}"
+                                 + ("" if agreement is None else f" | demo {agreement:.2f}"), refresh=False)
+
+
+def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
+                         progress: bool = True, max_minutes: float | None = None) -> dict:
+    """Train until ``total_updates`` (or ``max_minutes``, or ``stop``); returns a summary."""
+    stop = stop or threading.Event()
+    paths.make()
+    save_config(cfg, paths)
+    core = LearnerCore(cfg, device=cfg.train.device)
+    checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
+    resumed = resume_from(checkpoints, core)
+    env = ExploreEnv(cfg.env, cfg.sensor)
+    guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2)
+    policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=cfg.train.seed + 1,
+                                 guide=guide)
+    deadline = time.monotonic() + max_minutes * 60 if max_minutes else None
+    with CsvLog(paths.stats, LearnerRow) as learner_log, CsvLog(paths.stats, EpisodeRow) as episode_log, \
+            tqdm(total=cfg.train.total_updates, initial=core.updates, desc="train", unit="upd",
+                 dynamic_ncols=True, disable=not progress) as bar:
+        training = _Training(cfg, core, checkpoints, guide, learner_log, episode_log, bar)
+        loop = Rollout(env, policy, [guide, training], env_steps=core.received)  # epsilon goes on after a resume
+        loop.begin_episode(seed=cfg.train.seed + (core.received if resumed else 0))
+        while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+            if loop.step().last:
+                loop.begin_episode()
+        final = training.save()
+    env.close()
+    return {"updates": core.updates, "env_steps": core.received, "episodes": training.episodes,
+            "checkpoint": str(final), "seconds": time.monotonic() - training.started}
+
+
+def run_train_command(args: argparse.Namespace) -> int:
+    if not args.single_process:
+        print("cogexplore train needs --single-process; the distributed trainer is `cogexplore up`")
+        return 2
+    run = args.run or time.strftime("train-%Y%m%d-%H%M%S")
+    validate_name(run, "run name")
+    paths = RunPaths(Path(args.runs_dir) / run).make()
+    setup_logging("INFO", paths.logs / "train.log")
+    cfg = resolve_config(args, paths)
+    if args.updates is not None:
+        cfg = cfg.with_overrides({"train.total_updates": args.updates})
+    result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
+                                  max_minutes=args.minutes)
+    print(result)
+    return 0

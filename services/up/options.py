@@ -1,0 +1,47 @@
+"""The options of ``cogexplore up`` and ``cogexplore bench system`` (light: no torch, MuJoCo or Zenoh)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_up_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--actors", type=int, default=2, help="actor processes (default: 2)")
+    parser.add_argument("--preset", default="fast", help="preset name or TOML path (default: fast)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="override one config field (repeatable)")
+    limit = parser.add_mutually_exclusive_group()
+    limit.add_argument("--updates", type=int, default=None, help="stop after this many learner updates")
+    limit.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
+    parser.add_argument("--run", default=None, help="run name (default: run-<date>-<time>)")
+    parser.add_argument("--runs-dir", default="runs")
+    parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
+    parser.add_argument("--port", type=int, default=None, help="router port (default: a free port)")
+    parser.add_argument("--eval-every", type=int, default=1000, help="evaluator: updates between evaluations")
+    parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
+    parser.add_argument("--final-episodes", type=int, default=10,
+                        help="episodes per start in the final evaluation (paper: 10)")
+    parser.add_argument("--no-report", action="store_true", help="skip the final evaluation and report")
+    parser.add_argument("--rerun-connect", default=None, metavar="URL",
+                        help="stream evaluations and every 20th actor episode live to a Rerun viewer, "
+                             "e.g. rerun+http://127.0.0.1:9876/proxy (start one with `rerun`)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--actors", type=int, default=1, help="actor processes (default: 1)")
+    parser.add_argument("--seconds", type=float, default=60.0, help="measurement window (default: 60)")
+    parser.add_argument("--warmup-s", type=float, default=5.0,
+                        help="seconds to wait once the system is in its steady state (default: 5)")
+    parser.add_argument("--preset", default="fast", help="preset name or TOML path (default: fast)")
+    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                        help="override one config field, e.g. --set train.replay_ratio=0.02 to lift the "
+                             "learner's flow control and measure raw actor throughput (repeatable)")
+    parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
+    parser.add_argument("--learner-threads", type=int, default=None,
+                        help="OMP_NUM_THREADS for the started processes (default: inherited)")
+    parser.add_argument("--startup-timeout-s", type=float, default=600.0,
+                        help="give up if the system is not in its steady state in this time (default: 600)")
+    parser.add_argument("--runs-dir", default=None,
+                        help="keep the run folder (logs, stats) here; default: a temporary folder, removed")
+    parser.add_argument("--json", action="store_true", help="print JSON")

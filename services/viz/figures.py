@@ -1,0 +1,251 @@
+"""The paper's figures and tables from evaluation results and training logs.
+
+- Fig. 6: trajectory heatmaps -- visits per map cell of every trajectory point of every test
+  episode, normalised to [0, 1] by the busiest cell, drawn over the world map; one PNG per
+  model (``save_heatmap_png``) or several models side by side (``save_heatmaps_side_by_side``).
+- A loss curve (raw and smoothed) from the learner's log (``save_loss_curve_png``).
+- Table II: Q-values of the five commands for given scenes (``q_value_table_markdown``).
+
+Everything draws on ``matplotlib.figure.Figure`` directly (no pyplot): no global figure
+state and no GUI backend, so it is safe in services and threads.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from shared.errors import CogexploreError
+from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of
+from shared.sim.maps import OccupancyGrid, draw_map, normalize_heatmap, render_map_png, visit_counts
+from shared.sim.world import World
+
+# Column labels of the paper's Table II.
+PAPER_COMMAND_LABELS: tuple[str, ...] = ("Left", "H-Left", "Straight", "H-Right", "Right")
+
+
+class FigureError(CogexploreError):
+    """Bad input to a figure or table: empty results, a malformed log, wrong lengths."""
+
+
+# ---------------------------------------------------------------------------
+# Heatmaps
+# ---------------------------------------------------------------------------
+
+
+def trajectory_points(results: EvalResults | Sequence[EpisodeResult]) -> np.ndarray:
+    """(N, 2) every trajectory point of every episode (start and each step's position)."""
+    episodes = episodes_of(results)
+    pts = [p for e in episodes for p in e.trajectory_xy]
+    if not pts:
+        raise FigureError("the results hold no trajectory points (were they run with keep_trajectories=False?)")
+    return np.asarray(pts, dtype=np.float64)
+
+
+HEATMAP_CELL_M = 0.25
+"""Heatmap cell side: coarser than the 5 cm occupancy grid, so that paths 12.5 cm a step
+apart read as bands rather than dotted lines."""
+
+
+def trajectory_heatmap(grid: OccupancyGrid, results: EvalResults | Sequence[EpisodeResult],
+                       cell_m: float | None = HEATMAP_CELL_M) -> np.ndarray:
+    """Visit counts of all trajectory points over all episodes, normalised to [0, 1] by the
+    busiest cell (the paper's Fig. 6), as a (ny, nx) array on ``grid``'s cells (row 0 the
+    lowest y, like ``grid.occupied``).
+
+    Points are counted in square cells of about ``cell_m`` (a whole number ``k`` of grid cells,
+    blocks anchored at the grid's origin); every grid cell of a block carries the block's
+    value, so the result overlays the map exactly. ``cell_m=None`` counts per grid cell."""
+    counts = visit_counts(grid, trajectory_points(results))
+    k = 1 if cell_m is None else max(1, int(round(cell_m / grid.resolution_m)))
+    if k > 1:
+        ny, nx = counts.shape
+        by, bx = -(-ny // k), -(-nx // k)
+        padded = np.zeros((by * k, bx * k), dtype=counts.dtype)
+        padded[:ny, :nx] = counts
+        blocks = padded.reshape(by, k, bx, k).sum(axis=(1, 3))
+        counts = np.kron(blocks, np.ones((k, k), dtype=counts.dtype))[:ny, :nx]
+    return normalize_heatmap(counts)
+
+
+def save_heatmap_png(world: World, grid: OccupancyGrid, results: EvalResults | Sequence[EpisodeResult],
+                     out_path: str | Path, title: str | None = None,
+                     cell_m: float | None = HEATMAP_CELL_M, dpi: int = 120) -> Path:
+    """One model's trajectory heatmap over the world map (starts numbered from 1)."""
+    return render_map_png(world, grid, out_path, heatmap=trajectory_heatmap(grid, results, cell_m),
+                          title=title, dpi=dpi)
+
+
+def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
+                               models: Mapping[str, EvalResults | Sequence[EpisodeResult]],
+                               out_path: str | Path, ncols: int | None = None, dpi: int = 110,
+                               cell_m: float | None = HEATMAP_CELL_M) -> Path:
+    """Several models' heatmaps in one PNG (the paper's Fig. 6 panels), one shared colour
+    scale: each panel is normalised to its own busiest cell, as in the paper."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    if not models:
+        raise FigureError("save_heatmaps_side_by_side needs at least one model")
+    n = len(models)
+    ncols = ncols or min(n, 3)
+    nrows = math.ceil(n / ncols)
+    xmin, ymin, xmax, ymax = grid.extent
+    aspect = (xmax - xmin) / (ymax - ymin)
+    panel = 3.6
+    fig = Figure(figsize=(panel * aspect * ncols + 0.9, panel * nrows + 0.3))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    im = None
+    for ax, (name, results) in zip(axes.flat, models.items()):
+        im = draw_map(ax, world, grid, heatmap=trajectory_heatmap(grid, results, cell_m), title=name, small=True)
+    for ax in list(axes.flat)[n:]:
+        ax.set_axis_off()
+    fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02, label="normalised visits")
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Loss curve
+# ---------------------------------------------------------------------------
+
+
+def _rows_to_arrays(rows: Iterable[Mapping[str, Any]], source: str) -> tuple[np.ndarray, np.ndarray]:
+    updates, losses = [], []
+    for i, row in enumerate(rows):
+        if not isinstance(row, Mapping):
+            raise FigureError(f"{source}: row {i} is not an object with 'update' and 'loss'")
+        if "update" not in row or "loss" not in row:
+            raise FigureError(f"{source}: row {i} lacks 'update' or 'loss' (has {sorted(row)})")
+        try:
+            updates.append(float(row["update"]))
+            losses.append(float(row["loss"]) if row["loss"] not in ("", None) else math.nan)
+        except (TypeError, ValueError):
+            raise FigureError(f"{source}: row {i} has a non-numeric update or loss: "
+                              f"{row['update']!r}, {row['loss']!r}") from None
+    return np.asarray(updates), np.asarray(losses)
+
+
+def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, Sequence[float]]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """(updates, losses) sorted by update from a CSV file (header with ``update`` and
+    ``loss``; other columns ignored), a JSON file (a list of row objects or an object of
+    columns), a JSON Lines file (``.jsonl``, one row per line), or those objects in memory.
+    Rows with an empty or non-finite loss are dropped (a diverged run still plots)."""
+    source = "loss log"
+    if isinstance(log, (str, Path)):
+        path = Path(log)
+        source = str(path)
+        try:
+            text = path.read_text()
+        except FileNotFoundError:
+            raise FigureError(f"loss log {path} does not exist") from None
+        if path.suffix == ".csv":
+            reader = csv.DictReader(text.splitlines())
+            if not reader.fieldnames or not {"update", "loss"} <= set(reader.fieldnames):
+                raise FigureError(f"{path}: the CSV header must name 'update' and 'loss', got {reader.fieldnames}")
+            updates, losses = _rows_to_arrays(reader, source)
+            return _finite_sorted(updates, losses, source)
+        try:
+            if path.suffix == ".jsonl":
+                log = [json.loads(line) for line in text.splitlines() if line.strip()]
+            else:
+                log = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise FigureError(f"{path}: not valid JSON: {exc}") from None
+    if isinstance(log, Mapping):
+        if "update" not in log or "loss" not in log:
+            raise FigureError(f"{source}: a column object needs 'update' and 'loss', has {sorted(log)}")
+        if len(log["update"]) != len(log["loss"]):
+            raise FigureError(f"{source}: {len(log['update'])} updates but {len(log['loss'])} losses")
+        log = [{"update": u, "loss": v} for u, v in zip(log["update"], log["loss"])]
+    updates, losses = _rows_to_arrays(log, source)
+    return _finite_sorted(updates, losses, source)
+
+
+def _finite_sorted(updates: np.ndarray, losses: np.ndarray, source: str) -> tuple[np.ndarray, np.ndarray]:
+    keep = np.isfinite(updates) & np.isfinite(losses)
+    if not keep.any():
+        raise FigureError(f"{source}: no row with a finite loss")
+    order = np.argsort(updates[keep], kind="stable")
+    return updates[keep][order], losses[keep][order]
+
+
+def smooth(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average over ``window`` points (fewer at the start), same length."""
+    if not (isinstance(window, int) and window >= 1):
+        raise FigureError(f"smoothing window must be an integer >= 1, got {window!r}")
+    v = np.asarray(values, dtype=np.float64)
+    csum = np.concatenate([[0.0], np.cumsum(v)])
+    idx = np.arange(1, len(v) + 1)
+    lo = np.maximum(0, idx - window)
+    return (csum[idx] - csum[lo]) / (idx - lo)
+
+
+def save_loss_curve_png(log: Any, out_path: str | Path, smooth_window: int | None = None,
+                        log_y: bool | str = "auto", title: str = "Training loss", dpi: int = 110) -> Path:
+    """Loss against learner updates: raw points faint, a trailing moving average bold.
+    ``smooth_window`` defaults to 1/50 of the rows (at least 1); ``log_y='auto'`` uses a log
+    axis when all losses are positive and span more than two decades."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    updates, losses = load_loss_log(log)
+    window = smooth_window if smooth_window is not None else max(1, len(losses) // 50)
+    smoothed = smooth(losses, window)
+    if log_y == "auto":
+        log_y = bool(losses.min() > 0 and losses.max() / losses.min() > 100)
+    fig = Figure(figsize=(7.0, 4.0))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot(1, 1, 1)
+    ax.plot(updates, losses, color="#1f77b4", alpha=0.3, lw=0.8, label="raw")
+    ax.plot(updates, smoothed, color="#1f77b4", lw=2.0, label=f"moving average ({window})")
+    if log_y:
+        ax.set_yscale("log")
+    ax.set_xlabel("learner update")
+    ax.set_ylabel("loss")
+    ax.set_title(title)
+    ax.grid(alpha=0.3)
+    ax.legend()
+    fig.tight_layout()
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=dpi)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# Table II
+# ---------------------------------------------------------------------------
+
+
+def q_value_table_markdown(scenes: Mapping[str, Mapping[str, Sequence[float] | np.ndarray]],
+                           decimals: int = 1) -> str:
+    """The paper's Table II: for each scene (S1, R1, ...) and model (SL, DRL, ...), the five
+    commands' values, the chosen (highest) one bold.
+
+    ``scenes`` maps scene name -> {model name -> five values}."""
+    if not scenes:
+        raise FigureError("q_value_table_markdown needs at least one scene")
+    lines = ["| Scene | Model | " + " | ".join(PAPER_COMMAND_LABELS) + " |",
+             "|---|---|" + "---:|" * len(PAPER_COMMAND_LABELS)]
+    for scene, models in scenes.items():
+        if not models:
+            raise FigureError(f"scene {scene!r} has no model")
+        for row, (model, values) in enumerate(models.items()):
+            q = np.asarray(values, dtype=np.float64).reshape(-1)
+            if q.shape != (len(PAPER_COMMAND_LABELS),) or not np.all(np.isfinite(q)):
+                raise FigureError(f"scene {scene!r} model {model!r}: need {len(PAPER_COMMAND_LABELS)} finite "
+                                  f"values, got {list(np.asarray(values).reshape(-1))}")
+            best = int(np.argmax(q))
+            cells = [f"**{v:.{decimals}f}**" if i == best else f"{v:.{decimals}f}" for i, v in enumerate(q)]
+            lines.append(f"| {scene if row == 0 else ''} | {model} | " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,13 @@
+"""The one base of every error a user can cause: a bad setting, file, name, message or endpoint.
+
+Every such error of cogexplore derives from :class:`CogexploreError` (and from ``ValueError``, as
+they all did before there was a common base), so the command line catches it once and prints its
+message in one line instead of a traceback; anything else is a bug and keeps its traceback.
+"""
+
+from __future__ import annotations
+
+
+class CogexploreError(ValueError):
+    """Input that cannot be used (a setting, file, world, checkpoint, message, endpoint...); the
+    message names what and why."""

@@ -1,0 +1,199 @@
+"""The paper's test protocol (Section V-A): greedy episodes from every start pose.
+
+From every start pose of a world, N episodes at the TEST speed table, each stopped at a collision
+or after at most 200 moving steps; :mod:`shared.evaluation.results` holds what comes out. The
+episodes run through the one rollout loop (``shared.rollout``) with two observers of their own,
+the trajectory and the coverage (``shared.sim.maps.CoverageTracker``), and, optionally, a
+recorder (``services.viz.rerun.EvalRecorder``, or anything with its ``begin_episode`` /
+``log_step`` / ``end_episode`` / ``log_evaluation``), which this module calls but never opens.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from shared.config import ACTION_NAMES, EnvConfig, SensorConfig
+from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError, _is_int
+from shared.rollout import Episode, Rollout, Step
+from shared.sim.world import load_world
+
+PolicyFn = Callable[[np.ndarray], tuple[int, Sequence[float] | np.ndarray | None]]
+"""``policy_fn(depth_m) -> (action, q_values or None)``; with ``reset()`` when it keeps memory."""
+
+
+class EvaluationCancelled(RuntimeError):
+    """The ``stop`` event was set while an evaluation ran."""
+
+
+def episode_seed(seed: int, start_index: int, episode: int) -> int:
+    """The reset seed of one episode: a function of (seed, start, episode) only, so any
+    subset of the protocol reproduces the same episodes."""
+    return int(np.random.SeedSequence([seed, start_index, episode]).generate_state(1, dtype=np.uint32)[0])
+
+
+def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> EnvConfig:
+    """The protocol's environment: ``base``'s robot and task, the given world, the TEST speed
+    table, every start (none fixed) and a step cap no shorter than the protocol's."""
+    return dataclasses.replace(base or EnvConfig(), world=world, speed_table="test",
+                               max_episode_steps=max_steps, start_index=None)
+
+
+def _check_action(action: Any) -> int:
+    if not (_is_int(action) and 0 <= int(action) < len(ACTION_NAMES)):
+        raise ResultsError(f"policy_fn returned action {action!r}; expected an index in 0..{len(ACTION_NAMES) - 1}")
+    return int(action)
+
+
+class _ProtocolPolicy:
+    """``policy_fn`` as the rollout calls it; raises EvaluationCancelled once ``stop`` is set."""
+
+    def __init__(self, policy_fn: PolicyFn, stop: threading.Event | None):
+        self.policy_fn = policy_fn
+        self.stop = stop
+        self.reset = getattr(policy_fn, "reset", None)
+
+    def __call__(self, depth_m: np.ndarray, _info: Any, _env_steps: int) -> Any:
+        if self.stop is not None and self.stop.is_set():
+            raise EvaluationCancelled("evaluation cancelled")
+        return self.policy_fn(depth_m)
+
+
+class _Trace:
+    """Observer: the start position and every step's, and the free area the camera has seen."""
+
+    def __init__(self, env: Any):
+        from shared.sim.maps import CoverageTracker, occupancy_grid
+
+        self.tracker = CoverageTracker(occupancy_grid(env.world), env.sensor_config)
+        self.trajectory: list[tuple[float, float]] = []
+
+    def _observe(self, pose: Sequence[float], depth_m: np.ndarray) -> None:
+        x, y, yaw = pose
+        self.tracker.observe(x, y, yaw, depth_m)
+        self.trajectory.append((x, y))
+
+    def begin_episode(self, episode: Episode) -> None:
+        self.tracker.reset()
+        self.trajectory = []
+        self._observe(episode.first_info["pose"], episode.first_obs)
+
+    def on_step(self, step: Step) -> None:
+        self._observe(step.next_info["pose"], step.next_obs)
+
+    def coverage(self) -> tuple[float, float]:
+        return self.tracker.seen_area_m2, min(1.0, self.tracker.seen_fraction)
+
+
+class _RecorderSteps:
+    """Observer: each step to the recorder (``log_step(step, pose, depth, q_values, action)``)."""
+
+    def __init__(self, recorder: Any):
+        self.recorder = recorder
+
+    def on_step(self, step: Step) -> None:
+        self.recorder.log_step(step.index, step.info["pose"], step.obs, step.q_values, step.action)
+
+
+def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Sequence[int] | None = None,
+                 episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
+                 seed: int = 0, recorder: Any = None, progress: bool = True,
+                 keep_trajectories: bool = True, meta: Mapping[str, Any] | None = None,
+                 stop: threading.Event | None = None) -> EvalResults:
+    """Run exactly ``len(starts) * episodes_per_start`` episodes and return their results.
+
+    ``policy_fn(depth_m) -> (action, q_values or None)`` picks each command (greedy for the
+    paper's protocol); ``make_env()`` returns an ``ExploreEnv`` (test speeds for the paper),
+    built once and reset per episode with ``episode_seed(seed, start, episode)``. ``starts``
+    are start indices (None: all of the world's). Each episode stops at a collision or after
+    ``max_steps`` steps, whichever comes first; a ``policy_fn`` with a ``reset()`` method (one that
+    remembers its last command) is reset before each episode. ``recorder`` (an ``EvalRecorder``) gets
+    ``begin_episode`` / ``log_step`` / ``end_episode``. Deterministic for a deterministic policy.
+    ``stop``: when set, the run ends within one step with :class:`EvaluationCancelled`.
+    """
+    if not (_is_int(episodes_per_start) and episodes_per_start >= 1):
+        raise ResultsError(f"episodes_per_start must be an integer >= 1, got {episodes_per_start!r}")
+    if not (_is_int(max_steps) and max_steps >= 1):
+        raise ResultsError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+    env = make_env()
+    try:
+        n_starts = len(env.world.starts)
+        start_list = list(range(n_starts)) if starts is None else [int(s) for s in starts]
+        bad = [s for s in start_list if not 0 <= s < n_starts]
+        if bad or not start_list:
+            raise ResultsError(f"starts {bad or start_list} invalid: world {env.world.name!r} has "
+                               f"{n_starts} starts (indices 0..{n_starts - 1})")
+        if env.env_config.max_episode_steps < max_steps:
+            raise ResultsError(f"the env truncates at {env.env_config.max_episode_steps} steps, before the "
+                               f"protocol's max_steps={max_steps}: build it with max_episode_steps >= {max_steps}")
+        trace = _Trace(env)
+        loop = Rollout(env, _ProtocolPolicy(policy_fn, stop),
+                       [trace] + ([_RecorderSteps(recorder)] if recorder is not None else []),
+                       max_steps=max_steps, check_action=_check_action)
+        episodes: list[EpisodeResult] = []
+        total = len(start_list) * episodes_per_start
+        with tqdm(total=total, desc="evaluate", unit="ep", disable=not progress) as bar:
+            for start_index in start_list:
+                for k in range(episodes_per_start):
+                    if recorder is not None:
+                        recorder.begin_episode(start_index, k)
+                    episode = loop.run_episode(seed=episode_seed(seed, start_index, k),
+                                               options={"start_index": start_index})
+                    info = episode.info
+                    area, fraction = trace.coverage()
+                    result = EpisodeResult(
+                        start_index=start_index, episode=k, steps=episode.steps, terminated=episode.terminated,
+                        truncated=episode.truncated,
+                        collision_cause=info["collision_cause"] if episode.terminated else None,
+                        distance_m=float(info["distance_from_start_m"]), path_length_m=float(info["path_length_m"]),
+                        coverage_m2=float(area), coverage_fraction=float(fraction),
+                        trajectory_xy=tuple(trace.trajectory) if keep_trajectories else ())
+                    if recorder is not None:
+                        recorder.end_episode(result)
+                    episodes.append(result)
+                    bar.update(1)
+                    bar.set_postfix(mean_steps=f"{np.mean([e.steps for e in episodes]):.1f}")
+        run_meta = {"world": env.world.name, "speed_table": env.env_config.speed_table,
+                    "starts": start_list, "episodes_per_start": episodes_per_start,
+                    "max_steps": max_steps, "seed": seed}
+        run_meta.update(meta or {})
+        return EvalResults(tuple(episodes), run_meta)
+    finally:
+        env.close()
+
+
+def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig, env_cfg: EnvConfig | None = None,
+                    episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
+                    seed: int = 0, starts: Sequence[int] | None = None, policy_version: int = 0,
+                    progress: bool = True, meta: Mapping[str, Any] | None = None,
+                    stop: threading.Event | None = None, recorder: Any = None) -> EvalResults:
+    """Run the protocol with ``policy_fn`` in ``world`` and return its results.
+
+    The results' meta holds the sensor and env configs beside ``meta``. ``recorder`` (opened and
+    closed by the caller, e.g. ``services.viz.rerun.evaluate_recorded``) gets every episode and
+    step, then the summary at update ``policy_version``. ``stop``: when set, the run ends within
+    one step with :class:`EvaluationCancelled`.
+    """
+    from shared.sim.env import ExploreEnv
+
+    cfg = protocol_env_config(env_cfg, world, max_steps)
+    world_obj = load_world(world)  # fail early, with the world's own error, before any env is built
+
+    def make_env() -> ExploreEnv:
+        return ExploreEnv(cfg, sensor_cfg, world=world_obj)
+
+    full_meta = {"sensor": asdict(sensor_cfg), "env": {k: v for k, v in asdict(cfg).items() if k != "start_index"}}
+    full_meta.update(meta or {})
+    results = run_protocol(policy_fn, make_env, starts=starts, episodes_per_start=episodes_per_start,
+                           max_steps=max_steps, seed=seed, recorder=recorder, progress=progress,
+                           meta=full_meta, stop=stop)
+    if recorder is not None:
+        recorder.log_evaluation(policy_version, results.summary)
+    return results

@@ -1,0 +1,93 @@
+"""What an evaluation runs with: a checkpoint or a baseline resolved into a policy, a sensor, an
+env and a world (``cogexplore evaluate``, ``report``, ``experiment``, ``model select``)."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from shared.config import EnvConfig, SensorConfig, load_preset, parse_override
+from shared.errors import CogexploreError
+from shared.evaluation import BASELINE_POLICIES, DEFAULT_WORLD, POLICY_NAMES
+from shared.evaluation.policies import make_policy
+from shared.evaluation.protocol import PolicyFn
+from shared.learning.checkpoints import LoadedModel, load_model, load_supervised_model
+
+log = logging.getLogger("cogexplore.evaluate")
+
+
+class EvaluateError(CogexploreError):
+    """A checkpoint that cannot be found or used, or options that do not fit together."""
+
+
+
+@dataclass(frozen=True)
+class EvalSetup:
+    """What an evaluation runs with, resolved from the options."""
+
+    policy: str
+    policy_fn: PolicyFn
+    sensor_cfg: SensorConfig
+    env_cfg: EnvConfig
+    world: str
+    model: LoadedModel | None
+
+    def meta(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"policy": self.policy,
+                               "model": self.model.label if self.model is not None else self.policy}
+        if self.model is not None:
+            out.update(self.model.meta())
+        return out
+
+
+def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *, world: str | None = None,
+                     preset: str | None = None, overrides: Sequence[str] = (), seed: int = 0,
+                     device: str = "auto", model: LoadedModel | None = None) -> EvalSetup:
+    """Resolve policy, network, sensor, env and world (shared by ``evaluate`` and ``report``)."""
+    policy = policy or ("greedy" if (checkpoint is not None or model is not None) else None)
+    if policy is None:
+        raise EvaluateError("give --checkpoint (greedy policy) or --policy random|reactive")
+    if policy not in POLICY_NAMES:
+        raise EvaluateError(f"unknown policy {policy!r}; known: {list(POLICY_NAMES)}")
+    if policy in ("greedy", "sl", "rl") and checkpoint is None and model is None:
+        raise EvaluateError(f"the {policy} policy needs --checkpoint (baselines without one: --policy "
+                            + " or ".join(BASELINE_POLICIES) + ")")
+    if model is None and checkpoint is not None:
+        model = load_supervised_model(checkpoint, device) if policy == "sl" else load_model(checkpoint, device)
+    if model is not None and (policy == "sl") != (model.kind == "supervised"):
+        raise EvaluateError(f"{model.path} is a {model.kind} file: the sl policy takes a supervised model "
+                            "(`cogexplore pretrain`), the other policies a Q-network checkpoint")
+    if policy == "rl" and model is not None:
+        if model.name is None:
+            model = dataclasses.replace(model, name="RL")
+        dqn = model.run_config.dqn if model.run_config is not None else None
+        if dqn is not None and dqn.conv_lr_scale != 0:
+            log.warning("%s was trained with dqn.conv_lr_scale = %g: not the RL baseline's frozen conv layers",
+                        model.path, dqn.conv_lr_scale)
+    if preset is not None:
+        base = load_preset(preset)
+    elif model is not None and model.run_config is not None:
+        base = model.run_config
+    else:
+        base = load_preset("paper")
+    if model is not None:
+        base = dataclasses.replace(base, sensor=model.net.sensor_cfg,
+                                   model=getattr(model.net, "model_cfg", base.model))
+    parsed = dict(parse_override(o) for o in overrides)
+    bad = sorted(k for k in parsed if not k.startswith(("sensor.", "env.")))
+    if bad:
+        raise EvaluateError(f"evaluate only takes sensor.* and env.* overrides, got {bad}")
+    cfg = base.with_overrides(parsed) if parsed else base
+    if model is not None and (cfg.sensor.width, cfg.sensor.height) != (model.net.sensor_cfg.width,
+                                                                        model.net.sensor_cfg.height):
+        raise EvaluateError(f"the network takes {model.net.sensor_cfg.width}x{model.net.sensor_cfg.height} "
+                            "images; the sensor size cannot be overridden")
+    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=cfg.sensor, seed=seed)
+    world_name = world or (model.run_config.env.world if model is not None and model.run_config is not None
+                           else DEFAULT_WORLD)
+    return EvalSetup(policy, fn, cfg.sensor, cfg.env, world_name,
+                     model if policy in ("greedy", "sl", "rl") else None)

@@ -1,0 +1,685 @@
+"""Every model file of cogexplore, written and read in one place: training checkpoints,
+weights-only exports, supervised models, the shipped models, and loading any of them for play.
+
+**Training checkpoints** of a DQNAgent (and optionally its replay memory).
+
+A checkpoint directory holds::
+
+    ckpt-000001000.safetensors          online + target weights, optimiser tensors, torch RNG;
+                                        JSON metadata (counters, optimiser hyperparameters,
+                                        configs, caller extras, a SHA-256 of all tensor bytes)
+    ckpt-000001000.replay-<digest>.safetensors
+                                        optional: the replay memory's arrays + its JSON state
+                                        (named by content, so re-saving the same update never
+                                        pairs a checkpoint with another save's replay)
+    latest                              the name of the newest complete checkpoint
+
+Every file is written to a temporary name, fsynced, renamed into place and the directory
+fsynced, replay before checkpoint before ``latest``, so a crash at any point leaves ``latest``
+naming a complete checkpoint; the last ``keep`` checkpoints stay on disk, and the replay memory
+with the newest ``keep_replays`` of them only (a replay is the bulk of a checkpoint's bytes and
+only a resume reads it; an older checkpoint resumes with an empty replay). Loading verifies the
+format and the digest: a truncated or corrupt file raises :class:`CheckpointError` and
+``CheckpointManager.load_latest`` falls back to the newest older checkpoint that loads.
+
+**Weights-only exports**: ``export_weights`` writes the online net, its architecture and policy
+version for deployment; ``load_exported_weights`` rebuilds it. ``pretrained[:drl|:sl]`` names the
+models shipped in ``shared/pretrained/``; ``init_agent_weights`` starts a run from one (fine-tuning).
+
+**Supervised models** (``cogexplore pretrain``, format ``cogexplore-supervised``):
+``save_supervised`` / ``load_supervised``, and ``init_agent_conv``, the paper's transfer of their
+conv layers into a DQN agent.
+
+**Loading for play**: ``load_model`` takes whatever a user names (a checkpoint file or directory,
+a run folder, a weights export, ``pretrained``) and returns a :class:`LoadedModel` (network in eval
+mode, where it came from, its run config); ``average_models`` averages several.
+
+Weights are safetensors and metadata JSON: nothing is ever unpickled.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import re
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import safetensors.numpy
+import safetensors.torch
+import torch
+from safetensors import SafetensorError
+
+from shared.config import ConfigError, ModelConfig, RunConfig, SensorConfig, from_dict
+from shared.errors import CogexploreError
+from shared.learning.dqn import DQNAgent, DQNError
+from shared.learning.model import (
+    ModelError,
+    QNetwork,
+    SupervisedNet,
+    architecture_fingerprint,
+    average_weights,
+    copy_conv_weights,
+    load_tensors,
+    resolve_device,
+    weights_to_tensors,
+)
+from shared.learning.replay import ReplayError, ReplayMemory
+
+log = logging.getLogger("cogexplore.checkpoints")
+
+FORMAT = "cogexplore-checkpoint"
+WEIGHTS_FORMAT = "cogexplore-weights"
+VERSION = 1
+LATEST = "latest"
+_META_KEY = "cogexplore"
+_NAME_RE = re.compile(r"^ckpt-(\d{9})\.safetensors$")
+_REPLAY_RE = re.compile(r"^ckpt-(\d{9})\.replay-[0-9a-f]{12}\.safetensors$")
+
+
+class CheckpointError(CogexploreError):
+    """A checkpoint or weights file is missing, partial, corrupt or does not fit."""
+
+
+# --------------------------------------------------------------------------- atomic files
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _publish(tmp: Path, final: Path) -> None:
+    fd = os.open(tmp, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+    os.replace(tmp, final)
+    _fsync_dir(final.parent)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` via a fsynced temporary file and a rename."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    tmp.write_text(text)
+    _publish(tmp, path)
+
+
+def _digest(arrays: Mapping[str, Any]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = arrays[name]
+        if isinstance(a, torch.Tensor):
+            a = a.detach().to("cpu").contiguous().reshape(-1).view(torch.uint8).numpy()
+        else:
+            a = np.ascontiguousarray(a).reshape(-1).view(np.uint8)
+        h.update(name.encode())
+        h.update(str(a.size).encode())
+        h.update(memoryview(a))
+    return h.hexdigest()
+
+
+def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+    """Atomically write tensors + JSON metadata (with a digest of the tensors) as safetensors."""
+    meta = dict(meta, digest=_digest(tensors))
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
+    _publish(tmp, path)
+
+
+def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
+    try:
+        with safetensors.safe_open(str(path), framework="numpy") as f:
+            raw = (f.metadata() or {}).get(_META_KEY)
+    except FileNotFoundError:
+        raise CheckpointError(f"{path} does not exist") from None
+    except (SafetensorError, OSError, ValueError) as exc:
+        raise CheckpointError(f"{path} is not a readable safetensors file (partial or corrupt?): "
+                              f"{exc}") from None
+    if raw is None:
+        raise CheckpointError(f"{path} has no cogexplore metadata: not a {fmt} file")
+    try:
+        meta = json.loads(raw)
+    except json.JSONDecodeError as exc:
+        raise CheckpointError(f"{path}: metadata is not valid JSON ({exc})") from None
+    if meta.get("format") != fmt:
+        raise CheckpointError(f"{path} is a {meta.get('format')!r} file, expected {fmt!r}")
+    if meta.get("version") != VERSION:
+        raise CheckpointError(f"{path} has format version {meta.get('version')}, this code reads {VERSION}")
+    return meta
+
+
+def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict[str, Any], dict[str, Any]]:
+    """Read a file written by save_tensors_file: check its format tag ``fmt`` and digest;
+    raises CheckpointError if it is partial, corrupt or of another format."""
+    meta = _read_meta(path, fmt)
+    try:
+        if framework == "pt":
+            tensors: dict[str, Any] = safetensors.torch.load_file(str(path))
+        else:
+            tensors = safetensors.numpy.load_file(str(path))
+    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+        raise CheckpointError(f"{path} cannot be read (partial or corrupt?): {exc}") from None
+    if _digest(tensors) != meta.get("digest"):
+        raise CheckpointError(f"{path} is corrupt: its tensor data does not match the stored digest")
+    return tensors, meta
+
+
+# --------------------------------------------------------------------------- checkpoints
+@dataclass
+class Checkpoint:
+    """A loaded, verified checkpoint (not yet applied to an agent)."""
+
+    path: Path
+    tensors: dict[str, torch.Tensor]
+    agent_meta: dict[str, Any]
+    config: dict[str, Any] | None
+    extra: dict[str, Any]
+    replay_path: Path | None = None
+    replay_digest: str | None = None
+
+    @property
+    def update_count(self) -> int:
+        return int(self.agent_meta["update_count"])
+
+    @property
+    def policy_version(self) -> int:
+        return int(self.agent_meta["policy_version"])
+
+    def restore(self, agent: DQNAgent, replay: ReplayMemory | None = None) -> None:
+        """Load the agent's state (and the replay memory, when given and saved) exactly."""
+        try:
+            agent.load_state_tensors(self.tensors, self.agent_meta)
+        except (DQNError, ModelError, KeyError, ValueError) as exc:
+            raise CheckpointError(f"{self.path} does not fit this agent: {exc}") from None
+        if replay is not None:
+            if self.replay_path is None:
+                raise CheckpointError(f"{self.path} was saved without its replay memory")
+            if not self.replay_path.exists():
+                raise CheckpointError(f"{self.path}'s replay memory was not kept ({self.replay_path.name}: only "
+                                      "the newest checkpoints keep theirs)")
+            arrays, meta = load_tensors_file(self.replay_path, FORMAT + "-replay", framework="numpy")
+            if meta.get("digest") != self.replay_digest:
+                raise CheckpointError(f"{self.replay_path} belongs to another checkpoint")
+            try:
+                replay.load_state_dict(arrays, meta["replay"])
+            except (ReplayError, KeyError) as exc:
+                raise CheckpointError(f"{self.replay_path} does not fit this replay memory: {exc}") from None
+
+
+def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory | None = None,
+                    config: Mapping[str, Any] | None = None,
+                    extra: Mapping[str, Any] | None = None) -> Path:
+    """Write one checkpoint file (and ``<stem>.replay-<digest>.safetensors`` with ``replay``).
+
+    ``config`` is the run's config dict (RunConfig.to_dict()); ``extra`` any JSON-able state of
+    the caller (environment steps, episode counts, other RNG states).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tensors, agent_meta = agent.state_tensors()
+    replay_info = None
+    if replay is not None:
+        arrays, rmeta = replay.state_dict()
+        rdigest = _digest(arrays)
+        rpath = path.with_name(path.name.replace(".safetensors", f".replay-{rdigest[:12]}.safetensors"))
+        tmp = rpath.with_name(f".{rpath.name}.tmp-{os.getpid()}")
+        safetensors.numpy.save_file(
+            {k: np.ascontiguousarray(v) for k, v in arrays.items()}, tmp,
+            metadata={_META_KEY: json.dumps({"format": FORMAT + "-replay", "version": VERSION,
+                                             "replay": rmeta, "digest": rdigest})})
+        _publish(tmp, rpath)
+        replay_info = {"file": rpath.name, "digest": rdigest}
+    meta = {"format": FORMAT, "version": VERSION, "created_unix": time.time(), "agent": agent_meta,
+            "config": dict(config) if config is not None else None,
+            "extra": dict(extra) if extra is not None else {}, "replay": replay_info}
+    try:
+        json.dumps(meta)
+    except TypeError as exc:
+        raise CheckpointError(f"checkpoint config/extra must be JSON-serialisable: {exc}") from None
+    save_tensors_file(path, tensors, meta)
+    return path
+
+
+def load_checkpoint(path: Path | str) -> Checkpoint:
+    """Read and verify one checkpoint file; raises CheckpointError if partial or corrupt."""
+    path = Path(path)
+    tensors, meta = load_tensors_file(path, FORMAT)
+    rinfo = meta.get("replay")
+    return Checkpoint(path=path, tensors=tensors, agent_meta=meta["agent"], config=meta.get("config"),
+                      extra=meta.get("extra") or {},
+                      replay_path=path.with_name(rinfo["file"]) if rinfo else None,
+                      replay_digest=rinfo["digest"] if rinfo else None)
+
+
+@dataclass
+class CheckpointManager:
+    """Numbered checkpoints in one directory with a ``latest`` pointer; keeps the last ``keep``,
+    the replay memory with the last ``keep_replays`` of them."""
+
+    directory: Path
+    keep: int = 3
+    keep_replays: int = 2
+    skipped: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        self.directory = Path(self.directory)
+        for name in ("keep", "keep_replays"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise CheckpointError(f"{name} must be an integer >= 1, got {value!r}")
+
+    def path_for(self, update_count: int) -> Path:
+        return self.directory / f"ckpt-{update_count:09d}.safetensors"
+
+    def checkpoints(self) -> list[Path]:
+        """Checkpoint files present, oldest first."""
+        if not self.directory.is_dir():
+            return []
+        return sorted(p for p in self.directory.iterdir() if _NAME_RE.match(p.name))
+
+    def latest(self) -> Path | None:
+        """The checkpoint ``latest`` names (None if there is none)."""
+        pointer = self.directory / LATEST
+        if not pointer.exists():
+            return None
+        name = pointer.read_text().strip()
+        if not _NAME_RE.match(name):
+            raise CheckpointError(f"{pointer} names {name!r}, which is not a checkpoint file")
+        return self.directory / name
+
+    def save(self, agent: DQNAgent, *, replay: ReplayMemory | None = None,
+             config: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None) -> Path:
+        """Save at the agent's update count, point ``latest`` at it, prune older ones."""
+        self.directory.mkdir(parents=True, exist_ok=True)
+        path = save_checkpoint(self.path_for(agent.update_count), agent, replay=replay,
+                               config=config, extra=extra)
+        atomic_write_text(self.directory / LATEST, path.name + "\n")
+        self._prune(path)
+        return path
+
+    def _prune(self, newest: Path) -> None:
+        ckpts = [p for p in self.checkpoints() if p != newest]
+        for old in ckpts[: max(0, len(ckpts) - (self.keep - 1))]:
+            old.unlink(missing_ok=True)
+        live_replays = set()
+        for p in self.checkpoints()[-self.keep_replays:]:
+            try:
+                rinfo = _read_meta(p, FORMAT).get("replay")
+            except CheckpointError:
+                continue  # unreadable: its replay is useless too
+            if rinfo:
+                live_replays.add(rinfo["file"])
+        for p in self.directory.iterdir():
+            # orphans: replays of pruned, re-saved or older checkpoints, temporaries of crashed writers
+            orphan_replay = _REPLAY_RE.match(p.name) and p.name not in live_replays
+            stale_tmp = p.name.startswith(".") and ".tmp-" in p.name and not p.name.endswith(
+                f".tmp-{os.getpid()}")
+            if orphan_replay or stale_tmp:
+                p.unlink(missing_ok=True)
+
+    def load(self, path: Path | str | None = None) -> Checkpoint:
+        """Load ``path``, or the one ``latest`` names; errors if it is partial or corrupt."""
+        target = Path(path) if path is not None else self.latest()
+        if target is None:
+            raise CheckpointError(f"no checkpoint in {self.directory}")
+        return load_checkpoint(target)
+
+    def load_latest(self) -> Checkpoint | None:
+        """The newest checkpoint that loads, starting from ``latest``; None if there is none.
+
+        Files that fail (and why) are listed in ``self.skipped``.
+        """
+        self.skipped = []
+        candidates = list(reversed(self.checkpoints()))
+        try:
+            first = self.latest()
+        except CheckpointError as exc:
+            self.skipped.append(str(exc))
+            first = None
+        if first is not None:
+            candidates = [first] + [p for p in candidates if p != first and p.name < first.name]
+        for path in candidates:
+            try:
+                return load_checkpoint(path)
+            except CheckpointError as exc:
+                self.skipped.append(str(exc))
+        return None
+
+
+# --------------------------------------------------------------------------- weights-only export
+def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0, *, half: bool = False,
+                   extra: Mapping[str, Any] | None = None) -> Path:
+    """Write the network's weights, architecture and policy version (for deployment).
+
+    ``half`` stores float16 (half the bytes; loading casts back to float32, and the greedy
+    action is what matters, not the last bits of a Q-value). ``extra`` is JSON-able metadata
+    kept beside the weights (e.g. a model card)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
+            "fingerprint": architecture_fingerprint(net),
+            "model": _asdict(net.model_cfg), "sensor": _asdict(net.sensor_cfg), **dict(extra or {})}
+    tensors = weights_to_tensors(net)
+    if half:
+        tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
+    save_tensors_file(path, tensors, meta)
+    return path
+
+
+def load_exported_weights(path: Path | str, device: str | torch.device = "cpu") -> tuple[QNetwork, dict[str, Any]]:
+    """Rebuild the QNetwork of an ``export_weights`` file (eval mode) and return it with its metadata."""
+    path = Path(path)
+    tensors, meta = load_tensors_file(path, WEIGHTS_FORMAT)
+    try:
+        net = QNetwork(ModelConfig(**meta["model"]), SensorConfig(**meta["sensor"]))
+    except (ConfigError, TypeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: architecture metadata is invalid: {exc}") from None
+    if architecture_fingerprint(net) != meta.get("fingerprint"):
+        raise CheckpointError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its own "
+                              "architecture (written by another version?)")
+    try:
+        load_tensors(net, tensors)
+    except ModelError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    return net.to(device).eval(), meta
+
+
+# --------------------------------------------------------------------------- shipped models
+PRETRAINED_DIR = Path(__file__).resolve().parents[1] / "pretrained"
+"""Models shipped with the package (see ``shared/pretrained/MODEL_CARD.md``)."""
+PRETRAINED_FILES = {"drl": "drl.safetensors", "sl": "sl.safetensors"}
+"""``pretrained`` (= ``pretrained:drl``) and ``pretrained:sl`` name these files."""
+
+
+def pretrained_path(name: str | Path) -> Path | None:
+    """The shipped file a ``pretrained[:drl|:sl]`` argument names; None for any other argument.
+
+    Raises CheckpointError for an unknown ``pretrained:<kind>`` or a missing shipped file."""
+    text = str(name)
+    if text != "pretrained" and not text.startswith("pretrained:"):
+        return None
+    kind = text.partition(":")[2] or "drl"
+    if kind not in PRETRAINED_FILES:
+        raise CheckpointError(f"unknown shipped model {text!r}; choose pretrained, "
+                              + ", ".join(f"pretrained:{k}" for k in PRETRAINED_FILES))
+    path = PRETRAINED_DIR / PRETRAINED_FILES[kind]
+    if not path.is_file():
+        raise CheckpointError(f"the shipped model {path} is missing (a broken install?)")
+    return path
+
+
+def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
+    """Fine-tuning (``train.init_from``): the agent's online and target networks from a weights
+    export or ``pretrained`` (the shipped DRL model). Raises CheckpointError when the file's
+    network or image is not the agent's. Returns the file's metadata."""
+    path = pretrained_path(source) or Path(source)
+    if not path.is_file():
+        raise CheckpointError(f"train.init_from = {str(source)!r}: no such file")
+    try:
+        net, meta = load_exported_weights(path)
+    except CheckpointError as exc:
+        raise CheckpointError(f"train.init_from: {exc} (a training checkpoint becomes a weights file with "
+                              "`cogexplore model export CKPT --out FILE`)") from None
+    theirs, ours = net.sensor_cfg, agent.sensor_cfg
+    if architecture_fingerprint(net) != agent.fingerprint or (theirs.width, theirs.height, theirs.max_range_m) != (
+            ours.width, ours.height, ours.max_range_m):
+        raise CheckpointError(f"train.init_from = {str(source)!r}: its network ({meta['model']}, "
+                              f"{theirs.width} x {theirs.height} px, {theirs.max_range_m} m) is not this run's "
+                              f"({_asdict(agent.model_cfg)}, {ours.width} x {ours.height} px, {ours.max_range_m} m)")
+    with torch.no_grad():
+        agent.online.load_state_dict(net.state_dict())
+    agent.sync_target()
+    return meta
+
+
+def _asdict(cfg: Any) -> dict[str, Any]:
+    return asdict(cfg)
+
+
+# --------------------------------------------------------------------------- supervised model files
+MODEL_FORMAT = "cogexplore-supervised"
+
+
+def card_path(model_path: str | Path) -> Path:
+    """Where the JSON model card of a model file lives: ``<stem>.card.json`` next to it."""
+    p = Path(model_path)
+    return p.with_name(p.name.removesuffix(".safetensors") + ".card.json")
+
+
+def save_supervised(path: str | Path, net: SupervisedNet, card: Mapping[str, Any] | None = None) -> Path:
+    """Write the model as safetensors (weights, sensor config, fingerprint, card in the metadata,
+    atomically, with a digest) and its card as ``<stem>.card.json``."""
+    path = Path(path)
+    if path.suffix != ".safetensors":
+        raise CheckpointError(f"a supervised model file must end in .safetensors, got {path}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = {"format": MODEL_FORMAT, "version": VERSION, "fingerprint": architecture_fingerprint(net),
+            "sensor": asdict(net.sensor_cfg), "depth_encoding": net.trunk.depth_encoding,
+            "card": json.loads(json.dumps(dict(card or {})))}
+    save_tensors_file(path, weights_to_tensors(net), meta)
+    atomic_write_text(card_path(path), json.dumps(meta["card"], indent=2) + "\n")
+    return path
+
+
+def load_supervised(path: str | Path, device: str | torch.device = "cpu") -> tuple[SupervisedNet, dict[str, Any]]:
+    """Rebuild the SupervisedNet of a :func:`save_supervised` file (eval mode) and its metadata."""
+    path = Path(path)
+    try:
+        tensors, meta = load_tensors_file(path, MODEL_FORMAT)
+    except CheckpointError as exc:
+        raise CheckpointError(f"not a supervised model (write one with `cogexplore pretrain`): {exc}") from None
+    try:
+        net = SupervisedNet(SensorConfig(**meta["sensor"]), meta.get("depth_encoding", "metric"))
+    except (ConfigError, ModelError, TypeError, KeyError) as exc:
+        raise CheckpointError(f"{path}: sensor or depth-encoding metadata is invalid: {exc}") from None
+    if architecture_fingerprint(net) != meta.get("fingerprint"):
+        raise CheckpointError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its architecture")
+    try:
+        load_tensors(net, tensors)
+    except ModelError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+    return net.to(resolve_device(device)).eval(), meta
+
+
+def copy_conv_from_supervised(dst: torch.nn.Module, path: str | Path) -> dict[str, Any]:
+    """Copy the conv layers of the supervised model file into ``dst`` (a QNetwork); nothing else
+    changes. The conv weights do not depend on the image size, so any sensor size fits."""
+    src, meta = load_supervised(path)
+    device = next(dst.parameters()).device
+    try:
+        copy_conv_weights(src.to(device), dst)
+    except ModelError as exc:
+        raise CheckpointError(f"{path}: cannot copy its conv layers: {exc}") from None
+    return meta
+
+
+def init_agent_conv(agent: DQNAgent, path: str | Path) -> dict[str, Any]:
+    """The paper's transfer: the agent's online conv layers from the supervised model, and the
+    target network synchronised to the online one. ``pretrained:sl`` names the shipped supervised
+    model. Returns the model file's metadata."""
+    try:
+        path = pretrained_path(path) or path
+    except CheckpointError as exc:
+        raise CheckpointError(f"train.init_conv_from: {exc}") from None
+    if not Path(path).is_file():
+        raise CheckpointError(f"train.init_conv_from = {str(path)!r}: no such file (write one with "
+                              "`cogexplore pretrain --out PATH`)")
+    meta = copy_conv_from_supervised(agent.online, path)
+    agent.sync_target()
+    return meta
+
+
+# --------------------------------------------------------------------------- loading any model
+@dataclass(frozen=True)
+class LoadedModel:
+    """A network ready for greedy evaluation, and where it came from."""
+
+    net: Any
+    """The QNetwork (eval mode, on the requested device)."""
+    path: Path
+    """The file actually loaded (a run folder resolves to its latest checkpoint)."""
+    kind: str
+    """'checkpoint' or 'weights' (a weights-only export)."""
+    policy_version: int
+    fingerprint: str
+    weights_sha256: str
+    """Digest of the online weights: tells one checkpoint from another whatever its path."""
+    run_config: RunConfig | None
+    """The run config stored in a checkpoint (None for weights-only exports)."""
+    name: str | None = None
+    """A fixed table name (the baselines: 'SL', 'RL'); None: derived from the path."""
+    averaged_from: tuple[dict[str, Any], ...] = ()
+    """For a mean of several checkpoints (:func:`average_models`): each source and its update."""
+
+    @property
+    def label(self) -> str:
+        """A short name for tables: ``name``, else ``<run or file>@<policy_version>``."""
+        if self.name is not None:
+            return self.name
+        stem = self.path.parent.parent.name if self.path.parent.name == "checkpoints" else self.path.stem
+        return f"{stem}@{self.policy_version}"
+
+    def meta(self) -> dict[str, Any]:
+        return {"checkpoint": str(self.path), "checkpoint_kind": self.kind, "policy_version": self.policy_version,
+                "fingerprint": self.fingerprint, "weights_sha256": self.weights_sha256}
+
+
+def weights_sha256(net: torch.nn.Module) -> str:
+    """SHA-256 (16 hex digits) over the network's parameter names and bytes (NCHW order)."""
+    h = hashlib.sha256()
+    for name, t in sorted(weights_to_tensors(net).items()):
+        h.update(name.encode())
+        h.update(t.to(torch.float32).contiguous().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def resolve_checkpoint(source: str | Path) -> Path | None:
+    """The file a checkpoint argument names: a file as is; a directory through its
+    ``latest`` pointer; a run folder through ``<run>/checkpoints``. None for a checkpoint
+    directory that exists but holds no checkpoint yet. ``pretrained`` (or ``pretrained:drl``,
+    ``pretrained:sl``) names a model shipped with the package."""
+    try:
+        shipped = pretrained_path(source)
+    except CheckpointError as exc:
+        raise CheckpointError(str(exc)) from None
+    if shipped is not None:
+        return shipped
+    p = Path(source)
+    if p.is_file():
+        return p
+    if not p.is_dir():
+        raise CheckpointError(f"checkpoint {str(source)!r} does not exist (give a checkpoint file, a checkpoint "
+                            "directory, a run folder or a weights export)")
+    directory = p / "checkpoints" if (p / "checkpoints").is_dir() else p
+    manager = CheckpointManager(directory)
+    if manager.latest() is None and not manager.checkpoints():
+        return None
+    return manager.latest() or manager.checkpoints()[-1]
+
+
+def load_model(source: str | Path, device: str | torch.device = "cpu") -> LoadedModel:
+    """Load a checkpoint file/dir, run folder or weights export into a QNetwork (eval mode).
+
+    A directory's ``latest`` checkpoint is used, or the newest older one that loads when it is
+    corrupt (each skipped file is logged)."""
+    try:
+        dev = resolve_device(device)
+    except ModelError as exc:
+        raise CheckpointError(str(exc)) from None
+    path = resolve_checkpoint(source)
+    if path is None:
+        raise CheckpointError(f"{source} holds no checkpoint yet")
+    p = Path(source)
+    errors: list[str] = []
+    ckpt = None
+    if p.is_dir():
+        manager = CheckpointManager(path.parent)
+        ckpt = manager.load_latest()
+        for skipped in manager.skipped:
+            log.warning("skipped checkpoint: %s", skipped)
+        if ckpt is None:
+            raise CheckpointError(f"no loadable checkpoint in {path.parent}: " + "; ".join(manager.skipped))
+    else:
+        try:
+            ckpt = load_checkpoint(path)
+        except CheckpointError as exc:
+            errors.append(str(exc))
+    if ckpt is not None:
+        meta = ckpt.agent_meta
+        run_config = None
+        if ckpt.config:
+            try:
+                run_config = from_dict(ckpt.config)
+            except ConfigError as exc:
+                raise CheckpointError(f"{ckpt.path}: its stored run config is invalid: {exc}") from None
+        try:
+            model_cfg = run_config.model if "model" not in meta else _cfg(meta["model"], "model")
+            sensor_cfg = run_config.sensor if "sensor" not in meta else _cfg(meta["sensor"], "sensor")
+        except AttributeError:
+            raise CheckpointError(f"{ckpt.path} stores neither the model/sensor config nor a run config") from None
+        net = QNetwork(model_cfg, sensor_cfg)
+        online = {k[len("online."):]: v for k, v in ckpt.tensors.items() if k.startswith("online.")}
+        try:
+            load_tensors(net, online)
+        except ModelError as exc:
+            raise CheckpointError(f"{ckpt.path}: the online weights do not fit the stored config: {exc}") from None
+        net = net.to(dev).eval()
+        return LoadedModel(net, ckpt.path, "checkpoint", ckpt.policy_version, architecture_fingerprint(net),
+                           weights_sha256(net), run_config)
+    try:
+        net, meta = load_exported_weights(path, dev)
+    except CheckpointError as exc:
+        errors.append(str(exc))
+        raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
+    return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
+                       weights_sha256(net), None)
+
+
+def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
+    """The element-wise mean of several loaded models' weights (one run's later checkpoints),
+    labelled with the last one's file, update and run config; one model is returned as is."""
+    if len(models) == 1:
+        return models[0]
+    if not models:
+        raise CheckpointError("nothing to average")
+    last = models[-1]
+    net = copy.deepcopy(last.net)
+    try:
+        load_tensors(net, average_weights([m.net for m in models]))
+    except ModelError as exc:
+        raise CheckpointError(f"cannot average these checkpoints: {exc}") from None
+    return dataclasses.replace(last, net=net.eval(), weights_sha256=weights_sha256(net),
+                               averaged_from=tuple({"source": str(m.path), "policy_version": m.policy_version}
+                                                   for m in models))
+
+
+def load_supervised_model(source: str | Path, device: str | torch.device = "cpu") -> LoadedModel:
+    """Load a supervised model file (``cogexplore pretrain``) for the ``sl`` policy, labelled SL."""
+    path = resolve_checkpoint("pretrained:sl" if str(source) == "pretrained" else source)
+    if path is None or not path.is_file():
+        raise CheckpointError(f"the sl policy needs --checkpoint <supervised model .safetensors> (written by "
+                            f"`cogexplore pretrain`); {str(source)!r} is not a file")
+    try:
+        net, _meta = load_supervised(path, resolve_device(device))
+    except (CheckpointError, ModelError) as exc:
+        raise CheckpointError(str(exc)) from None
+    return LoadedModel(net, path, "supervised", 0, architecture_fingerprint(net), weights_sha256(net), None,
+                       name="SL")
+
+
+def _cfg(data: Mapping[str, Any], section: str) -> Any:
+    try:
+        return getattr(from_dict({section: dict(data)}), section)
+    except ConfigError as exc:
+        raise CheckpointError(f"stored {section} config is invalid: {exc}") from None

@@ -1,0 +1,422 @@
+"""The DQN update (Tai & Liu 2016, Algorithm 1) as pure tensors-in, metrics-out code: no I/O.
+
+Target, for a sampled chain of m <= n steps (n = 1 in the paper)::
+
+    y = sum_{k<m} gamma^k r_k                                  if the chain ends in a collision
+    y = sum_{k<m} gamma^k r_k + gamma^m max_a' Q(x', a'; theta^-)   otherwise (a truncated episode
+                                                                     bootstraps: it is no collision)
+
+With n = 1 this is the paper's y = r_ter on collision and r + gamma max Q(x', .; theta^-) otherwise.
+Double DQN takes the argmax with theta (eval mode) and the value with theta^-. theta^- is copied
+from theta every ``target_sync_every`` updates. The loss is the batch mean of (y - Q(x, a; theta))^2
+(the paper's L = 1/n sum_k (y_k - Q)^2), or the Huber loss, each weighted by importance weights
+under prioritised replay. Dropout is on in the online forward pass that is trained, and off when
+computing targets (deterministic targets, as at test time).
+
+Learning-rate mapping from the paper's Caffe setup ("learning rate 0.0000001", momentum 0.99)
+---------------------------------------------------------------------------------------------
+Caffe's EuclideanLoss layer is E = 1/(2N) sum_i ||p_i - t_i||^2, with N = the blob's *num* (the batch
+size) and the squared norm summed over all 5 outputs of each sample. A Caffe DQN feeds the whole
+(N, 5) Q blob and a target blob equal to the network's own output except at the taken action, so
+the 4 other terms vanish: E = 1/(2N) sum_k (y_k - Q(x_k, a_k))^2 and dE/dQ_k = (Q_k - y_k) / N.
+Our loss is the paper's formula, L = 1/N sum_k (y_k - Q_k)^2 (PyTorch ``mse_loss`` on the gathered
+Q, mean over the batch): dL/dQ_k = 2 (Q_k - y_k) / N, twice Caffe's gradient. (Applying
+``mse_loss`` to the full (N, 5) blob instead would divide by 5N: 2/5 of Caffe's gradient.) Caffe's
+SGD (V <- mu V - lr grad; W <- W + V) and PyTorch's (b <- mu b + grad; W <- W - lr b) follow the
+same trajectory for a fixed lr. Hence Caffe lr eta == PyTorch lr eta / 2 with our loss: the
+paper's 1e-7 is ``lr = 5e-8`` here (``caffe_lr_to_torch``), which the ``paper`` preset uses.
+This holds for the fc layers exactly; the conv layers' effective rate also depends on the input
+scale (an input scaled by s acts like conv1's lr times s^2), and the paper's Caffe input scale is
+not stated: we feed depth / 4 m in [0, 1] (shared.learning.model.preprocess_depth). The paper trains the
+conv layers slower than the fc layers; ``conv_lr_scale`` (0.1) sets that ratio.
+For scale: at initialisation, with momentum 0.99 (an effective rate of 100 lr), 5e-8 moves the fc
+weights by about 0.5-4e-5 of their norm per update and the conv weights 10x less: learning over
+the paper's 40k updates is plausible, over a few thousand it is slow; the ``fast`` preset (Adam)
+is the one meant to learn quickly.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from shared.config import DQNConfig, ModelConfig, SensorConfig, mirror_action
+from shared.errors import CogexploreError
+from shared.learning.model import (
+    InferenceRunner,
+    QNetwork,
+    architecture_fingerprint,
+    forward_flops,
+    load_tensors,
+    mirror_images,
+    preprocess_depth,
+    reduce_allocator_page_faults,
+    resolve_device,
+    weights_to_tensors,
+)
+from shared.learning.replay import Batch
+
+CAFFE_EUCLIDEAN_TO_MEAN_MSE = 0.5
+"""PyTorch lr per Caffe lr when Caffe's EuclideanLoss (1/2N) becomes our mean squared error (1/N)."""
+
+
+class DQNError(CogexploreError):
+    """A batch or state that does not fit the agent."""
+
+
+def caffe_lr_to_torch(caffe_lr: float) -> float:
+    """The PyTorch learning rate equivalent to a Caffe EuclideanLoss learning rate (see module doc)."""
+    return caffe_lr * CAFFE_EUCLIDEAN_TO_MEAN_MSE
+
+
+def n_step_returns(rewards: torch.Tensor, n_steps: torch.Tensor, gamma: float) -> torch.Tensor:
+    """sum_{k < n_steps} gamma^k rewards[:, k] for rewards (B, n) and n_steps (B,)."""
+    n = rewards.shape[1]
+    k = torch.arange(n, device=rewards.device)
+    discounts = torch.pow(torch.full((n,), gamma, dtype=rewards.dtype, device=rewards.device), k)
+    mask = k[None, :] < n_steps[:, None]
+    return (rewards * discounts * mask).sum(dim=1)
+
+
+def lr_factor(update_count: int, decay_updates: int, final_scale: float) -> float:
+    """The learning-rate multiplier at ``update_count``: 1 falling linearly to ``final_scale`` at
+    ``decay_updates``, then constant (1 throughout when ``decay_updates`` is 0)."""
+    if decay_updates <= 0:
+        return 1.0
+    done = min(1.0, max(0, update_count) / decay_updates)
+    return 1.0 - (1.0 - final_scale) * done
+
+
+def td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.Tensor,
+               next_q_target: torch.Tensor, gamma: float,
+               next_q_online: torch.Tensor | None = None) -> torch.Tensor:
+    """TD targets y (B,) from raw n-step data and next-state Q-values (B, A).
+
+    ``next_q_online`` given: Double DQN (argmax by the online net, value by the target net).
+    Rows with ``terminated`` never bootstrap, whatever their next-state values are.
+    """
+    if next_q_online is not None:
+        best = next_q_online.argmax(dim=1, keepdim=True)
+        bootstrap = next_q_target.gather(1, best).squeeze(1)
+    else:
+        bootstrap = next_q_target.max(dim=1).values
+    discount = torch.pow(torch.tensor(gamma, dtype=bootstrap.dtype, device=bootstrap.device),
+                         n_steps.to(bootstrap.dtype))
+    returns = n_step_returns(rewards.to(bootstrap.dtype), n_steps, gamma)
+    return torch.where(terminated, returns, returns + discount * bootstrap)
+
+
+def demo_margin_loss(q_all: torch.Tensor, demo_action: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
+    """DQfD's large-margin loss (Hester et al. 2018): mean over samples of
+    max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E), zero once the demonstrated command a_E leads
+    every other by ``margin``; and the share of samples whose argmax already is a_E."""
+    penalty = torch.full_like(q_all, float(margin))
+    penalty.scatter_(1, demo_action[:, None], 0.0)
+    q_demo = q_all.gather(1, demo_action[:, None]).squeeze(1)
+    loss = ((q_all + penalty).max(dim=1).values - q_demo).mean()
+    agreement = float((q_all.detach().argmax(dim=1) == demo_action).float().mean())
+    return loss, agreement
+
+
+@dataclass
+class TensorBatch:
+    """A replay Batch on the agent's device, preprocessed."""
+
+    obs: torch.Tensor
+    action: torch.Tensor
+    rewards: torch.Tensor
+    n_steps: torch.Tensor
+    terminated: torch.Tensor
+    next_obs: torch.Tensor
+    weights: torch.Tensor
+    previous_action: torch.Tensor  # (B,) int64, -1: none
+    next_previous_action: torch.Tensor  # (B,) int64
+    demo: torch.Tensor | None = None  # (B,) bool: demonstration samples (large-margin loss)
+
+
+def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
+    """``tb`` with the transitions where ``flip`` (B,) is true mirrored left-right: both frames
+    flipped horizontally and the commands swapped (left <-> right, half-left <-> half-right), the
+    previous ones too. Rewards, returns and episode ends are those of the mirror-image transition
+    unchanged."""
+    def mirror(action: torch.Tensor) -> torch.Tensor:
+        return torch.where(flip & (action >= 0), mirror_action(action), action)
+
+    return dataclasses.replace(tb, obs=mirror_images(tb.obs, flip), next_obs=mirror_images(tb.next_obs, flip),
+                               action=mirror(tb.action), previous_action=mirror(tb.previous_action),
+                               next_previous_action=mirror(tb.next_previous_action))
+
+
+class DQNAgent:
+    """Online and target Q-networks, optimiser and counters: the core of every learner.
+
+    ``update(batch)`` does one gradient step and returns metrics; ``weights()`` exports the
+    online weights as CPU tensors for weight messages; ``policy_version`` changes whenever the
+    online weights do (each update, each load), so actors can tell new weights from old.
+    ``seed`` seeds torch's global generator (weight initialisation, dropout masks); checkpoints
+    save and restore that generator so a resumed run draws the same masks.
+    """
+
+    def __init__(self, model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None,
+                 dqn_cfg: DQNConfig | None = None, device: str | torch.device = "auto",
+                 seed: int | None = None):
+        reduce_allocator_page_faults()
+        self.model_cfg = model_cfg or ModelConfig()
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.cfg = dqn_cfg or DQNConfig()
+        self.device = resolve_device(device)
+        if seed is not None:
+            torch.manual_seed(seed)
+        self.online = QNetwork(self.model_cfg, self.sensor_cfg).to(self.device)
+        self.target = copy.deepcopy(self.online)
+        self.target.eval()
+        for p in self.target.parameters():
+            p.requires_grad_(False)
+        self.fingerprint = architecture_fingerprint(self.online)
+        self.optimizer = self._make_optimizer()
+        self.update_count = 0
+        self.policy_version = 0
+        self._runner = InferenceRunner(self.online)
+
+    def _make_optimizer(self) -> torch.optim.Optimizer:
+        cfg = self.cfg
+        conv, head = self.online.conv_parameters(), self.online.head_parameters()
+        groups: list[dict[str, Any]] = [{"params": head, "lr": cfg.lr, "name": "fc"}]
+        if cfg.conv_lr_scale > 0:
+            groups.append({"params": conv, "lr": cfg.lr * cfg.conv_lr_scale, "name": "conv"})
+        else:
+            # frozen representation: no conv weight gradients at all (saves a third of backward)
+            for p in conv:
+                p.requires_grad_(False)
+        if cfg.optimizer == "sgd":
+            return torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum)
+        return torch.optim.Adam(groups, lr=cfg.lr)
+
+    def _set_lr(self, factor: float) -> None:
+        # From the config, not from the groups: a restored optimizer state brings its own lr.
+        for group in self.optimizer.param_groups:
+            scale = self.cfg.conv_lr_scale if group.get("name") == "conv" else 1.0
+            group["lr"] = self.cfg.lr * scale * factor
+
+    # ------------------------------------------------------------------ data
+    def to_tensors(self, batch: Batch) -> TensorBatch:
+        if len(batch) < 1:
+            raise DQNError("empty batch")
+        want = (self.sensor_cfg.height, self.sensor_cfg.width)
+        if batch.obs.shape[1:] != want or batch.next_obs.shape[1:] != want:
+            raise DQNError(f"batch frames {batch.obs.shape[1:]} do not fit the sensor {want}")
+        dev = self.device
+        return TensorBatch(
+            obs=preprocess_depth(batch.obs, dev),
+            action=torch.as_tensor(batch.action, dtype=torch.int64, device=dev),
+            rewards=torch.as_tensor(batch.rewards, dtype=torch.float32, device=dev),
+            n_steps=torch.as_tensor(batch.n_steps, dtype=torch.int64, device=dev),
+            terminated=torch.as_tensor(batch.terminated, dtype=torch.bool, device=dev),
+            next_obs=preprocess_depth(batch.next_obs, dev),
+            weights=torch.as_tensor(batch.weights, dtype=torch.float32, device=dev),
+            previous_action=torch.as_tensor(batch.previous_action, dtype=torch.int64, device=dev),
+            next_previous_action=torch.as_tensor(batch.next_previous_action, dtype=torch.int64, device=dev),
+            demo=None if batch.demo is None else torch.as_tensor(batch.demo, dtype=torch.bool, device=dev),
+        )
+
+    # ------------------------------------------------------------------ update
+    @torch.no_grad()
+    def compute_targets(self, tb: TensorBatch) -> torch.Tensor:
+        """TD targets y (B,) with theta^- (and theta, eval mode, for Double DQN)."""
+        next_q_target = self.target(tb.next_obs, tb.next_previous_action)
+        next_q_online = None
+        if self.cfg.double_dqn:
+            was_training = self.online.training
+            self.online.eval()
+            try:
+                next_q_online = self.online(tb.next_obs, tb.next_previous_action)
+            finally:
+                self.online.train(was_training)
+        return td_targets(tb.rewards, tb.n_steps, tb.terminated, next_q_target, self.cfg.gamma,
+                          next_q_online)
+
+    def update(self, batch: Batch | TensorBatch) -> dict[str, Any]:
+        """One gradient step on ``batch``; syncs theta^- every C updates. Returns metrics.
+
+        Metrics: update (count after this step), policy_version, loss, q_mean (taken actions),
+        target_mean, td_abs_mean, grad_norm, synced_target, and td_errors (numpy (B,), y - Q)
+        for prioritised replay.
+        """
+        tb = batch if isinstance(batch, TensorBatch) else self.to_tensors(batch)
+        if self.cfg.mirror_augment:
+            flip = torch.rand(len(tb.action), device=tb.action.device) < 0.5
+            if tb.demo is not None:
+                # A demonstration commits to one of two mirror-image manoeuvres; in a symmetric
+                # scene (paper-indoor's start 6 sees an exactly symmetric dead end) its mirror
+                # would teach the other turn on the same image, and the two would tie.
+                flip &= ~tb.demo
+            tb = mirror_batch(tb, flip)
+        y = self.compute_targets(tb)
+        self.online.train()
+        q_all = self.online(tb.obs, tb.previous_action)
+        q = q_all.gather(1, tb.action[:, None]).squeeze(1)
+        if self.cfg.loss == "huber":
+            per_sample = F.smooth_l1_loss(q, y, reduction="none", beta=1.0)
+        else:
+            per_sample = (q - y).square()
+        loss = (per_sample * tb.weights).mean()
+        demo_metrics: dict[str, float] = {}
+        if tb.demo is not None and self.cfg.demo_weight > 0 and bool(tb.demo.any()):
+            margin_loss, agreement = demo_margin_loss(q_all[tb.demo], tb.action[tb.demo], self.cfg.demo_margin)
+            loss = loss + self.cfg.demo_weight * margin_loss
+            demo_metrics = {"demo_margin_loss": float(margin_loss.detach()), "demo_agreement": agreement}
+        if not torch.isfinite(loss):
+            raise DQNError(f"non-finite loss {loss.item()} at update {self.update_count + 1}: "
+                           "the learning rate is probably too high")
+        if self.cfg.lr_decay_updates > 0:
+            self._set_lr(lr_factor(self.update_count, self.cfg.lr_decay_updates, self.cfg.lr_final_scale))
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        params = [p for p in self.online.parameters() if p.grad is not None]
+        if self.cfg.grad_clip_norm > 0:
+            grad_norm = torch.nn.utils.clip_grad_norm_(params, self.cfg.grad_clip_norm)
+        else:
+            grad_norm = torch.linalg.vector_norm(torch.stack([p.grad.norm() for p in params]))
+        self.optimizer.step()
+        self.update_count += 1
+        self.policy_version += 1
+        synced = self.update_count % self.cfg.target_sync_every == 0
+        if synced:
+            self.sync_target()
+        td = (y - q).detach()
+        return {
+            "update": self.update_count,
+            "policy_version": self.policy_version,
+            "loss": float(loss.detach()),
+            "q_mean": float(q.detach().mean()),
+            "target_mean": float(y.mean()),
+            "td_abs_mean": float(td.abs().mean()),
+            "grad_norm": float(grad_norm),
+            "synced_target": synced,
+            "td_errors": td.cpu().numpy(),
+            **demo_metrics,
+        }
+
+    def sync_target(self) -> None:
+        """theta^- <- theta."""
+        with torch.no_grad():
+            for pt, po in zip(self.target.parameters(), self.online.parameters()):
+                pt.copy_(po)
+
+    # ------------------------------------------------------------------ acting and weights
+    def q_values(self, depth: Any, previous_action: Any = None) -> np.ndarray:
+        """Greedy-time Q-values of the online net (dropout off) for (H, W) or (B, H, W) depth
+        (and the previous commands, for a ``model.previous_action`` net)."""
+        return self._runner.q_values(depth, previous_action)
+
+    def weights(self) -> dict[str, torch.Tensor]:
+        """Online weights as CPU tensors (for weight messages and exports)."""
+        return weights_to_tensors(self.online)
+
+    def load_weights(self, tensors: dict[str, torch.Tensor], sync_target: bool = True) -> None:
+        """Replace the online weights (e.g. pretrained); bumps policy_version."""
+        load_tensors(self.online, tensors)
+        if sync_target:
+            self.sync_target()
+        self.policy_version += 1
+
+    # ------------------------------------------------------------------ state for checkpoints
+    def state_tensors(self) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+        """(tensors, JSON-able metadata) that restore this agent exactly (see shared.learning.checkpoints).
+
+        Tensors: ``online.*``, ``target.*``, ``optim.<param index>.<key>``, ``rng.torch``
+        (and ``rng.cuda``); the metadata holds counters, optimiser hyperparameters and configs.
+        """
+        tensors = {f"online.{k}": v for k, v in weights_to_tensors(self.online).items()}
+        tensors.update({f"target.{k}": v for k, v in weights_to_tensors(self.target).items()})
+        opt = self.optimizer.state_dict()
+        scalars: dict[str, dict[str, Any]] = {}
+        for idx, st in opt["state"].items():
+            for key, val in st.items():
+                if isinstance(val, torch.Tensor):
+                    # contiguous NCHW: safetensors has no strides (momentum buffers follow the
+                    # weights' channels-last layout on the device)
+                    tensors[f"optim.{idx}.{key}"] = val.detach().to("cpu").contiguous()
+                else:
+                    scalars.setdefault(str(idx), {})[key] = val
+        tensors["rng.torch"] = torch.get_rng_state()
+        if self.device.type == "cuda":
+            tensors["rng.cuda"] = torch.cuda.get_rng_state(self.device)
+        meta = {
+            "update_count": self.update_count,
+            "policy_version": self.policy_version,
+            "fingerprint": self.fingerprint,
+            "optimizer": {"type": type(self.optimizer).__name__, "param_groups": opt["param_groups"],
+                          "scalars": scalars},
+            "model": _asdict(self.model_cfg), "sensor": _asdict(self.sensor_cfg),
+            "dqn": _asdict(self.cfg),
+        }
+        return tensors, meta
+
+    def load_state_tensors(self, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
+        """Inverse of ``state_tensors``; refuses state of another architecture or optimiser."""
+        if meta.get("fingerprint") != self.fingerprint:
+            raise DQNError(f"state is for architecture {meta.get('fingerprint')}, this agent is "
+                           f"{self.fingerprint}")
+        opt_meta = meta["optimizer"]
+        if opt_meta["type"] != type(self.optimizer).__name__:
+            raise DQNError(f"state has a {opt_meta['type']} optimiser, this agent uses "
+                           f"{type(self.optimizer).__name__}")
+        load_tensors(self.online, {k[7:]: v for k, v in tensors.items() if k.startswith("online.")})
+        load_tensors(self.target, {k[7:]: v for k, v in tensors.items() if k.startswith("target.")})
+        state: dict[int, dict[str, Any]] = {}
+        for key, val in tensors.items():
+            if key.startswith("optim."):
+                _, idx, name = key.split(".", 2)
+                state.setdefault(int(idx), {})[name] = val
+        for idx, vals in opt_meta["scalars"].items():
+            state.setdefault(int(idx), {}).update(vals)
+        # our parameters' layout (channels-last) for the momentum buffers, before the optimiser
+        # copies them: keeps the resumed update bit-identical to the uninterrupted one
+        params = [p for g in self.optimizer.param_groups for p in g["params"]]
+        for idx, vals in state.items():
+            for name, val in vals.items():
+                if isinstance(val, torch.Tensor) and val.shape == params[idx].shape:
+                    vals[name] = val.to(self.device).contiguous(
+                        memory_format=_memory_format(params[idx]))
+        self.optimizer.load_state_dict({"state": state, "param_groups": opt_meta["param_groups"]})
+        self.update_count = int(meta["update_count"])
+        self.policy_version = int(meta["policy_version"])
+        if "rng.torch" in tensors:
+            torch.set_rng_state(tensors["rng.torch"])
+        if "rng.cuda" in tensors and self.device.type == "cuda":
+            torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+
+
+def _memory_format(t: torch.Tensor) -> torch.memory_format:
+    if t.dim() == 4 and t.is_contiguous(memory_format=torch.channels_last):
+        return torch.channels_last
+    return torch.contiguous_format
+
+
+def _asdict(cfg: Any) -> dict[str, Any]:
+    return asdict(cfg)
+
+
+def update_flops(net: QNetwork, batch_size: int, double_dqn: bool = True,
+                 conv_trainable: bool = True) -> int:
+    """Multiply-add FLOPs of one update: target (and Double-DQN online) forwards on next_obs, the
+    training forward on obs, and its backward (weight gradients everywhere; input gradients
+    everywhere except conv1, whose input needs none). Pooling and ReLU are not counted."""
+    per_layer = forward_flops(net)
+    fwd = sum(per_layer.values())
+    conv1 = per_layer.get("conv1", 0)
+    if conv_trainable:
+        backward = 2 * fwd - conv1
+    else:
+        conv = sum(v for k, v in per_layer.items() if k.startswith("conv"))
+        backward = 2 * (fwd - conv)
+    nograd_forwards = 2 if double_dqn else 1
+    return int(batch_size * (fwd * (1 + nograd_forwards) + backward))
+

@@ -1,0 +1,181 @@
+"""The learner's algorithm side, without Zenoh: replay memory + DQN agent + the replay-ratio
+rule, and resuming them from a run's checkpoints. Both the learner service
+(``services/learner/service.py``) and the single-process trainer (``services/tools/train.py``)
+drive one of these.
+
+Replay ratio r = updates per inserted transition (the paper's Algorithm 1: one update per
+environment step, r = 1). After ``warmup_transitions`` have arrived, update k is due once
+``r * (received - warmup) >= k``; the learner asks actors for data only up to the point
+where the ratio would fall behind (``transitions_wanted``), see shared.wire.messages.FlowControl.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import time
+from typing import Any, Hashable
+
+import numpy as np
+
+from shared.config import RunConfig
+from shared.learning.checkpoints import CheckpointError, CheckpointManager, init_agent_conv, init_agent_weights
+from shared.learning.demos import demo_replay, load_demonstrations
+from shared.learning.dqn import DQNAgent
+from shared.learning.replay import ReplayMemory, concat_batches
+from shared.wire.messages import TransitionBatch
+
+log = logging.getLogger("cogexplore.learner")
+
+
+class LearnerCore:
+    def __init__(self, cfg: RunConfig, device: str = "auto"):
+        self.cfg = cfg
+        self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
+        # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
+        if cfg.train.init_from:  # fine-tuning: the whole network, conv layers included
+            init_agent_weights(self.agent, cfg.train.init_from)
+        elif cfg.train.init_conv_from:
+            init_agent_conv(self.agent, cfg.train.init_conv_from)
+        frame_shape = (cfg.sensor.height, cfg.sensor.width)
+        self.replay = ReplayMemory(cfg.replay, frame_shape, seed=cfg.train.seed)
+        # Planner demonstrations (train.demos) live apart and are never overwritten; they are
+        # read from their files at every start, so checkpoints do not carry them.
+        self.demo_replay: ReplayMemory | None = None
+        if cfg.train.demo_paths:
+            demos = [d for p in cfg.train.demo_paths for d in load_demonstrations(p, frame_shape)]
+            self.demo_replay = demo_replay(demos, frame_shape, seed=cfg.train.seed + 3)
+        self.received = 0
+        # Latest policy version seen in each actor's transitions: the weight lag is
+        # policy_version - this.
+        self.actor_versions: dict[str, int] = {}
+        self.received_by_actor: collections.Counter = collections.Counter()
+        self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
+        self._demo_window: collections.deque = collections.deque(maxlen=1000)  # demo_agreement
+        self._last_metrics: dict[str, Any] = {}
+
+    # -- data in ---------------------------------------------------------------------------
+    def add_transition(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
+                       next_obs: np.ndarray | None, terminated: bool, truncated: bool) -> None:
+        self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated)
+        self.received += 1
+
+    def ingest(self, batch: TransitionBatch) -> int:
+        """Store a validated TransitionBatch; returns the transitions added.
+
+        Raises MessageError(SHAPE) for frames of another sensor size (nothing is stored).
+        """
+        batch.require_frame_shape(self.cfg.sensor.height, self.cfg.sensor.width)
+        stream = (batch.actor_id, batch.episode)
+        last = batch.steps - 1
+        for i in range(batch.steps):
+            self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
+                                batch.next_depth(i), batch.terminated and i == last,
+                                batch.truncated and i == last)
+        self.received_by_actor[batch.actor_id] += batch.steps
+        self.actor_versions[batch.actor_id] = max(self.actor_versions.get(batch.actor_id, 0),
+                                                  int(batch.policy_version[-1]))
+        return batch.steps
+
+    # -- the ratio rule --------------------------------------------------------------------
+    @property
+    def updates(self) -> int:
+        return self.agent.update_count
+
+    def updates_due(self) -> int:
+        """Updates that may run now without exceeding the replay ratio or the total."""
+        t = self.cfg.train
+        if self.received < max(t.warmup_transitions, self.cfg.dqn.batch_size) or len(self.replay) == 0:
+            return 0
+        allowed = math.floor(t.replay_ratio * (self.received - t.warmup_transitions)) + 1
+        return max(0, min(allowed, t.total_updates) - self.updates)
+
+    def transitions_wanted(self, slack: int) -> int:
+        """Transitions the learner wants to have received in all: enough for every update up
+        to ``total_updates`` at the replay ratio, but no more than ``slack`` ahead of now."""
+        t = self.cfg.train
+        needed_for_next = t.warmup_transitions + math.ceil(self.updates / t.replay_ratio)
+        needed_for_all = t.warmup_transitions + math.ceil(t.total_updates / t.replay_ratio)
+        return min(needed_for_next + slack, needed_for_all)
+
+    @property
+    def done(self) -> bool:
+        return self.updates >= self.cfg.train.total_updates
+
+    # -- training --------------------------------------------------------------------------
+    def train_step(self) -> dict[str, Any]:
+        """Sample a batch and do one DQN update (prioritised replay priorities refreshed)."""
+        dqn = self.cfg.dqn
+        batch = self.replay.sample(dqn.batch_size, dqn.n_step)
+        if self.demo_replay is not None:
+            metrics = self.agent.update(concat_batches(batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step)))
+        else:
+            metrics = self.agent.update(batch)
+        if self.cfg.replay.prioritized:  # the replay memory's own samples come first
+            self.replay.update_priorities(batch.indices, metrics["td_errors"][:len(batch)])
+        self._window.append((metrics["loss"], metrics["q_mean"]))
+        if "demo_agreement" in metrics:
+            self._demo_window.append(metrics["demo_agreement"])
+        self._last_metrics = metrics
+        return metrics
+
+    def recent(self, n: int = 100) -> tuple[float | None, float | None]:
+        """Mean loss and mean Q over the last ``n`` updates."""
+        if not self._window:
+            return None, None
+        items = list(self._window)[-n:]
+        return float(np.mean([x[0] for x in items])), float(np.mean([x[1] for x in items]))
+
+    def recent_demo_agreement(self, n: int = 100) -> float | None:
+        """Share of demonstration samples whose greedy command was the demonstrated one, over the
+        last ``n`` updates (None without demonstrations)."""
+        if not self._demo_window:
+            return None
+        return float(np.mean(list(self._demo_window)[-n:]))
+
+    def weight_lag(self) -> dict[str, int]:
+        return {actor: self.agent.policy_version - v for actor, v in self.actor_versions.items()}
+
+
+class RateMeter:
+    """Events per second over a sliding window of wall time."""
+
+    def __init__(self, window_s: float = 10.0):
+        self.window_s = window_s
+        self._points: collections.deque = collections.deque()
+
+    def add(self, count: float, now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
+        self._points.append((now, count))
+
+    def rate(self, now: float | None = None) -> float:
+        now = time.monotonic() if now is None else now
+        while self._points and now - self._points[0][0] > self.window_s:
+            self._points.popleft()
+        if len(self._points) < 2:
+            return 0.0
+        span = now - self._points[0][0]
+        return sum(c for _, c in list(self._points)[1:]) / max(span, 1e-9)
+
+
+def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
+    """Restore the newest checkpoint that loads (agent, and replay when it was saved)."""
+    checkpoint = checkpoints.load_latest()
+    for reason in checkpoints.skipped:
+        log.warning("skipped a checkpoint: %s", reason)
+    if checkpoint is None:
+        return False
+    with_replay = checkpoint.replay_path is not None and checkpoint.replay_path.exists()
+    if checkpoint.replay_path is not None and not with_replay:
+        log.warning("%s's replay memory was not kept (only the newest checkpoints keep theirs): resuming with "
+                    "an empty replay memory", checkpoint.path.name)
+    try:
+        checkpoint.restore(core.agent, core.replay if with_replay else None)
+    except CheckpointError as exc:
+        log.error("cannot resume from %s: %s; starting fresh", checkpoint.path, exc)
+        return False
+    core.received = int(checkpoint.extra.get("transitions_received", len(core.replay)))
+    log.info("resumed from %s at update %d (%d transitions in replay)", checkpoint.path.name,
+             core.updates, len(core.replay))
+    return True

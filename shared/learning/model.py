@@ -1,0 +1,450 @@
+"""The Q-network (Tai & Liu 2016, Fig. 2) and its supervised sibling, with one depth preprocessing.
+
+Input: one depth image, 1 x H x W (120 x 160 for the paper's Kinect), in metres with 0 = no return.
+``preprocess_depth`` is the only place where depth becomes network input: metres are divided by
+``DEPTH_SCALE_M`` (4 m, the Kinect's usable range) and clipped to [0, 1], so "no return" stays 0 and
+the network sees the same numbers whatever the sensor's configured ``max_range_m``. The conv
+stack's first, parameter-free step re-encodes that input (``ModelConfig.depth_encoding``, see
+:func:`encode_depth`), so every caller feeds the same tensor whatever the encoding.
+
+Layers (``ConvTrunk`` is the conv stack of the authors' supervised model, IROS 2016)::
+
+    conv1 32 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 32 x 60 x 80
+    conv2 32 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 32 x 30 x 40
+    conv3 64 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 64 x 15 x 20   ("pool3", the paper's 64 x 20 x 15)
+    fc1 (ModelConfig.fc1, default 512) + ReLU + dropout
+    fc2 (ModelConfig.fc2, default 256) + ReLU + dropout
+    fc3 5 (one Q-value per moving command), or a dueling value/advantage head
+
+Speed on CPU (``cogexplore bench learner``): three things, all in this module, matter on the
+2-core dev VM. Measured as the share of the in-process fp32 matmul peak that a batch-32 Double-DQN
+update achieves (3 runs each, separate processes, machine shared with other jobs): plain PyTorch
+0.25-0.34; + channels-last (oneDNN's native NHWC convolutions) 0.36-0.45; + pooling before ReLU
+(same values, 4x smaller ReLU tensors) 0.38-0.44; + ``reduce_allocator_page_faults`` 0.51-0.59,
+i.e. about 2x the plain version. ``torch.compile`` (67 s to compile, no faster), a NCHW conv1
+(C_in = 1) and TorchScript freezing for inference did not help and were dropped. The networks
+are created channels-last and ``.to(...)`` keeps that; single-image inference goes through
+:class:`InferenceRunner` (eval mode, ``torch.inference_mode``).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from shared.config import DEPTH_ENCODINGS, NUM_ACTIONS, ModelConfig, SensorConfig
+from shared.depth import MM_PER_M
+from shared.errors import CogexploreError
+from shared.wire.messages import shape_fingerprint
+
+DEPTH_SCALE_M = 4.0
+"""Depth that maps to network input 1.0; farther returns are clipped to 1."""
+INVERSE_DEPTH_NEAR_M = 0.5
+"""The 'inverse' encoding's depth that maps to 1.0 (just inside the 0.55 m collision distance)."""
+CONV_CHANNELS: tuple[int, int, int] = (32, 32, 64)
+CONV_KERNEL = 5
+
+
+class ModelError(CogexploreError):
+    """Bad network input, incompatible weights or an image too small for the conv stack."""
+
+
+def pool3_shape(sensor_cfg: SensorConfig) -> tuple[int, int, int]:
+    """(C, H, W) of pool3 for images of the sensor's size (each pool floors odd sizes)."""
+    h, w = sensor_cfg.height, sensor_cfg.width
+    for _ in range(3):
+        h, w = h // 2, w // 2
+    if h < 1 or w < 1:
+        raise ModelError(f"a {sensor_cfg.width}x{sensor_cfg.height} image is too small for three "
+                         "2x2 poolings (need at least 8x8)")
+    return CONV_CHANNELS[2], h, w
+
+
+def preprocess_depth(depth: Any, device: torch.device | str | None = None) -> torch.Tensor:
+    """Depth image(s) -> network input (B, 1, H, W) float32 in [0, 1], channels-last.
+
+    ``depth`` is (H, W) or (B, H, W), a numpy array or tensor. Floating-point input is metres;
+    integer input (``uint16`` from the wire and replay) is millimetres. 0 (no return) stays 0.
+    """
+    if isinstance(depth, np.ndarray):
+        if depth.dtype == np.uint16:  # torch's uint16 support is partial: widen first
+            depth = depth.astype(np.int32)
+        t = torch.from_numpy(np.ascontiguousarray(depth))
+    elif isinstance(depth, torch.Tensor):
+        t = depth
+    else:
+        raise ModelError(f"depth must be a numpy array or torch tensor, got {type(depth).__name__}")
+    if t.dim() == 2:
+        t = t.unsqueeze(0)
+    if t.dim() != 3:
+        raise ModelError(f"depth must be (H, W) or (B, H, W), got shape {tuple(t.shape)}")
+    if t.dtype == torch.bool or t.is_complex():
+        raise ModelError(f"depth must be float metres or integer millimetres, got {t.dtype}")
+    scale = 1.0 / DEPTH_SCALE_M if t.dtype.is_floating_point else 1.0 / (DEPTH_SCALE_M * MM_PER_M)
+    if device is not None:
+        t = t.to(device, non_blocking=True)
+    x = (t.to(torch.float32) * scale).clamp_(0.0, 1.0).unsqueeze(1)
+    # NaN (a broken frame) would poison every Q-value: read it as "no return"
+    x = torch.nan_to_num_(x, nan=0.0)
+    return x.contiguous(memory_format=torch.channels_last)
+
+
+def resolve_device(device: str | torch.device = "auto") -> torch.device:
+    """'auto' -> CUDA when present, else CPU; other names pass to torch.device (checked)."""
+    if isinstance(device, torch.device):
+        return device
+    if device == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        raise ModelError(f"unknown device {device!r}: {exc}") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ModelError(f"device {device!r} requested but CUDA is not available")
+    return dev
+
+
+_ALLOCATOR_TUNED = False
+
+
+def reduce_allocator_page_faults() -> bool:
+    """Keep freed memory in the process heap instead of returning it to the OS (glibc only).
+
+    glibc serves large blocks (a batch's 78 MB conv1 activation) with fresh mmaps and unmaps them
+    on free, so every update page-faults its activations in again: measured on the dev VM, this
+    made a 32x32x120x160 conv 6x and a zero-fill 8x slower. Raising the mmap and trim thresholds
+    keeps those blocks in the heap for reuse. Process-wide and idempotent; returns whether set.
+    """
+    global _ALLOCATOR_TUNED
+    if _ALLOCATOR_TUNED:
+        return True
+    try:
+        import ctypes
+        import platform
+        if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+            return False
+        libc = ctypes.CDLL("libc.so.6")
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        ok = libc.mallopt(m_mmap_threshold, 1 << 30) == 1 and libc.mallopt(m_trim_threshold, 1 << 30) == 1
+    except (OSError, AttributeError):
+        return False
+    _ALLOCATOR_TUNED = ok
+    return ok
+
+
+def encode_depth(x: torch.Tensor, encoding: str) -> torch.Tensor:
+    """Re-encode ``preprocess_depth`` output (depth / 4 m, 0 = no return) for the conv layers.
+
+    'metric' returns it unchanged (the paper). 'inverse' gives ``INVERSE_DEPTH_NEAR_M / depth``
+    capped at 1 and keeps "no return" at 0: in the metric input, open space beyond 4 m (0) and a
+    wall at the collision distance (0.14) are neighbours, so a small shift of the far region
+    looks like a nearby obstacle; inverse depth is monotone (0 far, 1 at the threshold), is
+    nearly continuous at the range limit (0.125 -> 0) and spends its range on the near
+    obstacles that decide a collision."""
+    if encoding == "metric":
+        return x
+    if encoding == "inverse":
+        near = INVERSE_DEPTH_NEAR_M / DEPTH_SCALE_M
+        return torch.where(x > 0, near / x.clamp(min=near), 0.0)
+    raise ModelError(f"unknown depth encoding {encoding!r}")
+
+
+def mirror_images(x: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
+    """Network input (B, 1, H, W) with the images where ``flip`` (B,) is true mirrored left-right
+    (channels-last, as the networks take it)."""
+    return torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(memory_format=torch.channels_last)
+
+
+def previous_action_input(previous_action: Any, batch: int, device: torch.device | str | None = None,
+                          dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """(B, 5) one-hot of the previous commands (``model.previous_action``): ``previous_action`` is
+    None (no previous command: every row zeros), an int, or (B,) ints where -1 means none."""
+    if previous_action is None:
+        return torch.zeros(batch, NUM_ACTIONS, dtype=dtype, device=device)
+    prev = torch.as_tensor(previous_action, dtype=torch.int64, device=device).reshape(-1)
+    if prev.numel() == 1 and batch != 1:
+        prev = prev.expand(batch)
+    if prev.shape != (batch,) or bool(((prev < -1) | (prev >= NUM_ACTIONS)).any()):
+        raise ModelError(f"previous_action must be None, or {batch} command indices in [-1, {NUM_ACTIONS}) "
+                         f"(-1: none), got {previous_action!r}")
+    return F.one_hot(prev.clamp(min=0), NUM_ACTIONS).to(dtype) * (prev >= 0).to(dtype)[:, None]
+
+
+class ConvTrunk(nn.Module):
+    """Depth encoding, then conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
+
+    def __init__(self, depth_encoding: str = "metric") -> None:
+        super().__init__()
+        if depth_encoding not in DEPTH_ENCODINGS:  # fail here, not at the first forward
+            raise ModelError(f"unknown depth encoding {depth_encoding!r}")
+        self.depth_encoding = depth_encoding
+        c1, c2, c3 = CONV_CHANNELS
+        pad = CONV_KERNEL // 2
+        self.conv1 = nn.Conv2d(1, c1, CONV_KERNEL, padding=pad)
+        self.conv2 = nn.Conv2d(c1, c2, CONV_KERNEL, padding=pad)
+        self.conv3 = nn.Conv2d(c2, c3, CONV_KERNEL, padding=pad)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        # The paper's order is conv -> ReLU -> pool. max-pool and ReLU commute (both monotone),
+        # so pooling first gives the same values and gradients while ReLU and its backward touch
+        # a 4x smaller tensor: about 10% of an update's time on CPU.
+        x = encode_depth(x, self.depth_encoding)
+        x = F.relu(F.max_pool2d(self.conv1(x), 2), inplace=True)
+        x = F.relu(F.max_pool2d(self.conv2(x), 2), inplace=True)
+        return F.relu(F.max_pool2d(self.conv3(x), 2), inplace=True)
+
+
+class QNetwork(nn.Module):
+    """Depth image -> 5 Q-values (left, half-left, straight, half-right, right).
+
+    With ``model.previous_action`` the previous command also enters fc1, through its own
+    bias-free layer (``previous_action_fc``) added to fc1's output: the same as widening fc1's
+    input by the one-hot, while fc1 keeps the shape the frozen-conv and probe code expect.
+    ``previous_action=None`` reads as "no previous command" (an episode's first step).
+    """
+
+    def __init__(self, model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None):
+        super().__init__()
+        self.model_cfg = model_cfg or ModelConfig()
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.pool3_shape = pool3_shape(self.sensor_cfg)
+        flat = int(np.prod(self.pool3_shape))
+        cfg = self.model_cfg
+        self.trunk = ConvTrunk(cfg.depth_encoding)
+        self.fc1 = nn.Linear(flat, cfg.fc1)
+        self.previous_action_fc = nn.Linear(NUM_ACTIONS, cfg.fc1, bias=False) if cfg.previous_action else None
+        self.fc2 = nn.Linear(cfg.fc1, cfg.fc2)
+        self.dropout = nn.Dropout(cfg.dropout)
+        if cfg.dueling:
+            self.value = nn.Linear(cfg.fc2, 1)
+            self.advantage = nn.Linear(cfg.fc2, NUM_ACTIONS)
+        else:
+            self.fc3 = nn.Linear(cfg.fc2, NUM_ACTIONS)
+        self.to(memory_format=torch.channels_last)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, 1, H, W)."""
+        self._check_input(x)
+        return self.trunk(x)
+
+    def head(self, pool3: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        """pool3 activations (and the previous commands, see the class) -> (B, 5) Q-values."""
+        # flatten in NCHW order whatever the memory format, so fc1 weights are format-independent
+        h = self.fc1(torch.flatten(pool3.contiguous(), 1))
+        if self.previous_action_fc is not None:
+            h = h + self.previous_action_fc(previous_action_input(previous_action, h.shape[0], h.device, h.dtype))
+        h = self.dropout(F.relu(h, inplace=True))
+        h = self.dropout(F.relu(self.fc2(h), inplace=True))
+        if self.model_cfg.dueling:
+            adv = self.advantage(h)
+            return self.value(h) + adv - adv.mean(dim=1, keepdim=True)
+        return self.fc3(h)
+
+    def forward(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        return self.head(self.features(x), previous_action)
+
+    def _check_input(self, x: torch.Tensor) -> None:
+        want = (1, self.sensor_cfg.height, self.sensor_cfg.width)
+        if x.dim() != 4 or tuple(x.shape[1:]) != want:
+            raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) "
+                             f"(use preprocess_depth), got {tuple(x.shape)}")
+
+    def conv_parameters(self) -> list[nn.Parameter]:
+        return list(self.trunk.parameters())
+
+    def head_parameters(self) -> list[nn.Parameter]:
+        return [p for n, p in self.named_parameters() if not n.startswith("trunk.")]
+
+
+class SupervisedNet(nn.Module):
+    """The authors' supervised obstacle-avoidance model: the same ConvTrunk + one fc to 5 classes."""
+
+    def __init__(self, sensor_cfg: SensorConfig | None = None, depth_encoding: str = "metric"):
+        super().__init__()
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.pool3_shape = pool3_shape(self.sensor_cfg)
+        self.trunk = ConvTrunk(depth_encoding)
+        self.fc = nn.Linear(int(np.prod(self.pool3_shape)), NUM_ACTIONS)
+        self.to(memory_format=torch.channels_last)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        return self.trunk(x)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 1, H, W) -> (B, 5) class logits."""
+        return self.fc(torch.flatten(self.trunk(x).contiguous(), 1))
+
+
+def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
+    """Copy the ConvTrunk weights of ``src`` into ``dst`` (QNetwork <-> SupervisedNet)."""
+    for m, name in ((src, "src"), (dst, "dst")):
+        if not isinstance(getattr(m, "trunk", None), ConvTrunk):
+            raise ModelError(f"{name} ({type(m).__name__}) has no ConvTrunk")
+    if src.trunk.depth_encoding != dst.trunk.depth_encoding:
+        raise ModelError(f"the conv layers were trained on {src.trunk.depth_encoding!r} depth input, the "
+                         f"network reads {dst.trunk.depth_encoding!r} (model.depth_encoding)")
+    with torch.no_grad():
+        for (n, ps), pd in zip(src.trunk.named_parameters(), dst.trunk.parameters()):
+            if ps.shape != pd.shape:
+                raise ModelError(f"conv weight {n}: shape {tuple(ps.shape)} != {tuple(pd.shape)}")
+            pd.copy_(ps)
+
+
+def architecture_fingerprint(net: nn.Module) -> str:
+    """Hash of the class, parameter names and shapes (and a non-metric depth encoding): equal iff
+    weights are interchangeable (the wire's definition, shared.wire.messages.shape_fingerprint,
+    applied to ``net``)."""
+    shapes = {n: tuple(t.shape) for n, t in net.state_dict().items()}
+    extra = {"class": type(net).__name__}
+    encoding = getattr(getattr(net, "trunk", None), "depth_encoding", "metric")
+    if encoding != "metric":  # same shapes, different meaning; metric keeps the older fingerprints
+        extra["depth_encoding"] = encoding
+    return shape_fingerprint(shapes, extra)
+
+
+def weights_to_tensors(net: nn.Module) -> dict[str, torch.Tensor]:
+    """Parameters as contiguous CPU tensors in NCHW order (for messages, safetensors, other devices)."""
+    return {n: t.detach().to("cpu").contiguous() for n, t in net.state_dict().items()}
+
+
+def average_weights(nets: list[nn.Module]) -> dict[str, torch.Tensor]:
+    """The element-wise mean of the weights of networks of one architecture (float32, CPU):
+    averaging the checkpoints of one run's later updates smooths the greedy policy's
+    checkpoint-to-checkpoint swings. ModelError when the architectures differ."""
+    if not nets:
+        raise ModelError("nothing to average")
+    prints = {architecture_fingerprint(n) for n in nets}
+    if len(prints) != 1:
+        raise ModelError(f"cannot average networks of different architectures ({len(prints)} fingerprints)")
+    states = [weights_to_tensors(n) for n in nets]
+    return {name: torch.stack([s[name].float() for s in states]).mean(0) for name in states[0]}
+
+
+def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
+    """Load ``weights_to_tensors`` output into ``net`` with a clear error on any mismatch."""
+    own = net.state_dict()
+    missing = sorted(set(own) - set(tensors))
+    extra = sorted(set(tensors) - set(own))
+    if missing or extra:
+        raise ModelError(f"weights do not fit {type(net).__name__}: missing {missing}, unexpected {extra}")
+    with torch.no_grad():
+        for n, t in own.items():
+            src = tensors[n]
+            if tuple(src.shape) != tuple(t.shape):
+                raise ModelError(f"weight {n}: shape {tuple(src.shape)}, network wants {tuple(t.shape)}")
+            t.copy_(src)  # copy_ keeps the destination's (channels-last) layout and device
+
+
+class InferenceRunner:
+    """Fast greedy evaluation of a QNetwork on one or a few depth images (actors, evaluator).
+
+    Keeps the network in eval mode (dropout off) and runs under ``torch.inference_mode``. It
+    shares the network's parameters, so weight updates loaded into ``net`` are seen at once.
+    """
+
+    def __init__(self, net: QNetwork):
+        reduce_allocator_page_faults()
+        self.net = net
+
+    @property
+    def device(self) -> torch.device:
+        return next(self.net.parameters()).device
+
+    def q_values(self, depth: Any, previous_action: Any = None) -> np.ndarray:
+        """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy; ``previous_action``
+        (None, an int or (B,) ints, -1 = none) is read only by a ``model.previous_action`` net."""
+        single = getattr(depth, "ndim", 0) == 2
+        was_training = self.net.training
+        self.net.eval()
+        try:
+            with torch.inference_mode():
+                q = self.net(preprocess_depth(depth, self.device), previous_action)
+        finally:
+            self.net.train(was_training)
+        out = q.float().cpu().numpy()
+        return out[0] if single else out
+
+
+def layer_summary(model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None,
+                  net: QNetwork | None = None) -> list[dict[str, Any]]:
+    """One row per layer: name, output shape (without batch) and parameter count.
+
+    This is what ``cogexplore model summary --json`` prints.
+    """
+    net = net or QNetwork(model_cfg, sensor_cfg)
+    s = net.sensor_cfg
+    rows: list[dict[str, Any]] = []
+
+    def row(name: str, out: torch.Tensor, module: nn.Module | None = None) -> torch.Tensor:
+        params = sum(p.numel() for p in module.parameters()) if module is not None else 0
+        rows.append({"layer": name, "output_shape": list(out.shape[1:]), "params": params})
+        return out
+
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.no_grad():
+            x = row("input", torch.zeros(1, 1, s.height, s.width))
+            t = net.trunk
+            for i, conv in enumerate((t.conv1, t.conv2, t.conv3), start=1):
+                x = row(f"conv{i}", F.relu(conv(x)), conv)
+                x = row(f"pool{i}", F.max_pool2d(x, 2))
+            h = torch.flatten(x, 1)
+            if net.previous_action_fc is not None:
+                row("previous_action_fc", net.previous_action_fc(torch.zeros(1, NUM_ACTIONS)), net.previous_action_fc)
+            h = row("fc1", F.relu(net.fc1(h)), net.fc1)
+            h = row("fc2", F.relu(net.fc2(h)), net.fc2)
+            if net.model_cfg.dueling:
+                row("value", net.value(h), net.value)
+                row("advantage", net.advantage(h), net.advantage)
+                row("q", net.head(x), None)
+            else:
+                row("fc3", net.fc3(h), net.fc3)
+    finally:
+        net.train(was_training)
+    rows.append({"layer": "total", "output_shape": [NUM_ACTIONS],
+                 "params": sum(p.numel() for p in net.parameters())})
+    return rows
+
+
+summary = layer_summary
+
+
+def forward_flops(net: QNetwork | SupervisedNet) -> dict[str, int]:
+    """Multiply-add FLOPs (2 per MAC) of one single-image forward pass, per conv/fc layer."""
+    flops: dict[str, int] = {}
+    hooks = []
+
+    def record(name: str):
+        def hook(m: nn.Module, _inp: Any, out: torch.Tensor) -> None:
+            if isinstance(m, nn.Conv2d):
+                k = m.in_channels * m.kernel_size[0] * m.kernel_size[1] // m.groups
+                flops[name] = 2 * k * out[0].numel()
+            else:
+                flops[name] = 2 * m.in_features * m.out_features
+        return hook
+
+    for name, m in net.named_modules():
+        if isinstance(m, (nn.Conv2d, nn.Linear)):
+            hooks.append(m.register_forward_hook(record(name.removeprefix("trunk."))))
+    was_training = net.training
+    net.eval()
+    try:
+        with torch.no_grad():
+            net(torch.zeros(1, 1, net.sensor_cfg.height, net.sensor_cfg.width))
+    finally:
+        for h in hooks:
+            h.remove()
+        net.train(was_training)
+    return flops
+
+
+def config_json(model_cfg: ModelConfig, sensor_cfg: SensorConfig) -> str:
+    """The configs that define a network's architecture, as JSON (for weight files)."""
+    return json.dumps({"model": asdict(model_cfg), "sensor": asdict(sensor_cfg)}, sort_keys=True)

@@ -1,0 +1,279 @@
+"""The exploration task as a Gymnasium environment (``cogexplore/Explore-v0``).
+
+One step: hold one of five moving commands for ``control_period_s``, then read the depth
+camera. Reward +1 (r_move) for a collision-free move, -100 (r_ter) on collision, which ends
+the episode (``terminated``). A collision is either the paper's rule -- the minimum valid
+depth falls below l_s = 0.55 m -- or the robot body touching an obstacle; ``info`` reports
+the cause. Reaching the step cap is ``truncated``, never ``terminated``, so value targets
+bootstrap through it.
+
+    import shared.sim.env, gymnasium as gym
+    env = gym.make("cogexplore/Explore-v0", world="paper-indoor", speed_table="test")
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import zlib
+from typing import Any
+
+import gymnasium as gym
+import mujoco
+import numpy as np
+
+from shared.config import ACTION_NAMES, NUM_ACTIONS, PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig
+from shared.sim.robot import Robot, build_model
+from shared.sim.sensor import DepthCamera
+from shared.sim.world import World, WorldError, load_world
+
+ENV_ID = "cogexplore/Explore-v0"
+log = logging.getLogger("cogexplore.env")
+
+
+def min_valid_depth(depth_m: np.ndarray) -> float:
+    """Smallest non-zero depth in the image (inf if no pixel has a return)."""
+    valid = depth_m[depth_m > 0]
+    return float(valid.min()) if valid.size else math.inf
+
+
+@dataclasses.dataclass
+class _Scene:
+    """One world's MuJoCo model with the robot, its data and camera, and (built on first need)
+    the cells a random start may use."""
+
+    world: World
+    model: mujoco.MjModel
+    data: mujoco.MjData
+    robot: Robot
+    camera: DepthCamera
+    _clear: tuple[Any, np.ndarray] | None = None
+
+    @classmethod
+    def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
+        model = build_model(world.mjcf, cfg, sensor)
+        data = mujoco.MjData(model)
+        return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
+
+    def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:
+        """The 5 cm occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
+        if self._clear is None:
+            from shared.sim.maps import clearance_map, occupancy_grid
+
+            grid = occupancy_grid(self.world, 0.05)
+            clearance = clearance_map(grid.occupied, grid.resolution_m)
+            self._clear = grid, np.argwhere(clearance >= clearance_m)
+        return self._clear
+
+
+class ExploreEnv(gym.Env):
+    """Depth-only exploration in a MuJoCo indoor world with a TurtleBot-like robot.
+
+    Construct with an ``EnvConfig`` and/or keyword overrides of its fields
+    (``world=``, ``speed_table=``, ``start_index=``, ``max_episode_steps=``, ...) and an
+    optional ``SensorConfig`` (or a dict of its fields). ``world`` may also be a prebuilt
+    :class:`World`.
+    """
+
+    metadata = {"render_modes": ["depth_array"], "render_fps": 2}
+
+    def __init__(self, config: EnvConfig | None = None, sensor: SensorConfig | dict | None = None,
+                 render_mode: str | None = None, **overrides: Any):
+        world_obj = overrides.pop("world", None)
+        if isinstance(world_obj, World):
+            overrides["world"] = world_obj.name
+        elif world_obj is not None:
+            overrides["world"] = world_obj
+        cfg = dataclasses.replace(config or EnvConfig(), **overrides)
+        if isinstance(sensor, dict):
+            sensor = SensorConfig(**sensor)
+        self.env_config = cfg
+        self.sensor_config = sensor or SensorConfig()
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
+        self.render_mode = render_mode
+
+        world = world_obj if isinstance(world_obj, World) else load_world(cfg.world)
+        if cfg.start_index is not None and cfg.start_index >= len(world.starts):
+            raise ValueError(f"start_index {cfg.start_index} out of range: world {world.name!r} "
+                             f"has {len(world.starts)} starts")
+        self._main_scene = _Scene.build(world, cfg, self.sensor_config)
+        self._scenes = {world.name: self._main_scene}  # extra worlds are built when first drawn
+        self._extra_world_names = cfg.extra_world_names if cfg.extra_world_prob > 0 else ()
+        for name in self._extra_world_names:
+            if not name.startswith(PROCEDURAL_PREFIX):  # procedural names are checked by the config
+                load_world(name)  # a bad name or a broken file fails here, not episodes into a run
+        self._scene = self._main_scene  # the world of the episode now playing
+        self.angular_rps, self.linear_mps = SPEED_TABLES[cfg.speed_table]
+
+        s = self.sensor_config
+        self.observation_space = gym.spaces.Box(0.0, s.max_range_m, (s.height, s.width), np.float32)
+        self.action_space = gym.spaces.Discrete(NUM_ACTIONS)
+
+        self._depth = np.zeros((s.height, s.width), np.float32)
+        self._start_index = 0
+        self._start_xy = (0.0, 0.0)
+        self._last_xy = (0.0, 0.0)
+        self._path_length = 0.0
+        self._steps = 0
+        self._random_start = False
+        self._noise_seed: int | None = None  # drawn at each seeded reset
+
+    # -- Gymnasium API ------------------------------------------------------------------
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if seed is not None:
+            self._noise_seed = int(self.np_random.integers(2**63))
+            for name, scene in self._scenes.items():
+                scene.camera.reseed(self._camera_seed(name))
+        options = options or {}
+        fixed = "start_index" in options or self.env_config.start_index is not None
+        scene = self._main_scene
+        extra = self._extra_world_names
+        if not fixed and extra and self.np_random.random() < self.env_config.extra_world_prob:
+            scene = self._extra_scene(extra[int(self.np_random.integers(len(extra)))]) or scene
+        self._scene = scene
+        index = options.get("start_index", self.env_config.start_index)
+        n_starts = len(self.world.starts)
+        if index is None:
+            index = int(self.np_random.integers(n_starts))
+        if not (isinstance(index, (int, np.integer)) and 0 <= index < n_starts):
+            raise ValueError(f"start_index {index!r} out of range [0, {n_starts})")
+        start = self.world.starts[int(index)]
+        pose = None  # a random free pose (it leaves the robot there and its image in self._depth)
+        if not fixed and self.env_config.random_start_prob > 0 and \
+                self.np_random.random() < self.env_config.random_start_prob:
+            pose = self._random_free_pose()
+        self._random_start = pose is not None
+        if pose is None:
+            pose = (start.x, start.y, start.yaw)
+            self.robot.set_pose(*pose)
+            self._depth = self.camera.capture(self.data)
+        x, y, _ = pose
+        self._start_index = int(index)
+        self._start_xy = self._last_xy = (x, y)
+        self._path_length = 0.0
+        self._steps = 0
+        return self._depth, self._info(None, min_valid_depth(self._depth))
+
+    def step(self, action):
+        if not (isinstance(action, (int, np.integer)) and 0 <= int(action) < NUM_ACTIONS):
+            raise ValueError(f"action {action!r} is not one of 0..{NUM_ACTIONS - 1} ({', '.join(ACTION_NAMES)})")
+        cfg = self.env_config
+        touched = self.robot.drive(self.linear_mps, self.angular_rps[int(action)], cfg.substeps)
+        self._depth = self.camera.capture(self.data)
+        self._steps += 1
+        x, y, _ = self.robot.pose()
+        self._path_length += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
+        self._last_xy = (x, y)
+
+        min_depth = min_valid_depth(self._depth)
+        cause = "contact" if touched else ("depth" if min_depth < cfg.collision_distance_m else None)
+        terminated = cause is not None
+        truncated = not terminated and self._steps >= cfg.max_episode_steps
+        reward = cfg.reward_collision if terminated else cfg.reward_move
+        return self._depth, float(reward), terminated, truncated, self._info(cause, min_depth)
+
+    def snapshot(self) -> tuple[Any, ...]:
+        """The episode's state now (robot physics, step count, path, image): :meth:`restore`
+        puts the episode back exactly there, so a planner can try several commands from one
+        pose (shared.learning.demos). Only within the episode and world it was taken in; the sensor's noise
+        draws (``SensorConfig.noise_std_m``) are not rewound."""
+        return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
+                self._depth.copy())
+
+    def restore(self, snapshot: tuple[Any, ...]) -> None:
+        """Return to a :meth:`snapshot` of the current episode."""
+        scene, state, self._steps, self._path_length, self._last_xy, depth = snapshot
+        if scene is not self._scene:
+            raise ValueError("a snapshot can only be restored in the episode's own world")
+        self.robot.set_state(state)
+        self._depth = depth.copy()
+
+    def render(self):
+        if self.render_mode == "depth_array":
+            return self._depth.copy()
+        return None
+
+    def close(self):
+        for scene in self._scenes.values():
+            scene.camera.close()
+
+    @property
+    def main_world(self) -> World:
+        """``env.world``'s World; ``self.world`` is the world of the episode now playing."""
+        return self._main_scene.world
+
+    # The episode's world and its MuJoCo model, data, robot and camera.
+    world = property(lambda self: self._scene.world)
+    model = property(lambda self: self._scene.model)
+    data = property(lambda self: self._scene.data)
+    robot = property(lambda self: self._scene.robot)
+    camera = property(lambda self: self._scene.camera)
+
+    # -- helpers ---------------------------------------------------------------------
+
+    def _extra_scene(self, name: str) -> _Scene | None:
+        """The scene of extra world ``name``, built on first use; None (and the world is dropped
+        from the draw, with a warning) when it cannot be built: a training run goes on."""
+        scene = self._scenes.get(name)
+        if scene is None:
+            try:
+                world = load_world(name)
+                scene = _Scene.build(world, self.env_config, self.sensor_config)
+            except (WorldError, ValueError) as exc:
+                log.warning("env.extra_worlds: dropping %r, which cannot be built (%s); its episodes "
+                            "play %r", name, exc, self.main_world.name)
+                self._extra_world_names = tuple(n for n in self._extra_world_names if n != name)
+                return None
+            self._scenes[name] = scene
+            if self._noise_seed is not None:
+                scene.camera.reseed(self._camera_seed(name))
+        return scene
+
+    def _camera_seed(self, name: str) -> int:
+        """The depth-noise seed of world ``name`` after a seeded reset: the same whichever worlds
+        were built before, so a seed replays the same episodes on a fresh or a used env."""
+        if name == self.main_world.name:
+            return self._noise_seed
+        return int(np.random.default_rng([self._noise_seed, zlib.crc32(name.encode())]).integers(2**63))
+
+    def _random_free_pose(self, tries: int = 50) -> tuple[float, float, float] | None:
+        """Move the robot to a random pose ``random_start_clearance_m`` from every obstacle whose
+        first image (kept in ``self._depth``) is above the collision threshold with a 10 cm
+        margin; None when no such pose turns up (the caller then places the robot)."""
+        grid, clear_cells = self._scene.clear_cells(self.env_config.random_start_clearance_m)
+        if len(clear_cells) == 0:
+            return None
+        half = grid.resolution_m / 2
+        for _ in range(tries):
+            iy, ix = clear_cells[self.np_random.integers(len(clear_cells))]
+            cx, cy = grid.cell_to_world(ix, iy)
+            pose = (float(cx + self.np_random.uniform(-half, half)), float(cy + self.np_random.uniform(-half, half)),
+                    float(self.np_random.uniform(-math.pi, math.pi)))
+            self.robot.set_pose(*pose)
+            depth = self.camera.capture(self.data)
+            if min_valid_depth(depth) >= self.env_config.collision_distance_m + 0.1:
+                self._depth = depth
+                return pose
+        return None
+
+    def _info(self, cause: str | None, min_depth: float) -> dict[str, Any]:
+        x, y, yaw = self.robot.pose()
+        return {
+            "pose": (x, y, yaw),
+            "world": self.world.name,
+            "start_index": self._start_index,
+            "random_start": self._random_start,
+            "collision_cause": cause,
+            "min_depth_m": min_depth,
+            "distance_from_start_m": math.hypot(x - self._start_xy[0], y - self._start_xy[1]),
+            "path_length_m": self._path_length,
+            "step": self._steps,
+        }
+
+
+if ENV_ID not in gym.registry:
+    gym.register(id=ENV_ID, entry_point="shared.sim.env:ExploreEnv")

@@ -1,0 +1,753 @@
+"""Indoor worlds: static scenes of walls, cylinders and clutter, with start poses.
+
+A :class:`World` is the static scene as MJCF text (no robot; ``shared.sim.robot`` adds it)
+plus its start poses and floor extent. ``load_world`` resolves a name:
+
+- built-in names (``paper-indoor``, ``corridor``, ``box-room``; see ``BUILTIN_WORLDS``),
+- ``procedural:<seed>``: rooms off a corridor plus clutter, deterministic in the seed,
+- a path to a user MJCF file whose start poses are sites named ``start_*``.
+
+Every static geom except the floor plane (named ``floor``) is an obstacle. Every start of
+every world passes :func:`validate_starts` (one implementation for all kinds).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import mujoco
+import numpy as np
+
+from shared.config import PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig
+from shared.errors import CogexploreError
+from shared.sim import maps
+from shared.sim.robot import FLOOR_GEOM, ROBOT_BODY, Robot, build_model
+from shared.sim.sensor import DepthCamera
+
+# 2 m: taller than any ray of the 0.35 m high camera climbs within its 4 m range, so every
+# obstacle fills its image columns from the floor up (the depth camera's fast path relies on it).
+WALL_HEIGHT_M = 2.0
+OBSTACLE_RGBA = (0.75, 0.72, 0.65, 1.0)
+
+MIN_START_CLEARANCE_M = 0.1
+"""A start's robot disc must be at least this far from every obstacle."""
+MIN_FREE_AHEAD_M = 1.0
+"""Free depth straight ahead of a start, across the robot's width."""
+START_VIEW_MARGIN_M = 0.1
+"""The start's depth image must read at least collision_distance_m plus this everywhere."""
+NUM_STARTS = 12  # the paper's 12 start points
+
+
+class WorldError(CogexploreError):
+    """A world cannot be built or loaded; the message names the world and the problem."""
+
+
+@dataclass(frozen=True)
+class StartPose:
+    """A start position (m) and initial heading (rad, counter-clockwise from +x)."""
+
+    x: float
+    y: float
+    yaw: float
+    name: str = ""
+
+
+@dataclass(frozen=True)
+class World:
+    name: str
+    """Name as given to ``load_world``."""
+    mjcf: str
+    """The static scene as MJCF text: a floor plane named 'floor' and obstacle geoms."""
+    starts: tuple[StartPose, ...]
+    """Start poses (the paper has 12)."""
+    extent: tuple[float, float, float, float]
+    """(xmin, ymin, xmax, ymax) of the area the robot can be in, in metres."""
+    kind: str = "builtin"
+    """'builtin', 'procedural' or 'file'."""
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        xmin, ymin, xmax, ymax = self.extent
+        return xmax - xmin, ymax - ymin
+
+    @property
+    def label(self) -> str:
+        """How error messages name this world (a file world by its path)."""
+        return f"MJCF file '{self.name}'" if self.kind == "file" else f"world '{self.name}'"
+
+
+class SceneBuilder:
+    """Builds a static scene with MjSpec from 2D primitives (all obstacles are vertical)."""
+
+    def __init__(self, name: str, extent: tuple[float, float, float, float]):
+        self.spec = mujoco.MjSpec()
+        self.spec.modelname = name
+        self.extent = extent
+        xmin, ymin, xmax, ymax = extent
+        cx, cy = (xmin + xmax) / 2, (ymin + ymax) / 2
+        # size 0: an infinite plane, so rays never fall off the floor's edge
+        self.spec.worldbody.add_geom(
+            name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_PLANE, pos=[cx, cy, 0.0], size=[0.0, 0.0, 0.25],
+            rgba=[0.35, 0.35, 0.38, 1.0],
+        )
+        self._count = 0
+
+    def _name(self, kind: str) -> str:
+        self._count += 1
+        return f"{kind}_{self._count}"
+
+    def box(self, cx: float, cy: float, half_x: float, half_y: float, yaw: float = 0.0,
+            height: float = WALL_HEIGHT_M) -> None:
+        """An axis-aligned (or yawed) box standing on the floor."""
+        self.spec.worldbody.add_geom(
+            name=self._name("box"), type=mujoco.mjtGeom.mjGEOM_BOX,
+            pos=[cx, cy, height / 2], size=[half_x, half_y, height / 2],
+            quat=[math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)], rgba=list(OBSTACLE_RGBA),
+        )
+
+    def wall(self, x0: float, y0: float, x1: float, y1: float, thickness: float = 0.1,
+             height: float = WALL_HEIGHT_M) -> None:
+        """A straight wall segment from (x0, y0) to (x1, y1), extended by half its thickness
+        at both ends so that walls meeting at a corner close it."""
+        length = math.hypot(x1 - x0, y1 - y0)
+        self.box((x0 + x1) / 2, (y0 + y1) / 2, length / 2 + thickness / 2, thickness / 2,
+                 yaw=math.atan2(y1 - y0, x1 - x0), height=height)
+
+    def rect(self, x0: float, y0: float, x1: float, y1: float, height: float = WALL_HEIGHT_M) -> None:
+        """A solid axis-aligned block covering exactly [x0, x1] x [y0, y1]."""
+        self.box((x0 + x1) / 2, (y0 + y1) / 2, abs(x1 - x0) / 2, abs(y1 - y0) / 2, height=height)
+
+    def cylinder(self, cx: float, cy: float, radius: float, height: float = WALL_HEIGHT_M) -> None:
+        self.spec.worldbody.add_geom(
+            name=self._name("cyl"), type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+            pos=[cx, cy, height / 2], size=[radius, height / 2, 0.0], rgba=list(OBSTACLE_RGBA),
+        )
+
+    def boundary(self) -> None:
+        """Four walls around the extent."""
+        xmin, ymin, xmax, ymax = self.extent
+        self.wall(xmin, ymin, xmax, ymin)
+        self.wall(xmax, ymin, xmax, ymax)
+        self.wall(xmax, ymax, xmin, ymax)
+        self.wall(xmin, ymax, xmin, ymin)
+
+    def build(self, name: str, starts: list[StartPose], kind: str = "builtin") -> World:
+        return World(name=name, mjcf=self.spec.to_xml(), starts=tuple(starts), extent=self.extent, kind=kind)
+
+
+# ---------------------------------------------------------------------------
+# Start validation (shared by every kind of world)
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StartCheck:
+    """What :class:`StartChecker` measured at one pose; ``problems`` empty means valid."""
+
+    clearance_m: float
+    """Distance from the robot disc to the nearest obstacle (negative: overlapping)."""
+    nearest_geom: str
+    free_ahead_m: float
+    """Free distance straight ahead, the least over rays spread across the robot's width."""
+    min_view_depth_m: float
+    """Nearest valid depth in the start's depth image (inf if none)."""
+    problems: tuple[str, ...]
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems
+
+
+class StartChecker:
+    """Checks candidate start poses in one compiled world (robot added).
+
+    A valid start has the robot disc clear of every obstacle by MIN_START_CLEARANCE_M,
+    MIN_FREE_AHEAD_M of free space straight ahead across the robot's width, and a first
+    depth image that reads at least collision_distance_m + START_VIEW_MARGIN_M everywhere,
+    so that no episode begins with a collision."""
+
+    _AHEAD_HEIGHTS_M = (0.05, 0.17, 0.29)  # within the robot body's 0.01-0.31 m
+
+    def __init__(self, world: World, env_cfg: EnvConfig | None = None, sensor_cfg: SensorConfig | None = None):
+        self.world = world
+        self.env_cfg = env_cfg or EnvConfig()
+        sensor = sensor_cfg or SensorConfig()
+        # The check must not depend on a noise draw.
+        self.sensor_cfg = SensorConfig(width=sensor.width, height=sensor.height, hfov_deg=sensor.hfov_deg,
+                                       vfov_deg=sensor.vfov_deg, max_range_m=sensor.max_range_m,
+                                       min_range_m=sensor.min_range_m, mount_height_m=sensor.mount_height_m,
+                                       mount_forward_m=sensor.mount_forward_m)
+        try:
+            self.model = build_model(world.mjcf, self.env_cfg, self.sensor_cfg)
+        except ValueError as exc:
+            raise WorldError(f"{world.label}: MuJoCo cannot compile it with the robot added: {exc}") from None
+        self.data = mujoco.MjData(self.model)
+        self.robot = Robot(self.model, self.data)
+        m = self.model
+        self.obstacles = [g for g in range(m.ngeom)
+                          if m.geom_bodyid[g] != self.robot.body_id and g != self.robot.floor_id]
+        self.camera = DepthCamera(m, self.sensor_cfg)
+        self._geomid = np.zeros(1, dtype=np.int32)
+
+    def _geom_name(self, g: int) -> str:
+        return self.model.geom(g).name or f"geom #{g}"
+
+    def check(self, x: float, y: float, yaw: float) -> StartCheck:
+        m, d, r = self.model, self.data, self.env_cfg.robot_radius_m
+        self.robot.set_pose(x, y, yaw)
+        clearance, nearest = math.inf, ""
+        for g in self.obstacles:
+            dist = mujoco.mj_geomDistance(m, d, self.robot.geom_id, g, 10.0, None)
+            if dist < clearance:
+                clearance, nearest = dist, self._geom_name(g)
+        touching = self.robot.touching_obstacle() or clearance <= 0.0
+        c, s = math.cos(yaw), math.sin(yaw)
+        heading = np.array([c, s, 0.0])
+        free_ahead = math.inf
+        for lateral in (-r, -r / 2, 0.0, r / 2, r):
+            for z in self._AHEAD_HEIGHTS_M:
+                pnt = np.array([x - s * lateral, y + c * lateral, z])
+                hit = mujoco.mj_ray(m, d, pnt, heading, None, 1, self.robot.body_id, self._geomid)
+                if hit >= 0:
+                    free_ahead = min(free_ahead, hit)
+        depth = self.camera.capture(d)
+        valid = depth[depth > 0]
+        min_view = float(valid.min()) if valid.size else math.inf
+        need_view = self.env_cfg.collision_distance_m + START_VIEW_MARGIN_M
+        problems: list[str] = []
+        if touching:
+            problems.append(f"inside or touching an obstacle (geom '{nearest}', distance {clearance:.3f} m)")
+        elif clearance < MIN_START_CLEARANCE_M:
+            problems.append(f"only {clearance:.3f} m from geom '{nearest}' (needs >= {MIN_START_CLEARANCE_M} m)")
+        if free_ahead < MIN_FREE_AHEAD_M:
+            problems.append(f"only {free_ahead:.2f} m of free depth straight ahead (needs >= {MIN_FREE_AHEAD_M} m)")
+        if min_view < need_view:
+            problems.append(f"nearest depth in view {min_view:.2f} m (needs >= {need_view:.2f} m, or the "
+                            "first step may end in a depth collision)")
+        return StartCheck(clearance_m=float(clearance), nearest_geom=nearest, free_ahead_m=float(free_ahead),
+                          min_view_depth_m=min_view, problems=tuple(problems))
+
+    def unsafe_first_actions(self, x: float, y: float, yaw: float,
+                             speed_tables: tuple[str, ...] = tuple(SPEED_TABLES)) -> list[tuple[str, int]]:
+        """(speed table, action) pairs whose first step from this pose ends in a collision,
+        judged as the env judges it (contact, or depth below collision_distance_m).
+
+        Not part of a start's validity (user worlds may have tighter starts); procedural
+        worlds use it to pick starts from which every first move is safe."""
+        bad = []
+        for table in speed_tables:
+            angular, linear = SPEED_TABLES[table]
+            for action, turn in enumerate(angular):
+                self.robot.set_pose(x, y, yaw)
+                touched = self.robot.drive(linear, turn, self.env_cfg.substeps)
+                depth = self.camera.capture(self.data)
+                valid = depth[depth > 0]
+                if touched or (valid.size and float(valid.min()) < self.env_cfg.collision_distance_m):
+                    bad.append((table, action))
+        return bad
+
+
+def validate_starts(world: World, env_cfg: EnvConfig | None = None,
+                    sensor_cfg: SensorConfig | None = None) -> tuple[StartCheck, ...]:
+    """Check every start of ``world`` (see :class:`StartChecker`); raise WorldError naming
+    each invalid start, else return the per-start measurements."""
+    if not world.starts:
+        raise WorldError(f"{world.label} has no start poses")
+    checker = StartChecker(world, env_cfg, sensor_cfg)
+    checks = tuple(checker.check(s.x, s.y, s.yaw) for s in world.starts)
+    bad = [f"start {i} '{s.name}' at ({s.x:.2f}, {s.y:.2f}): {'; '.join(c.problems)}"
+           for i, (s, c) in enumerate(zip(world.starts, checks)) if c.problems]
+    if bad:
+        raise WorldError(f"{world.label}: invalid start(s): " + " | ".join(bad))
+    return checks
+
+
+# ---------------------------------------------------------------------------
+# Built-in worlds
+# ---------------------------------------------------------------------------
+
+
+def box_room(name: str = "box-room") -> World:
+    """A 4 x 4 m room with one box and one cylinder; small and fast, for tests."""
+    b = SceneBuilder(name, (-2.0, -2.0, 2.0, 2.0))
+    b.boundary()
+    b.box(1.0, 1.0, 0.3, 0.3)
+    b.cylinder(-1.0, 0.8, 0.25)
+    starts = [StartPose(-1.2, -1.2, math.pi / 4, "sw"), StartPose(1.2, -1.2, 3 * math.pi / 4, "se"),
+              StartPose(0.0, 0.0, -math.pi / 2, "centre"), StartPose(-1.2, 1.3, 0.0, "nw")]
+    return b.build(name, starts)
+
+
+def paper_indoor(name: str = "paper-indoor") -> World:
+    """The reference world, 12 x 12 m, after the paper's Gazebo world (Fig. 2, sec. III-A).
+
+    Corridors run along the west, north and south walls; a central hall holds cylinders of
+    several radii at staggered depths, free-standing pillars and a pair of boxes with a gap
+    too narrow for the robot; the east side has sharp corners (a diamond pillar, an L-shaped
+    wall and a wedge), a room with more cylinders, and a second narrow gap; the south has a
+    dead-end corridor. Everything is one connected space; 12 starts cover the kinds of scene.
+    """
+    b = SceneBuilder(name, (-6.0, -6.0, 6.0, 6.0))
+    b.boundary()
+    # Walls dividing the corridors, the hall, the east side and the dead end.
+    b.wall(-4.6, -3.0, -4.6, 4.5)      # west corridor | hall
+    b.wall(-3.4, 4.5, 2.2, 4.5)        # north corridor | hall (door at its west end)
+    b.wall(2.2, 1.0, 2.2, 4.5)         # hall | north-east room
+    b.wall(3.6, 1.0, 6.0, 1.0)         # north-east room | east side (door at its west end)
+    b.wall(2.2, -3.0, 2.2, -0.5)       # hall | east side (door between y -0.5 and 1.0)
+    b.wall(-3.4, -3.0, 2.2, -3.0)      # hall | south (door at its west end)
+    b.wall(-3.4, -4.5, 1.0, -4.5)      # dead-end corridor | south corridor
+    b.wall(1.0, -4.5, 1.0, -3.0)       # the dead end
+    # West corridor: a pillar jutting from the outer wall narrows it to 0.8 m.
+    b.box(-5.7, 0.5, 0.25, 0.3)
+    # North corridor: a cylinder leaves a 0.2 m slit on one side, 0.8 m on the other.
+    b.cylinder(0.0, 5.55, 0.2)
+    # Hall: cylinders of several radii at different depths from the west door.
+    b.cylinder(-2.4, 0.9, 0.2)
+    b.cylinder(-1.1, -0.2, 0.3)
+    b.cylinder(0.4, 1.4, 0.5)
+    b.cylinder(-2.9, 2.3, 0.15)
+    b.cylinder(1.2, -1.0, 0.25)
+    b.cylinder(0.5, 3.1, 0.35)
+    # Hall: pillars, one turned to show a sharp edge.
+    b.box(-3.0, -1.9, 0.35, 0.35, yaw=0.5)
+    b.box(-0.4, -2.2, 0.6, 0.2)
+    # Hall: two boxes 0.3 m apart (too narrow for the 0.36 m robot).
+    b.rect(-2.7, 3.05, -1.7, 3.55)
+    b.rect(-1.4, 3.05, -0.6, 3.55)
+    # East side: a diamond pillar, an L-shaped wall and a wedge: sharp corners.
+    b.box(4.4, -0.5, 0.45, 0.45, yaw=math.pi / 4)
+    b.wall(3.4, -2.2, 5.0, -2.2)
+    b.wall(5.0, -2.2, 5.0, -3.5)
+    b.box(3.0, -1.5, 0.6, 0.08, yaw=-0.6)
+    # South-east: two cylinders 0.3 m apart.
+    b.cylinder(3.0, -4.0, 0.25)
+    b.cylinder(3.8, -4.0, 0.25)
+    # North-east room: cylinders of several radii and a block in a corner.
+    b.cylinder(4.5, 3.6, 0.4)
+    b.cylinder(3.4, 2.6, 0.2)
+    b.cylinder(5.1, 2.0, 0.25)
+    b.rect(5.2, 5.2, 5.95, 5.95)
+    # South-west: a small cluster at different depths.
+    b.cylinder(-5.0, -3.8, 0.15)
+    b.cylinder(-4.1, -5.3, 0.3)
+    starts = [
+        StartPose(-5.3, -2.0, math.pi / 2, "corridor-west"),
+        StartPose(-2.0, 5.25, 0.0, "corridor-north"),
+        StartPose(-1.0, -5.25, 0.0, "corridor-south"),
+        StartPose(-3.9, 0.5, 0.0, "hall-cylinders"),
+        StartPose(-1.55, 1.8, math.pi / 2, "narrow-gap"),
+        StartPose(-2.8, -3.75, 0.0, "dead-end"),
+        StartPose(2.6, -0.5, 0.0, "sharp-corners"),
+        StartPose(3.0, 4.2, -math.pi / 4, "room-north-east"),
+        StartPose(0.8, 0.1, 0.0, "hall-east-door"),
+        StartPose(1.6, -3.75, 0.0, "cylinder-pair"),
+        StartPose(1.6, -2.2, math.pi, "hall-pillars"),
+        StartPose(-4.0, 5.25, -math.pi / 2, "junction-north-west"),
+    ]
+    return b.build(name, starts)
+
+
+def corridor(name: str = "corridor") -> World:
+    """A structured corridor loop (an '8': outer ring plus a middle corridor, 1.35-1.55 m
+    wide), like the corridors of the paper's supervised data."""
+    b = SceneBuilder(name, (-5.0, -4.0, 5.0, 4.0))
+    b.boundary()
+    b.rect(-3.6, -2.6, -0.7, 2.4)
+    b.rect(0.7, -2.6, 3.4, 2.4)
+    west, east, south, north = -4.28, 4.17, -3.28, 3.17  # corridor centre lines
+    starts = [
+        StartPose(west, -1.5, math.pi / 2, "west-northbound"),
+        StartPose(west, 1.5, -math.pi / 2, "west-southbound"),
+        StartPose(east, -1.0, math.pi / 2, "east-northbound"),
+        StartPose(east, 1.5, -math.pi / 2, "east-southbound"),
+        StartPose(-2.5, south, 0.0, "south-eastbound"),
+        StartPose(2.0, south, math.pi, "south-westbound"),
+        StartPose(-2.0, north, 0.0, "north-eastbound"),
+        StartPose(2.5, north, math.pi, "north-westbound"),
+        StartPose(0.0, -1.5, math.pi / 2, "middle-northbound"),
+        StartPose(0.0, 1.0, -math.pi / 2, "middle-southbound"),
+        StartPose(west, south, 0.0, "corner-south-west"),
+        StartPose(0.0, north, 0.0, "junction-north"),
+    ]
+    return b.build(name, starts)
+
+
+BUILTIN_WORLDS = {
+    "paper-indoor": paper_indoor,
+    "corridor": corridor,
+    "box-room": box_room,
+}
+
+
+# ---------------------------------------------------------------------------
+# Procedural worlds
+# ---------------------------------------------------------------------------
+
+_DOOR_KEEPOUT_M = 0.8  # clutter stays this far from door centres
+
+
+@dataclass(frozen=True)
+class _Shape:
+    """A 2D primitive of a procedural world: a box (cx, cy, hx, hy, yaw) or a cylinder (cx, cy, r)."""
+
+    kind: str
+    cx: float
+    cy: float
+    a: float
+    b: float = 0.0
+    yaw: float = 0.0
+
+    def transposed(self) -> "_Shape":
+        # Reflecting through y = x maps a box at yaw t with halves (a, b) to one at -t with (b, a).
+        if self.kind == "box":
+            return _Shape("box", self.cy, self.cx, self.b, self.a, -self.yaw)
+        return _Shape(self.kind, self.cy, self.cx, self.a)
+
+    def emit(self, b: SceneBuilder) -> None:
+        if self.kind == "box":
+            b.box(self.cx, self.cy, self.a, self.b, yaw=self.yaw)
+        else:
+            b.cylinder(self.cx, self.cy, self.a)
+
+    def rasterise(self, occupied: np.ndarray, grid: maps.OccupancyGrid) -> None:
+        """Mark the cells the shape reaches, exactly as maps.occupancy_grid would."""
+        h = WALL_HEIGHT_M / 2
+        c, s = math.cos(self.yaw), math.sin(self.yaw)
+        mat = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        pos = np.array([self.cx, self.cy, h])
+        if self.kind == "box":
+            gtype, size = mujoco.mjtGeom.mjGEOM_BOX, np.array([self.a, self.b, h])
+            aabb = np.array([0.0, 0.0, 0.0, self.a, self.b, h])
+        else:
+            gtype, size = mujoco.mjtGeom.mjGEOM_CYLINDER, np.array([self.a, h, 0.0])
+            aabb = np.array([0.0, 0.0, 0.0, self.a, self.a, h])
+        maps.rasterise_geom(occupied, grid, int(gtype), size, pos, mat, aabb)
+
+
+def _segment_with_doors(x0: float, x1: float, y: float, doors: list[tuple[float, float]],
+                        thickness: float = 0.1) -> list[_Shape]:
+    """Boxes along y = const from x0 to x1, leaving gaps (centre, width)."""
+    shapes, cursor = [], x0
+    for centre, width in sorted(doors):
+        a, b = centre - width / 2, centre + width / 2
+        if a - cursor > 0.05:
+            shapes.append(_Shape("box", (cursor + a) / 2, y, (a - cursor) / 2, thickness / 2))
+        cursor = b
+    if x1 - cursor > 0.05:
+        shapes.append(_Shape("box", (cursor + x1) / 2, y, (x1 - cursor) / 2, thickness / 2))
+    return shapes
+
+
+def _vertical_segment_with_doors(y0: float, y1: float, x: float, doors: list[tuple[float, float]],
+                                 thickness: float = 0.1) -> list[_Shape]:
+    return [s.transposed() for s in _segment_with_doors(y0, y1, x, doors, thickness)]
+
+
+def _split(rng: np.random.Generator, length: float, min_part: float, max_parts: int) -> list[float]:
+    """Cut [0, length] into 1..max_parts parts of at least min_part; returns the cut points."""
+    k = int(rng.integers(1, max(1, min(max_parts, int(length // min_part))) + 1))
+    spare = length - k * min_part
+    weights = rng.uniform(0.5, 1.5, size=k)
+    parts = min_part + spare * weights / weights.sum()
+    return [float(v) for v in np.cumsum(parts)[:-1]]
+
+
+def _procedural_layout(rng: np.random.Generator) -> tuple[float, float, list[_Shape],
+                                                                     list[tuple[str, tuple[float, float, float, float]]],
+                                                                     list[tuple[float, float]], list[_Shape]]:
+    """Walls, rooms, doors and candidate clutter in a frame whose x is the long side."""
+    W = round(float(rng.uniform(8.0, 14.0)), 1)
+    H = round(float(rng.uniform(8.0, 14.0)), 1)
+    L, S = max(W, H), min(W, H)
+    xmin, ymin, xmax, ymax = -L / 2, -S / 2, L / 2, S / 2
+    cw = round(float(rng.uniform(1.2, 1.6)), 2)  # corridor width between wall faces
+    low_h = float(rng.uniform(2.6, S - cw - 2.6))
+    y_lo = round(ymin + low_h, 2)          # corridor's south wall face
+    y_hi = round(y_lo + cw, 2)             # corridor's north wall face
+    t = 0.1
+    walls: list[_Shape] = []
+    rooms: list[tuple[str, tuple[float, float, float, float]]] = []
+    doors: list[tuple[float, float]] = []
+    corridor_doors: dict[str, list[tuple[float, float]]] = {"south": [], "north": []}
+    for side, (r0, r1) in (("south", (ymin, y_lo - t)), ("north", (y_hi + t, ymax))):
+        cuts = [xmin] + [round(xmin + c, 2) for c in _split(rng, L, 2.8, 3)] + [xmax]
+        for i in range(len(cuts) - 1):
+            a, b = cuts[i], cuts[i + 1]
+            rooms.append((f"room-{side}-{i + 1}", (a + (t / 2 if i else 0), r0, b - (t / 2 if i < len(cuts) - 2 else 0), r1)))
+            dw = round(float(rng.uniform(0.9, 1.3)), 2)
+            if rng.random() < 0.2:
+                dw = round(min(2.0, (b - a) - 0.8), 2)  # an open-plan room
+            dc = round(float(rng.uniform(a + 0.4 + dw / 2, b - 0.4 - dw / 2)), 2)
+            corridor_doors[side].append((dc, dw))
+            doors.append((dc, y_lo - t / 2 if side == "south" else y_hi + t / 2))
+            if i > 0:
+                # A divider between rooms i-1 and i, sometimes with a door of its own.
+                divider_doors = []
+                if rng.random() < 0.5:
+                    ddw = round(float(rng.uniform(0.9, 1.2)), 2)
+                    ddc = round(float(rng.uniform(r0 + 0.3 + ddw / 2, r1 - 0.3 - ddw / 2)), 2)
+                    divider_doors.append((ddc, ddw))
+                    doors.append((a, ddc))
+                walls += _vertical_segment_with_doors(r0, r1, a, divider_doors, t)
+    walls += _segment_with_doors(xmin, xmax, y_lo - t / 2, corridor_doors["south"], t)
+    walls += _segment_with_doors(xmin, xmax, y_hi + t / 2, corridor_doors["north"], t)
+    rooms.append(("corridor", (xmin, y_lo, xmax, y_hi)))
+    # Candidate clutter, most of it in rooms, a little in the corridor.
+    clutter: list[_Shape] = []
+    for rname, (a, r0, b, r1) in rooms:
+        area = (b - a) * (r1 - r0)
+        n = int(rng.integers(0, 3)) if rname == "corridor" else int(rng.integers(2, 3 + min(6, int(area / 4))))
+        for _ in range(n):
+            if rname == "corridor" or rng.random() < 0.45:
+                r = round(float(rng.uniform(0.1, 0.2 if rname == "corridor" else 0.45)), 2)
+                bound = r
+                shape = _Shape("cyl", 0.0, 0.0, r)
+            else:
+                hx = round(float(rng.uniform(0.15, 0.6)), 2)
+                hy = round(float(rng.uniform(0.15, 0.6)), 2)
+                yaw = 0.0 if rng.random() < 0.5 else round(float(rng.uniform(0.0, math.pi)), 3)
+                bound = math.hypot(hx, hy) if yaw else max(hx, hy)
+                shape = _Shape("box", 0.0, 0.0, hx, hy, yaw)
+            lo_x, hi_x = a + bound + 0.05, b - bound - 0.05
+            lo_y, hi_y = r0 + bound + 0.05, r1 - bound - 0.05
+            if lo_x >= hi_x or lo_y >= hi_y:
+                continue
+            cx = round(float(rng.uniform(lo_x, hi_x)), 2)
+            cy = round(float(rng.uniform(lo_y, hi_y)), 2)
+            if rname == "corridor":  # against one of the corridor walls
+                cy = round(y_lo + bound + 0.02 if rng.random() < 0.5 else y_hi - bound - 0.02, 2)
+            clutter.append(_Shape(shape.kind, cx, cy, shape.a, shape.b, shape.yaw))
+    return L, S, walls, rooms, doors, clutter
+
+
+def procedural_world(seed: int) -> World:
+    """Rooms off a corridor, doors, and clutter; deterministic in ``seed``.
+
+    Clutter that would cut the traversable space (free space shrunk by the robot radius on
+    a 5 cm grid) into more than one piece is dropped, so the world is always connected;
+    12 starts are spread over the rooms and the corridor and checked like every start."""
+    if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise WorldError(f"procedural seed must be an integer >= 0, got {seed!r}")
+    name = f"{PROCEDURAL_PREFIX}{seed}"
+    rng = np.random.default_rng(int(seed))
+    env_cfg = EnvConfig()
+    radius = env_cfg.robot_radius_m
+    for _attempt in range(6):
+        L, S, walls, rooms, doors, clutter = _procedural_layout(rng)
+        transpose = bool(rng.random() < 0.5)
+        extent = (-L / 2, -S / 2, L / 2, S / 2)
+        grid = maps.empty_grid(extent, 0.05)
+        occupied = np.zeros(grid.shape, dtype=bool)
+        boundary = [_Shape("box", 0.0, -S / 2, L / 2 + 0.05, 0.05), _Shape("box", 0.0, S / 2, L / 2 + 0.05, 0.05),
+                    _Shape("box", -L / 2, 0.0, 0.05, S / 2 + 0.05), _Shape("box", L / 2, 0.0, 0.05, S / 2 + 0.05)]
+        for shape in boundary + walls:
+            shape.rasterise(occupied, grid)
+        if maps.label_components(maps.traversable(maps.OccupancyGrid(grid.origin_xy, 0.05, occupied), radius))[1] != 1:
+            continue  # the walls alone must leave one connected space; draw another layout
+        kept: list[_Shape] = []
+        for shape in clutter:
+            if any(math.hypot(shape.cx - dx, shape.cy - dy) < _DOOR_KEEPOUT_M for dx, dy in doors):
+                continue
+            trial = occupied.copy()
+            shape.rasterise(trial, grid)
+            if maps.label_components(maps.traversable(maps.OccupancyGrid(grid.origin_xy, 0.05, trial), radius))[1] == 1:
+                occupied, kept = trial, kept + [shape]
+        shapes = boundary + walls + kept
+        if transpose:
+            shapes = [s.transposed() for s in shapes]
+            extent = (-S / 2, -L / 2, S / 2, L / 2)
+            rooms = [(n, (r0, a, r1, b)) for n, (a, r0, b, r1) in rooms]
+        builder = SceneBuilder(name, extent)
+        for shape in shapes:
+            shape.emit(builder)
+        scene = builder.build(name, [], kind="procedural")
+        starts = _pick_starts(scene, rooms, rng, env_cfg)
+        if starts is None:
+            continue
+        world = World(name=name, mjcf=scene.mjcf, starts=tuple(starts), extent=extent, kind="procedural")
+        if not maps.is_connected(maps.occupancy_grid(world), radius):
+            continue  # rounding in the MJCF text moved a cell; try another draw
+        return world
+    raise WorldError(f"world '{name}': no valid layout with {NUM_STARTS} starts after 6 attempts")
+
+
+def _pick_starts(scene: World, regions: list[tuple[str, tuple[float, float, float, float]]],
+                 rng: np.random.Generator, env_cfg: EnvConfig) -> list[StartPose] | None:
+    """NUM_STARTS valid starts spread over the regions (round robin, >= 1.2 m apart)."""
+    checker = StartChecker(scene, env_cfg)
+    grid = maps.occupancy_grid(scene)
+    margin = env_cfg.robot_radius_m + MIN_START_CLEARANCE_M + grid.resolution_m
+    roomy = ~maps.inflate(grid.occupied, margin / grid.resolution_m)
+    iy, ix = np.nonzero(roomy)
+    cx, cy = grid.cell_to_world(ix, iy)
+    order = list(range(len(regions)))
+    rng.shuffle(order)
+    starts: list[StartPose] = []
+    per_region = {i: 0 for i in order}
+    headings = np.arange(16) * (math.pi / 8)
+    for _round in range(6):
+        for ri in order:
+            if len(starts) == NUM_STARTS:
+                return starts
+            rname, (x0, y0, x1, y1) = regions[ri]
+            inside = np.nonzero((cx > x0) & (cx < x1) & (cy > y0) & (cy < y1))[0]
+            if inside.size == 0:
+                continue
+            for k in rng.permutation(inside)[:12]:
+                x, y = round(float(cx[k]), 2), round(float(cy[k]), 2)
+                if any(math.hypot(x - s.x, y - s.y) < 1.2 for s in starts):
+                    continue
+                found = None
+                for yaw in rng.permutation(headings):
+                    yaw = round(float(math.atan2(math.sin(yaw), math.cos(yaw))), 4)
+                    if checker.check(x, y, yaw).ok and not checker.unsafe_first_actions(x, y, yaw):
+                        found = yaw
+                        break
+                if found is not None:
+                    per_region[ri] += 1
+                    starts.append(StartPose(x, y, found, f"{rname}-{per_region[ri]}"))
+                    break
+    return starts if len(starts) == NUM_STARTS else None
+
+
+# ---------------------------------------------------------------------------
+# User MJCF worlds
+# ---------------------------------------------------------------------------
+
+
+def load_world_file(path: str | Path, name: str | None = None) -> World:
+    """A world from an MJCF file: static geoms, starts from sites named ``start_*`` (x, y
+    from the site position, heading from the site's x axis). A floor plane named 'floor'
+    is added unless the file has one (a horizontal plane with another name is renamed)."""
+    p = Path(path)
+    label = f"MJCF file '{path}'"
+    if not p.is_file():
+        raise WorldError(f"{label} does not exist")
+    try:
+        spec = mujoco.MjSpec.from_file(str(p))
+    except ValueError as exc:
+        raise WorldError(f"{label}: MuJoCo cannot parse it: {exc}".rstrip()) from None
+    if any(body.name == ROBOT_BODY for body in spec.bodies):
+        raise WorldError(f"{label} already has a body named '{ROBOT_BODY}'; the robot is added by "
+                         "cogexplore, remove or rename that body")
+    # Asset paths must survive the trip through MJCF text compiled from a string.
+    base = p.resolve().parent
+    spec.meshdir = str((base / spec.meshdir).resolve()) if spec.meshdir else str(base)
+    spec.texturedir = str((base / spec.texturedir).resolve()) if spec.texturedir else str(base)
+    try:
+        model = spec.compile()
+    except ValueError as exc:
+        raise WorldError(f"{label}: MuJoCo cannot compile it: {exc}".rstrip()) from None
+    if model.njnt > 0:
+        moving = sorted({model.body(int(model.jnt_bodyid[j])).name or f"body #{int(model.jnt_bodyid[j])}"
+                         for j in range(model.njnt)})
+        raise WorldError(f"{label}: bodies with joints are not static: {moving}; a world may hold only "
+                         "static geoms (no joints, no free bodies)")
+    data = mujoco.MjData(model)
+    mujoco.mj_kinematics(model, data)
+    starts = []
+    for i in range(model.nsite):
+        site = model.site(i).name
+        if site.startswith("start_"):
+            x, y = (float(v) for v in data.site_xpos[i][:2])
+            xmat = data.site_xmat[i]
+            starts.append(StartPose(x, y, float(math.atan2(xmat[3], xmat[0])), site))
+    if not starts:
+        raise WorldError(f"{label} has no start sites: add sites named start_<something> "
+                         "(position = start, site x axis = initial heading)")
+    # The floor: keep one named 'floor', else rename the first horizontal plane, else add one.
+    plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
+    floor_ids = [g for g in range(model.ngeom) if model.geom(g).name == FLOOR_GEOM]
+    if not floor_ids:
+        for g in range(model.ngeom):
+            if int(model.geom_type[g]) == plane and data.geom_xmat[g][8] > 0.999:
+                next(sg for sg in spec.geoms if sg.id == g).name = FLOOR_GEOM
+                floor_ids = [g]
+                break
+    extent = _geom_extent(model, data, set(floor_ids), starts)
+    if not floor_ids:
+        xmin, ymin, xmax, ymax = extent
+        spec.worldbody.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_PLANE,
+                                pos=[(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0], size=[0.0, 0.0, 0.25],
+                                rgba=[0.35, 0.35, 0.38, 1.0])
+    world = World(name=name or str(path), mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file")
+    validate_starts(world)
+    return world
+
+
+def _geom_extent(model: mujoco.MjModel, data: mujoco.MjData, skip: set[int],
+                 starts: list[StartPose]) -> tuple[float, float, float, float]:
+    """Union of the obstacle geoms' world bounding boxes (x, y) and the start positions."""
+    lo = np.array([min(s.x for s in starts), min(s.y for s in starts)])
+    hi = np.array([max(s.x for s in starts), max(s.y for s in starts)])
+    found = False
+    for g in range(model.ngeom):
+        if g in skip or int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE):
+            continue
+        mat = data.geom_xmat[g].reshape(3, 3)
+        centre = data.geom_xpos[g] + mat @ model.geom_aabb[g][:3]
+        half = np.abs(mat) @ model.geom_aabb[g][3:]
+        lo = np.minimum(lo, centre[:2] - half[:2])
+        hi = np.maximum(hi, centre[:2] + half[:2])
+        found = True
+    if not found:
+        lo, hi = lo - 2.0, hi + 2.0
+    return float(lo[0]), float(lo[1]), float(hi[0]), float(hi[1])
+
+
+# ---------------------------------------------------------------------------
+# Resolution and summaries
+# ---------------------------------------------------------------------------
+
+
+@functools.lru_cache(maxsize=32)
+def _cached_world(name: str) -> World:
+    if name in BUILTIN_WORLDS:
+        return BUILTIN_WORLDS[name]()
+    seed_text = name[len(PROCEDURAL_PREFIX):]
+    if not (seed_text.isascii() and seed_text.isdigit()):
+        raise WorldError(f"world {name!r}: the seed after '{PROCEDURAL_PREFIX}' must be an integer >= 0")
+    return procedural_world(int(seed_text))
+
+
+def load_world(name: str) -> World:
+    """Resolve a built-in name, ``procedural:<seed>`` or an MJCF path to a World.
+
+    Built-in and procedural worlds are cached (they are immutable); files are read anew."""
+    if not isinstance(name, str) or not name:
+        raise WorldError(f"a world name must be a non-empty string, got {name!r}")
+    if name in BUILTIN_WORLDS or name.startswith(PROCEDURAL_PREFIX):
+        return _cached_world(name)
+    if name.lower().endswith(".xml") or Path(name).is_file():
+        return load_world_file(name)
+    raise WorldError(f"unknown world {name!r}: use a built-in world {sorted(BUILTIN_WORLDS)}, "
+                     f"'{PROCEDURAL_PREFIX}<seed>', or the path of an MJCF file")
+
+
+def obstacle_geom_count(world: World) -> int:
+    """Geoms in the static scene other than the floor."""
+    model = mujoco.MjSpec.from_string(world.mjcf).compile()
+    floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM)
+    return int(model.ngeom - (1 if floor >= 0 else 0))
+
+
+def world_summary(name: str) -> dict[str, Any]:
+    """Plain-data facts about a world (for the ``worlds`` CLI and reports)."""
+    world = load_world(name)
+    grid = maps.occupancy_grid(world)
+    w, h = world.size_m
+    return {
+        "name": world.name,
+        "kind": world.kind,
+        "size_m": [round(w, 3), round(h, 3)],
+        "extent": [round(v, 3) for v in world.extent],
+        "num_starts": len(world.starts),
+        "num_obstacle_geoms": obstacle_geom_count(world),
+        "free_area_m2": round(maps.free_area_m2(grid), 2),
+        "connected": maps.is_connected(grid, EnvConfig().robot_radius_m),
+    }
