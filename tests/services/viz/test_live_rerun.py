@@ -53,7 +53,7 @@ from shared.sim.world import load_world
 from shared.wire.keys import RunKeys
 from shared.wire.messages import EpisodeStats, RejectCounter
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 RERUN_BIN = Path(rerun_cli.__file__).with_name("rerun")  # the binary itself: a signal reaches it
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
 SET_ARGS = [a for k, v in SMALL.items() if k.startswith("sensor.") for a in ("--set", f"{k}={v}")]

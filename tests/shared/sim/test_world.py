@@ -257,7 +257,7 @@ def test_names_the_robot_needs_are_reported_when_taken(tmp_path):
 
 
 def test_the_example_world_file_loads():
-    path = Path(__file__).resolve().parents[1] / "shared" / "sim" / "worlds" / "two_rooms.xml"
+    path = Path(__file__).resolve().parents[3] / "shared" / "sim" / "worlds" / "two_rooms.xml"
     world = load_world(str(path))
     assert [s.name for s in world.starts] == ["start_west_room", "start_door", "start_east_room",
                                               "start_north_east"]

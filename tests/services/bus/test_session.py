@@ -44,7 +44,7 @@ from shared.wire.messages import (
     shape_fingerprint,
 )
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 KEYS = RunKeys("test-transport")
 
 

@@ -32,7 +32,7 @@ from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys
 from shared.wire.messages import EvalResult
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[3]
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 OVERRIDES = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
 SET_ARGS = [a for k, v in OVERRIDES.items() for a in ("--set", f"{k}={v}")]
