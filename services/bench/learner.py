@@ -31,7 +31,13 @@ import torch.nn.functional as F
 
 from shared.config import DQNConfig, ModelConfig, SensorConfig
 from shared.learning.dqn import DQNAgent, td_targets, update_flops
-from shared.learning.model import InferenceRunner, QNetwork, forward_flops, reduce_allocator_page_faults, resolve_device
+from shared.learning.model import (
+    InferenceRunner,
+    QNetwork,
+    forward_flops,
+    reduce_allocator_page_faults,
+    resolve_device,
+)
 from shared.learning.replay import Batch
 
 

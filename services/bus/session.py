@@ -32,7 +32,15 @@ from typing import Callable, Mapping, Sequence
 
 import zenoh
 
-from services.bus import DEFAULT_CONNECT, DEFAULT_ROUTER_LISTEN, ENV_CONFIG, ENV_CONNECT, ENV_LISTEN, ENV_MODE, MODES
+from services.bus import (
+    DEFAULT_CONNECT,
+    DEFAULT_ROUTER_LISTEN,
+    ENV_CONFIG,
+    ENV_CONNECT,
+    ENV_LISTEN,
+    ENV_MODE,
+    MODES,
+)
 from shared.errors import CogexploreError
 from shared.wire.messages import Message, RejectCounter
 

@@ -37,7 +37,13 @@ from shared.learning.learner import LearnerCore, RateMeter, resume_from
 from shared.learning.stats import CsvLog, LearnerRow
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys, parse_key
-from shared.wire.messages import FlowControl, LearnerStats, MessageError, RejectCounter, TransitionBatch
+from shared.wire.messages import (
+    FlowControl,
+    LearnerStats,
+    MessageError,
+    RejectCounter,
+    TransitionBatch,
+)
 
 log = logging.getLogger("cogexplore.learner")
 

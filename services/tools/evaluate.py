@@ -34,10 +34,21 @@ from typing import Any
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
 from services.process import stop_event_on_signals
-from services.viz.rerun import evaluate_recorded, live_viewer_url, open_recorder, parse_viewer_url
+from services.viz.rerun import (
+    evaluate_recorded,
+    live_viewer_url,
+    open_recorder,
+    parse_viewer_url,
+)
 from shared.config import ConfigError, parse_world_list
 from shared.evaluation.protocol import evaluate_policy, protocol_env_config
-from shared.evaluation.results import EvalResults, aggregate, save_results, slug, table_markdown
+from shared.evaluation.results import (
+    EvalResults,
+    aggregate,
+    save_results,
+    slug,
+    table_markdown,
+)
 from shared.evaluation.setup import EvalSetup, EvaluateError, setup_evaluation
 from shared.learning.checkpoints import LoadedModel
 

@@ -257,7 +257,11 @@ class Experiment:
         return argv
 
     def _train_drl(self, updates: int) -> dict[str, Any]:
-        from shared.learning.checkpoints import export_weights, load_checkpoint, load_model
+        from shared.learning.checkpoints import (
+            export_weights,
+            load_checkpoint,
+            load_model,
+        )
 
         argv = self._up_command(updates)
         self.echo(" ".join(argv[2:]))

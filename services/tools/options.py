@@ -7,7 +7,12 @@ from __future__ import annotations
 import argparse
 
 from shared.config import SPEED_TABLES
-from shared.evaluation import DEFAULT_WORLD, PAPER_EPISODES_PER_START, PAPER_MAX_STEPS, POLICY_NAMES
+from shared.evaluation import (
+    DEFAULT_WORLD,
+    PAPER_EPISODES_PER_START,
+    PAPER_MAX_STEPS,
+    POLICY_NAMES,
+)
 
 PRETRAIN_WORLDS = ("corridor", "paper-indoor")
 """Worlds the supervised data is collected in by default (the paper's corridors and the test world)."""

@@ -155,7 +155,9 @@ def render_receptive_png(depth_m: np.ndarray, mask: np.ndarray, q_values: np.nda
     """Draw a depth image (grayscale, no return in white as in the paper), the mask in purple,
     an arrow for the chosen command under the image and the Q-values as text; save a PNG."""
     import matplotlib
-    from matplotlib.figure import Figure  # no pyplot: no global figure state, no GUI backend
+    from matplotlib.figure import (
+        Figure,  # no pyplot: no global figure state, no GUI backend
+    )
 
     depth = np.asarray(depth_m, dtype=np.float32)
     mask = np.asarray(mask, dtype=bool)

@@ -184,7 +184,11 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
                  device: str = "cpu", progress: bool = True,
                  baselines: Sequence[str] = BASELINES) -> Report:
     """Evaluate (or reuse results for) every model and write the report; see the module docstring."""
-    from services.tools.receptive import ReceptiveFieldError, receptive_field, render_receptive_png
+    from services.tools.receptive import (
+        ReceptiveFieldError,
+        receptive_field,
+        render_receptive_png,
+    )
     from services.viz.figures import (
         FigureError,
         q_value_table_markdown,

@@ -71,7 +71,13 @@ def run_demo(args: argparse.Namespace) -> int:
 
     from shared.config import load_preset
     from shared.evaluation.protocol import protocol_env_config
-    from shared.learning.demos import DemoError, plan_commands, plan_summary, record_demonstration, save_demonstrations
+    from shared.learning.demos import (
+        DemoError,
+        plan_commands,
+        plan_summary,
+        record_demonstration,
+        save_demonstrations,
+    )
     from shared.sim.env import ExploreEnv
 
     rc = load_preset(args.preset)

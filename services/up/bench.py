@@ -128,7 +128,12 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     from services.runs import resolve_config, save_config
     from services.up.launcher import Launcher
     from shared.wire.keys import RunKeys
-    from shared.wire.messages import EpisodeStats, FlowControl, LearnerStats, RejectCounter
+    from shared.wire.messages import (
+        EpisodeStats,
+        FlowControl,
+        LearnerStats,
+        RejectCounter,
+    )
 
     overrides = list(overrides or [])
     temporary = runs_dir is None

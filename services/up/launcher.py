@@ -21,9 +21,15 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from services.bus.session import LivelinessWatch, ZenohSettings, free_tcp_port, open_session, subscribe_messages
-from services.runs import RunPaths, resolve_config, save_config
+from services.bus.session import (
+    LivelinessWatch,
+    ZenohSettings,
+    free_tcp_port,
+    open_session,
+    subscribe_messages,
+)
 from services.process import setup_logging
+from services.runs import RunPaths, resolve_config, save_config
 from shared.config import ConfigError
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EpisodeStats, LearnerStats, RejectCounter

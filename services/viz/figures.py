@@ -22,7 +22,13 @@ import numpy as np
 
 from shared.errors import CogexploreError
 from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of
-from shared.sim.maps import OccupancyGrid, draw_map, normalize_heatmap, render_map_png, visit_counts
+from shared.sim.maps import (
+    OccupancyGrid,
+    draw_map,
+    normalize_heatmap,
+    render_map_png,
+    visit_counts,
+)
 from shared.sim.world import World
 
 # Column labels of the paper's Table II.

@@ -21,8 +21,21 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.config import ACTION_NAMES, DEPTH_ENCODINGS, NUM_ACTIONS, EnvConfig, SensorConfig, mirror_action
-from shared.expert.dataset import DriveConfig, SupervisedDataset, _jsonable, dataset_request, open_or_generate
+from shared.config import (
+    ACTION_NAMES,
+    DEPTH_ENCODINGS,
+    NUM_ACTIONS,
+    EnvConfig,
+    SensorConfig,
+    mirror_action,
+)
+from shared.expert.dataset import (
+    DriveConfig,
+    SupervisedDataset,
+    _jsonable,
+    dataset_request,
+    open_or_generate,
+)
 from shared.expert.expert import ExpertConfig, SupervisedError
 from shared.learning.checkpoints import save_supervised
 from shared.learning.model import (

@@ -20,7 +20,12 @@ from typing import Any, Hashable
 import numpy as np
 
 from shared.config import RunConfig
-from shared.learning.checkpoints import CheckpointError, CheckpointManager, init_agent_conv, init_agent_weights
+from shared.learning.checkpoints import (
+    CheckpointError,
+    CheckpointManager,
+    init_agent_conv,
+    init_agent_weights,
+)
 from shared.learning.demos import demo_replay, load_demonstrations
 from shared.learning.dqn import DQNAgent
 from shared.learning.replay import ReplayMemory, concat_batches

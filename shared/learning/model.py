@@ -327,18 +327,19 @@ def average_weights(nets: list[nn.Module]) -> dict[str, torch.Tensor]:
 
 
 def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
-    """Load ``weights_to_tensors`` output into ``net`` with a clear error on any mismatch."""
+    """Load ``weights_to_tensors`` output into ``net`` with a clear error on any mismatch; every
+    name and shape is checked before the first copy, so a misfit leaves ``net`` as it was."""
     own = net.state_dict()
     missing = sorted(set(own) - set(tensors))
     extra = sorted(set(tensors) - set(own))
     if missing or extra:
         raise ModelError(f"weights do not fit {type(net).__name__}: missing {missing}, unexpected {extra}")
+    for n, t in own.items():
+        if tuple(tensors[n].shape) != tuple(t.shape):
+            raise ModelError(f"weight {n}: shape {tuple(tensors[n].shape)}, network wants {tuple(t.shape)}")
     with torch.no_grad():
         for n, t in own.items():
-            src = tensors[n]
-            if tuple(src.shape) != tuple(t.shape):
-                raise ModelError(f"weight {n}: shape {tuple(src.shape)}, network wants {tuple(t.shape)}")
-            t.copy_(src)  # copy_ keeps the destination's (channels-last) layout and device
+            t.copy_(tensors[n])  # copy_ keeps the destination's (channels-last) layout and device
 
 
 class InferenceRunner:

@@ -7,7 +7,11 @@ import numpy as np
 import torch
 from torch import nn
 
-from shared.learning.model import architecture_fingerprint, load_tensors, weights_to_tensors
+from shared.learning.model import (
+    architecture_fingerprint,
+    load_tensors,
+    weights_to_tensors,
+)
 from shared.wire.messages import WeightsMessage
 
 

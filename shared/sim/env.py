@@ -23,7 +23,14 @@ import gymnasium as gym
 import mujoco
 import numpy as np
 
-from shared.config import ACTION_NAMES, NUM_ACTIONS, PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig
+from shared.config import (
+    ACTION_NAMES,
+    NUM_ACTIONS,
+    PROCEDURAL_PREFIX,
+    SPEED_TABLES,
+    EnvConfig,
+    SensorConfig,
+)
 from shared.sim.robot import Robot, build_model
 from shared.sim.sensor import DepthCamera
 from shared.sim.world import World, WorldError, load_world

@@ -1,0 +1,90 @@
+"""The newest-weights follower of the actors and the evaluator: newest wins, misfits are counted, never raised."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+import numpy as np
+import torch
+
+from services.bus.follower import WeightFollower
+from services.bus.session import (
+    ZenohSettings,
+    free_tcp_port,
+    open_router,
+    open_session,
+    serve_latest,
+)
+from shared.config import ModelConfig, SensorConfig
+from shared.learning.model import QNetwork, architecture_fingerprint
+from shared.learning.weights import to_message
+from shared.wire.keys import RunKeys
+from shared.wire.messages import RejectCounter, WeightsMessage
+
+SENSOR = SensorConfig(width=32, height=24)
+
+
+def network(seed: int) -> QNetwork:
+    torch.manual_seed(seed)
+    return QNetwork(ModelConfig(fc1=16, fc2=8), SENSOR).eval()
+
+
+def follower_for(net: QNetwork) -> WeightFollower:
+    return WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("test")))
+
+
+def test_the_newest_fitting_weights_win_and_older_ones_never_come_back():
+    net = network(0)
+    follower = follower_for(net)
+    assert follower.take() is None
+    for version in (3, 7, 5):
+        follower.offer(to_message(net, version))
+    assert follower.take().policy_version == 7 and follower.take() is None
+    follower.offer(to_message(net, 6))  # older than the one taken: dropped
+    assert follower.take() is None
+    follower.offer(to_message(net, 8))
+    assert follower.take().policy_version == 8
+
+
+def test_another_architecture_or_tensors_that_do_not_load_are_counted_and_leave_the_network_untouched():
+    net, other = network(0), QNetwork(ModelConfig(fc1=32, fc2=8), SENSOR)
+    follower = follower_for(net)
+    follower.offer(to_message(other, 9))
+    assert follower.take() is None and follower.rejects.counts == {"fingerprint": 1}
+
+    source = network(1)
+    message = to_message(source, 10)
+    weight = next(k for k, v in message.tensors.items() if v.ndim == 2 and v.shape[0] != v.shape[1])
+    tensors = dict(message.tensors, **{weight: np.ascontiguousarray(message.tensors[weight].T)})
+    transposed = WeightsMessage(policy_version=10, architecture_fingerprint=message.architecture_fingerprint,
+                                tensors=tensors)  # the right fingerprint, one tensor the wrong way round
+    before = {k: v.clone() for k, v in net.state_dict().items()}
+    follower.offer(transposed)
+    taken = follower.take()
+    assert taken is not None and not follower.load(net, taken)
+    assert follower.rejects.counts == {"fingerprint": 1, "shape": 1}
+    assert all(torch.equal(before[k], v) for k, v in net.state_dict().items())
+    assert follower.load(net, message) and torch.equal(net.state_dict()[weight], source.state_dict()[weight])
+
+
+def test_take_waits_for_weights_that_arrive_late():
+    net = network(0)
+    follower = follower_for(net)
+    threading.Timer(0.2, follower.offer, args=(to_message(net, 1),)).start()
+    started = time.monotonic()
+    assert follower.take(timeout_s=5.0).policy_version == 1
+    assert time.monotonic() - started < 4.0
+
+
+def test_a_follower_gets_the_learners_newest_weights_through_a_real_router():
+    net, keys = network(0), RunKeys("follow")
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    newest = to_message(net, 42).encode()
+    with open_router([endpoint]), open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as learner, \
+            open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as actor:
+        queryable = serve_latest(learner, keys.weights_latest, lambda: newest)  # noqa: F841
+        follower = follower_for(net)
+        follower.subscribe(actor, keys, query_timeout_s=5.0)
+        assert follower.take(timeout_s=10.0).policy_version == 42

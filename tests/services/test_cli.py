@@ -1,0 +1,57 @@
+"""The one command line: every user-facing error is a CogexploreError, printed once, in one line."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from services.cli import main
+from shared.errors import CogexploreError
+
+REPO = Path(__file__).resolve().parents[2]
+NOT_USER_ERRORS = {"EvaluationCancelled"}  # control flow: a stop event set during an evaluation
+
+
+def test_every_error_class_of_the_project_derives_from_the_one_base():
+    classes = {}
+    for path in [*(REPO / "shared").rglob("*.py"), *(REPO / "services").rglob("*.py")]:
+        module = ".".join(path.relative_to(REPO).with_suffix("").parts)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ClassDef) and node.name.endswith(("Error", "Cancelled")):
+                classes[f"{module}.{node.name}"] = node.name
+    assert len(classes) >= 20
+    import importlib
+
+    outside = []
+    for qualified, name in classes.items():
+        cls = getattr(importlib.import_module(qualified.rsplit(".", 1)[0]), name)
+        if name not in NOT_USER_ERRORS and not issubclass(cls, CogexploreError):
+            outside.append(qualified)
+    assert not outside, outside
+    names = list(classes.values())
+    assert len(names) == len(set(names)), "two error classes share a name"
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["actor", "--run", "bad name"], "cogexplore actor: error: run name 'bad name' contains whitespace"),
+    (["learner", "--run", "a/b"], "cogexplore learner: error: run name 'a/b' contains a slash"),
+    (["evaluate", "--policy", "random", "--world", "nowhere", "--quiet"], "cogexplore evaluate: error: "),
+    (["model", "export", "no-such-checkpoint", "--out", "x.safetensors"], "cogexplore model export: error: "),
+])
+def test_a_bad_input_is_one_line_and_exit_status_2(argv: list[str], message: str, tmp_path: Path, capsys) -> None:
+    assert main([*argv, *(["--runs-dir", str(tmp_path)] if argv[0] in ("actor", "learner") else [])]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and err.count("\n") == 1 and "Traceback" not in err
+
+
+def test_the_installed_command_prints_its_tree_quickly_and_names_every_command():
+    proc = subprocess.run([sys.executable, "-m", "services.cli", "--help"], cwd=REPO, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0
+    for command in ("up", "train", "router", "learner", "actor", "evaluator", "evaluate", "report", "pretrain",
+                    "experiment", "worlds", "model", "bench"):
+        assert f"    {command}" in proc.stdout, command
