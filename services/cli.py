@@ -25,7 +25,7 @@ class Command:
     """One command: its help line, ``module:function`` adding its options, ``module:function`` running it."""
 
     help: str
-    options: str | None
+    options: str
     run: str
 
 
@@ -105,8 +105,7 @@ def _function(target: str) -> Any:
 
 def _add(sub: Any, name: str, command: Command, path: str) -> None:
     p = sub.add_parser(name, help=command.help, description=command.help)
-    if command.options is not None:
-        _function(command.options)(p)
+    _function(command.options)(p)
     # underscored names: no command option can have them (a --run option would overwrite a plain "run")
     p.set_defaults(_entry=command.run, _command=path)
 

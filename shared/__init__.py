@@ -1,0 +1,1 @@
+"""The pure layer of cogexplore: everything but processes, Zenoh and Rerun (see README, Layout)."""

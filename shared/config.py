@@ -238,7 +238,7 @@ class EnvConfig:
 
 # ---------------------------------------------------------------------------
 # Learning: network, replay, update rule, exploration, training loop
-# (owned by the learning core; see shared/model.py, replay.py, dqn.py, policy.py)
+# (owned by the learning core; see shared/learning/model.py, replay.py, dqn.py, policy.py)
 # ---------------------------------------------------------------------------
 
 
@@ -323,7 +323,7 @@ class DQNConfig:
     optimizer: str = "sgd"
     """'sgd' (paper: momentum SGD) or 'adam'."""
     lr: float = 1e-4
-    """Learning rate of the fully connected layers (see shared/dqn.py for the Caffe mapping)."""
+    """Learning rate of the fully connected layers (see shared/learning/dqn.py for the Caffe mapping)."""
     conv_lr_scale: float = 0.1
     """Learning rate of the conv layers as a fraction of lr (the paper trains them slower)."""
     lr_decay_updates: int = 0
@@ -458,7 +458,7 @@ class TrainConfig:
     demos: str = ""
     """Planner demonstration files (``cogexplore worlds demo``, .npz), comma-separated, or
     'pretrained:demos' (the shipped ones, paper-indoor): their transitions stay in the learner
-    for good and ``dqn.demo_batch`` of them join every batch (shared/demos.py). '' = none. Needs
+    for good and ``dqn.demo_batch`` of them join every batch (shared/learning/demos.py). '' = none. Needs
     ``dqn.demo_batch`` > 0."""
 
     def __post_init__(self) -> None:

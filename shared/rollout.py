@@ -103,7 +103,7 @@ class Step:
 
 
 def _unpack(choice: Any) -> tuple[int, Any]:
-    if isinstance(choice, tuple):
+    if isinstance(choice, (tuple, list)):
         return choice[0], choice[1] if len(choice) > 1 else None
     if hasattr(choice, "action"):
         return choice.action, getattr(choice, "q_values", None)
@@ -124,7 +124,7 @@ class Rollout:
                  check_action: Callable[[Any], int] | None = None, env_steps: int = 0):
         self.env = env
         self.policy = policy
-        self.observers = list(observers)
+        self.observers = tuple(observers)
         self.max_steps = max_steps
         self.check_action = check_action
         self.env_steps = env_steps

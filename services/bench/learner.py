@@ -7,12 +7,12 @@ the update, the forward and the peak alike, so that load from other processes on
 machine depresses all three the same way and ``flop_utilization`` (achieved over peak) stays
 comparable; medians are reported too.
 
-The optimisations measured here live in the real code (shared/model.py, shared/dqn.py):
+The optimisations measured here live in the real code (shared/learning/model.py, shared/learning/dqn.py):
 channels-last convolutions, pooling before ReLU, and the glibc allocator setting that stops
 activations being page-faulted in on every update. ``baseline=True`` also times a plain
 PyTorch version of the same update (NCHW, ReLU before pooling) in the same process; the
 allocator setting is process-wide, so that baseline already has it and the reported speedup
-leaves its share out (shared/model.py's docstring has the separate-process comparison).
+leaves its share out (shared/learning/model.py's docstring has the separate-process comparison).
 """
 
 from __future__ import annotations

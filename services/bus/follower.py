@@ -48,7 +48,8 @@ class WeightFollower:
         try:
             message.check_fingerprint(self.fingerprint)
         except MessageError as exc:
-            self.rejects.reject(exc, key or None)
+            self.rejects.reject(MessageError(exc.cause, f"{exc.detail} (is the learner running another model config?)"),
+                                key or None)
             return
         with self._arrived:
             newest = self._newest.policy_version if self._newest is not None else self._taken_version

@@ -6,9 +6,8 @@
 On start it follows the ``weights`` stream, announces itself (liveliness ``alive/evaluator/<id>``)
 and asks the learner's queryable for its newest weights (``services.bus.follower.WeightFollower``,
 as the actors do). Zenoh threads only park the newest message; the main loop takes it and
-evaluates it when it is due: the first
-weights it sees, then whenever the policy version (the learner's update count at publication)
-enters a new multiple of ``--every-updates``. A message for another architecture (fingerprint)
+evaluates it when it is due: the first weights it sees, then whenever the policy version (the
+learner's update count at publication) enters a new multiple of ``--every-updates``. A message for another architecture (fingerprint)
 or one that does not decode is counted by cause and dropped; the service carries on.
 
 Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 10 per start)

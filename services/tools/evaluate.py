@@ -7,7 +7,7 @@
 
 Greedy episodes (dropout off) at the TEST speed table from every start pose of the world,
 ``--episodes-per-start`` each, capped at ``--max-steps`` moving steps; results per start and
-overall (``results.py``) go to the JSON, the steps to an optional Rerun recording: a file
+overall (``shared.evaluation.results``) go to the JSON, the steps to an optional Rerun recording: a file
 (``--rrd``), a running viewer (``--rerun-connect URL``, e.g. one started with ``rerun``; a
 viewer that does not answer is warned about and skipped) or a gRPC server plus web viewer that
 this command hosts (``--rerun-serve``; it prints the address to open and keeps serving after

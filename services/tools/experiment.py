@@ -125,7 +125,7 @@ class ExperimentState:
         if path.is_file():
             try:
                 old = json.loads(path.read_text())
-            except json.JSONDecodeError as exc:
+            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
                 raise ExperimentError(f"{path} is not valid JSON ({exc}): move it away to start afresh") from None
             if old.get("format") != STATE_FORMAT or old.get("version") != STATE_VERSION:
                 raise ExperimentError(f"{path} is not a {STATE_FORMAT} v{STATE_VERSION} state file")
@@ -266,7 +266,7 @@ class Experiment:
         argv = self._up_command(updates)
         self.echo(" ".join(argv[2:]))
         env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
-        repo = Path(__file__).resolve().parent.parent
+        repo = Path(__file__).resolve().parents[2]
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(repo), env.get("PYTHONPATH", "")]))
         proc = subprocess.Popen(argv, env=env, stdin=subprocess.DEVNULL)
         limit = self.o.minutes_per_stage * 60 if self.o.minutes_per_stage else None

@@ -131,14 +131,14 @@ def _unique(name: str, taken: set[str]) -> str:
 
 
 # ---------------------------------------------------------------------------------------------
-# Figures beyond figures.py
+# Figures beyond services/viz/figures.py
 # ---------------------------------------------------------------------------------------------
 
 
 def load_eval_log(path: Path) -> list[dict[str, Any]]:
     """The evaluator service's ``eval.jsonl`` rows (bad lines skipped), sorted by version."""
     rows = []
-    for line in path.read_text().splitlines():
+    for line in path.read_text(errors="replace").splitlines():  # a damaged line is skipped like a bad one
         try:
             row = json.loads(line)
         except json.JSONDecodeError:

@@ -4,7 +4,7 @@ receptive-field maps (Fig. 7).
 The paper picks five simulated samples "located in the fallible area" of its world. Ours are
 five poses in hard places of ``paper-indoor`` (``PROBE_SCENES``): a gap too narrow for the
 robot, a cylinder straight ahead, a dead end, obstacles at several depths, and a corridor
-junction. Their depth images are stored with the project in ``shared/probes/`` as
+junction. Their depth images are stored with the project in ``shared/evaluation/probe_scenes/`` as
 ``<name>.npy`` (float32 metres, the paper sensor's 120 x 160) plus ``<name>.json`` (world,
 pose, description); ``generate_probes`` recreates them from the poses (run it after the world
 changes: ``python -m shared.evaluation.probes``), and ``render_probe`` renders a scene for any
@@ -30,7 +30,7 @@ from shared.depth import MM_PER_M
 from shared.errors import CogexploreError
 
 PROBE_DIR = Path(__file__).resolve().with_name("probe_scenes")
-"""Where the stored probe scenes live (``shared/probes/``)."""
+"""Where the stored probe scenes live (``shared/evaluation/probe_scenes/``)."""
 PROBE_WORLD = "paper-indoor"
 
 

@@ -10,6 +10,7 @@ of its conv layers into a DQN agent (the paper's) live with every other model fi
 
 from __future__ import annotations
 
+import json
 import math
 import time
 from collections.abc import Sequence
@@ -32,7 +33,6 @@ from shared.config import (
 from shared.expert.dataset import (
     DriveConfig,
     SupervisedDataset,
-    _jsonable,
     dataset_request,
     open_or_generate,
 )
@@ -199,7 +199,7 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
         "confusion_matrix": test["confusion_matrix"],
         "classes": list(ACTION_NAMES),
     }
-    return net, _jsonable(card)
+    return net, json.loads(json.dumps(card))  # plain JSON types, as the model file stores it
 
 
 @dataclass

@@ -369,7 +369,7 @@ def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0, *, 
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
             "fingerprint": architecture_fingerprint(net),
-            "model": _asdict(net.model_cfg), "sensor": _asdict(net.sensor_cfg), **dict(extra or {})}
+            "model": asdict(net.model_cfg), "sensor": asdict(net.sensor_cfg), **dict(extra or {})}
     tensors = weights_to_tensors(net)
     if half:
         tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
@@ -436,15 +436,11 @@ def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
             ours.width, ours.height, ours.max_range_m):
         raise CheckpointError(f"train.init_from = {str(source)!r}: its network ({meta['model']}, "
                               f"{theirs.width} x {theirs.height} px, {theirs.max_range_m} m) is not this run's "
-                              f"({_asdict(agent.model_cfg)}, {ours.width} x {ours.height} px, {ours.max_range_m} m)")
+                              f"({asdict(agent.model_cfg)}, {ours.width} x {ours.height} px, {ours.max_range_m} m)")
     with torch.no_grad():
         agent.online.load_state_dict(net.state_dict())
     agent.sync_target()
     return meta
-
-
-def _asdict(cfg: Any) -> dict[str, Any]:
-    return asdict(cfg)
 
 
 # --------------------------------------------------------------------------- supervised model files
@@ -530,7 +526,7 @@ class LoadedModel:
     path: Path
     """The file actually loaded (a run folder resolves to its latest checkpoint)."""
     kind: str
-    """'checkpoint' or 'weights' (a weights-only export)."""
+    """'checkpoint', 'weights' (a weights-only export) or 'supervised' (a ``cogexplore pretrain`` model)."""
     policy_version: int
     fingerprint: str
     weights_sha256: str
@@ -569,10 +565,7 @@ def resolve_checkpoint(source: str | Path) -> Path | None:
     ``latest`` pointer; a run folder through ``<run>/checkpoints``. None for a checkpoint
     directory that exists but holds no checkpoint yet. ``pretrained`` (or ``pretrained:drl``,
     ``pretrained:sl``) names a model shipped with the package."""
-    try:
-        shipped = pretrained_path(source)
-    except CheckpointError as exc:
-        raise CheckpointError(str(exc)) from None
+    shipped = pretrained_path(source)
     if shipped is not None:
         return shipped
     p = Path(source)
@@ -580,7 +573,7 @@ def resolve_checkpoint(source: str | Path) -> Path | None:
         return p
     if not p.is_dir():
         raise CheckpointError(f"checkpoint {str(source)!r} does not exist (give a checkpoint file, a checkpoint "
-                            "directory, a run folder or a weights export)")
+                              "directory, a run folder or a weights export)")
     directory = p / "checkpoints" if (p / "checkpoints").is_dir() else p
     manager = CheckpointManager(directory)
     if manager.latest() is None and not manager.checkpoints():
@@ -624,8 +617,8 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
             except ConfigError as exc:
                 raise CheckpointError(f"{ckpt.path}: its stored run config is invalid: {exc}") from None
         try:
-            model_cfg = run_config.model if "model" not in meta else _cfg(meta["model"], "model")
-            sensor_cfg = run_config.sensor if "sensor" not in meta else _cfg(meta["sensor"], "sensor")
+            model_cfg = run_config.model if "model" not in meta else _stored_config(meta["model"], "model")
+            sensor_cfg = run_config.sensor if "sensor" not in meta else _stored_config(meta["sensor"], "sensor")
         except AttributeError:
             raise CheckpointError(f"{ckpt.path} stores neither the model/sensor config nor a run config") from None
         net = QNetwork(model_cfg, sensor_cfg)
@@ -669,16 +662,13 @@ def load_supervised_model(source: str | Path, device: str | torch.device = "cpu"
     path = resolve_checkpoint("pretrained:sl" if str(source) == "pretrained" else source)
     if path is None or not path.is_file():
         raise CheckpointError(f"the sl policy needs --checkpoint <supervised model .safetensors> (written by "
-                            f"`cogexplore pretrain`); {str(source)!r} is not a file")
-    try:
-        net, _meta = load_supervised(path, resolve_device(device))
-    except (CheckpointError, ModelError) as exc:
-        raise CheckpointError(str(exc)) from None
+                              f"`cogexplore pretrain`); {str(source)!r} is not a file")
+    net, _meta = load_supervised(path, resolve_device(device))
     return LoadedModel(net, path, "supervised", 0, architecture_fingerprint(net), weights_sha256(net), None,
                        name="SL")
 
 
-def _cfg(data: Mapping[str, Any], section: str) -> Any:
+def _stored_config(data: Mapping[str, Any], section: str) -> Any:
     try:
         return getattr(from_dict({section: dict(data)}), section)
     except ConfigError as exc:

@@ -354,8 +354,8 @@ class DQNAgent:
             "fingerprint": self.fingerprint,
             "optimizer": {"type": type(self.optimizer).__name__, "param_groups": opt["param_groups"],
                           "scalars": scalars},
-            "model": _asdict(self.model_cfg), "sensor": _asdict(self.sensor_cfg),
-            "dqn": _asdict(self.cfg),
+            "model": asdict(self.model_cfg), "sensor": asdict(self.sensor_cfg),
+            "dqn": asdict(self.cfg),
         }
         return tensors, meta
 
@@ -398,10 +398,6 @@ def _memory_format(t: torch.Tensor) -> torch.memory_format:
     if t.dim() == 4 and t.is_contiguous(memory_format=torch.channels_last):
         return torch.channels_last
     return torch.contiguous_format
-
-
-def _asdict(cfg: Any) -> dict[str, Any]:
-    return asdict(cfg)
 
 
 def update_flops(net: QNetwork, batch_size: int, double_dqn: bool = True,

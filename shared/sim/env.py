@@ -31,12 +31,18 @@ from shared.config import (
     EnvConfig,
     SensorConfig,
 )
+from shared.errors import CogexploreError
 from shared.sim.robot import Robot, build_model
 from shared.sim.sensor import DepthCamera
 from shared.sim.world import World, WorldError, load_world
 
 ENV_ID = "cogexplore/Explore-v0"
 log = logging.getLogger("cogexplore.env")
+
+
+class EnvError(CogexploreError):
+    """A start index, command, render mode or snapshot the environment cannot take (a ValueError,
+    as Gymnasium expects of bad arguments)."""
 
 
 def min_valid_depth(depth_m: np.ndarray) -> float:
@@ -98,12 +104,12 @@ class ExploreEnv(gym.Env):
         self.env_config = cfg
         self.sensor_config = sensor or SensorConfig()
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
-            raise ValueError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
+            raise EnvError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
         self.render_mode = render_mode
 
         world = world_obj if isinstance(world_obj, World) else load_world(cfg.world)
         if cfg.start_index is not None and cfg.start_index >= len(world.starts):
-            raise ValueError(f"start_index {cfg.start_index} out of range: world {world.name!r} "
+            raise EnvError(f"start_index {cfg.start_index} out of range: world {world.name!r} "
                              f"has {len(world.starts)} starts")
         self._main_scene = _Scene.build(world, cfg, self.sensor_config)
         self._scenes = {world.name: self._main_scene}  # extra worlds are built when first drawn
@@ -147,7 +153,7 @@ class ExploreEnv(gym.Env):
         if index is None:
             index = int(self.np_random.integers(n_starts))
         if not (isinstance(index, (int, np.integer)) and 0 <= index < n_starts):
-            raise ValueError(f"start_index {index!r} out of range [0, {n_starts})")
+            raise EnvError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
         pose = None  # a random free pose (it leaves the robot there and its image in self._depth)
         if not fixed and self.env_config.random_start_prob > 0 and \
@@ -167,7 +173,7 @@ class ExploreEnv(gym.Env):
 
     def step(self, action):
         if not (isinstance(action, (int, np.integer)) and 0 <= int(action) < NUM_ACTIONS):
-            raise ValueError(f"action {action!r} is not one of 0..{NUM_ACTIONS - 1} ({', '.join(ACTION_NAMES)})")
+            raise EnvError(f"action {action!r} is not one of 0..{NUM_ACTIONS - 1} ({', '.join(ACTION_NAMES)})")
         cfg = self.env_config
         touched = self.robot.drive(self.linear_mps, self.angular_rps[int(action)], cfg.substeps)
         self._depth = self.camera.capture(self.data)
@@ -195,7 +201,7 @@ class ExploreEnv(gym.Env):
         """Return to a :meth:`snapshot` of the current episode."""
         scene, state, self._steps, self._path_length, self._last_xy, depth = snapshot
         if scene is not self._scene:
-            raise ValueError("a snapshot can only be restored in the episode's own world")
+            raise EnvError("a snapshot can only be restored in the episode's own world")
         self.robot.set_state(state)
         self._depth = depth.copy()
 

@@ -1,0 +1,2 @@
+"""What travels between processes: ``messages`` (msgpack schemas, validated on decode) and ``keys``
+(every Zenoh key expression). Needs neither torch nor MuJoCo."""
