@@ -16,10 +16,11 @@ class TransitionBatcher:
     every step; ``add`` returns a batch when one is complete, else None.
     """
 
-    def __init__(self, actor_id: str, batch_steps: int = 16):
+    def __init__(self, actor_id: str, batch_steps: int = 16, actor_epoch: int = 0):
         if not 1 <= batch_steps <= MAX_BATCH_STEPS:
             raise ValueError(f"batch_steps must be in [1, {MAX_BATCH_STEPS}], got {batch_steps}")
         self.actor_id = actor_id
+        self.actor_epoch = actor_epoch
         self.batch_steps = batch_steps
         self.episode = -1
         self._start_index = 0
@@ -65,7 +66,7 @@ class TransitionBatcher:
     def _cut(self, next_mm: np.ndarray, terminated: bool, truncated: bool) -> TransitionBatch:
         batch = TransitionBatch.from_steps(
             actor_id=self.actor_id, episode=self.episode, first_step=self._first_step,
-            start_index=self._start_index, depth=np.stack(self._frames),
+            start_index=self._start_index, actor_epoch=self.actor_epoch, depth=np.stack(self._frames),
             next_depth=None if terminated else next_mm, action=self._actions,
             reward=self._rewards, policy_version=self._versions, pose=self._poses,
             terminated=terminated, truncated=truncated and not terminated)

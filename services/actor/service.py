@@ -50,35 +50,64 @@ from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import RunKeys
-from shared.wire.messages import EpisodeStats, FlowControl, RejectCounter
+from shared.wire.messages import (
+    EpisodeStats,
+    FlowControl,
+    RejectCounter,
+    epoch_from_the_future,
+    new_epoch,
+)
 
 log = logging.getLogger("cogexplore.actor")
 
 
 class FlowGate:
-    """The learner's replay-ratio credit (FlowControl) as seen by one actor: it may step
-    while the learner still wants more transitions than this actor has in flight (sent,
-    but not yet counted by the learner in ``received_from``).
+    """The learner's replay-ratio credit (FlowControl) as seen by one actor process: it may step
+    while the learner still wants more transitions than this actor has in flight (sent, but not
+    yet counted by the learner in ``received_from``).
+
+    It holds until the learner's first word, so nothing is sent beyond the learner's want at the
+    start or after a learner came back. It follows one learner process: flow control of an older
+    learner epoch (a dead learner's, still in flight) is ignored, a newer one starts the accounting
+    afresh, and one from the future is refused. The learner counts per actor process
+    (``actor_epoch``): a count of a predecessor under the same id is not this process's.
 
     A transition not counted within ``horizon_s`` is taken as lost (e.g. sent just before
-    the learner subscribed), so a lost batch can never hold the actor for good.
+    the learner subscribed), so a lost batch can never hold the actor for good; for the same
+    reason, a learner that says nothing for ``horizon_s`` after the gate began to wait no longer
+    holds it (a learner speaks every 0.1 s).
     """
 
-    def __init__(self, actor_id: str, horizon_s: float = 10.0) -> None:
+    def __init__(self, actor_id: str, horizon_s: float = 10.0, actor_epoch: int = 0) -> None:
         self.actor_id = actor_id
+        self.actor_epoch = actor_epoch
         self.horizon_s = horizon_s
+        self._waiting_since: float | None = None  # when open() first found no credit
         self._lock = threading.Lock()
-        self._credit: int | None = None  # None: no word from the learner yet
+        self._learner_epoch: int | None = None  # None: no word from any learner yet
+        self._credit: int | None = None  # None: no word from the learner yet: hold
         self._received_from_me = 0
         self._sent = 0
         self._sends: collections.deque = collections.deque()  # (time, total sent after it)
         self._settled = 0  # total sent as of horizon_s ago: arrived or lost by now
+        self.ignored = 0
+        """Flow-control messages of another learner process (older, or from the future)."""
         self.changed = threading.Event()
 
     def on_flow(self, message: FlowControl, _key: str = "") -> None:
         with self._lock:
-            received = message.received_from.get(self.actor_id, 0)
-            if received < self._received_from_me:  # the count went back: a restarted learner
+            epoch = message.learner_epoch
+            if epoch_from_the_future(epoch) or (self._learner_epoch is not None and epoch < self._learner_epoch):
+                self.ignored += 1
+                return
+            if self._learner_epoch is not None and epoch > self._learner_epoch:  # a new learner counts afresh
+                self._sent = self._settled = 0
+                self._sends.clear()
+                self._received_from_me = 0
+            self._learner_epoch = epoch
+            mine = message.actor_epochs.get(self.actor_id) == self.actor_epoch
+            received = message.received_from.get(self.actor_id, 0) if mine else 0
+            if received < self._received_from_me:  # the count went back: the learner lost track
                 self._sent = self._settled = received
                 self._sends.clear()
             self._credit = message.credit
@@ -86,9 +115,10 @@ class FlowGate:
         self.changed.set()
 
     def reset(self) -> None:
-        """Forget the accounting (a learner came back: it counts afresh)."""
+        """Forget the credit and the accounting (a learner came back: wait for its word)."""
         with self._lock:
             self._credit, self._received_from_me, self._sent, self._settled = None, 0, 0, 0
+            self._waiting_since = None
             self._sends.clear()
 
     def sent(self, transitions: int, now: float | None = None) -> None:
@@ -102,7 +132,9 @@ class FlowGate:
             while self._sends and now - self._sends[0][0] > self.horizon_s:
                 self._settled = self._sends.popleft()[1]
             if self._credit is None:
-                return True
+                self._waiting_since = now if self._waiting_since is None else self._waiting_since
+                return now - self._waiting_since > self.horizon_s
+            self._waiting_since = None
             in_flight = max(0, self._sent - max(self._received_from_me, self._settled))
             return self._credit - in_flight > 0
 
@@ -187,7 +219,8 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                  guide=guide, step_scale=num_actors)
     rejects = RejectCounter("weights message", log)
     follower = WeightFollower(architecture_fingerprint(net), rejects)
-    gate = FlowGate(actor_id)
+    actor_epoch = new_epoch()  # this process: the learner's allowance for it starts from nothing
+    gate = FlowGate(actor_id, actor_epoch=actor_epoch)
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
     stream = None
@@ -204,7 +237,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
         learners = LivelinessWatch(session, keys.all_alive("learner"))
         weights_sub = follower.subscribe(session, keys)  # noqa: F841
         flow_sub = subscribe_messages(session, keys.flow, FlowControl, gate.on_flow, rejects)  # noqa: F841
-        outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps),
+        outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps, actor_epoch),
                         declare_reliable_publisher(session, keys.transitions(actor_id)),
                         session.declare_publisher(keys.episode_stats(actor_id)), gate, guide, env.main_world.name)
         loop = Rollout(env, policy, [guide, outbox] + ([LiveEpisodes(stream, env)] if stream is not None else []))

@@ -46,7 +46,7 @@ def make_batch(steps: int = 16, height: int = 120, width: int = 160, seed: int =
     depth = rng.integers(300, 4000, size=(steps + 1, height, width), dtype=np.uint16)
     depth[rng.random(depth.shape) < 0.05] = 0
     return TransitionBatch(
-        actor_id=_ACTOR, episode=1, first_step=0, start_index=0,
+        actor_id=_ACTOR, episode=1, first_step=0, start_index=0, actor_epoch=0,
         depth_mm=depth[:steps], next_depth_mm=depth[steps],
         action=rng.integers(0, 5, steps).astype(np.uint8),
         reward=np.ones(steps, dtype=np.float32),

@@ -3,7 +3,9 @@
 In the spirit of Acme's ``VariableClient``: the actors and the evaluator each hold one
 :class:`WeightFollower`. Zenoh threads ``offer`` every ``WeightsMessage`` from the learner's stream
 (and the reply to the latest-weights query); the follower keeps only the newest that fits the
-receiver's architecture, so a slow receiver skips versions instead of queueing them. The
+receiver's architecture, so a slow receiver skips versions instead of queueing them. Versions are
+(learner epoch, update): a restarted learner's weights replace the dead one's at once, and an epoch
+from the future is refused (it would outrank every real learner for good). The
 receiver's own loop ``take``\\s it when it is ready and ``load``\\s it into its network; a message
 that does not fit (another fingerprint, or tensors that do not load despite it) is counted by
 cause in ``rejects`` and dropped, never raised.
@@ -26,7 +28,14 @@ from services.bus.session import query_latest, subscribe_messages
 from shared.learning.model import ModelError
 from shared.learning.weights import load_message
 from shared.wire.keys import RunKeys
-from shared.wire.messages import SHAPE, MessageError, RejectCounter, WeightsMessage
+from shared.wire.messages import (
+    RANGE,
+    SHAPE,
+    MessageError,
+    RejectCounter,
+    WeightsMessage,
+    epoch_from_the_future,
+)
 
 log = logging.getLogger("cogexplore.weights")
 
@@ -39,7 +48,7 @@ class WeightFollower:
         self.rejects = rejects
         self._arrived = threading.Condition()
         self._newest: WeightsMessage | None = None
-        self._taken_version = -1
+        self._taken_version: tuple[int, int] = (-1, -1)
 
     # -- Zenoh threads -------------------------------------------------------------------------
 
@@ -51,9 +60,13 @@ class WeightFollower:
             self.rejects.reject(MessageError(exc.cause, f"{exc.detail} (is the learner running another model config?)"),
                                 key or None)
             return
+        if epoch_from_the_future(message.learner_epoch):
+            self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
+                                                    "in the future"), key or None)
+            return
         with self._arrived:
-            newest = self._newest.policy_version if self._newest is not None else self._taken_version
-            if message.policy_version > newest:
+            newest = self._newest.version if self._newest is not None else self._taken_version
+            if message.version > newest:
                 self._newest = message
                 self._arrived.notify_all()
 
@@ -89,7 +102,7 @@ class WeightFollower:
                 self._arrived.wait_for(lambda: self._newest is not None, timeout_s)
             message, self._newest = self._newest, None
             if message is not None:
-                self._taken_version = message.policy_version
+                self._taken_version = message.version
             return message
 
     def load(self, net: Any, message: WeightsMessage) -> bool:

@@ -120,17 +120,19 @@ class EvaluatorService:
         self.rejects = RejectCounter("weights message", log)
         self.weights = WeightFollower(self.fingerprint, self.rejects)
         """The newest weights the learner has published (parked by Zenoh threads, taken by the loop)."""
-        self.last_version: int | None = None
+        self.last_version: tuple[int, int] | None = None
+        """(learner epoch, update) of the weights evaluated last."""
         self.evaluations: list[dict[str, Any]] = []
         """The JSON rows written so far (newest last)."""
 
-    def due(self, policy_version: int) -> bool:
-        """The first weights, then each that enters a new multiple of ``every_updates``."""
-        if self.last_version is None:
+    def due(self, message: WeightsMessage) -> bool:
+        """The first weights of each learner process (a restarted learner's at once), then each that
+        enters a new multiple of ``every_updates``."""
+        epoch, update = message.version
+        if self.last_version is None or epoch != self.last_version[0]:
             return True
-        if policy_version <= self.last_version:
-            return False
-        return policy_version // self.every_updates > self.last_version // self.every_updates
+        last = self.last_version[1]
+        return update > last and update // self.every_updates > last // self.every_updates
 
     # -- one evaluation -------------------------------------------------------------------------
 
@@ -141,7 +143,7 @@ class EvaluatorService:
         version = message.policy_version
         if not self.weights.load(self.net, message):
             return None
-        self.last_version = version
+        self.last_version = message.version
         stats = self.root / "stats"
         rrd = recording_path(self.root / "recordings", version) if self.record else None
         log.info("evaluating policy version %d on %s (%d episode(s) per start, %d steps)", version, self.world,
@@ -214,7 +216,7 @@ class EvaluatorService:
                                       self.run_name, wait_weights_s)
                             return 1
                         continue
-                    if not once and not self.due(message.policy_version):
+                    if not once and not self.due(message):
                         continue
                     try:
                         row = self.evaluate(message, stop, session)

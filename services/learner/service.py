@@ -43,6 +43,7 @@ from shared.wire.messages import (
     MessageError,
     RejectCounter,
     TransitionBatch,
+    new_epoch,
 )
 
 log = logging.getLogger("cogexplore.learner")
@@ -91,6 +92,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     """The learner loop. Returns final counters."""
     keys = RunKeys(run)
     paths.make()
+    epoch = new_epoch()  # this process: its weights outrank every earlier learner's, whatever their update
     core = LearnerCore(cfg, device=device or cfg.train.device)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resume_from(checkpoints, core)
@@ -121,7 +123,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects)  # noqa: F841
         flow_pub = session.declare_publisher(keys.flow)
         stats_pub = session.declare_publisher(keys.learner_stats(learner_id))
-        sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+        sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
         # Announce the learner only now that it can receive: actors start sending on this token.
         token = declare_alive(session, keys.alive("learner", learner_id))  # noqa: F841
 
@@ -149,7 +151,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 core.train_step()
                 update_rate.add(1)
             if core.updates - last_published >= weights_every:
-                sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+                sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
                 last_published = core.updates
             if core.updates and core.updates % cfg.train.checkpoint_every == 0 and due:
                 save_checkpoint()
@@ -159,7 +161,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 flow_pub.put(FlowControl(learner_id=learner_id, updates=core.updates,
                                          transitions_received=core.received,
                                          transitions_wanted=core.transitions_wanted(flow_slack),
-                                         received_from=dict(core.received_by_actor)).encode())
+                                         received_from=core.received_by_actor, actor_epochs=core.actor_epochs(),
+                                         learner_epoch=epoch).encode())
                 last_flow = now
             if now - last_stats >= stats_every_s:
                 loss, mean_q = core.recent()
@@ -172,11 +175,11 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                     transitions_rejected=rejects.total, loss=loss, mean_q=mean_q,
                     updates_per_s=update_rate.rate(now), transitions_per_s=transition_rate.rate(now),
                     uptime_s=now - started, rejects=rejects.counts,
-                    extra={"actors_alive": live,
+                    extra={"actors_alive": live, "dropped_nonfinite": core.dropped_nonfinite,
                            **({} if agreement is None else {"demo_agreement": agreement}),
                            "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
-                           **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[:24]},
-                           **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[:24]}})
+                           **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[-24:]},  # the 24 heard last
+                           **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[-24:]}})
                 stats_pub.put(stats.encode())
                 stats_log.write(LearnerRow(
                     time_s=now - started, update=core.updates, policy_version=core.agent.policy_version, loss=loss,
@@ -189,7 +192,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 time.sleep(0.005)  # idle: wait for data without spinning a core
 
         # Final: weights out (actors and evaluator see the last version), checkpoint.
-        sender.offer(to_message(core.agent.online, core.agent.policy_version).encode())
+        sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
         save_checkpoint()
         time.sleep(0.2)  # let the sender thread hand the final weights to Zenoh
         sender.close()

@@ -70,6 +70,16 @@ class DQNError(CogexploreError):
     """A batch or state that does not fit the agent."""
 
 
+class NonFiniteLoss(DQNError):
+    """An update's loss is not finite; nothing was applied. ``non_finite`` marks the samples (B,) whose
+    own loss is not finite or alone could overflow the mean (none marked: the demonstrations' margin loss
+    is)."""
+
+    def __init__(self, message: str, non_finite: np.ndarray):
+        super().__init__(message)
+        self.non_finite = non_finite
+
+
 def caffe_lr_to_torch(caffe_lr: float) -> float:
     """The PyTorch learning rate equivalent to a Caffe EuclideanLoss learning rate (see module doc)."""
     return caffe_lr * CAFFE_EUCLIDEAN_TO_MEAN_MSE
@@ -272,8 +282,12 @@ class DQNAgent:
             loss = loss + self.cfg.demo_weight * margin_loss
             demo_metrics = {"demo_margin_loss": float(margin_loss.detach()), "demo_agreement": agreement}
         if not torch.isfinite(loss):
-            raise DQNError(f"non-finite loss {loss.item()} at update {self.update_count + 1}: "
-                           "the learning rate is probably too high")
+            # The offenders: a sample whose own loss is not finite, or so large that it alone can
+            # overflow the batch mean (a Huber loss stays finite where the squared error does not).
+            limit = torch.finfo(per_sample.dtype).max / len(per_sample)
+            offenders = ~torch.isfinite(per_sample) | (per_sample.abs() > limit)
+            raise NonFiniteLoss(f"non-finite loss {loss.item()} at update {self.update_count + 1}",
+                                offenders.cpu().numpy())
         if self.cfg.lr_decay_updates > 0:
             self._set_lr(lr_factor(self.update_count, self.cfg.lr_decay_updates, self.cfg.lr_final_scale))
         self.optimizer.zero_grad(set_to_none=True)

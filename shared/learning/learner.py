@@ -7,6 +7,12 @@ Replay ratio r = updates per inserted transition (the paper's Algorithm 1: one u
 environment step, r = 1). After ``warmup_transitions`` have arrived, update k is due once
 ``r * (received - warmup) >= k``; the learner asks actors for data only up to the point
 where the ratio would fall behind (``transitions_wanted``), see shared.wire.messages.FlowControl.
+
+What comes in is checked against the task itself (``TransitionBatch.require_physical``: rewards the
+task pays, depth within the sensor's range), and what the learner keeps per actor is bounded
+(:data:`MAX_TRACKED_ACTORS`, the least recently heard forgotten first), so no message, and no number
+of invented actor ids, can poison the replay memory or outgrow the learner. An update whose loss is
+not finite is not applied: the transitions that made it so leave the replay memory, counted.
 """
 
 from __future__ import annotations
@@ -15,6 +21,7 @@ import collections
 import logging
 import math
 import time
+from dataclasses import dataclass, field
 from typing import Any, Hashable
 
 import numpy as np
@@ -27,11 +34,28 @@ from shared.learning.checkpoints import (
     init_agent_weights,
 )
 from shared.learning.demos import demo_replay, load_demonstrations
-from shared.learning.dqn import DQNAgent
-from shared.learning.replay import ReplayMemory, concat_batches
+from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
+from shared.learning.replay import ReplayError, ReplayMemory, concat_batches
 from shared.wire.messages import TransitionBatch
 
 log = logging.getLogger("cogexplore.learner")
+
+MAX_TRACKED_ACTORS = 256
+"""Actor processes the learner keeps a record of (counts, weights version); beyond, the one heard
+from least recently is forgotten (a real fleet is far smaller; invented ids cannot grow it)."""
+
+
+@dataclass
+class ActorRecord:
+    """What the learner knows of one actor process."""
+
+    epoch: int
+    """The process's ``actor_epoch``: a restart under the same id is a new record."""
+    received: int = 0
+    """Transitions received from this process."""
+    version: int = 0
+    """Newest weights version its transitions were chosen with."""
+    seen_s: float = field(default_factory=time.monotonic)
 
 
 class LearnerCore:
@@ -52,10 +76,12 @@ class LearnerCore:
             demos = [d for p in cfg.train.demo_paths for d in load_demonstrations(p, frame_shape)]
             self.demo_replay = demo_replay(demos, frame_shape, seed=cfg.train.seed + 3)
         self.received = 0
-        # Latest policy version seen in each actor's transitions: the weight lag is
-        # policy_version - this.
-        self.actor_versions: dict[str, int] = {}
-        self.received_by_actor: collections.Counter = collections.Counter()
+        self.actors: collections.OrderedDict[str, ActorRecord] = collections.OrderedDict()
+        """Actor id -> its current process's record, least recently heard first."""
+        self.dropped_nonfinite = 0
+        """Transitions removed from replay because an update on them had a non-finite loss."""
+        self._max_depth_mm = math.ceil(cfg.sensor.max_range_m * 1000)
+        self._rewards = {np.float32(cfg.env.reward_move), np.float32(cfg.env.reward_collision)}
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
         self._demo_window: collections.deque = collections.deque(maxlen=1000)  # demo_agreement
         self._last_metrics: dict[str, Any] = {}
@@ -63,25 +89,57 @@ class LearnerCore:
     # -- data in ---------------------------------------------------------------------------
     def add_transition(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
                        next_obs: np.ndarray | None, terminated: bool, truncated: bool) -> None:
+        """Store one transition (ReplayError for a reward this task does not pay: one finite but huge
+        reward, stored, would make every TD target it reaches huge)."""
+        if np.float32(reward) not in self._rewards:
+            raise ReplayError(f"reward {reward!r} is not one this task pays ({sorted(self._rewards)})")
         self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated)
         self.received += 1
 
     def ingest(self, batch: TransitionBatch) -> int:
         """Store a validated TransitionBatch; returns the transitions added.
 
-        Raises MessageError(SHAPE) for frames of another sensor size (nothing is stored).
+        Raises MessageError (SHAPE for frames of another sensor size, RANGE for rewards, depth or
+        positions this task cannot produce); then nothing is stored.
         """
         batch.require_frame_shape(self.cfg.sensor.height, self.cfg.sensor.width)
-        stream = (batch.actor_id, batch.episode)
+        env = self.cfg.env
+        batch.require_physical(reward_move=env.reward_move, reward_collision=env.reward_collision,
+                               max_depth_mm=self._max_depth_mm)
+        stream = (batch.actor_id, batch.actor_epoch, batch.episode)
         last = batch.steps - 1
         for i in range(batch.steps):
             self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
                                 batch.next_depth(i), batch.terminated and i == last,
                                 batch.truncated and i == last)
-        self.received_by_actor[batch.actor_id] += batch.steps
-        self.actor_versions[batch.actor_id] = max(self.actor_versions.get(batch.actor_id, 0),
-                                                  int(batch.policy_version[-1]))
+        record = self._record(batch.actor_id, batch.actor_epoch)
+        record.received += batch.steps
+        record.version = max(record.version, int(batch.policy_version[-1]))
         return batch.steps
+
+    def _record(self, actor_id: str, epoch: int) -> ActorRecord:
+        record = self.actors.pop(actor_id, None)
+        if record is None or record.epoch != epoch:  # a new actor, or a restarted one: a fresh allowance
+            record = ActorRecord(epoch)
+        record.seen_s = time.monotonic()
+        self.actors[actor_id] = record  # the most recently heard last
+        while len(self.actors) > MAX_TRACKED_ACTORS:
+            self.actors.popitem(last=False)
+        return record
+
+    @property
+    def received_by_actor(self) -> dict[str, int]:
+        """Transitions received from each actor's current process."""
+        return {a: r.received for a, r in self.actors.items()}
+
+    def actor_epochs(self) -> dict[str, int]:
+        return {a: r.epoch for a, r in self.actors.items()}
+
+    def purge_out_of_bounds(self) -> int:
+        """Remove stored transitions this task cannot produce (a reward it does not pay, or not
+        finite): a replay memory saved by an older build may hold them. Returns how many."""
+        ids, rewards = self.replay.stored_rewards()
+        return self.replay.remove(ids[~np.isin(rewards, np.array(sorted(self._rewards), np.float32))])
 
     # -- the ratio rule --------------------------------------------------------------------
     @property
@@ -109,14 +167,28 @@ class LearnerCore:
         return self.updates >= self.cfg.train.total_updates
 
     # -- training --------------------------------------------------------------------------
-    def train_step(self) -> dict[str, Any]:
-        """Sample a batch and do one DQN update (prioritised replay priorities refreshed)."""
+    def train_step(self) -> dict[str, Any] | None:
+        """Sample a batch and do one DQN update (prioritised replay priorities refreshed).
+
+        When some samples make the loss non-finite, nothing is applied, those samples' transitions
+        leave the replay memory (counted in ``dropped_nonfinite``) and None is returned; when every
+        sample does, the network itself has diverged: DQNError."""
         dqn = self.cfg.dqn
         batch = self.replay.sample(dqn.batch_size, dqn.n_step)
-        if self.demo_replay is not None:
-            metrics = self.agent.update(concat_batches(batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step)))
-        else:
-            metrics = self.agent.update(batch)
+        full = batch if self.demo_replay is None else concat_batches(
+            batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step))
+        try:
+            metrics = self.agent.update(full)
+        except NonFiniteLoss as exc:
+            bad = exc.non_finite[:len(batch)]
+            if not bad.any() or exc.non_finite.all():
+                raise DQNError(f"{exc}: every sample's loss is non-finite, the network has diverged "
+                               "(the learning rate is probably too high)") from None
+            removed = self.replay.remove(batch.indices[bad])
+            self.dropped_nonfinite += removed
+            log.warning("update %d skipped: %d sampled transition(s) gave a non-finite loss and were removed "
+                        "from the replay memory", self.updates + 1, removed)
+            return None
         if self.cfg.replay.prioritized:  # the replay memory's own samples come first
             self.replay.update_priorities(batch.indices, metrics["td_errors"][:len(batch)])
         self._window.append((metrics["loss"], metrics["q_mean"]))
@@ -140,7 +212,8 @@ class LearnerCore:
         return float(np.mean(list(self._demo_window)[-n:]))
 
     def weight_lag(self) -> dict[str, int]:
-        return {actor: self.agent.policy_version - v for actor, v in self.actor_versions.items()}
+        """Versions between the learner's weights and those each actor's newest transitions used."""
+        return {actor: self.agent.policy_version - r.version for actor, r in self.actors.items()}
 
 
 class RateMeter:
@@ -181,6 +254,10 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
         log.error("cannot resume from %s: %s; starting fresh", checkpoint.path, exc)
         return False
     core.received = int(checkpoint.extra.get("transitions_received", len(core.replay)))
+    purged = core.purge_out_of_bounds()
+    if purged:
+        log.warning("removed %d stored transition(s) this task cannot produce from %s's replay memory", purged,
+                    checkpoint.path.name)
     log.info("resumed from %s at update %d (%d transitions in replay)", checkpoint.path.name,
              core.updates, len(core.replay))
     return True

@@ -28,6 +28,7 @@ Not thread-safe: a learner that ingests on one thread and samples on another hol
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Hashable
 
@@ -38,6 +39,9 @@ from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 
 PRIORITY_EPS = 1e-3
+MAX_OPEN_STREAMS = 1024
+"""Episodes whose chain stays open for their next transition; beyond, the longest silent one's chain
+ends (an actor that died mid-episode, or ids nobody will continue, must not grow the memory)."""
 """Added to |TD error| so that no valid transition's probability falls to 0."""
 
 
@@ -281,11 +285,25 @@ class ReplayMemory:
         if self._tree is not None:
             self._tree.set(slot, self._max_priority ** self.cfg.priority_alpha)
         self._transitions_added += 1
-        if terminated or truncated:
-            self._streams.pop(stream_id, None)
-        else:
-            self._streams[stream_id] = (tid, next_fid)
+        self._streams.pop(stream_id, None)
+        if not (terminated or truncated):
+            self._streams[stream_id] = (tid, next_fid)  # last: the dict runs from the longest silent
+            while len(self._streams) > MAX_OPEN_STREAMS:
+                del self._streams[next(iter(self._streams))]  # an episode silent that long: its chain ends
         return tid
+
+    def remove(self, ids: np.ndarray | Sequence[int]) -> int:
+        """Take transitions out of sampling (ids of ``Batch.indices``; ids already overwritten are
+        skipped); their chains end there. Returns how many were still stored."""
+        before = self._num_valid
+        for tid in np.unique(np.asarray(ids, dtype=np.int64)):
+            self._invalidate(int(tid))
+        return before - self._num_valid
+
+    def stored_rewards(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids, rewards) of every transition that can be sampled now."""
+        slots = np.flatnonzero(self._valid)
+        return self._tid[slots].copy(), self._reward[slots].copy()
 
     def end_stream(self, stream_id: Hashable) -> None:
         """Forget a stream's open episode (e.g. its actor left); the next add starts a new chain."""

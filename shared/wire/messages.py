@@ -37,6 +37,7 @@ import json
 import logging
 import math
 import threading
+import time
 from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar, Mapping, Sequence, TypeVar
 
@@ -48,8 +49,10 @@ from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 from shared.wire.keys import KeyExprError, validate_name
 
-SCHEMA_VERSION = 1
-"""Bumped on any incompatible change of a message layout; a receiver rejects other versions."""
+SCHEMA_VERSION = 2
+"""Bumped on any incompatible change of a message layout; a receiver rejects other versions.
+2: learner and actor epochs (weights versions are (learner epoch, update); flow credit per actor
+process)."""
 
 # --- size limits ----------------------------------------------------------------------------
 MAX_BATCH_STEPS = 64
@@ -68,6 +71,21 @@ _ENVELOPE_SLACK = 2**20
 MAX_MESSAGE_BYTES = MAX_WEIGHTS_BYTES + _ENVELOPE_SLACK
 """Nothing longer than this is even unpacked."""
 _I64_MAX = 2**63 - 1
+MAX_POLICY_VERSION = 2**40
+"""No run makes a trillion updates: a larger weights version is an attack or a bug, refused."""
+MAX_CLOCK_SKEW_NS = 10 * 60 * 10**9
+"""How far ahead of a receiver's clock a process epoch may be (machines' clocks differ a little)."""
+
+
+def new_epoch() -> int:
+    """A process epoch: the wall clock in ns when it started. A restarted process gets a later one."""
+    return time.time_ns()
+
+
+def epoch_from_the_future(epoch: int, now_ns: int | None = None) -> bool:
+    """An epoch no process can have yet (beyond :data:`MAX_CLOCK_SKEW_NS` of this clock): an attack or
+    a broken clock, whose messages would otherwise outrank every real process's for good."""
+    return epoch > (time.time_ns() if now_ns is None else now_ns) + MAX_CLOCK_SKEW_NS
 
 # --- reject causes --------------------------------------------------------------------------
 TRUNCATED = "truncated"          # the bytes end inside a msgpack object (or are empty)
@@ -371,6 +389,9 @@ class TransitionBatch(Message):
     """Step index of transition 0 within its episode (0 = the first step after reset)."""
     start_index: int
     """The world start pose the episode began from."""
+    actor_epoch: int
+    """When this actor process started (ns since the epoch): a restart under the same id is a new
+    process, with its own flow-control allowance."""
     depth_mm: np.ndarray = _arr()
     next_depth_mm: np.ndarray | None = _arr()
     action: np.ndarray = _arr()
@@ -385,6 +406,7 @@ class TransitionBatch(Message):
         _set(self, "episode", _int(self.episode, "episode"))
         _set(self, "first_step", _int(self.first_step, "first_step"))
         _set(self, "start_index", _int(self.start_index, "start_index"))
+        _set(self, "actor_epoch", _int(self.actor_epoch, "actor_epoch"))
         _set(self, "terminated", _bool(self.terminated, "terminated"))
         _set(self, "truncated", _bool(self.truncated, "truncated"))
         depth = _array(self.depth_mm, "depth_mm", "uint16", (None, None, None))
@@ -406,8 +428,8 @@ class TransitionBatch(Message):
         reward = _array(self.reward, "reward", "float32", (t,))
         _finite_array(reward, "reward")
         version = _array(self.policy_version, "policy_version", "int64", (t,))
-        if (version < 0).any():
-            raise MessageError(RANGE, "policy_version must be >= 0")
+        if (version < 0).any() or (version > MAX_POLICY_VERSION).any():
+            raise MessageError(RANGE, f"policy_version must be in [0, {MAX_POLICY_VERSION}]")
         pose = _array(self.pose, "pose", "float32", (t, 3))
         _finite_array(pose, "pose")
 
@@ -438,6 +460,25 @@ class TransitionBatch(Message):
         flags[-1] = self.truncated
         return flags
 
+    def require_physical(self, *, reward_move: float, reward_collision: float, max_depth_mm: int,
+                         max_abs_xy_m: float = 1e4) -> None:
+        """Raise MessageError(RANGE) unless the batch could have come from the receiver's task: every
+        reward is ``reward_move``, except a terminal last one, which is ``reward_collision``; no depth
+        beyond the sensor's range; positions within ``max_abs_xy_m``. A finite reward of 3e38 passes
+        the schema, and would still poison every TD target it reaches."""
+        want = np.full(self.steps, reward_move, np.float32)
+        if self.terminated:
+            want[-1] = reward_collision
+        if not np.array_equal(self.reward, want):
+            bad = int(np.flatnonzero(self.reward != want)[0])
+            raise MessageError(RANGE, f"reward[{bad}] = {float(self.reward[bad])!r}: this task pays {reward_move} "
+                                      f"per move and {reward_collision} for a collision")
+        deepest = max(int(self.depth_mm.max()), 0 if self.next_depth_mm is None else int(self.next_depth_mm.max()))
+        if deepest > max_depth_mm:
+            raise MessageError(RANGE, f"depth {deepest} mm is beyond the sensor's range ({max_depth_mm} mm)")
+        if float(np.abs(self.pose[:, :2]).max()) > max_abs_xy_m:
+            raise MessageError(RANGE, f"a position is more than {max_abs_xy_m} m from the origin")
+
     def require_frame_shape(self, height: int, width: int) -> None:
         """Raise MessageError(SHAPE) unless frames are ``height`` x ``width`` (the receiver's sensor)."""
         if self.frame_shape != (height, width):
@@ -449,7 +490,7 @@ class TransitionBatch(Message):
                    depth: Sequence[np.ndarray] | np.ndarray, next_depth: np.ndarray | None,
                    action: Sequence[int], reward: Sequence[float], policy_version: Sequence[int],
                    pose: Sequence[Sequence[float]], terminated: bool = False,
-                   truncated: bool = False) -> "TransitionBatch":
+                   truncated: bool = False, actor_epoch: int = 0) -> "TransitionBatch":
         """Build from per-step lists. Float depth is taken as metres and converted to mm;
         uint16 depth is taken as mm already."""
 
@@ -461,7 +502,7 @@ class TransitionBatch(Message):
         if any(not 0 <= a < NUM_ACTIONS for a in action_list):
             raise MessageError(RANGE, f"actions {action_list} must be in [0, {NUM_ACTIONS - 1}]")
         return cls(actor_id=actor_id, episode=episode, first_step=first_step,
-                   start_index=start_index, depth_mm=frames(depth),
+                   start_index=start_index, actor_epoch=actor_epoch, depth_mm=frames(depth),
                    next_depth_mm=None if next_depth is None else frames(next_depth),
                    action=np.asarray(action_list, dtype=np.uint8),
                    reward=np.asarray(reward, dtype=np.float32),
@@ -494,10 +535,12 @@ def shape_fingerprint(named_shapes: Mapping[str, Sequence[int]],
 @_register
 @dataclass(frozen=True, eq=False)
 class WeightsMessage(Message):
-    """Network weights: ``(policy_version, architecture_fingerprint, tensors)``.
+    """Network weights: ``(policy_version, architecture_fingerprint, tensors)``, from the learner
+    process that started at ``learner_epoch``.
 
     ``tensors`` maps parameter names to float32/float16 arrays (e.g. a state_dict moved to
-    numpy); NaN and Inf are rejected.
+    numpy); NaN and Inf are rejected. Weights are ordered by :attr:`version`, (learner epoch,
+    update): a restarted learner's weights replace a dead one's at once, whatever their updates.
     """
 
     TYPE: ClassVar[str] = "weights"
@@ -506,9 +549,12 @@ class WeightsMessage(Message):
     policy_version: int
     architecture_fingerprint: str
     tensors: dict[str, np.ndarray] = field(metadata={"wire": _WIRE_TENSORS})
+    learner_epoch: int = 0
+    """When the learner process started (ns since the epoch)."""
 
     def __post_init__(self) -> None:
-        _set(self, "policy_version", _int(self.policy_version, "policy_version"))
+        _set(self, "policy_version", _int(self.policy_version, "policy_version", hi=MAX_POLICY_VERSION))
+        _set(self, "learner_epoch", _int(self.learner_epoch, "learner_epoch"))
         _set(self, "architecture_fingerprint",
              _text(self.architecture_fingerprint, "architecture_fingerprint", 128))
         if not isinstance(self.tensors, Mapping):
@@ -532,6 +578,11 @@ class WeightsMessage(Message):
         for name, arr in self.tensors.items():  # after the cheap checks: isfinite reads everything
             _finite_array(arr, f"tensor {name!r}")
         _set(self, "tensors", dict(self.tensors))
+
+    @property
+    def version(self) -> tuple[int, int]:
+        """(learner epoch, update): the order in which receivers take weights."""
+        return self.learner_epoch, self.policy_version
 
     @property
     def nbytes(self) -> int:
@@ -641,8 +692,9 @@ class FlowControl(Message):
     """The learner's credit to the actors: it wants transitions until it has received
     ``transitions_wanted`` in all, which keeps updates per inserted transition at the
     configured replay ratio instead of letting fast actors flood a slow learner (and take its
-    CPU). ``received_from`` counts what the learner has received from each actor, so that an
-    actor can tell its transitions still in flight from those already counted."""
+    CPU). ``received_from`` counts what the learner has received from each actor process (the one
+    of ``actor_epochs``), so that an actor can tell its transitions still in flight from those
+    already counted, and a restarted actor starts from nothing, not from its predecessor's count."""
 
     TYPE: ClassVar[str] = "flow"
 
@@ -651,17 +703,22 @@ class FlowControl(Message):
     transitions_received: int
     transitions_wanted: int
     received_from: dict[str, int] = field(default_factory=dict)
+    actor_epochs: dict[str, int] = field(default_factory=dict)
+    """The actor process (its ``actor_epoch``) each ``received_from`` count belongs to."""
+    learner_epoch: int = 0
+    """When the learner process started (ns since the epoch)."""
 
     def __post_init__(self) -> None:
         _set(self, "learner_id", _chunk(self.learner_id, "learner_id"))
-        for name in ("updates", "transitions_received", "transitions_wanted"):
+        for name in ("updates", "transitions_received", "transitions_wanted", "learner_epoch"):
             _set(self, name, _int(getattr(self, name), name))
-        if not isinstance(self.received_from, Mapping):
-            raise MessageError(FIELD_TYPE, "received_from must be a map of actor id -> count")
-        if len(self.received_from) > MAX_TENSORS:
-            raise MessageError(OVERSIZE, f"received_from has {len(self.received_from)} actors")
-        _set(self, "received_from", {_chunk(k, "received_from key"): _int(v, f"received_from[{k!r}]")
-                                     for k, v in self.received_from.items()})
+        for name in ("received_from", "actor_epochs"):
+            value = getattr(self, name)
+            if not isinstance(value, Mapping):
+                raise MessageError(FIELD_TYPE, f"{name} must be a map of actor id -> integer")
+            if len(value) > MAX_TENSORS:
+                raise MessageError(OVERSIZE, f"{name} has {len(value)} actors")
+            _set(self, name, {_chunk(k, f"{name} key"): _int(v, f"{name}[{k!r}]") for k, v in value.items()})
 
     @property
     def credit(self) -> int:

@@ -13,9 +13,10 @@ def _frame(value: float) -> np.ndarray:
     return np.full((30, 40), value, dtype=np.float32)
 
 
-def _flow(credit: int, received_from_a: int) -> FlowControl:
+def _flow(credit: int, received_from_a: int, learner_epoch: int = 1, actor_epoch: int = 0) -> FlowControl:
     return FlowControl(learner_id="l", updates=0, transitions_received=100, transitions_wanted=100 + credit,
-                       received_from={"a": received_from_a})
+                       received_from={"a": received_from_a}, actor_epochs={"a": actor_epoch},
+                       learner_epoch=learner_epoch)
 
 
 def test_batcher_cuts_at_size_and_episode_end_and_never_spans_episodes():
@@ -34,8 +35,9 @@ def test_batcher_cuts_at_size_and_episode_end_and_never_spans_episodes():
 
 
 def test_flow_gate_counts_in_flight_transitions_once():
-    gate = FlowGate("a")
-    assert gate.open(), "no word from the learner yet"
+    gate = FlowGate("a", horizon_s=10.0)
+    assert not gate.open(now=0.0), "no word from the learner yet: hold, rather than send beyond what it wants"
+    assert not gate.open(now=9.0) and gate.open(now=11.0), "but a learner silent for the horizon holds no one"
     gate.on_flow(_flow(credit=20, received_from_a=0))
     gate.sent(16)
     assert gate.open()  # 4 more wanted than in flight
@@ -80,3 +82,24 @@ def test_ingested_batches_give_each_transition_its_previous_command_across_batch
     got = core.replay._gather(np.arange(10), 1, np.ones(10, np.float32))
     np.testing.assert_array_equal(got.action, actions * 2)
     np.testing.assert_array_equal(got.previous_action, [-1, 4, 0, 3, 1] * 2)
+
+
+def test_flow_gate_follows_one_learner_process_and_counts_only_its_own_actor_process():
+    gate = FlowGate("a", actor_epoch=7)
+    gate.on_flow(_flow(credit=10, received_from_a=0, learner_epoch=5, actor_epoch=7))
+    gate.sent(16)
+    assert not gate.open()
+    # the dead learner's word, still in flight, and one from the future change nothing
+    gate.on_flow(_flow(credit=10_000, received_from_a=16, learner_epoch=4, actor_epoch=7))
+    gate.on_flow(_flow(credit=10_000, received_from_a=16, learner_epoch=2**62, actor_epoch=7))
+    assert not gate.open() and gate.ignored == 2
+    # a restarted learner (a later epoch) counts afresh
+    gate.on_flow(_flow(credit=10, received_from_a=0, learner_epoch=6, actor_epoch=7))
+    assert gate.open()
+
+
+def test_a_restarted_actor_does_not_inherit_its_predecessors_count():
+    gate = FlowGate("a", actor_epoch=9)  # the same id, a new process
+    gate.on_flow(_flow(credit=20, received_from_a=500, actor_epoch=8))  # the predecessor's 500
+    gate.sent(32)
+    assert not gate.open(), "32 of its own are in flight: more than the 20 wanted"

@@ -7,6 +7,7 @@ import threading
 import time
 
 import numpy as np
+import pytest
 import torch
 
 from services.bus.follower import WeightFollower
@@ -88,3 +89,21 @@ def test_a_follower_gets_the_learners_newest_weights_through_a_real_router():
         follower = follower_for(net)
         follower.subscribe(actor, keys, query_timeout_s=5.0)
         assert follower.take(timeout_s=10.0).policy_version == 42
+
+
+def test_a_restarted_learners_weights_replace_the_dead_ones_at_once_and_absurd_versions_are_refused():
+    from shared.wire.messages import MessageError, new_epoch
+
+    net = network(0)
+    follower = follower_for(net)
+    dead, restarted = new_epoch(), new_epoch() + 1
+    follower.offer(to_message(net, 1450, learner_epoch=dead))
+    assert follower.take().policy_version == 1450
+    follower.offer(to_message(net, 1000, learner_epoch=restarted))  # resumed from an older checkpoint
+    assert follower.take().version == (restarted, 1000)
+    follower.offer(to_message(net, 1475, learner_epoch=dead))  # the dead learner's last message, late
+    assert follower.take() is None
+    follower.offer(to_message(net, 5, learner_epoch=2**62))  # a learner "started" in the next century
+    assert follower.take() is None and follower.rejects.counts == {"range": 1}
+    with pytest.raises(MessageError, match="policy_version"):  # 2^62 updates: refused on decode already
+        WeightsMessage(policy_version=2**62, architecture_fingerprint="x", tensors={"w": np.zeros(1, np.float32)})

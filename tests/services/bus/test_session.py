@@ -62,7 +62,7 @@ def client(endpoint: str) -> zenoh.Session:
 def small_batch(episode: int) -> TransitionBatch:
     rng = np.random.default_rng(episode)
     frames = rng.integers(0, 4000, size=(3, 12, 16), dtype=np.uint16)
-    return TransitionBatch(actor_id="a0", episode=episode, first_step=0, start_index=1,
+    return TransitionBatch(actor_id="a0", episode=episode, first_step=0, start_index=1, actor_epoch=0,
                            depth_mm=frames[:2], next_depth_mm=frames[2],
                            action=np.array([0, 4], np.uint8), reward=np.ones(2, np.float32),
                            policy_version=np.array([1, 1], np.int64),

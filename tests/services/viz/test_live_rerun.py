@@ -51,7 +51,7 @@ from shared.learning.model import QNetwork
 from shared.learning.weights import to_message
 from shared.sim.world import load_world
 from shared.wire.keys import RunKeys
-from shared.wire.messages import EpisodeStats, RejectCounter
+from shared.wire.messages import EpisodeStats, FlowControl, RejectCounter
 
 REPO = Path(__file__).resolve().parents[3]
 RERUN_BIN = Path(rerun_cli.__file__).with_name("rerun")  # the binary itself: a signal reaches it
@@ -283,12 +283,23 @@ def run_small_actor(router: str, rerun_url: str | None, max_steps: int, every: i
     EpisodeStats messages."""
     cfg = load_preset("smoke").with_overrides(overrides or {})
     settings = ZenohSettings(connect=(router,))
+    done = threading.Event()
     with open_session(settings) as session:
         token = declare_alive(session, RunKeys("live").alive("learner", "L"))  # noqa: F841
         sub = (subscribe_messages(session, RunKeys("live").all_stats("episode"), EpisodeStats, on_episode,  # noqa: F841
                                   RejectCounter("episode stats")) if on_episode else None)
-        return run_actor(cfg, "live", "a-1", settings, threading.Event(), max_steps=max_steps, seed=3,
-                         rerun_url=rerun_url, rerun_every_episodes=every, rerun_image_every=2)
+        credit = FlowControl(learner_id="L", updates=0, transitions_received=0, transitions_wanted=10**9).encode()
+
+        def speak_as_the_learner() -> None:  # an actor holds until the learner's flow control says go
+            while not done.wait(0.1):
+                session.put(RunKeys("live").flow, credit)
+
+        threading.Thread(target=speak_as_the_learner, daemon=True).start()
+        try:
+            return run_actor(cfg, "live", "a-1", settings, threading.Event(), max_steps=max_steps, seed=3,
+                             rerun_url=rerun_url, rerun_every_episodes=every, rerun_image_every=2)
+        finally:
+            done.set()
 
 
 def test_actor_lets_the_expert_drive_the_drawn_episodes(router: str) -> None:

@@ -2,9 +2,11 @@
 
 import numpy as np
 import pytest
+import torch
 
 from shared.config import load_preset
 from shared.learning.learner import LearnerCore
+from shared.learning.replay import ReplayError
 from shared.wire.messages import MessageError, TransitionBatch
 
 
@@ -37,3 +39,85 @@ def test_ingest_rejects_frames_of_another_sensor_and_stores_nothing():
     with pytest.raises(MessageError):
         core.ingest(batch)
     assert core.received == 0 and len(core.replay) == 0
+
+
+def _batch(actor_id: str = "a", reward: float = 1.0, depth_m: float = 1.0, actor_epoch: int = 0, episode: int = 0,
+           terminated: bool = False) -> TransitionBatch:
+    return TransitionBatch.from_steps(actor_id=actor_id, episode=episode, first_step=0, start_index=0,
+                                      depth=[_frame(depth_m)], next_depth=None if terminated else _frame(depth_m),
+                                      action=[0], reward=[reward], policy_version=[0], pose=[(0, 0, 0)],
+                                      terminated=terminated, actor_epoch=actor_epoch)
+
+
+@pytest.mark.parametrize("batch,why", [
+    (_batch(reward=3.4e38), "reward"),                        # finite, passes the schema, poisons every target
+    (_batch(reward=-100.0), "reward"),                        # a collision's reward on a move that did not end
+    (_batch(reward=1.0, terminated=True), "reward"),          # a collision paid like a move
+    (_batch(depth_m=9.0), "beyond the sensor's range"),       # the smoke sensor sees 4 m
+])
+def test_ingest_refuses_what_the_task_cannot_produce_and_stores_nothing(batch: TransitionBatch, why: str):
+    core = LearnerCore(load_preset("smoke"), device="cpu")
+    with pytest.raises(MessageError, match=why) as info:
+        core.ingest(TransitionBatch.decode(batch.encode()))
+    assert info.value.cause == "range" and core.received == 0 and len(core.replay) == 0 and not core.actors
+    core.ingest(_batch(reward=-100.0, terminated=True))  # what the task does pay is stored
+    assert core.received == 1
+
+
+def test_per_actor_state_stays_bounded_whatever_ids_arrive():
+    from shared.learning.learner import MAX_TRACKED_ACTORS
+    from shared.learning.replay import MAX_OPEN_STREAMS
+    from shared.wire.messages import FlowControl
+
+    core = LearnerCore(load_preset("smoke").with_overrides({"replay.capacity": 10_000}), device="cpu")
+    for i in range(4097):  # invented ids, each leaving an episode open
+        core.ingest(_batch(actor_id=f"fake-{i}"))
+    core.ingest(_batch(actor_id="real"))
+    assert len(core.actors) == MAX_TRACKED_ACTORS and "real" in core.actors and "fake-0" not in core.actors
+    assert len(core.replay._streams) <= MAX_OPEN_STREAMS
+    flow = FlowControl(learner_id="learner", updates=0, transitions_received=core.received, transitions_wanted=0,
+                       received_from=core.received_by_actor, actor_epochs=core.actor_epochs())
+    assert FlowControl.decode(flow.encode()).received_from["real"] == 1  # the learner's own message still fits
+
+
+def test_a_restarted_actor_process_starts_a_fresh_count():
+    core = LearnerCore(load_preset("smoke"), device="cpu")
+    for _ in range(3):
+        core.ingest(_batch(actor_epoch=1))
+    core.ingest(_batch(actor_epoch=2))
+    assert core.received_by_actor == {"a": 1} and core.actor_epochs() == {"a": 2} and core.received == 4
+
+
+def test_transitions_with_a_non_finite_loss_leave_replay_and_the_learner_goes_on():
+    cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 8, "dqn.batch_size": 8, "dqn.n_step": 1,
+                                               "dqn.loss": "mse", "replay.capacity": 64})
+    core = LearnerCore(cfg, device="cpu")
+    with pytest.raises(ReplayError, match="not one this task pays"):
+        core.add_transition("s", _frame(1.0), 0, 3.4e38, _frame(1.1), False, False)
+    for i in range(32):  # a replay memory saved before the bounds existed: every other reward poisoned
+        core.replay.add(("s", i), _frame(1.0 + 0.01 * i), i % 5, 3.4e38 if i % 2 else 1.0, _frame(1.1), False)
+        core.received += 1
+    before = {name: t.clone() for name, t in core.agent.online.state_dict().items()}
+    skipped = sum(core.train_step() is None for _ in range(40))
+    assert skipped > 0 and core.dropped_nonfinite > 0 and core.updates == 40 - skipped
+    _, rewards = core.replay.stored_rewards()
+    assert core.purge_out_of_bounds() == int((rewards > 1e30).sum()) and len(core.replay) == 16
+    assert core.train_step() is not None
+    assert all(bool(t.isfinite().all()) for t in core.agent.online.state_dict().values())
+    assert any(not torch.equal(before[n], t) for n, t in core.agent.online.state_dict().items())
+
+
+def test_a_resumed_replay_memory_keeps_nothing_the_task_cannot_produce(tmp_path):
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.learner import resume_from
+
+    cfg = load_preset("smoke")
+    core = LearnerCore(cfg, device="cpu")
+    for i in range(10):
+        core.replay.add(("s", i), _frame(1.0), 0, 3.4e38 if i < 3 else 1.0, _frame(1.1), False)
+    manager = CheckpointManager(tmp_path)
+    manager.save(core.agent, replay=core.replay, config=cfg.to_dict())
+    resumed = LearnerCore(cfg, device="cpu")
+    assert resume_from(CheckpointManager(tmp_path), resumed)
+    _, rewards = resumed.replay.stored_rewards()
+    assert len(resumed.replay) == 7 and set(rewards.tolist()) == {1.0}

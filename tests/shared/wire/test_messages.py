@@ -37,7 +37,7 @@ def make_batch(steps: int = 4, *, terminated: bool = False, truncated: bool = Fa
     if terminated:
         reward[-1] = -100.0
     return TransitionBatch(
-        actor_id="actor-0", episode=5, first_step=8, start_index=3,
+        actor_id="actor-0", episode=5, first_step=8, start_index=3, actor_epoch=42,
         depth_mm=frames[:steps], next_depth_mm=None if terminated else frames[steps],
         action=rng.integers(0, 5, steps).astype(np.uint8),
         reward=reward,
@@ -332,7 +332,7 @@ def test_oversize_is_rejected() -> None:
     assert cause_of(rewrite(make_batch().encode(), _set_array("depth_mm", too_many))) == m.OVERSIZE
     # a frame larger than 640x480
     with pytest.raises(MessageError) as info:
-        TransitionBatch(actor_id="a", episode=0, first_step=0, start_index=0,
+        TransitionBatch(actor_id="a", episode=0, first_step=0, start_index=0, actor_epoch=0,
                         depth_mm=np.zeros((1, 481, 640), np.uint16), next_depth_mm=None,
                         action=np.zeros(1, np.uint8), reward=np.zeros(1, np.float32),
                         policy_version=np.zeros(1, np.int64), pose=np.zeros((1, 3), np.float32),
