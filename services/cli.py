@@ -84,6 +84,15 @@ COMMANDS: dict[str, Command | Group] = {
                           "worlds (writes the weights, <out>-windows.png and a resumable <out>-windows.jsonl)",
                           f"{TOOLS}:add_model_select_arguments", "services.tools.model:run_select"),
     }),
+    "secure": Group("close a run's bus to everyone but its own services (credentials, access control, TLS)",
+                    "ACTION", {
+        "init": Command("write a run's security folder: a user and password per role, the router's access control "
+                        "list, each role's Zenoh config, and with --tls a CA and certificates",
+                        "services.bus.options:add_secure_init_arguments", "services.bus.security:run_secure_init"),
+        "export": Command("copy what one role needs to join from another machine (its config, and with TLS its "
+                          "certificate and the run's CA): no other role's password, no CA key",
+                          "services.bus.options:add_secure_export_arguments", "services.bus.security:run_secure_export"),
+    }),
     "bench": Group("benchmarks (print JSON)", "TARGET", {
         "env": Command("environment steps/s and depth-frame time on one core",
                        "services.bench.options:add_env_arguments", "services.bench.env:run_command"),

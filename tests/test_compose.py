@@ -29,7 +29,7 @@ VENV_BIN = Path(sys.executable).parent
 
 PROJECT_SERVICES = ("learner", "actor", "evaluator")
 """Services that run ``cogexplore`` and join the run through the router."""
-IMAGE_SERVICES = (*PROJECT_SERVICES, "rerun")
+IMAGE_SERVICES = (*PROJECT_SERVICES, "rerun", "secure")
 """Services built from this repository's Dockerfile."""
 
 SERVICE_ENV = (
@@ -154,7 +154,9 @@ def test_router_is_the_official_image_at_the_python_package_version(services: di
     unknown = set(options_in(command)) - ZENOHD_FLAGS
     assert not unknown, f"zenohd has no option(s) {sorted(unknown)}"
     listen = parse_endpoints(command[command.index("--listen") + 1])
-    assert listen == ("tcp/0.0.0.0:7447",)
+    assert listen == ("tls/0.0.0.0:7447",), "a published router listens with TLS only"
+    assert command[command.index("--config") + 1] == "/secure/router-zenohd.json5"
+    assert router["depends_on"]["secure"]["condition"] == "service_completed_successfully"
     assert "--no-multicast-scouting" in command
     # The listening port is published, so actors on other machines can connect.
     published = {str(p).rsplit(":", 1)[-1] for p in router["ports"]}
@@ -168,7 +170,9 @@ def test_project_services_connect_to_the_router_as_clients(services: dict[str, d
         env = service_env(services[name])
         settings = ZenohSettings.from_env(env)  # the project's own parser validates the values
         assert settings.effective_mode == "client", name
-        assert settings.effective_connect == (f"tcp/router:{router_port}",), name
+        assert settings.effective_connect == (f"tls/router:{router_port}",), name
+        command = services[name]["command"]
+        assert command[command.index("--zenoh-config") + 1] == f"/secure/{name}.json5", name
         assert "router" in services[name].get("depends_on", []), name
 
 
@@ -296,3 +300,33 @@ def test_build_context_excludes_host_state_and_keeps_sources() -> None:
                     assert (ROOT / src).exists() and src not in ignored, f"COPY {src}: not in the context"
     for package in ("shared", "services"):
         assert package not in ignored
+
+
+def test_the_secure_service_writes_what_the_router_and_every_service_read(services: dict[str, dict],
+                                                                           tmp_path: Path) -> None:
+    """The one-shot `secure` command, run for real into a folder standing for /secure: the router's
+    zenohd config names files under /secure that it wrote, every service's --zenoh-config is one of
+    its files, and a second start keeps them (--keep)."""
+    import json
+
+    command = services["secure"]["command"]
+    assert command[:4] == ["cogexplore", "secure", "init", "/secure"] and "--tls" in command and "--keep" in command
+    argv = [tmp_path / "secure" if a == "/secure" else a for a in command[1:]]
+    for attempt in range(2):
+        proc = subprocess.run(cogexplore_argv([str(a) for a in argv]), capture_output=True, text=True, timeout=120,
+                              cwd=ROOT, env=dict(os.environ, RERUN_ANALYTICS="0"))
+        assert proc.returncode == 0, proc.stderr
+        if attempt == 0:
+            first = (tmp_path / "secure" / "credentials.json").read_text()
+    assert (tmp_path / "secure" / "credentials.json").read_text() == first, "--keep kept the credentials"
+    zenohd = json.loads((tmp_path / "secure" / "router-zenohd.json5").read_text())
+    named = [zenohd["transport"]["auth"]["usrpwd"]["dictionary_file"],
+             *(v for k, v in zenohd["transport"]["link"]["tls"].items() if isinstance(v, str))]
+    assert all(n.startswith("/secure/") and (tmp_path / "secure" / n.removeprefix("/secure/")).is_file()
+               for n in named), named
+    assert zenohd["access_control"]["default_permission"] == "deny"
+    for name in PROJECT_SERVICES:
+        role_config = services[name]["command"][services[name]["command"].index("--zenoh-config") + 1]
+        assert (tmp_path / "secure" / role_config.removeprefix("/secure/")).is_file(), name
+        mounts = [v.split(":")[1] for v in services[name]["volumes"] if isinstance(v, str)]
+        assert "/secure" in mounts, name

@@ -12,3 +12,7 @@ ENV_CONNECT = "COGEXPLORE_ZENOH_CONNECT"
 ENV_LISTEN = "COGEXPLORE_ZENOH_LISTEN"
 ENV_CONFIG = "COGEXPLORE_ZENOH_CONFIG"
 ENV_MODE = "COGEXPLORE_ZENOH_MODE"
+ZENOHD_DIR = "/secure"
+"""Where docker-compose.yml mounts a run's security folder in the router's container."""
+ROLES: tuple[str, ...] = ("learner", "actor", "evaluator", "viewer")
+"""The roles a run's sessions take, one user each (services.bus.security)."""

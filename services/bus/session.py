@@ -41,6 +41,7 @@ from services.bus import (
     ENV_MODE,
     MODES,
 )
+from services.bus.security import PATH_KEYS
 from shared.errors import CogexploreError
 from shared.wire.messages import Message, RejectCounter
 
@@ -59,18 +60,18 @@ class TransportError(CogexploreError, RuntimeError):
     """A Zenoh session could not be opened or used; the message names the endpoints."""
 
 
-def parse_endpoints(value: str | Sequence[str], what: str = "endpoint") -> tuple[str, ...]:
+def parse_endpoints(value: str | Sequence[str], what: str = "") -> tuple[str, ...]:
     """Endpoints from a comma-separated string or a sequence; raises TransportConfigError."""
     items = value.split(",") if isinstance(value, str) else list(value)
     out = []
     for item in items:
         if not isinstance(item, str):
-            raise TransportConfigError(f"{what} endpoint {item!r} must be a string")
+            raise TransportConfigError(f"{what} endpoint {item!r} must be a string".lstrip())
         item = item.strip()
         if not item:
             continue
         if not _ENDPOINT_RE.fullmatch(item):
-            raise TransportConfigError(f"{what} endpoint {item!r} is invalid: expected "
+            raise TransportConfigError(f"{what} endpoint {item!r} is invalid: expected ".lstrip() +
                                        "<protocol>/<address>, e.g. tcp/127.0.0.1:7447")
         out.append(item)
     return tuple(out)
@@ -149,9 +150,19 @@ class ZenohSettings:
         if not path.is_file():
             raise TransportConfigError(f"Zenoh config file {path} does not exist")
         try:
-            return zenoh.Config.from_file(str(path))
+            config = zenoh.Config.from_file(str(path))
         except Exception as exc:  # zenoh raises its own ZError for parse errors
             raise TransportConfigError(f"Zenoh config file {path} is invalid: {exc}") from None
+        # Files it names relative to itself (services.bus.security writes them so, for a folder that
+        # can be copied to another machine as it is); Zenoh would read them relative to the cwd.
+        for key in PATH_KEYS:
+            value = _json_value(config, key)
+            if isinstance(value, str) and value and not Path(value).is_absolute():
+                named = path.parent / value
+                if not named.is_file():
+                    raise TransportConfigError(f"Zenoh config file {path}: {key} names {named}, which does not exist")
+                config.insert_json5(key, json.dumps(str(named.resolve())))
+        return config
 
     def to_config(self) -> zenoh.Config:
         """A fresh ``zenoh.Config`` (a config is consumed by ``zenoh.open``)."""
@@ -386,9 +397,9 @@ def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
     """Environment variables first, command-line options over them."""
     overrides: dict[str, object] = {}
     if args.connect:
-        overrides["connect"] = parse_endpoints(args.connect)
+        overrides["connect"] = parse_endpoints(args.connect, "--connect")
     if args.listen:
-        overrides["listen"] = parse_endpoints(args.listen)
+        overrides["listen"] = parse_endpoints(args.listen, "--listen")
     if args.zenoh_mode:
         overrides["mode"] = args.zenoh_mode
     if args.zenoh_config:

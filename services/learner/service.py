@@ -34,7 +34,7 @@ from services.runs import RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore, RateMeter, resume_from
-from shared.learning.stats import CsvLog, LearnerRow
+from shared.learning.stats import CsvLog, LearnerRow, rewind
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys, parse_key
 from shared.wire.messages import (
@@ -95,7 +95,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     epoch = new_epoch()  # this process: its weights outrank every earlier learner's, whatever their update
     core = LearnerCore(cfg, device=device or cfg.train.device)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
-    resume_from(checkpoints, core)
+    if resume_from(checkpoints, core):
+        rewind(paths.stats, LearnerRow, core.updates)  # its updates after the checkpoint come again
     config_dict = cfg.to_dict()
 
     def save_checkpoint() -> None:

@@ -29,7 +29,7 @@ from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore, RateMeter, resume_from
 from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
-from shared.learning.stats import CsvLog, EpisodeRow, LearnerRow
+from shared.learning.stats import CsvLog, EpisodeRow, LearnerRow, rewind
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import validate_name
@@ -102,6 +102,9 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     core = LearnerCore(cfg, device=cfg.train.device)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resumed = resume_from(checkpoints, core)
+    if resumed:
+        rewind(paths.stats, LearnerRow, core.updates)
+        rewind(paths.stats, EpisodeRow, core.updates)
     env = ExploreEnv(cfg.env, cfg.sensor)
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2)
     policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=cfg.train.seed + 1,
@@ -128,11 +131,11 @@ def run_train_command(args: argparse.Namespace) -> int:
         return 2
     run = args.run or time.strftime("train-%Y%m%d-%H%M%S")
     validate_name(run, "run name")
-    paths = RunPaths(Path(args.runs_dir) / run).make()
-    setup_logging("INFO", paths.logs / "train.log")
-    cfg = resolve_config(args, paths)
+    paths = RunPaths(Path(args.runs_dir) / run)
+    cfg = resolve_config(args, paths)  # a bad preset or --set fails here, before the run folder exists
     if args.updates is not None:
         cfg = cfg.with_overrides({"train.total_updates": args.updates})
+    setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
                                   max_minutes=args.minutes)
     print(result)

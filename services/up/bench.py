@@ -124,7 +124,7 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
         raise ValueError(f"warmup_s must be >= 0, got {warmup_s}")
     if learner_threads is not None and learner_threads < 1:
         raise ValueError(f"learner_threads must be >= 1, got {learner_threads}")
-    from services.bus.session import ZenohSettings, open_session, subscribe_messages
+    from services.bus.session import open_session, subscribe_messages
     from services.runs import resolve_config, save_config
     from services.up.launcher import Launcher
     from shared.wire.keys import RunKeys
@@ -171,7 +171,7 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
                     os.environ.pop("OMP_NUM_THREADS", None)
                 else:
                     os.environ["OMP_NUM_THREADS"] = saved_omp
-        settings = ZenohSettings(mode="client", connect=(launcher.endpoint,))
+        settings = launcher.settings("viewer")
         with open_session(settings, wait_s=60.0) as session:
             rejects = RejectCounter("stats message")
             subs = [subscribe_messages(session, keys.all_stats("learner"), LearnerStats, observed.on_learner, rejects),

@@ -3,6 +3,13 @@ separate local processes, one progress display, an orderly stop, everything in r
 
 It is the local twin of docker-compose.yml: the same services, started with the same
 command lines, meeting at one Zenoh router.
+
+The bus is closed to everyone but the run's own services (services.bus.security): the first ``up``
+of a run writes ``runs/<run>/secure/`` (a user and password per role, the access control list), the
+router loads its config and every process its role's. On loopback the links are plain TCP; a
+router that listens beyond the machine (``--listen tls/0.0.0.0:7447``) needs the folder made with
+``cogexplore secure init runs/<run>/secure --tls --host <name>``, and ``up`` refuses to start without
+it, or with a plain TCP endpoint there.
 """
 
 from __future__ import annotations
@@ -21,11 +28,13 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from services.bus.security import SecureFiles, SecurityError, init_secure
 from services.bus.session import (
     LivelinessWatch,
     ZenohSettings,
     free_tcp_port,
     open_session,
+    parse_endpoints,
     subscribe_messages,
 )
 from services.process import setup_logging
@@ -84,9 +93,16 @@ class Launcher:
         self.args = args
         self.run = args.run or time.strftime("run-%Y%m%d-%H%M%S")
         validate_name(self.run, "run name")
-        self.paths = RunPaths(Path(args.runs_dir) / self.run).make()
+        self.paths = RunPaths(Path(args.runs_dir) / self.run)
         self.children: list[Child] = []
-        self.endpoint = f"tcp/127.0.0.1:{args.port or free_tcp_port()}"
+        self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
+        # checked before the run folder exists: a refused start leaves nothing behind
+        self.secure = secure_files(self.paths.root / "secure", self.run, tls=not all(map(_loopback, self.listen)))
+        self.paths.make()
+
+    def settings(self, role: str) -> ZenohSettings:
+        """How a process of ``role`` joins this run's bus (the launcher's own sessions are viewers)."""
+        return ZenohSettings(mode="client", connect=(self.endpoint,), config_file=str(self.secure.config(role)))
 
     # -- processes ------------------------------------------------------------------------
 
@@ -104,23 +120,24 @@ class Launcher:
         self.children.append(child)
         return child
 
-    def _common(self) -> list[str]:
+    def _common(self, role: str) -> list[str]:
         return ["--run", self.run, "--runs-dir", str(self.args.runs_dir), "--connect", self.endpoint,
-                "--zenoh-mode", "client"]
+                "--zenoh-mode", "client", "--zenoh-config", str(self.secure.config(role))]
 
     def start(self) -> None:
         a = self.args
-        self._spawn("router", "router", ["router", "--listen", self.endpoint])
+        self._spawn("router", "router", ["router", "--listen", ",".join(self.listen),
+                                         "--config", str(self.secure.router_config)])
         config = ["--preset", str(self.paths.config)]
-        learner_argv = ["learner", *self._common(), *config]
+        learner_argv = ["learner", *self._common("learner"), *config]
         if a.device:
             learner_argv += ["--device", a.device]
         self._spawn("learner", "learner", learner_argv)
         for i in range(a.actors):
-            self._spawn("actor", f"actor-{i}", ["actor", *self._common(), *config, "--actor-id", f"actor-{i}",
+            self._spawn("actor", f"actor-{i}", ["actor", *self._common("actor"), *config, "--actor-id", f"actor-{i}",
                                                 "--actor-index", str(i), "--num-actors", str(a.actors)])
         if not a.no_evaluator:
-            self._spawn("evaluator", "evaluator", ["evaluator", *self._common(), *config,
+            self._spawn("evaluator", "evaluator", ["evaluator", *self._common("evaluator"), *config,
                                                    "--every-updates", str(a.eval_every)])
 
     def _alive(self, role: str) -> list[Child]:
@@ -151,8 +168,7 @@ class Launcher:
         keys = RunKeys(self.run)
         progress = Progress()
         rejects = RejectCounter("stats message", log)
-        settings = ZenohSettings(mode="client", connect=(self.endpoint,))
-        with open_session(settings, wait_s=30.0) as session:
+        with open_session(self.settings("viewer"), wait_s=30.0) as session:
             subs = [subscribe_messages(session, keys.all_stats("learner"), LearnerStats, progress.on_learner, rejects),
                     subscribe_messages(session, keys.all_stats("episode"), EpisodeStats, progress.on_episode, rejects)]
             actors = LivelinessWatch(session, keys.all_alive("actor"))
@@ -245,6 +261,39 @@ class Launcher:
                 return result.returncode
         print(f"report: {self.paths.report / 'report.md'}", file=sys.stderr)
         return 0
+
+
+def _loopback(endpoint: str) -> bool:
+    host = endpoint.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
+    return host in ("127.0.0.1", "localhost", "::1")
+
+
+def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> tuple[tuple[str, ...], str]:
+    """(where the router listens, where this machine's processes connect). By default a free
+    loopback port; with ``--listen``, those endpoints (TLS wherever they leave the machine) and the
+    first one's port on localhost."""
+    if not listen:
+        endpoint = f"tcp/127.0.0.1:{port or free_tcp_port()}"
+        return (endpoint,), endpoint
+    endpoints = parse_endpoints(list(listen), "--listen")
+    for e in endpoints:
+        if not _loopback(e) and not e.startswith("tls/"):
+            raise SecurityError(f"--listen {e}: a router reachable from other machines listens with TLS only "
+                                f"(--listen tls/{e.split('/', 1)[1]})")
+    protocol, address = endpoints[0].split("/", 1)
+    return endpoints, f"{protocol}/localhost:{address.rsplit(':', 1)[1]}"
+
+
+def secure_files(root: Path, run: str, tls: bool) -> SecureFiles:
+    """The run's security folder: made now on first use (credentials and access control, no TLS),
+    refused when TLS is needed and it has none."""
+    files = SecureFiles(root)
+    if not files.credentials.exists():
+        if tls:
+            raise SecurityError(f"a router that listens beyond this machine needs TLS certificates: run `cogexplore "
+                                f"secure init {root} --tls --host <this machine's name>` first")
+        init_secure(root, run)
+    return files.check(run, tls=tls)
 
 
 def run_up_command(args: argparse.Namespace) -> int:

@@ -16,7 +16,11 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", default=None, help="run name (default: run-<date>-<time>)")
     parser.add_argument("--runs-dir", default="runs")
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
-    parser.add_argument("--port", type=int, default=None, help="router port (default: a free port)")
+    parser.add_argument("--port", type=int, default=None, help="router port on loopback (default: a free port)")
+    parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                        help="where the router listens instead, e.g. tls/0.0.0.0:7447 so that actors on other "
+                             "machines can join (TLS only: make the certificates first with `cogexplore secure init "
+                             "runs/<run>/secure --tls --host <this machine>`); repeatable")
     parser.add_argument("--eval-every", type=int, default=1000, help="evaluator: updates between evaluations")
     parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
     parser.add_argument("--final-episodes", type=int, default=10,

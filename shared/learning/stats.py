@@ -87,6 +87,35 @@ class EpisodeRow(_Row):
 RowT = TypeVar("RowT", bound=_Row)
 
 
+def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
+    """Drop the rows of ``row_type``'s file logged after ``update`` (a run resumed from an older
+    checkpoint logs those updates again: its column must not go back). Rewritten atomically;
+    returns how many rows went."""
+    path = Path(stats_dir) / row_type.FILE
+    if not path.is_file():
+        return 0
+    with open(path, newline="") as fh:
+        rows = list(csv.reader(fh))
+    if not rows or "update" not in rows[0]:
+        return 0
+    col = rows[0].index("update")
+
+    def kept(row: list[str]) -> bool:
+        try:
+            return int(row[col]) <= update
+        except (IndexError, ValueError):
+            return False  # a torn last line of a killed process
+
+    keep = [rows[0]] + [r for r in rows[1:] if kept(r)]
+    if len(keep) == len(rows):
+        return 0
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w", newline="") as fh:
+        csv.writer(fh).writerows(keep)
+    tmp.replace(path)
+    return len(rows) - len(keep)
+
+
 class CsvLog(Generic[RowT]):
     """Appends rows of one record type to ``<stats dir>/<its FILE>``, the header first when the file
     is new; every row is flushed, so a crash loses at most the row being written."""

@@ -1,0 +1,193 @@
+"""The run's bus closed to everyone but its own services: real routers with the generated configs,
+real sessions of each role, of no role, with a wrong password or a foreign certificate."""
+
+from __future__ import annotations
+
+import json
+import stat
+import time
+from pathlib import Path
+
+import pytest
+
+from services.bus import ROLES
+from services.bus.security import SecurityError, export_role, init_secure
+from services.bus.session import (
+    LivelinessWatch,
+    TransportError,
+    ZenohSettings,
+    declare_alive,
+    free_tcp_port,
+    open_router,
+    open_session,
+    query_latest,
+    serve_latest,
+)
+from shared.wire.keys import RunKeys
+
+RUN = "sec"
+KEYS = RunKeys(RUN)
+
+
+class Bus:
+    """A router on loopback with a run's security folder, and a session per role."""
+
+    def __init__(self, root: Path, tls: bool = False):
+        self.files = init_secure(root, RUN, tls=tls)
+        port = free_tcp_port()
+        self.endpoint = f"tls/localhost:{port}" if tls else f"tcp/127.0.0.1:{port}"
+        self.router = open_router([self.endpoint], config_file=str(self.files.router_config))
+        self.sessions = {role: self.open(role) for role in ROLES}
+        self.got: dict[str, list[bytes]] = {}
+        self._subs = []
+
+    def open(self, role: str | None = None, config: Path | None = None):
+        config = config or (self.files.config(role) if role else None)
+        return open_session(ZenohSettings(connect=(self.endpoint,), config_file=str(config) if config else None),
+                            wait_s=2.0)
+
+    def listen(self, role: str, key: str) -> list[bytes]:
+        got = self.got.setdefault(f"{role}<-{key}", [])
+        self._subs.append(self.sessions[role].declare_subscriber(key, lambda s: got.append(s.payload.to_bytes())))
+        return got
+
+    def close(self) -> None:
+        for s in self.sessions.values():
+            s.close()
+        self.router.close()
+
+
+@pytest.fixture
+def bus(tmp_path: Path):
+    b = Bus(tmp_path / "secure")
+    yield b
+    b.close()
+
+
+def settle(predicate=lambda: False, timeout_s: float = 1.5) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not predicate():
+        time.sleep(0.05)
+
+
+def test_the_folder_is_private_complete_and_denies_by_default(tmp_path: Path):
+    files = init_secure(tmp_path / "secure", RUN, tls=True, hosts=["robot-lab.local"])
+    assert files.tls and files.check(RUN, tls=True) is files
+    for path in files.root.iterdir():
+        assert stat.S_IMODE(path.stat().st_mode) == 0o600, path.name
+    router = json.loads(files.router_config.read_text())
+    acl = router["access_control"]
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    assert {s["id"]: s["usernames"] for s in acl["subjects"]} == {r: [f"{RUN}-{r}"] for r in ROLES}
+    assert all(s["cert_common_names"] == [s["id"]] for s in acl["subjects"])  # TLS: the certificate names the role
+    assert all(k.startswith(f"cogexplore/{RUN}/") for rule in acl["rules"] for k in rule["key_exprs"])
+    passwords = {u["password"] for u in json.loads(files.credentials.read_text())["users"].values()}
+    assert len(passwords) == len(ROLES) and all(len(p) >= 24 for p in passwords)
+    with pytest.raises(SecurityError, match="already holds credentials"):
+        init_secure(files.root, RUN)
+    with pytest.raises(SecurityError, match="made for run 'sec', not 'other'"):
+        files.check("other")
+    bundle = export_role(files.root, "actor", tmp_path / "bundle")
+    assert sorted(p.name for p in bundle) == ["actor.json5", "actor.key", "actor.pem", "ca.pem"]
+    text = "".join(p.read_text() for p in bundle)
+    assert all(p not in text for p in passwords - {json.loads(files.credentials.read_text())["users"]["actor"]["password"]})
+    plain = init_secure(tmp_path / "plain", RUN)
+    with pytest.raises(SecurityError, match="no TLS certificates"):
+        plain.check(RUN, tls=True)
+
+
+def test_no_credentials_or_a_wrong_password_get_no_session(bus: Bus, tmp_path: Path):
+    with pytest.raises(TransportError):
+        bus.open()  # no credentials
+    wrong = json.loads(bus.files.config("actor").read_text())
+    wrong["transport"]["auth"]["usrpwd"]["password"] = "guess"
+    (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+    with pytest.raises(TransportError):
+        bus.open(config=tmp_path / "wrong.json5")
+
+
+def test_each_role_does_its_part_and_nothing_more(bus: Bus):
+    """Listeners in one set of sessions, senders in another (a session hears its own puts locally)."""
+    s = {role: bus.open(role) for role in ROLES}
+    transitions = bus.listen("learner", KEYS.all_transitions)
+    actor_weights = bus.listen("actor", KEYS.weights)
+    evaluator_weights = bus.listen("evaluator", KEYS.weights)
+    actor_flow = bus.listen("actor", KEYS.flow)
+    stats = bus.listen("viewer", KEYS.all_stats())
+    settle()
+    s["learner"].put(KEYS.weights, b"real")
+    s["learner"].put(KEYS.flow, b"credit")
+    for role in ("actor", "evaluator", "viewer"):
+        s[role].put(KEYS.weights, f"hijack by {role}".encode())  # case 1: only the learner puts weights
+        s[role].put(KEYS.flow, f"forged credit by {role}".encode())  # case 6: only the learner gives credit
+    s["actor"].put(KEYS.transitions("a1"), b"step")
+    for role in ("learner", "evaluator", "viewer"):
+        s[role].put(KEYS.transitions("x"), f"fake step by {role}".encode())
+    s["learner"].put(KEYS.learner_stats("l"), b"learner stats")
+    s["evaluator"].put(KEYS.eval_results("e"), b"eval")
+    s["actor"].put(KEYS.episode_stats("a1"), b"episode")
+    settle(lambda: len(stats) >= 3 and evaluator_weights and actor_weights and actor_flow and transitions)
+    settle(timeout_s=0.5)  # and a little more, for anything that should not come
+    assert evaluator_weights == actor_weights == [b"real"] and actor_flow == [b"credit"]
+    assert transitions == [b"step"] and sorted(stats) == [b"episode", b"eval", b"learner stats"]
+    for session in s.values():
+        session.close()
+
+
+def test_only_the_learner_answers_the_weights_query_and_announces_a_learner(bus: Bus):
+    s = bus.sessions
+    rogue = serve_latest(s["actor"], KEYS.weights_latest, lambda: b"rogue")  # noqa: F841
+    assert query_latest(s["evaluator"], KEYS.weights_latest, timeout_s=1.0) is None
+    real = serve_latest(s["learner"], KEYS.weights_latest, lambda: b"real")  # noqa: F841
+    settle(timeout_s=0.5)
+    for _ in range(3):  # a rogue responder wins no newly started receiver
+        assert query_latest(s["evaluator"], KEYS.weights_latest, timeout_s=2.0) == b"real"
+    fake = declare_alive(s["actor"], KEYS.alive("learner", "fake"))  # noqa: F841
+    token = declare_alive(s["learner"], KEYS.alive("learner", "l"))  # noqa: F841
+    actor_token = declare_alive(s["actor"], KEYS.alive("actor", "a1"))  # noqa: F841
+    with LivelinessWatch(s["viewer"], KEYS.all_alive()) as watch:
+        assert watch.wait(lambda keys: KEYS.alive("learner", "l") in keys and KEYS.alive("actor", "a1") in keys, 3)
+        settle(timeout_s=0.5)
+        assert KEYS.alive("learner", "fake") not in watch.alive
+
+
+def test_tls_with_client_certificates(tmp_path: Path):
+    bus = Bus(tmp_path / "secure", tls=True)
+    try:
+        transitions = bus.listen("learner", KEYS.all_transitions)
+        settle(timeout_s=0.5)
+        bus.sessions["actor"].put(KEYS.transitions("a1"), b"step over TLS")
+        settle(lambda: bool(transitions))
+        assert transitions == [b"step over TLS"]
+        no_cert = json.loads(bus.files.config("actor").read_text())
+        for key in ("connect_certificate", "connect_private_key"):
+            no_cert["transport"]["link"]["tls"].pop(key)
+        no_cert["transport"]["link"]["tls"]["root_ca_certificate"] = str(bus.files.root / "ca.pem")
+        (tmp_path / "no-cert.json5").write_text(json.dumps(no_cert))
+        with pytest.raises(TransportError):
+            bus.open(config=tmp_path / "no-cert.json5")  # the right password is not enough without a certificate
+        # the actor's password with the evaluator's certificate: a session, but not the actor's part
+        mixed = json.loads(bus.files.config("actor").read_text())
+        mixed["transport"]["link"]["tls"].update(
+            {"root_ca_certificate": str(bus.files.root / "ca.pem"),
+             "connect_certificate": str(bus.files.root / "evaluator.pem"),
+             "connect_private_key": str(bus.files.root / "evaluator.key")})
+        (tmp_path / "mixed.json5").write_text(json.dumps(mixed))
+        impostor = bus.open(config=tmp_path / "mixed.json5")
+        impostor.put(KEYS.transitions("a2"), b"impostor")
+        settle(timeout_s=1.0)
+        assert transitions == [b"step over TLS"]
+        impostor.close()
+    finally:
+        bus.close()
+
+
+def test_a_secured_service_refuses_to_start_without_its_files_in_one_line(tmp_path: Path, capsys):
+    from services.cli import main
+
+    code = main(["up", "--run", "r", "--runs-dir", str(tmp_path), "--listen", "tls/0.0.0.0:0", "--quiet"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "secure init" in err and "--tls" in err
+    assert not (tmp_path / "r").exists(), "a refused start leaves no run folder"
+    code = main(["up", "--run", "r", "--runs-dir", str(tmp_path), "--listen", "tcp/0.0.0.0:7447", "--quiet"])
+    assert code == 2 and "TLS only" in capsys.readouterr().err
