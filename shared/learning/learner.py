@@ -54,7 +54,7 @@ class ActorRecord:
     received: int = 0
     """Transitions received from this process."""
     version: int = 0
-    """Newest weights version its transitions were chosen with."""
+    """The weights version its newest transitions were chosen with."""
     seen_s: float = field(default_factory=time.monotonic)
 
 
@@ -114,7 +114,7 @@ class LearnerCore:
                                 batch.truncated and i == last)
         record = self._record(batch.actor_id, batch.actor_epoch)
         record.received += batch.steps
-        record.version = max(record.version, int(batch.policy_version[-1]))
+        record.version = int(batch.policy_version[-1])  # its newest: a restarted learner's weights are lower
         return batch.steps
 
     def _record(self, actor_id: str, epoch: int) -> ActorRecord:
