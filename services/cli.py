@@ -100,6 +100,9 @@ COMMANDS: dict[str, Command | Group] = {
                            "services.bench.options:add_learner_arguments", "services.bench.learner:run_command"),
         "transport": Command("transitions/s through a loopback Zenoh router",
                              "services.bench.options:add_transport_arguments", "services.bench.transport:run_command"),
+        "fuzz": Command("malformed and hostile payloads on every key a secured run's services listen to: crashes, "
+                        "rejects by cause against what was sent, memory", "services.up.options:add_bench_fuzz_arguments",
+                        "services.up.fuzz:run_command"),
         "system": Command("env steps/s, updates/s, weight lag and replay ratio of router + learner + N actors as "
                           "real processes", "services.up.options:add_bench_system_arguments",
                           "services.up.bench:run_command"),

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import collections
 import hashlib
+import json
 import logging
 import threading
 import time
@@ -45,14 +46,21 @@ from services.process import default_process_id, setup_logging, stop_event_on_si
 from services.runs import resolve_config, run_paths
 from shared.config import ConfigError, RunConfig
 from shared.expert.expert import ExpertGuide
-from shared.learning.model import QNetwork, architecture_fingerprint, resolve_device
+from shared.learning.model import (
+    QNetwork,
+    architecture_fingerprint,
+    named_shapes,
+    resolve_device,
+)
 from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import RunKeys
 from shared.wire.messages import (
+    RANGE,
     EpisodeStats,
     FlowControl,
+    MessageError,
     RejectCounter,
     epoch_from_the_future,
     new_epoch,
@@ -78,8 +86,10 @@ class FlowGate:
     holds it (a learner speaks every 0.1 s).
     """
 
-    def __init__(self, actor_id: str, horizon_s: float = 10.0, actor_epoch: int = 0) -> None:
+    def __init__(self, actor_id: str, horizon_s: float = 10.0, actor_epoch: int = 0,
+                 rejects: RejectCounter | None = None) -> None:
         self.actor_id = actor_id
+        self.rejects = rejects
         self.actor_epoch = actor_epoch
         self.horizon_s = horizon_s
         self._waiting_since: float | None = None  # when open() first found no credit
@@ -97,7 +107,12 @@ class FlowGate:
     def on_flow(self, message: FlowControl, _key: str = "") -> None:
         with self._lock:
             epoch = message.learner_epoch
-            if epoch_from_the_future(epoch) or (self._learner_epoch is not None and epoch < self._learner_epoch):
+            if epoch_from_the_future(epoch):
+                if self.rejects is not None:  # not a late word of a dead learner: an impossible one
+                    self.rejects.reject(MessageError(RANGE, "flow control of a learner started in the future"), _key)
+                self.ignored += 1
+                return
+            if self._learner_epoch is not None and epoch < self._learner_epoch:
                 self.ignored += 1
                 return
             if self._learner_epoch is not None and epoch > self._learner_epoch:  # a new learner counts afresh
@@ -218,9 +233,9 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed,
                                  guide=guide, step_scale=num_actors)
     rejects = RejectCounter("weights message", log)
-    follower = WeightFollower(architecture_fingerprint(net), rejects)
+    follower = WeightFollower(architecture_fingerprint(net), rejects, shapes=named_shapes(net))
     actor_epoch = new_epoch()  # this process: the learner's allowance for it starts from nothing
-    gate = FlowGate(actor_id, actor_epoch=actor_epoch)
+    gate = FlowGate(actor_id, actor_epoch=actor_epoch, rejects=rejects)
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
     stream = None
@@ -314,5 +329,5 @@ def run_actor_command(args: argparse.Namespace) -> int:
                          num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps,
                          seed=seed, rerun_url=args.rerun_connect, rerun_every_episodes=args.rerun_every_episodes,
                          rerun_image_every=args.rerun_image_every)
-    log.info("actor %s done: %s", actor_id, counters)
+    log.info("actor %s done: %s", actor_id, json.dumps(counters))  # one JSON line: scripts read it
     return 0

@@ -24,6 +24,8 @@ import logging
 import threading
 from typing import Any
 
+import numpy as np
+
 from services.bus.session import query_latest, subscribe_messages
 from shared.learning.model import ModelError
 from shared.learning.weights import load_message
@@ -39,13 +41,24 @@ from shared.wire.messages import (
 
 log = logging.getLogger("cogexplore.weights")
 
+WEIGHTS_ENVELOPE_BYTES = 2**20
+"""Room for a weights message's names, shapes and fields beside its tensor bytes."""
+
 
 class WeightFollower:
-    """Holds the newest fitting weights offered since the last ``take`` (thread-safe)."""
+    """Holds the newest fitting weights offered since the last ``take`` (thread-safe).
 
-    def __init__(self, fingerprint: str, rejects: RejectCounter):
+    ``shapes`` (the receiving network's parameter names and shapes) also checks what a message
+    carries against what its fingerprint claims, on arrival: a tensor the wrong way round is counted
+    then, not only if it happens to be the newest when the receiver takes one."""
+
+    def __init__(self, fingerprint: str, rejects: RejectCounter, shapes: dict[str, tuple[int, ...]] | None = None):
         self.fingerprint = fingerprint
         self.rejects = rejects
+        self.shapes = shapes
+        # weights of this network in float32, with room for the envelope: anything longer is not for it
+        self.max_bytes = (None if shapes is None else
+                          4 * sum(int(np.prod(s)) for s in shapes.values()) + WEIGHTS_ENVELOPE_BYTES)
         self._arrived = threading.Condition()
         self._newest: WeightsMessage | None = None
         self._taken_version: tuple[int, int] = (-1, -1)
@@ -60,6 +73,12 @@ class WeightFollower:
             self.rejects.reject(MessageError(exc.cause, f"{exc.detail} (is the learner running another model config?)"),
                                 key or None)
             return
+        if self.shapes is not None and message.named_shapes() != self.shapes:
+            wrong = sorted(k for k in set(self.shapes) | set(message.tensors)
+                           if self.shapes.get(k) != message.named_shapes().get(k))
+            self.rejects.reject(MessageError(SHAPE, f"weights v{message.policy_version}: tensors {wrong[:3]} do not "
+                                                    "have the shapes their fingerprint claims"), key or None)
+            return
         if epoch_from_the_future(message.learner_epoch):
             self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
                                                     "in the future"), key or None)
@@ -73,7 +92,8 @@ class WeightFollower:
     def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Any:
         """Follow the run's weights stream, then ask the learner for its newest weights on a thread
         of its own (:meth:`fetch_latest`); returns the subscriber (undeclared with the session)."""
-        subscriber = subscribe_messages(session, keys.weights, WeightsMessage, self.offer, self.rejects)
+        subscriber = subscribe_messages(session, keys.weights, WeightsMessage, self.offer, self.rejects,
+                                        max_bytes=self.max_bytes)
         self.fetch_latest(session, keys, query_timeout_s, background=True)
         return subscriber
 

@@ -21,7 +21,9 @@ query and declares the learner's liveliness token; actors only put transitions a
 and declare their own liveliness; the evaluator only reads weights and writes results; a viewer
 (the launcher's progress bar, dashboards) only reads statistics and liveliness. Each permission is
 given on the flow it travels: ``ingress`` for what a subject sends to the router, ``egress`` for what
-the router passes on to it (including the declarations a publisher needs to see its subscribers).
+the router passes on to it, including the subscriber declarations a publisher must see (a publisher
+that is not told of a subscriber sends nothing: a viewer's subscription to ``stats/**`` reaches the
+learner only because ``stats/**`` itself is allowed, not merely ``stats/learner/*``).
 A session without credentials, with a wrong password, or of a role stepping outside its part gets
 nothing through.
 
@@ -81,7 +83,7 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
             ("ingress", [pub], [weights, flow, f"{p}/stats/learner/*"]),
             ("ingress", [sub], [transitions]),
             ("egress", [pub], [transitions]),
-            ("egress", [sub], [weights, flow, f"{p}/stats/learner/*"]),  # who listens to what it puts
+            ("egress", [sub], [weights, flow, f"{p}/stats/learner/*", stats]),  # who listens to what it puts
             ("ingress", ["declare_queryable", "reply"], [latest]),
             ("egress", ["query"], [latest]),
             ("ingress", [token], [alive["learner"]]),
@@ -90,7 +92,7 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
         ],
         "actor": [
             ("ingress", [pub], [transitions, f"{p}/stats/episode/*"]),
-            ("egress", [sub], [transitions, f"{p}/stats/episode/*"]),
+            ("egress", [sub], [transitions, f"{p}/stats/episode/*", stats]),
             ("ingress", [sub], [weights, flow]),
             ("egress", [pub], [weights, flow]),
             ("ingress", ["query"], [latest]),
@@ -105,7 +107,7 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
             ("ingress", ["query"], [latest]),
             ("egress", ["declare_queryable", "reply"], [latest]),
             ("ingress", [pub], [f"{p}/stats/eval/*"]),
-            ("egress", [sub], [f"{p}/stats/eval/*"]),
+            ("egress", [sub], [f"{p}/stats/eval/*", stats]),
             ("ingress", [token], [alive["evaluator"]]),
         ],
         "viewer": [

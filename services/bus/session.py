@@ -43,7 +43,13 @@ from services.bus import (
 )
 from services.bus.security import PATH_KEYS
 from shared.errors import CogexploreError
-from shared.wire.messages import Message, RejectCounter
+from shared.wire.messages import (
+    MAX_MESSAGE_BYTES,
+    OVERSIZE,
+    Message,
+    MessageError,
+    RejectCounter,
+)
 
 log = logging.getLogger(__name__)
 
@@ -232,16 +238,24 @@ def put_reliable(session: zenoh.Session, key_expr: str, payload: bytes) -> None:
 
 def subscribe_messages(session: zenoh.Session, key_expr: str, cls: type[Message] | None,
                        on_message: Callable[[Message, str], None],
-                       rejects: RejectCounter) -> zenoh.Subscriber:
+                       rejects: RejectCounter, max_bytes: int | None = None) -> zenoh.Subscriber:
     """Subscribe to ``key_expr``, decoding each sample as ``cls`` (any type when None).
 
     ``on_message(message, key)`` gets every valid message, on a Zenoh thread; invalid ones
-    are counted in ``rejects`` (logged once per cause) and dropped. An exception raised by
-    ``on_message`` is logged and the subscription carries on.
+    are counted in ``rejects`` (logged once per cause) and dropped. A payload longer than
+    ``max_bytes`` (default: what ``cls`` allows) is refused before it is even copied out of Zenoh:
+    a receiver that knows what it expects (weights of its own network, frames of its own sensor)
+    passes that, so that 50 MB of garbage costs it nothing. An exception raised by ``on_message``
+    is logged and the subscription carries on.
     """
+    limit = max_bytes if max_bytes is not None else (cls.MAX_BYTES if cls is not None else MAX_MESSAGE_BYTES)
 
     def on_sample(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
+        size = len(sample.payload)
+        if size > limit:
+            rejects.reject(MessageError(OVERSIZE, f"{size} bytes, more than the {limit} this receiver takes"), key)
+            return
         message = rejects.decode(sample.payload.to_bytes(), cls, source=key)
         if message is None:
             return

@@ -68,7 +68,12 @@ from shared.evaluation.policies import GreedyPolicy
 from shared.evaluation.protocol import EvaluationCancelled
 from shared.evaluation.results import EvalResults, save_results
 from shared.learning.checkpoints import weights_sha256
-from shared.learning.model import QNetwork, architecture_fingerprint, resolve_device
+from shared.learning.model import (
+    QNetwork,
+    architecture_fingerprint,
+    named_shapes,
+    resolve_device,
+)
 from shared.sim.world import load_world
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EvalResult, RejectCounter, WeightsMessage
@@ -118,7 +123,7 @@ class EvaluatorService:
         self.fingerprint = architecture_fingerprint(self.net)
         self.policy = GreedyPolicy(self.net)
         self.rejects = RejectCounter("weights message", log)
-        self.weights = WeightFollower(self.fingerprint, self.rejects)
+        self.weights = WeightFollower(self.fingerprint, self.rejects, shapes=named_shapes(self.net))
         """The newest weights the learner has published (parked by Zenoh threads, taken by the loop)."""
         self.last_version: tuple[int, int] | None = None
         """(learner epoch, update) of the weights evaluated last."""
@@ -230,7 +235,7 @@ class EvaluatorService:
                 subscriber.undeclare()
                 token.undeclare()
                 log.info("evaluator %s stopping (rejected weights: %s)", self.evaluator_id,
-                         self.rejects.counts or "none")
+                         json.dumps(self.rejects.counts))
 
 
 # ---------------------------------------------------------------------------------------------

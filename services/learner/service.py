@@ -13,6 +13,7 @@ with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIG
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 import queue
 import threading
@@ -38,6 +39,7 @@ from shared.learning.stats import CsvLog, LearnerRow, rewind
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys, parse_key
 from shared.wire.messages import (
+    MAX_BATCH_STEPS,
     FlowControl,
     LearnerStats,
     MessageError,
@@ -121,7 +123,10 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
-        sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects)  # noqa: F841
+        # a batch of this sensor's frames at most: anything longer is refused before it is copied
+        batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
+        sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects,  # noqa: F841
+                                 max_bytes=batch_bytes)
         flow_pub = session.declare_publisher(keys.flow)
         stats_pub = session.declare_publisher(keys.learner_stats(learner_id))
         sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
@@ -216,5 +221,5 @@ def run_learner_command(args: argparse.Namespace) -> int:
     log.info("learner %s for run %r via %s", args.learner_id, args.run, settings.describe())
     result = run_learner(cfg, args.run, paths, settings, stop, learner_id=args.learner_id,
                          weights_every=args.weights_every)
-    log.info("learner done: %s", result)
+    log.info("learner done: %s", json.dumps(result))  # one JSON line: scripts read it
     return 0

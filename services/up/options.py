@@ -49,3 +49,16 @@ def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runs-dir", default=None,
                         help="keep the run folder (logs, stats) here; default: a temporary folder, removed")
     parser.add_argument("--json", action="store_true", help="print JSON")
+
+
+def add_bench_fuzz_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--payloads", type=int, default=10_000, help="payloads to send in all (default 10000)")
+    parser.add_argument("--max-bytes", type=int, default=64 * 1024,
+                        help="random payloads and padding up to this size (default 65536)")
+    parser.add_argument("--big-bytes", type=int, default=0,
+                        help="also one zero-filled payload this large per key and round (memory; e.g. 50000000)")
+    parser.add_argument("--preset", default="smoke", help="the fuzzed run's preset (default smoke)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--runs-dir", default=None, help="keep the run folder here (default: a temporary one, "
+                                                         "removed unless a service crashed)")
+    parser.add_argument("--json", action="store_true", help="print JSON (always)")

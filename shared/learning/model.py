@@ -300,12 +300,17 @@ def architecture_fingerprint(net: nn.Module) -> str:
     """Hash of the class, parameter names and shapes (and a non-metric depth encoding): equal iff
     weights are interchangeable (the wire's definition, shared.wire.messages.shape_fingerprint,
     applied to ``net``)."""
-    shapes = {n: tuple(t.shape) for n, t in net.state_dict().items()}
+    shapes = named_shapes(net)
     extra = {"class": type(net).__name__}
     encoding = getattr(getattr(net, "trunk", None), "depth_encoding", "metric")
     if encoding != "metric":  # same shapes, different meaning; metric keeps the older fingerprints
         extra["depth_encoding"] = encoding
     return shape_fingerprint(shapes, extra)
+
+
+def named_shapes(net: nn.Module) -> dict[str, tuple[int, ...]]:
+    """Parameter (and buffer) names and shapes: what weights for ``net`` must carry."""
+    return {n: tuple(t.shape) for n, t in net.state_dict().items()}
 
 
 def weights_to_tensors(net: nn.Module) -> dict[str, torch.Tensor]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -55,3 +56,16 @@ def test_the_installed_command_prints_its_tree_quickly_and_names_every_command()
     for command in ("up", "train", "router", "learner", "actor", "evaluator", "evaluate", "report", "pretrain",
                     "experiment", "worlds", "model", "bench"):
         assert f"    {command}" in proc.stdout, command
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["actor", "--connect", "not-an-endpoint"], "--connect endpoint 'not-an-endpoint' is invalid"),
+    (["learner", "--zenoh-config", "/no/such/zenoh.json5"], "Zenoh config file /no/such/zenoh.json5 does not exist"),
+    (["actor", "--connect", "tcp/127.0.0.1:9"], "cannot open a Zenoh session"),  # no router there (after 30 s)
+])
+def test_a_service_that_cannot_join_says_why_in_one_line(argv: list[str], message: str, tmp_path: Path) -> None:
+    proc = subprocess.run([sys.executable, "-m", "services.cli", *argv, "--runs-dir", str(tmp_path)], cwd=REPO,
+                          capture_output=True, text=True, timeout=120, env={**os.environ, "RERUN_ANALYTICS": "0"})
+    last = proc.stderr.strip().splitlines()[-1]
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert last.startswith(f"cogexplore {argv[0]}: error: ") and message in last, last

@@ -107,3 +107,18 @@ def test_a_restarted_learners_weights_replace_the_dead_ones_at_once_and_absurd_v
     assert follower.take() is None and follower.rejects.counts == {"range": 1}
     with pytest.raises(MessageError, match="policy_version"):  # 2^62 updates: refused on decode already
         WeightsMessage(policy_version=2**62, architecture_fingerprint="x", tensors={"w": np.zeros(1, np.float32)})
+
+
+def test_a_follower_with_the_networks_shapes_refuses_a_misshapen_message_on_arrival():
+    from shared.learning.model import named_shapes
+
+    net = network(0)
+    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("w", logging.getLogger("test")),
+                              shapes=named_shapes(net))
+    good = to_message(network(1), 4)
+    weight = next(k for k, v in good.tensors.items() if v.ndim == 2 and v.shape[0] != v.shape[1])
+    bad = WeightsMessage(policy_version=5, architecture_fingerprint=good.architecture_fingerprint,
+                         tensors=dict(good.tensors, **{weight: np.ascontiguousarray(good.tensors[weight].T)}))
+    follower.offer(good)
+    follower.offer(bad)  # newer, but misshapen: never parked over the good one
+    assert follower.rejects.counts == {"shape": 1} and follower.take().policy_version == 4
