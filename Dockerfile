@@ -15,9 +15,13 @@ RUN apt-get update \
  && apt-get install -y --no-install-recommends libegl1 libgl1 libegl-mesa0 libgl1-mesa-dri \
  && rm -rf /var/lib/apt/lists/*
 
-# torch first and from the CPU index: resolved through the project's pin, pip would pull the
-# multi-GB CUDA build.
-RUN pip install torch==2.13.0 --index-url https://download.pytorch.org/whl/cpu
+# torch first, by scripts/install_torch.py: no GPU is visible while an image builds, so the
+# variant is a build argument (cpu: PyTorch's CPU index; cuda: PyPI's CUDA build, for
+# `docker compose build --build-arg TORCH_VARIANT=cuda` on a GPU host). Resolved through the
+# project's pin instead, pip would pull the multi-GB CUDA build.
+ARG TORCH_VARIANT=cpu
+COPY scripts/install_torch.py /tmp/install_torch.py
+RUN python /tmp/install_torch.py --variant "$TORCH_VARIANT" && rm /tmp/install_torch.py
 
 WORKDIR /app
 

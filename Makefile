@@ -11,12 +11,13 @@ export MUJOCO_GL ?= egl
 
 venv: $(STAMP)
 
-# torch first, pinned: pip then takes the CPU build on this machine's disk
-# instead of resolving a multi-GB CUDA build through another package.
-$(STAMP): pyproject.toml
+# torch first, pinned, the build this machine should run (scripts/install_torch.py: the CPU
+# index without an NVIDIA GPU, PyPI's CUDA build with one, the default index when the CPU index
+# is unreachable); resolved through the project's pin instead, pip would pull the CUDA build.
+$(STAMP): pyproject.toml scripts/install_torch.py
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet torch==2.13.0
+	$(PY) scripts/install_torch.py
 	$(PY) -m pip install --quiet -e '.[test]'
 	touch $(STAMP)
 

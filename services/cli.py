@@ -54,7 +54,7 @@ COMMANDS: dict[str, Command | Group] = {
                          "services.evaluator.options:add_evaluator_arguments", "services.evaluator.service:run_evaluator"),
     "evaluate": Command("run the paper's test protocol on a checkpoint or a baseline policy",
                         f"{TOOLS}:add_evaluate_arguments", "services.tools.evaluate:run_evaluate"),
-    "report": Command("the paper's tables and figures (PNG + Markdown) for a run",
+    "report": Command("the paper's tables and figures (PNG, Markdown and HTML) for a run",
                       f"{TOOLS}:add_report_arguments", "services.tools.report:run_report"),
     "pretrain": Command("the supervised model (SL baseline, DRL conv init) from expert-labelled depth images",
                         f"{TOOLS}:add_pretrain_arguments", "services.tools.pretrain:run_pretrain_command"),
@@ -124,10 +124,13 @@ def _add(sub: Any, name: str, command: Command, path: str) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     """The whole command tree (imports only the options modules)."""
+    from cogexplore.version import package_version
+
     parser = argparse.ArgumentParser(
         prog="cogexplore",
         description="Distributed deep RL for depth-only robot exploration (after Tai & Liu, 2016).",
     )
+    parser.add_argument("--version", action="version", version=f"cogexplore {package_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, entry in COMMANDS.items():
         if isinstance(entry, Command):

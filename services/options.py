@@ -7,26 +7,57 @@ import argparse
 import os
 
 from services.runs import CONFIG_FILE
+from shared.config import DEFAULT_PRESET
 
 ENV_RUN = "COGEXPLORE_RUN"
 ENV_PRESET = "COGEXPLORE_PRESET"
 ENV_RUNS_DIR = "COGEXPLORE_RUNS_DIR"
 ENV_DEVICE = "COGEXPLORE_DEVICE"
+DEFAULT_CONFIG_WAIT_S = 120.0
+"""How long an actor or evaluator without --preset waits for its learner's configuration."""
 
 
-def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = True) -> None:
-    """--run, --preset, --set, --runs-dir, --device and the Zenoh endpoint options."""
+def add_log_level_argument(parser: argparse.ArgumentParser) -> None:
+    """--log-level of a long-running service."""
+    parser.add_argument("--log-level", default="INFO", type=str.upper, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                        help="log verbosity (default INFO)")
+
+
+def add_runs_dir_argument(parser: argparse.ArgumentParser) -> None:
+    """--runs-dir: the folder that holds runs/<run>/, for every command that writes or reads a run."""
+    parser.add_argument("--runs-dir", default=os.environ.get(ENV_RUNS_DIR, "runs"), metavar="DIR",
+                        help=f"the folder holding the run folders, runs/<run>/ (env {ENV_RUNS_DIR}; "
+                             "default: runs)")
+
+
+def add_tensorboard_argument(parser: argparse.ArgumentParser) -> None:
+    """--tensorboard / --no-tensorboard, for every command that trains, acts or evaluates."""
+    parser.add_argument("--tensorboard", action=argparse.BooleanOptionalAction, default=True,
+                        help="also write the statistics as TensorBoard event files in runs/<run>/tb/<process>/ "
+                             "(view: tensorboard --logdir runs/; default: on)")
+
+
+def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = True, from_learner: bool = False) -> None:
+    """--run, --preset, --set, --runs-dir, --tensorboard, --device and the Zenoh endpoint options;
+    ``from_learner`` (actors, the evaluator): the config defaults to the learner's, and --config-wait."""
     env = os.environ
     parser.add_argument("--run", default=env.get(ENV_RUN, "default"),
                         help=f"run name: Zenoh namespace and runs/<run>/ folder (env {ENV_RUN}; default: default)")
     if preset:
-        parser.add_argument("--preset", default=env.get(ENV_PRESET),
-                            help=f"preset name or TOML path (env {ENV_PRESET}); default: the run's "
-                                 f"{CONFIG_FILE} if it exists, else 'paper'")
+        default = ("the run's configuration, asked of its learner; a preset named is checked against it and "
+                   "refused where the run's data would differ" if from_learner else
+                   f"the run's {CONFIG_FILE} if it exists, else {DEFAULT_PRESET}")
+        parser.add_argument("--preset", default=env.get(ENV_PRESET) or None,
+                            help=f"preset name or TOML path (env {ENV_PRESET}); default: {default}")
         parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                             help="override one config field, e.g. --set dqn.lr=3e-4 (repeatable)")
-    parser.add_argument("--runs-dir", default=env.get(ENV_RUNS_DIR, "runs"),
-                        help=f"where run folders live (env {ENV_RUNS_DIR}; default: runs)")
+    if preset and from_learner:
+        parser.add_argument("--config-wait", type=float, default=DEFAULT_CONFIG_WAIT_S, metavar="SECONDS",
+                            help=f"without --preset: how long to wait for the learner to answer with the run's "
+                                 f"configuration (default {DEFAULT_CONFIG_WAIT_S:.0f})")
+    add_runs_dir_argument(parser)
+    add_tensorboard_argument(parser)
+    add_log_level_argument(parser)
     parser.add_argument("--device", default=env.get(ENV_DEVICE),
                         help=f"torch device: auto, cpu, cuda, cuda:N (env {ENV_DEVICE}; default: the config's)")
     z = parser.add_argument_group("Zenoh", "endpoints (env COGEXPLORE_ZENOH_CONNECT/LISTEN/MODE/CONFIG)")
@@ -37,6 +68,7 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = Tru
                    help="endpoint to listen on (repeatable)")
     z.add_argument("--zenoh-mode", choices=["client", "peer"], default=None, help="Zenoh session mode")
     z.add_argument("--zenoh-config", default=None, metavar="JSON5",
-                   help="a Zenoh JSON5 config file (the options above override it)")
+                   help="a Zenoh JSON5 config file (the options above override it); default: the run's "
+                        "credentials, runs/<run>/secure/<role>.json5, where they exist")
 
 

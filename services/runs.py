@@ -8,7 +8,7 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from shared.config import RunConfig, load_preset, parse_override, to_toml
+from shared.config import DEFAULT_PRESET, RunConfig, load_preset, parse_override, to_toml
 from shared.wire.keys import validate_name
 
 CONFIG_FILE = "config.toml"
@@ -37,6 +37,21 @@ class RunPaths:
         return self.root / "stats"
 
     @property
+    def tensorboard(self) -> Path:
+        """TensorBoard event files, one folder per process (``tb/learner``, ``tb/actor-0``, ...); each
+        process makes its own, so ``make`` does not."""
+        return self.root / "tb"
+
+    def tensorboard_folder(self, process: str) -> Path:
+        """``tb/<process>``: where the process of that id writes its TensorBoard events."""
+        return self.tensorboard / validate_name(process, "process id")
+
+    @property
+    def secure(self) -> Path:
+        """The run's security folder: credentials, access control, certificates (services.bus.security)."""
+        return self.root / "secure"
+
+    @property
     def recordings(self) -> Path:
         return self.root / "recordings"
 
@@ -55,12 +70,16 @@ def run_paths(args: argparse.Namespace) -> RunPaths:
     return RunPaths(Path(args.runs_dir) / args.run)
 
 
-def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None) -> RunConfig:
-    """--preset if given, else the run's saved config, else 'paper'; then --set and --device."""
-    source = args.preset
-    if source is None:
-        source = str(paths.config) if paths is not None and paths.config.exists() else "paper"
-    cfg = load_preset(source)
+def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
+                   run_config: RunConfig | None = None) -> RunConfig:
+    """--preset if given, else ``run_config`` (the run's, from its learner), else the run's saved
+    config, else :data:`~shared.config.DEFAULT_PRESET`; then --set and --device."""
+    if args.preset is not None:
+        cfg = load_preset(args.preset)
+    elif run_config is not None:
+        cfg = run_config
+    else:
+        cfg = load_preset(str(paths.config) if paths is not None and paths.config.exists() else DEFAULT_PRESET)
     overrides = dict(parse_override(o) for o in getattr(args, "overrides", []) or [])
     if getattr(args, "device", None):
         overrides["train.device"] = args.device

@@ -21,6 +21,9 @@ import tomllib
 from shared.errors import CogexploreError
 
 PRESET_DIR = Path(__file__).with_name("presets")
+DEFAULT_PRESET = "fast-40x30"
+"""The preset a run starts from when none is named (``up``, the services, docker compose): the shipped
+model's recipe (shared/pretrained/MODEL_CARD.md)."""
 
 
 class ConfigError(CogexploreError):
@@ -624,3 +627,58 @@ def parse_override(text: str) -> tuple[str, Any]:
     except tomllib.TOMLDecodeError:
         value = raw
     return key.strip(), value
+
+
+# ---------------------------------------------------------------------------
+# What every process of a run must share with its learner
+# ---------------------------------------------------------------------------
+
+MUST_MATCH_FIELDS: tuple[str, ...] = (
+    "sensor.width", "sensor.height", "sensor.hfov_deg", "sensor.vfov_deg", "sensor.max_range_m",
+    "sensor.min_range_m", "sensor.mount_height_m", "sensor.mount_forward_m",
+    "model.fc1", "model.fc2", "model.dueling", "model.depth_encoding", "model.previous_action",
+    "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
+    "env.collision_distance_m", "env.reward_move", "env.reward_collision",
+)
+"""The fields an actor's or the evaluator's configuration must share with its run's learner: what a
+depth image is (the sensor; its backend agrees to 2 cm, and noise is an actor's to add), the network
+that reads it (the architecture; dropout acts in training only) and what a transition means (the
+robot's motion, the reward and the collision rule). The rest is a process's own (its worlds and
+starts, step cap, exploration, seed, device) or the learner's alone (replay and the update rule:
+n-step returns and the discount are applied by the learner to the raw rewards it receives)."""
+
+
+class ConfigMismatchError(ConfigError):
+    """A process's configuration differs from its run's in a field the run's data depends on."""
+
+
+def config_differences(mine: RunConfig, run: RunConfig) -> list[tuple[str, Any, Any]]:
+    """``(field, mine, the run's)`` for each of :data:`MUST_MATCH_FIELDS` that differs, in that order."""
+    differences = []
+    for name in MUST_MATCH_FIELDS:
+        section, _, attr = name.partition(".")
+        a, b = getattr(getattr(mine, section), attr), getattr(getattr(run, section), attr)
+        if a != b:
+            differences.append((name, a, b))
+    return differences
+
+
+def require_same_run(mine: RunConfig, run: RunConfig, *, who: str = "this process", source: str = "",
+                     hint: str = "") -> None:
+    """Raise :class:`ConfigMismatchError` unless ``mine`` agrees with ``run`` in every field of
+    :data:`MUST_MATCH_FIELDS`: one line naming the first difference (and the others' names), where
+    the run's configuration came from (``source``) and what to do (``hint``)."""
+    differences = config_differences(mine, run)
+    if not differences:
+        return
+    name, a, b = differences[0]
+    others = [d[0] for d in differences[1:]]
+    notes = ([source] if source else []) + (
+        [f"also differ: {', '.join(others[:4])}{f' and {len(others) - 4} more' if len(others) > 4 else ''}"]
+        if others else [])
+    raise ConfigMismatchError(f"{who}'s {name}={_shown(a)} differs from the run's {_shown(b)}"
+                              + (f" ({'; '.join(notes)})" if notes else "") + (f"; {hint}" if hint else ""))
+
+
+def _shown(value: Any) -> str:
+    return "none" if value is None else _toml_value(value)

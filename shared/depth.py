@@ -1,5 +1,6 @@
 """The depth contract, in one place: float32 metres in the env and the network's input
-(0 = no return), uint16 millimetres on the wire, in replay and in recordings."""
+(0 = no return), uint16 millimetres on the wire, in replay and in recordings; the camera's range
+gate, and an image of another size seen as the camera would have seen it."""
 
 from __future__ import annotations
 
@@ -31,3 +32,57 @@ def depth_from_mm(depth_mm: np.ndarray) -> np.ndarray:
     if depth_mm.dtype != np.uint16:
         raise ValueError(f"depth_mm must be uint16, got {depth_mm.dtype}")
     return depth_mm.astype(np.float32) * np.float32(1.0 / MM_PER_M)
+
+
+SAME_SURFACE_RATIO = 1.2
+"""Neighbouring returns within this depth ratio of each other are taken as one surface when
+resizing (:func:`resize_depth`); farther apart, an edge."""
+
+
+def range_gate(depth_m: np.ndarray, min_range_m: float, max_range_m: float) -> np.ndarray:
+    """float32 depth with every pixel outside ``[min_range_m, max_range_m]`` (NaN included)
+    read as 0, no return: what the depth camera reports."""
+    depth = np.asarray(depth_m)
+    valid = (depth >= max(min_range_m, 1e-6)) & (depth <= max_range_m)
+    return np.where(valid, depth, 0.0).astype(np.float32, copy=False)
+
+
+def resize_depth(depth_m: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A depth image (float metres, 0 = no return) resampled to ``height`` x ``width`` pixels of
+    the same field of view, as the pinhole camera (``shared.sim.sensor``) would have seen it:
+    each new pixel is the depth at its centre.
+
+    A centre between source pixels interpolates their *inverse* depth bilinearly, which is exact
+    on a plane (the floor, a wall: 1/depth is affine in the image coordinates), when those pixels
+    all have a return within ``SAME_SURFACE_RATIO`` of each other; otherwise the centre lies on an
+    edge and takes the nearest of their returns (an obstacle is never lost to the far side, and
+    "no return" never smears into its neighbours). NaN, infinity and depths <= 0 read as no
+    return. Returns float32 (height, width).
+    """
+    src = np.asarray(depth_m, dtype=np.float64)
+    if src.ndim != 2 or src.size == 0:
+        raise ValueError(f"depth must be one non-empty (H, W) image, got shape {src.shape}")
+    inverse = np.zeros_like(src)
+    np.divide(1.0, src, out=inverse, where=np.isfinite(src) & (src > 0))
+    if src.shape == (height, width):
+        return np.where(inverse > 0, src, 0.0).astype(np.float32)
+
+    def taps(n_src: int, n_dst: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        # Pixel centres map linearly between two pinhole images of one field of view.
+        pos = np.clip((np.arange(n_dst) + 0.5) * n_src / n_dst - 0.5, 0, n_src - 1)
+        lo = np.floor(pos).astype(int)
+        return lo, np.minimum(lo + 1, n_src - 1), pos - lo
+
+    r0, r1, fr = taps(src.shape[0], height)
+    c0, c1, fc = taps(src.shape[1], width)
+    fr, fc = fr[:, None], fc[None, :]
+    corners = [(inverse[np.ix_(r, c)], w) for r, c, w in (
+        (r0, c0, (1 - fr) * (1 - fc)), (r0, c1, (1 - fr) * fc), (r1, c0, fr * (1 - fc)), (r1, c1, fr * fc))]
+    used = [(inv, w > 0) for inv, w in corners]
+    nearest = np.max([np.where(u, inv, 0.0) for inv, u in used], axis=0)  # largest inverse: nearest return
+    farthest = np.min([np.where(u, inv, np.inf) for inv, u in used], axis=0)
+    surface = (farthest > 0) & (nearest <= SAME_SURFACE_RATIO * farthest)
+    blended = sum(inv * w for inv, w in corners)
+    out = np.where(surface, blended, nearest)
+    with np.errstate(divide="ignore"):
+        return np.where(out > 0, 1.0 / out, 0.0).astype(np.float32)

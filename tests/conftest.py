@@ -34,3 +34,61 @@ def _restore_root_logging():
         if handler not in handlers:
             root.removeHandler(handler)
     root.setLevel(level)
+
+
+class TensorBoardScalars:
+    """A folder's TensorBoard scalars, read back with TensorBoard's own reader: ``tags[tag]`` is the
+    list of (step, value) in the order written."""
+
+    def __init__(self, folder) -> None:
+        from tensorboard.backend.event_processing.event_accumulator import (
+            EventAccumulator,
+        )
+
+        events = EventAccumulator(str(folder), size_guidance={"scalars": 0})  # 0: keep every point
+        events.Reload()
+        self.tags = {tag: [(e.step, e.value) for e in events.Scalars(tag)] for tag in events.Tags()["scalars"]}
+
+    def assert_steps_increase(self) -> None:
+        for tag, points in self.tags.items():
+            steps = [s for s, _ in points]
+            assert steps == sorted(set(steps)), f"{tag}: steps {steps}"
+
+    def assert_match_csv(self, csv_path, row_type) -> int:
+        """Every number of every row of ``csv_path`` (a file of ``row_type``) is the scalar of its
+        column at the row's step, to the precision of its cell; returns the rows compared."""
+        import csv
+        from dataclasses import fields
+        from pathlib import Path
+
+        fmts = {f.metadata.get("column") or f.name: f.metadata.get("fmt") for f in fields(row_type)}
+        group = Path(row_type.FILE).stem
+        with open(csv_path, newline="") as fh:
+            rows = list(csv.DictReader(fh))
+        seen: set[str] = set()
+        compared = 0
+        for row in rows:
+            step = int(row[row_type.STEP])
+            if step in seen:
+                continue  # a repeated step: TensorBoard keeps its first row
+            seen.add(step)
+            for column, cell in row.items():
+                if column == row_type.STEP or cell == "":
+                    continue
+                try:
+                    value = float(cell)
+                except ValueError:
+                    continue  # text (a world's name, a collision's cause)
+                points = dict(self.tags.get(f"{group}/{column}", []))
+                assert step in points, f"{group}/{column} has no point at step {step}"
+                fmt = fmts[column] or ""
+                half_unit = 0.5 * 10.0 ** -int(fmt[1:-1]) if fmt.endswith("f") else 0.0
+                assert abs(points[step] - value) <= half_unit + 1e-5 * abs(value), (column, step, points[step], cell)
+            compared += 1
+        return compared
+
+
+@pytest.fixture
+def tensorboard_scalars():
+    """``tensorboard_scalars(folder)``: that folder's TensorBoard scalars (:class:`TensorBoardScalars`)."""
+    return TensorBoardScalars

@@ -184,7 +184,9 @@ def test_every_service_environment_variable_is_set(services: dict[str, dict]) ->
         unknown = [v for v in env if v.startswith("COGEXPLORE_") and v not in SERVICE_ENV + EXTRA_ENV]
         assert not unknown, f"{name} sets unknown variables {unknown} (a typo?)"
         assert env["RERUN_ANALYTICS"] == "0" and env["MUJOCO_GL"] == "egl", name
-        assert env["COGEXPLORE_RUN"] and env["COGEXPLORE_PRESET"], name
+        assert env["COGEXPLORE_RUN"], name
+        # no preset named twice: the learner's default, and the actors and the evaluator take the learner's
+        assert env["COGEXPLORE_PRESET"] == "", name
     runs = {service_env(services[n])["COGEXPLORE_RUN"] for n in PROJECT_SERVICES}
     assert len(runs) == 1, f"services disagree on the run name: {runs}"
 
@@ -278,12 +280,16 @@ def test_dockerfile_builds_the_cpu_image() -> None:
     steps = dockerfile_instructions()
     assert steps[0] == ("FROM", "python:3.11-slim")
     runs = " ".join(rest for word, rest in steps if word == "RUN")
+    # torch comes from scripts/install_torch.py (tests/scripts), the CPU variant unless asked
+    assert ("ARG", "TORCH_VARIANT=cpu") in steps
+    assert 'install_torch.py --variant "$TORCH_VARIANT"' in runs
     torch_pin = importlib.metadata.version("torch").split("+")[0]
-    assert f"pip install torch=={torch_pin} --index-url https://download.pytorch.org/whl/cpu" in runs
+    script = (ROOT / "scripts" / "install_torch.py").read_text()
+    assert f'TORCH_PIN = "torch=={torch_pin}"' in script
     pyproject = (ROOT / "pyproject.toml").read_text()
-    assert f'"torch=={torch_pin}"' in pyproject, "the Dockerfile's torch differs from pyproject's pin"
+    assert f'"torch=={torch_pin}"' in pyproject, "the install script's torch differs from pyproject's pin"
     assert "pip install ." in runs
-    assert runs.index("whl/cpu") < runs.index("pip install ."), "torch must be installed first"
+    assert runs.index("install_torch.py") < runs.index("pip install ."), "torch must be installed first"
     env = " ".join(rest for word, rest in steps if word == "ENV")
     assert "RERUN_ANALYTICS=0" in env.split() and "MUJOCO_GL=egl" in env.split()
 

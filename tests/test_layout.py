@@ -1,6 +1,8 @@
 """The tree keeps its architecture: read from the source (``ast``), not from a running import.
 
-- ``shared/`` is the pure layer: no module there imports Zenoh, Rerun or ``services``.
+- ``shared/`` is the pure layer: no module there imports Zenoh, Rerun, ``services`` or ``cogexplore``.
+- ``cogexplore/`` (the public Python API) is as pure and sits on ``shared`` alone; importing it
+  (and reading ``cogexplore.__version__``) loads none of numpy, torch, MuJoCo, Zenoh or Rerun.
 - ``services/`` is made of rooms (the process shells ``actor``, ``learner``, ``evaluator``,
   ``router``, ``up`` and the offline ``tools`` and ``bench``) and homes every room may use: the bus
   (``services.bus``), the pictures (``services.viz``) and the top-level helpers (``options``,
@@ -45,7 +47,7 @@ def _imports(path: Path) -> set[str]:
 
 @pytest.fixture(scope="module")
 def graph() -> dict[str, set[str]]:
-    modules = {_module_name(p): p for top in ("shared", "services") for p in (REPO / top).rglob("*.py")}
+    modules = {_module_name(p): p for top in ("shared", "services", "cogexplore") for p in (REPO / top).rglob("*.py")}
     return {name: {m for m in _imports(path) if m in modules or m.split(".")[0] in HEAVY}
             for name, path in modules.items()}
 
@@ -55,12 +57,38 @@ def test_the_graph_sees_the_tree(graph: dict[str, set[str]]) -> None:
     assert {"shared.config", "shared.rollout", "services.cli", "services.actor.service"} <= set(graph)
     assert "shared.sim.env" in graph["services.actor.service"]
     assert "zenoh" in graph["services.bus.session"] and "rerun" in graph["services.viz.rerun"]
+    assert "shared.evaluation.setup" in graph["cogexplore.policy"]
 
 
 def test_shared_is_the_pure_layer(graph: dict[str, set[str]]) -> None:
     bad = {m: sorted(i for i in imports if i.split(".")[0] in ("zenoh", "rerun", "services"))
            for m, imports in graph.items() if m.startswith("shared")}
     assert not {m: i for m, i in bad.items() if i}, "shared/ must not import Zenoh, Rerun or services/"
+    upward = {m: sorted(i for i in imports if i.split(".")[0] == "cogexplore")
+              for m, imports in graph.items() if m.startswith("shared")}
+    assert not {m: i for m, i in upward.items() if i}, "shared/ must not import the API above it (cogexplore/)"
+
+
+def test_the_python_api_sits_on_shared_alone(graph: dict[str, set[str]]) -> None:
+    api = {m: imports for m, imports in graph.items() if m.split(".")[0] == "cogexplore"}
+    assert {"cogexplore", "cogexplore.policy", "cogexplore.evaluation", "cogexplore.version"} <= set(api)
+    bad = {m: sorted(i for i in imports if i.split(".")[0] not in ("shared", "cogexplore", "torch", "mujoco"))
+           for m, imports in api.items()}
+    assert not {m: i for m, i in bad.items() if i}, "cogexplore/ imports only shared/ (no Zenoh, Rerun, services/)"
+
+
+def test_importing_the_python_api_loads_no_heavy_library() -> None:
+    """The CLI reads ``cogexplore.__version__``: that must stay as cheap as ``cogexplore --help``."""
+    script = f"""
+import json, sys
+import cogexplore
+from cogexplore.version import package_version
+assert cogexplore.__version__ == package_version() and "load_policy" in dir(cogexplore)
+print(json.dumps(sorted(m for m in sys.modules if m.split(".")[0] in {HEAVY + ("numpy",)!r})))
+"""
+    proc = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == []
 
 
 def _room(module: str) -> str | None:
@@ -138,3 +166,12 @@ print(json.dumps({{"helps": len(paths), "heavy": sorted(m for m in sys.modules i
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout.strip().splitlines()[-1])
     assert result["helps"] > 20 and result["heavy"] == []
+
+
+def test_the_license_is_an_spdx_expression_with_its_file() -> None:
+    """PEP 639: no deprecated license table (setuptools warns on every install), and the file ships."""
+    import tomllib
+
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
+    assert (REPO / "LICENSE").read_text().startswith("MIT License")

@@ -14,7 +14,7 @@ DEFAULT_RERUN_IMAGE_EVERY = 5
 
 
 def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
-    add_service_arguments(parser)
+    add_service_arguments(parser, from_learner=True)
     parser.add_argument("--actor-id", default=None, help="unique id (default: actor-<hostname>-<pid>)")
     parser.add_argument("--actor-index", type=int, default=None,
                         help="index i of this actor among --num-actors (per-actor epsilon, seed); default: "
@@ -35,4 +35,3 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
                            f"{DEFAULT_RERUN_EVERY_EPISODES})")
     live.add_argument("--rerun-image-every", type=int, default=DEFAULT_RERUN_IMAGE_EVERY, metavar="K",
                       help=f"depth image of every K-th step of a streamed episode (default {DEFAULT_RERUN_IMAGE_EVERY})")
-    parser.add_argument("--log-level", default="INFO")

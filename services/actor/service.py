@@ -24,6 +24,7 @@ import json
 import logging
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -34,6 +35,7 @@ from services.actor.options import (
     DEFAULT_RERUN_IMAGE_EVERY,
 )
 from services.bus.follower import WeightFollower
+from services.bus.run_config import join_run_config
 from services.bus.session import (
     LivelinessWatch,
     declare_alive,
@@ -43,7 +45,7 @@ from services.bus.session import (
     zenoh_settings,
 )
 from services.process import default_process_id, setup_logging, stop_event_on_signals
-from services.runs import resolve_config, run_paths
+from services.runs import run_paths
 from shared.config import ConfigError, RunConfig
 from shared.expert.expert import ExpertGuide
 from shared.learning.model import (
@@ -53,6 +55,7 @@ from shared.learning.model import (
     resolve_device,
 )
 from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
+from shared.learning.stats import TensorBoardLog, episode_row
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import RunKeys
@@ -195,6 +198,23 @@ class Outbox:
         self.stats_publisher.put(stats.encode())
 
 
+class EpisodeScalars:
+    """Rollout observer: each finished episode as an ``EpisodeRow`` to TensorBoard, at this actor's
+    env step; its ``update`` is the policy version acting when the episode ended."""
+
+    def __init__(self, board: TensorBoardLog, outbox: Outbox, guide: ExpertGuide):
+        self.board, self.outbox, self.guide = board, outbox, guide
+        self.env_steps = 0
+        self.started = time.monotonic()
+
+    def on_step(self, step: Step) -> None:
+        self.env_steps += 1
+
+    def end_episode(self, episode: Episode) -> None:
+        self.board.write_row(episode_row(episode, env_step=self.env_steps, update=self.outbox.policy_version,
+                                         time_s=time.monotonic() - self.started, expert_guided=self.guide.active))
+
+
 class LiveEpisodes:
     """Rollout observer: a sample of the episodes to a live Rerun viewer (``EpisodeStream``)."""
 
@@ -220,9 +240,10 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
               actor_index: int = 0, num_actors: int = 1, batch_steps: int = 16,
               max_steps: int | None = None, seed: int | None = None, rerun_url: str | None = None,
               rerun_every_episodes: int = DEFAULT_RERUN_EVERY_EPISODES,
-              rerun_image_every: int = DEFAULT_RERUN_IMAGE_EVERY) -> dict:
+              rerun_image_every: int = DEFAULT_RERUN_IMAGE_EVERY, tensorboard: Path | None = None) -> dict:
     """The actor loop; returns counters when ``stop`` is set (or after ``max_steps`` env steps).
-    ``rerun_url``: stream every ``rerun_every_episodes``-th episode live to that Rerun viewer."""
+    ``rerun_url``: stream every ``rerun_every_episodes``-th episode live to that Rerun viewer.
+    ``tensorboard``: a folder for its episodes as TensorBoard events."""
     keys = RunKeys(run)
     device = resolve_device(cfg.train.device if cfg.train.device != "auto" else "cpu")
     torch.set_num_threads(1)  # several actors share the machine's cores with the learner
@@ -247,7 +268,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                robot_radius_m=cfg.env.robot_radius_m)
         log.info("streaming every %d-th episode to the Rerun viewer at %s", rerun_every_episodes, rerun_url)
 
-    with open_session(settings, wait_s=30.0) as session:
+    with open_session(settings, wait_s=30.0) as session, TensorBoardLog(tensorboard) as board:
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
         learners = LivelinessWatch(session, keys.all_alive("learner"))
         weights_sub = follower.subscribe(session, keys)  # noqa: F841
@@ -255,7 +276,8 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
         outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps, actor_epoch),
                         declare_reliable_publisher(session, keys.transitions(actor_id)),
                         session.declare_publisher(keys.episode_stats(actor_id)), gate, guide, env.main_world.name)
-        loop = Rollout(env, policy, [guide, outbox] + ([LiveEpisodes(stream, env)] if stream is not None else []))
+        loop = Rollout(env, policy, [guide, outbox] + ([EpisodeScalars(board, outbox, guide)] if board.enabled else [])
+                       + ([LiveEpisodes(stream, env)] if stream is not None else []))
         loop.begin_episode(seed=seed)
         paused_since: float | None = None
         while not stop.is_set() and (max_steps is None or counters["env_steps"] < max_steps):
@@ -305,9 +327,7 @@ def run_actor_command(args: argparse.Namespace) -> int:
     paths = run_paths(args)
     actor_id = args.actor_id or default_process_id("actor")
     setup_logging(args.log_level)
-    cfg = resolve_config(args, paths)
-    stop = stop_event_on_signals()
-    settings = zenoh_settings(args)
+    settings = zenoh_settings(args, "actor")
     log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
     if args.num_actors < 1:
         raise ConfigError(f"--num-actors must be >= 1, got {args.num_actors}")
@@ -324,10 +344,18 @@ def run_actor_command(args: argparse.Namespace) -> int:
     index = args.actor_index if args.actor_index is not None else digest % args.num_actors
     if not 0 <= index < args.num_actors:
         raise ConfigError(f"--actor-index must be in [0, {args.num_actors}), got {index}")
+    cfg, check = join_run_config(args, paths, settings, "this actor")  # before the handlers: Ctrl-C ends a wait
+    stop = stop_event_on_signals()
+    if check is not None:
+        check.start(settings, stop)  # a preset the run's data cannot use stops the actor
     seed = cfg.train.seed * 1000 + (index if args.actor_index is not None else digest % 100_000) + 1
     counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=index,
                          num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps,
                          seed=seed, rerun_url=args.rerun_connect, rerun_every_episodes=args.rerun_every_episodes,
-                         rerun_image_every=args.rerun_image_every)
+                         rerun_image_every=args.rerun_image_every,
+                         tensorboard=paths.tensorboard_folder(actor_id) if args.tensorboard else None)
     log.info("actor %s done: %s", actor_id, json.dumps(counters))  # one JSON line: scripts read it
+    refused = check.finish() if check is not None else None
+    if refused is not None:
+        raise refused
     return 0

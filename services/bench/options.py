@@ -6,9 +6,10 @@ import argparse
 
 
 def add_env_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--world", default="paper-indoor")
-    p.add_argument("--steps", type=int, default=2000)
-    p.add_argument("--backend", choices=["raycast", "gl"], default="raycast")
+    p.add_argument("--world", default="paper-indoor", help="the world stepped (default paper-indoor)")
+    p.add_argument("--steps", type=int, default=2000, help="env steps timed (default 2000)")
+    p.add_argument("--backend", choices=["raycast", "gl"], default="raycast",
+                   help="the depth renderer: MuJoCo ray casts or OpenGL (default raycast)")
     p.add_argument("--per-pixel", action="store_true",
                    help="cast every pixel's ray (disable the exact column fast path)")
     p.add_argument("--no-pin", action="store_true", help="do not pin the process to CPU 0")

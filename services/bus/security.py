@@ -17,8 +17,9 @@
 Every file is readable by its owner only (0600). The access control list starts from
 ``default_permission: "deny"`` and allows each role exactly its part of the run's key space
 (``cogexplore/<run>/...``): only the learner puts weights and flow control, answers the weights
-query and declares the learner's liveliness token; actors only put transitions and episode stats
-and declare their own liveliness; the evaluator only reads weights and writes results; a viewer
+and configuration queries and declares the learner's liveliness token; actors only put transitions
+and episode stats and declare their own liveliness; the evaluator only reads weights and writes
+results (both may ask the two queries); a viewer
 (the launcher's progress bar, dashboards) only reads statistics and liveliness. Each permission is
 given on the flow it travels: ``ingress`` for what a subject sends to the router, ``egress`` for what
 the router passes on to it, including the subscriber declarations a publisher must see (a publisher
@@ -29,8 +30,9 @@ nothing through.
 
 Python sessions read a role's config with :class:`services.bus.session.ZenohSettings` (the files it
 names are relative to it). ``cogexplore secure export DIR --role actor --out BUNDLE`` copies what
-one role needs and nothing else (no other role's password, no CA key) for another machine, where
-the actor joins with one flag more: ``--zenoh-config BUNDLE/actor.json5``.
+one role needs and nothing else (no other role's password, no CA key) for another machine: put it
+in ``runs/<run>/secure/`` there and the actor finds it by itself (``--zenoh-config BUNDLE/actor.json5``
+names it anywhere else).
 """
 
 from __future__ import annotations
@@ -74,6 +76,7 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
     """role -> [(flow, messages, key expressions)]: everything a role may do on run ``run``."""
     p = f"{ROOT}/{validate_name(run, 'run name')}"
     transitions, weights, latest, flow = f"{p}/transitions/*", f"{p}/weights", f"{p}/weights/latest", f"{p}/flow"
+    config = f"{p}/config"
     stats = f"{p}/stats/**"
     alive = {role: f"{p}/alive/{role}/*" for role in ("learner", "actor", "evaluator")}
     sub, pub, token = "declare_subscriber", "put", "liveliness_token"
@@ -84,8 +87,8 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
             ("ingress", [sub], [transitions]),
             ("egress", [pub], [transitions]),
             ("egress", [sub], [weights, flow, f"{p}/stats/learner/*", stats]),  # who listens to what it puts
-            ("ingress", ["declare_queryable", "reply"], [latest]),
-            ("egress", ["query"], [latest]),
+            ("ingress", ["declare_queryable", "reply"], [latest, config]),
+            ("egress", ["query"], [latest, config]),
             ("ingress", [token], [alive["learner"]]),
             ("ingress", watch, [alive["actor"]]),
             ("egress", [token], [alive["actor"]]),
@@ -95,8 +98,8 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
             ("egress", [sub], [transitions, f"{p}/stats/episode/*", stats]),
             ("ingress", [sub], [weights, flow]),
             ("egress", [pub], [weights, flow]),
-            ("ingress", ["query"], [latest]),
-            ("egress", ["declare_queryable", "reply"], [latest]),
+            ("ingress", ["query"], [latest, config]),
+            ("egress", ["declare_queryable", "reply"], [latest, config]),
             ("ingress", [token], [alive["actor"]]),
             ("ingress", watch, [alive["learner"]]),
             ("egress", [token], [alive["learner"]]),
@@ -104,8 +107,8 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
         "evaluator": [
             ("ingress", [sub], [weights]),
             ("egress", [pub], [weights]),
-            ("ingress", ["query"], [latest]),
-            ("egress", ["declare_queryable", "reply"], [latest]),
+            ("ingress", ["query"], [latest, config]),
+            ("egress", ["declare_queryable", "reply"], [latest, config]),
             ("ingress", [pub], [f"{p}/stats/eval/*"]),
             ("egress", [sub], [f"{p}/stats/eval/*", stats]),
             ("ingress", [token], [alive["evaluator"]]),

@@ -18,6 +18,7 @@ they are given.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -41,7 +42,8 @@ from services.bus import (
     ENV_MODE,
     MODES,
 )
-from services.bus.security import PATH_KEYS
+from services.bus.security import PATH_KEYS, SecureFiles
+from services.runs import run_paths
 from shared.errors import CogexploreError
 from shared.wire.messages import (
     MAX_MESSAGE_BYTES,
@@ -407,8 +409,11 @@ def run_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *, config_file: st
     return 0
 
 
-def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
-    """Environment variables first, command-line options over them."""
+def zenoh_settings(args: argparse.Namespace, role: str | None = None) -> ZenohSettings:
+    """Environment variables first, command-line options over them. With a config file from neither, a
+    process of ``role`` takes its run's credentials where the run folder holds them
+    (``<runs-dir>/<run>/secure/<role>.json5``: what ``up`` writes, or a ``secure export`` bundle put
+    there on another machine)."""
     overrides: dict[str, object] = {}
     if args.connect:
         overrides["connect"] = parse_endpoints(args.connect, "--connect")
@@ -418,4 +423,10 @@ def zenoh_settings(args: argparse.Namespace) -> ZenohSettings:
         overrides["mode"] = args.zenoh_mode
     if args.zenoh_config:
         overrides["config_file"] = args.zenoh_config
-    return ZenohSettings.from_env(**overrides)
+    settings = ZenohSettings.from_env(**overrides)
+    if settings.config_file is None and role is not None:
+        found = SecureFiles(run_paths(args).secure).config(role)
+        if found.is_file():
+            log.info("Zenoh credentials of role %s: %s", role, found)
+            settings = dataclasses.replace(settings, config_file=str(found))
+    return settings

@@ -16,7 +16,7 @@ DEFAULT_IMAGE_EVERY = 10
 
 def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``cogexplore evaluator`` (and ``python -m services.evaluator``)."""
-    add_service_arguments(parser)
+    add_service_arguments(parser, from_learner=True)
     parser.add_argument("--id", default=None, help="evaluator id (default: evaluator-<host>-<pid>)")
     parser.add_argument("--every-updates", type=int, default=DEFAULT_EVERY_UPDATES, metavar="K",
                         help=f"evaluate when the policy version enters a new multiple of K (default "
@@ -42,4 +42,3 @@ def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --once: how long to wait for weights (default 60)")
     parser.add_argument("--query-timeout", type=float, default=2.0, metavar="SECONDS",
                         help="timeout of the start-up query for the latest weights (default 2)")
-    parser.add_argument("--log-level", default="INFO", help="logging level (default INFO)")

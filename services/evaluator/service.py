@@ -44,6 +44,7 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 import torch
 
 from services.bus.follower import WeightFollower
+from services.bus.run_config import join_run_config
 from services.bus.session import (
     TransportError,
     ZenohSettings,
@@ -59,7 +60,7 @@ from services.evaluator.options import (
     add_evaluator_arguments,
 )
 from services.process import default_process_id, setup_logging, stop_event_on_signals
-from services.runs import resolve_config, run_paths
+from services.runs import run_paths
 from services.viz.rerun import ViewerLink, evaluate_recorded
 from shared.config import ConfigError, RunConfig
 from shared.errors import CogexploreError
@@ -74,6 +75,7 @@ from shared.learning.model import (
     named_shapes,
     resolve_device,
 )
+from shared.learning.stats import TensorBoardLog
 from shared.sim.world import load_world
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EvalResult, RejectCounter, WeightsMessage
@@ -95,7 +97,7 @@ class EvaluatorService:
                  every_updates: int = DEFAULT_EVERY_UPDATES, episodes_per_start: int = CHEAP_EPISODES_PER_START,
                  max_steps: int = PAPER_MAX_STEPS, world: str | None = None, image_every: int = DEFAULT_IMAGE_EVERY,
                  record: bool = True, seed: int = 0, device: str = "cpu", query_timeout_s: float = 2.0,
-                 connect_wait_s: float = 30.0, rerun_url: str | None = None):
+                 connect_wait_s: float = 30.0, rerun_url: str | None = None, tensorboard: Path | None = None):
         for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),
                             ("max_steps", max_steps), ("image_every", image_every)):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -129,6 +131,8 @@ class EvaluatorService:
         """(learner epoch, update) of the weights evaluated last."""
         self.evaluations: list[dict[str, Any]] = []
         """The JSON rows written so far (newest last)."""
+        self.board = TensorBoardLog(tensorboard)
+        """Each evaluation's duration and summary as ``eval/<key>`` at its policy version (closed by ``run``)."""
 
     def due(self, message: WeightsMessage) -> bool:
         """The first weights of each learner process (a restarted learner's at once), then each that
@@ -175,6 +179,7 @@ class EvaluatorService:
         stats.mkdir(parents=True, exist_ok=True)
         with open(stats / EVAL_LOG, "a") as f:
             f.write(json.dumps(row) + "\n")
+        self.board.write(Path(EVAL_LOG).stem, {"duration_s": row["duration_s"], **row["summary"]}, version)
         self.evaluations.append(row)
         if session is not None:
             put_reliable(session, self.keys.eval_results(self.evaluator_id),
@@ -234,6 +239,7 @@ class EvaluatorService:
             finally:
                 subscriber.undeclare()
                 token.undeclare()
+                self.board.close()
                 log.info("evaluator %s stopping (rejected weights: %s)", self.evaluator_id,
                          json.dumps(self.rejects.counts))
 
@@ -244,32 +250,43 @@ class EvaluatorService:
 
 
 def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
-    """``cogexplore evaluator``: returns a process exit status (2: bad options, 1: no router or,
-    with ``--once``, no weights). ``stop`` (tests) replaces the SIGINT/SIGTERM handlers."""
+    """``cogexplore evaluator``: returns a process exit status (2: bad options, a configuration the run
+    cannot use, or none from its learner; 1: no router or, with ``--once``, no weights). ``stop`` (tests)
+    replaces the SIGINT/SIGTERM handlers."""
     try:
         evaluator_id = validate_name(args.id or default_process_id("evaluator"), "evaluator id")
         paths = run_paths(args)
         setup_logging(args.log_level, paths.logs / f"{evaluator_id}.log")
-        cfg = resolve_config(args, paths)
+        settings = zenoh_settings(args, "evaluator")
+        cfg, check = join_run_config(args, paths, settings, "this evaluator")
         # Like the actors, 'auto' means CPU here: the GPU, if any, belongs to the learner.
         device = cfg.train.device if cfg.train.device != "auto" else "cpu"
         episodes = args.episodes_per_start or (PAPER_EPISODES_PER_START if args.full else CHEAP_EPISODES_PER_START)
-        service = EvaluatorService(cfg, args.run, paths.root, zenoh_settings(args), evaluator_id,
+        service = EvaluatorService(cfg, args.run, paths.root, settings, evaluator_id,
                                    every_updates=args.every_updates, episodes_per_start=episodes,
                                    max_steps=args.max_steps, world=args.world, image_every=args.image_every,
                                    record=not args.no_record, seed=args.seed, device=device,
-                                   query_timeout_s=args.query_timeout, rerun_url=args.rerun_connect)
+                                   query_timeout_s=args.query_timeout, rerun_url=args.rerun_connect,
+                                   tensorboard=paths.tensorboard_folder(evaluator_id) if args.tensorboard else None)
     except CogexploreError as exc:  # config, world, run name, device: the message says which
         print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
         return 2
     if torch.get_num_threads() > 2:
         torch.set_num_threads(2)  # share the machine with the learner and the actors
     stop = stop if stop is not None else stop_event_on_signals()
+    if check is not None:
+        check.start(settings, stop)  # a preset the run's weights do not fit stops the evaluator
     try:
-        return service.run(stop, once=args.once, wait_weights_s=args.wait_weights)
+        status = service.run(stop, once=args.once, wait_weights_s=args.wait_weights)
     except TransportError as exc:
         log.error("%s", exc)
         return 1
+    finally:
+        refused = check.finish() if check is not None else None
+    if refused is not None:
+        print(f"cogexplore evaluator: error: {refused}", file=sys.stderr)
+        return 2
+    return status
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -18,6 +18,7 @@ import logging
 import queue
 import threading
 import time
+from pathlib import Path
 
 import torch
 
@@ -35,7 +36,7 @@ from services.runs import RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore, RateMeter, resume_from
-from shared.learning.stats import CsvLog, LearnerRow, rewind
+from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys, parse_key
 from shared.wire.messages import (
@@ -44,6 +45,7 @@ from shared.wire.messages import (
     LearnerStats,
     MessageError,
     RejectCounter,
+    RunConfigMessage,
     TransitionBatch,
     new_epoch,
 )
@@ -90,8 +92,9 @@ class LatestSender:
 
 def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threading.Event, *,
                 learner_id: str = "learner", weights_every: int = 25, stats_every_s: float = 1.0,
-                flow_slack: int | None = None, device: str | None = None, save_replay: bool = True) -> dict:
-    """The learner loop. Returns final counters."""
+                flow_slack: int | None = None, device: str | None = None, save_replay: bool = True,
+                tensorboard: Path | None = None) -> dict:
+    """The learner loop. Returns final counters. ``tensorboard``: a folder for its rows as TensorBoard events."""
     keys = RunKeys(run)
     paths.make()
     epoch = new_epoch()  # this process: its weights outrank every earlier learner's, whatever their update
@@ -119,10 +122,13 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         except queue.Full:
             rejects.reject(MessageError("oversize", "learner inbox full"), key)
 
-    with open_session(settings, wait_s=30.0) as session, CsvLog(paths.stats, LearnerRow) as stats_log:
+    with open_session(settings, wait_s=30.0) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
+            TensorBoardLog(tensorboard) as board:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
+        run_config = RunConfigMessage(learner_id=learner_id, config=cfg).encode()  # what actors without a preset take
+        config_queryable = serve_latest(session, keys.config, lambda: run_config)  # noqa: F841
         # a batch of this sensor's frames at most: anything longer is refused before it is copied
         batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
         sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects,  # noqa: F841
@@ -187,12 +193,14 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                            **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[-24:]},  # the 24 heard last
                            **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[-24:]}})
                 stats_pub.put(stats.encode())
-                stats_log.write(LearnerRow(
+                row = LearnerRow(
                     time_s=now - started, update=core.updates, policy_version=core.agent.policy_version, loss=loss,
                     mean_q=mean_q, updates_per_s=stats.updates_per_s, transitions=core.received,
                     transitions_per_s=stats.transitions_per_s, replay_size=len(core.replay),
                     rejected=rejects.total, actors_alive=live, mean_weight_lag=stats.extra["mean_weight_lag"],
-                    demo_agreement=agreement))
+                    demo_agreement=agreement)
+                stats_log.write(row)
+                board.write_row(row)
                 last_stats = now
             if not drained and not due:
                 time.sleep(0.005)  # idle: wait for data without spinning a core
@@ -217,9 +225,10 @@ def run_learner_command(args: argparse.Namespace) -> int:
         save_config(cfg, paths)
     torch.set_num_threads(max(1, torch.get_num_threads()))
     stop = stop_event_on_signals()
-    settings = zenoh_settings(args)
+    settings = zenoh_settings(args, "learner")
     log.info("learner %s for run %r via %s", args.learner_id, args.run, settings.describe())
     result = run_learner(cfg, args.run, paths, settings, stop, learner_id=args.learner_id,
-                         weights_every=args.weights_every)
+                         weights_every=args.weights_every,
+                         tensorboard=paths.tensorboard_folder(args.learner_id) if args.tensorboard else None)
     log.info("learner done: %s", json.dumps(result))  # one JSON line: scripts read it
     return 0

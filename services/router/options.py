@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus import DEFAULT_ROUTER_LISTEN
+from services.options import add_log_level_argument
 
 READY_LINE = "cogexplore router ready"
 """Printed (flushed) on stdout once the router listens, for scripts that wait for it."""
@@ -18,6 +19,5 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--config", metavar="FILE", default=None,
                         help="a Zenoh JSON5 config file (TLS, credentials, access control); "
                              "--listen overrides its listen endpoints")
-    parser.add_argument("--log-level", default="INFO",
-                        choices=("DEBUG", "INFO", "WARNING", "ERROR"), help="log verbosity")
+    add_log_level_argument(parser)
     return parser

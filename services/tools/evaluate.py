@@ -99,6 +99,19 @@ def _worlds_of(args: argparse.Namespace) -> list[str | None]:
     return worlds
 
 
+def _start_indices(starts: list[int] | None, world: str) -> list[int] | None:
+    """--starts, numbered from 1 as the tables are, as the protocol's 0-based start indices."""
+    if starts is None:
+        return None
+    from shared.sim.world import load_world
+
+    n_starts = len(load_world(world).starts)
+    bad = [s for s in starts if not 1 <= s <= n_starts]
+    if bad:
+        raise EvaluateError(f"--starts {' '.join(map(str, bad))}: world {world!r} has starts 1-{n_starts}")
+    return [s - 1 for s in starts]
+
+
 def _json_path(path: str, world: str, several: bool) -> Path:
     p = Path(path)
     return p.with_name(f"{p.stem}-{slug(world)}{p.suffix or '.json'}") if several else p
@@ -170,7 +183,7 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
         print(f"rerun: open {recorder.web_url} in a browser, or run `rerun --connect {recorder.viewer_url}` "
               "(from another machine, put this machine's name in place of localhost/127.0.0.1)", flush=True)
     protocol = dict(episodes_per_start=args.episodes_per_start, max_steps=args.max_steps, seed=args.seed,
-                    starts=args.starts, policy_version=setup.model.policy_version if setup.model else 0,
+                    starts=_start_indices(args.starts, setup.world), policy_version=setup.model.policy_version if setup.model else 0,
                     progress=not args.quiet, meta=setup.meta())
     try:
         if recorder is not None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 
+from services.options import add_runs_dir_argument, add_tensorboard_argument
 from shared.config import SPEED_TABLES
 from shared.evaluation import (
     DEFAULT_WORLD,
@@ -42,7 +43,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=PAPER_MAX_STEPS,
                         help=f"moving steps per episode at most (default {PAPER_MAX_STEPS})")
     parser.add_argument("--starts", type=int, nargs="+", default=None, metavar="I",
-                        help="only these start indices (0-based; default: all)")
+                        help="only these start poses, numbered from 1 as in every table and "
+                             "`worlds starts` (default: all)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and the random policy")
     parser.add_argument("--json", dest="json_out", metavar="PATH",
                         help="write the results JSON here (several worlds: one file each, PATH-<world>.json)")
@@ -118,7 +120,8 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{UNSEEN_WORLDS})")
     parser.add_argument("--episodes-per-start", type=int, default=10, help="test episodes per start (default 10)")
     parser.add_argument("--max-steps", type=int, default=200, help="steps per test episode at most (default 200)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the supervised model's training and of the test episodes (default 0)")
     parser.add_argument("--device", default=None, help="torch device for training: auto, cpu, cuda")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -140,29 +143,29 @@ def add_pretrain_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episode-steps", type=int, default=150, help="data episode cap (default 150)")
     parser.add_argument("--test-fraction", type=float, default=0.2,
                         help="share of the frames, in whole episodes, held out for testing (default 0.2)")
-    parser.add_argument("--batch-size", type=int, default=64)
+    parser.add_argument("--batch-size", type=int, default=64, help="images per SGD step (default 64)")
     parser.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate (default 1e-3)")
     parser.add_argument("--class-balance", type=float, default=0.5,
                         help="class weights (1/frequency)**this: 0 plain loss, 1 balanced (default 0.5)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the data episodes and the training (default 0)")
     parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N")
     parser.add_argument("--json", action="store_true", help="print the model card as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--single-process", action="store_true",
-                        help="run Algorithm 1 in this one process (the reference; the distributed "
-                             "system is `cogexplore up`)")
+    # train has one mode, one process; the flag stays so that older scripts keep working
+    parser.add_argument("--single-process", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--preset", default="paper", help="preset name or TOML path (default: paper)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                         help="override one config field (repeatable)")
     parser.add_argument("--run", default=None, help="run name (default: train-<date>-<time>)")
-    parser.add_argument("--runs-dir", default="runs")
+    add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="auto, cpu, cuda, cuda:N")
     parser.add_argument("--updates", type=int, default=None, help="override train.total_updates")
     parser.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_tensorboard_argument(parser)
 
 
 # -- worlds -------------------------------------------------------------------------------

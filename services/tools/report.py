@@ -1,9 +1,10 @@
-"""``cogexplore report RUN_DIR``: the paper's tables and figures for a run, as PNG + Markdown.
+"""``cogexplore report RUN_DIR``: the paper's tables and figures for a run, as PNG + Markdown + HTML.
 
     cogexplore report runs/exp1 [--compare CKPT ...] [--out DIR] [--episodes-per-start N] [--world W]
                                 [--probe depth.png ...]
 
-Into ``RUN_DIR/report/`` (or ``--out``), linked from ``report.md``:
+Into ``RUN_DIR/report/`` (or ``--out``), shown by ``report.html`` (for a browser, the figures
+inlined while they stay small) and linked from ``report.md`` (the same sections, for terminals and GitHub):
 
 - Table III (Count / Distance per start, plus coverage) for the run's latest checkpoint, each
   ``--compare`` checkpoint and the ``random`` and ``reactive`` baselines, with collisions by
@@ -13,7 +14,9 @@ Into ``RUN_DIR/report/`` (or ``--out``), linked from ``report.md``:
   start, by default) and saved to ``report/results/`` for next time;
 - trajectory heatmaps per model and side by side (Fig. 6);
 - the loss curve over learner updates (Fig. 5) from ``stats/learner.csv``, and the evaluator
-  service's mean steps per policy version from ``stats/eval.jsonl``, when they exist;
+  service's mean steps per policy version from ``stats/eval.jsonl``, when they exist, ending in
+  the report's own evaluation of the run's checkpoint (the final one of ``cogexplore up``) at its
+  version;
 - the Q-values of the probe scenes (Table II: ``shared/evaluation/probe_scenes`` plus ``--probe`` images) and
   their receptive-field maps with the chosen command (Fig. 7), for every checkpoint model.
 """
@@ -32,6 +35,15 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 
 import numpy as np
 
+from services.tools.document import (
+    Block,
+    Bullets,
+    Heading,
+    Paragraph,
+    Table,
+    html_page,
+    markdown,
+)
 from shared.errors import CogexploreError
 from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
 from shared.evaluation.protocol import evaluate_policy
@@ -77,12 +89,15 @@ class ReportModel:
 
 @dataclass
 class Report:
-    """What ``build_report`` produced: the Markdown file and every figure, plus notes."""
+    """What ``build_report`` produced: the Markdown and HTML files, every figure, notes and the
+    evaluation curve's points."""
 
     markdown: Path
+    html: Path
     figures: list[Path] = field(default_factory=list)
     results: dict[str, Path] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    eval_curve: list[EvalPoint] = field(default_factory=list)
 
 
 def _matches(meta: Mapping[str, Any], want: Mapping[str, Any]) -> bool:
@@ -149,19 +164,58 @@ def load_eval_log(path: Path) -> list[dict[str, Any]]:
     return sorted(rows, key=lambda r: r["policy_version"])
 
 
-def save_eval_curve_png(rows: Sequence[Mapping[str, Any]], out_path: Path, dpi: int = 110) -> Path:
-    """Mean moving steps (and capped episodes) of the evaluator's runs against policy version."""
+@dataclass(frozen=True)
+class EvalPoint:
+    """One point of the evaluation curve: a policy version (learner updates) and its mean moving steps."""
+
+    policy_version: int
+    mean_steps: float
+    episodes_per_start: int | None
+    max_steps: int | None
+    final: bool = False
+
+    @classmethod
+    def from_row(cls, row: Mapping[str, Any]) -> EvalPoint:
+        """A periodic evaluation, from a row of ``eval.jsonl``."""
+        return cls(row["policy_version"], float(row["summary"]["mean_steps"]), row.get("episodes_per_start"),
+                   row.get("max_steps"))
+
+    @classmethod
+    def final_of(cls, results: EvalResults) -> EvalPoint:
+        """The final evaluation of a checkpoint, at the version its weights were saved at."""
+        meta = results.meta
+        return cls(int(meta["policy_version"]), float(results.summary["overall"]["mean_steps"]),
+                   meta.get("episodes_per_start"), meta.get("max_steps"), final=True)
+
+
+def eval_curve_points(rows: Sequence[Mapping[str, Any]], final: EvalPoint | None = None) -> list[EvalPoint]:
+    """The evaluator's periodic evaluations and the final one, by policy version. The final
+    evaluation stands in for a periodic one of the same version (it is Table III's number), so
+    no version is drawn twice for it."""
+    points = [EvalPoint.from_row(r) for r in rows]
+    if final is not None:
+        points = [p for p in points if p.policy_version != final.policy_version] + [final]
+    return sorted(points, key=lambda p: p.policy_version)
+
+
+def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 110) -> Path:
+    """Mean moving steps against policy version, the final evaluation marked."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import MaxNLocator
 
-    versions = [r["policy_version"] for r in rows]
     fig = Figure(figsize=(7.0, 3.6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
-    ax.plot(versions, [r["summary"]["mean_steps"] for r in rows], marker="o", lw=1.5, label="mean moving steps")
-    cap = [r.get("max_steps") for r in rows]
-    if cap and cap[0]:
-        ax.axhline(cap[0], color="gray", lw=0.8, ls="--", label=f"step cap ({cap[0]})")
+    ax.plot([p.policy_version for p in points], [p.mean_steps for p in points], marker="o", lw=1.5,
+            label="mean moving steps")
+    for p in points:
+        if p.final:
+            ax.plot([p.policy_version], [p.mean_steps], marker="*", ms=14, color="tab:red", ls="none",
+                    label=f"final evaluation (version {p.policy_version})")
+    for cap in sorted({p.max_steps for p in points if p.max_steps}):
+        ax.axhline(cap, color="gray", lw=0.8, ls="--", label=f"step cap ({cap})")
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("policy version (learner updates)")
     ax.set_ylabel("mean moving steps")
     ax.set_title("Evaluations during training")
@@ -206,7 +260,7 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
         raise ReportError(f"run folder {run} does not exist")
     out = Path(out_dir) if out_dir is not None else run / "report"
     out.mkdir(parents=True, exist_ok=True)
-    report = Report(markdown=out / "report.md")
+    report = Report(markdown=out / "report.md", html=out / "report.html")
     notes = report.notes
     run_cfg = load_preset(str(run / "config.toml")) if (run / "config.toml").is_file() else None
 
@@ -220,7 +274,8 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     taken: set[str] = set()
     models: list[ReportModel] = []
     loaded: list[LoadedModel] = []
-    if resolve_checkpoint(run) is None:
+    run_has_checkpoint = resolve_checkpoint(run) is not None
+    if not run_has_checkpoint:
         notes.append(f"The run has no checkpoint yet ({run / 'checkpoints'}): only the baselines are evaluated.")
     else:
         loaded.append(load_model(run, device))
@@ -289,11 +344,12 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
         notes.append(f"No loss curve: {learner_csv} does not exist (the learner writes it during training).")
     eval_png = None
     eval_log = run / "stats" / EVAL_LOG
-    if eval_log.is_file():
-        rows = load_eval_log(eval_log)
-        if rows:
-            eval_png = save_eval_curve_png(rows, out / "eval-curve.png")
-            report.figures.append(eval_png)
+    rows = load_eval_log(eval_log) if eval_log.is_file() else []
+    if rows:  # the evaluator ran during training: its curve, ending in this report's evaluation of the run
+        final = EvalPoint.final_of(models[0].results) if run_has_checkpoint else None  # models[0]: the run's
+        report.eval_curve = eval_curve_points(rows, final)
+        eval_png = save_eval_curve_png(report.eval_curve, out / "eval-curve.png")
+        report.figures.append(eval_png)
 
     # -- probes: Table II and receptive fields ------------------------------------------------
     greedy = [m for m in models if m.model is not None]
@@ -341,61 +397,66 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
                 report.figures.append(path)
             q_scenes.setdefault(scene, {})[m.name] = q
 
-    # -- the Markdown -------------------------------------------------------------------------
+    # -- the document: one list of blocks, written as Markdown and as HTML ----------------------
     def rel(p: Path) -> str:
         return os.path.relpath(p, out).replace(os.sep, "/")
 
-    lines = [f"# Report: run `{run.name}`", ""]
+    doc: list[Block] = [Heading(1, f"Report: run `{run.name}`")]
     free = free_area_m2(grid)
-    lines += ["## Protocol", "",
-              f"- World `{world_name}` ({len(starts)} start poses, {free:.1f} m² free), TEST speed table, "
-              f"greedy policies (dropout off).",
-              f"- {episodes_per_start} episode(s) per start, at most {max_steps} moving steps each; seed {seed}.",
-              "- Count = mean moving steps before a collision or the cap; Distance = mean straight-line distance "
-              "from the start to the end pose (m); Coverage = mean % of the free area the camera saw.", ""]
-    lines += ["## Models", "", "| Model | Policy | Source | Results |", "|---|---|---|---|"]
+    doc += [Heading(2, "Protocol"), Bullets((
+        (f"World `{world_name}` ({len(starts)} start poses, {free:.1f} m² free), TEST speed table, "
+         f"greedy policies (dropout off)."),
+        f"{episodes_per_start} episode(s) per start, at most {max_steps} moving steps each; seed {seed}.",
+        ("Count = mean moving steps before a collision or the cap; Distance = mean straight-line distance "
+         "from the start to the end pose (m); Coverage = mean % of the free area the camera saw.")))]
+    model_rows = []
     for m in models:
         src = f"`{m.model.path}` (version {m.model.policy_version})" if m.model is not None else "baseline"
         res = report.results.get(m.name)
         how = "reused" if m.reused_from is not None else "evaluated"
-        lines.append(f"| {m.name} | {m.setup.policy} | {src} | {how}: [{res.name}]({rel(res)}) |")
-    lines += ["", "## Table III: moving steps and distance per start point", ""]
-    lines.append(table_markdown({m.name: m.results for m in models}))
-    lines += ["| Model | Episodes | Collisions (depth) | Collisions (contact) | Reached cap | Mean path (m) |",
-              "|---|---:|---:|---:|---:|---:|"]
+        model_rows.append((m.name, m.setup.policy, src, f"{how}: [{res.name}]({rel(res)})"))
+    doc += [Heading(2, "Models"), Table(("Model", "Policy", "Source", "Results"), (False,) * 4, tuple(model_rows))]
+    doc += [Heading(2, "Table III: moving steps and distance per start point"),
+            Table.from_markdown(table_markdown({m.name: m.results for m in models}))]
+    outcome_rows = []
     for m in models:
         o = aggregate(m.results.episodes)["overall"]
-        lines.append(f"| {m.name} | {o['episodes']} | {o['collisions']['depth']} | {o['collisions']['contact']} | "
-                     f"{o['reached_cap']} | {o['mean_path_length_m']:.2f} |")
-    lines += ["", "## Fig. 6: trajectory heatmaps", ""]
+        outcome_rows.append((m.name, str(o["episodes"]), str(o["collisions"]["depth"]),
+                             str(o["collisions"]["contact"]), str(o["reached_cap"]), f"{o['mean_path_length_m']:.2f}"))
+    doc.append(Table(("Model", "Episodes", "Collisions (depth)", "Collisions (contact)", "Reached cap",
+                      "Mean path (m)"), (False,) + (True,) * 5, tuple(outcome_rows)))
+    doc.append(Heading(2, "Fig. 6: trajectory heatmaps"))
     if side_by_side is not None:
-        lines += [f"![heatmaps]({rel(side_by_side)})", ""]
-    lines += [" · ".join(f"[{n}]({rel(p)})" for n, p in heatmaps.items()), ""]
-    lines += ["## Fig. 5: training loss", ""]
-    lines += [f"![loss]({rel(loss_png)})" if loss_png else "_No loss curve: see the notes below._", ""]
+        doc.append(Paragraph(f"![heatmaps]({rel(side_by_side)})"))
+    if heatmaps:
+        doc.append(Paragraph(" · ".join(f"[{n}]({rel(p)})" for n, p in heatmaps.items())))
+    doc += [Heading(2, "Fig. 5: training loss"),
+            Paragraph(f"![loss]({rel(loss_png)})" if loss_png else "_No loss curve: see the notes below._")]
     if eval_png is not None:
-        lines += ["### Evaluations during training", "", f"![evaluations]({rel(eval_png)})", ""]
-    lines += ["## Table II: Q-values of the probe scenes", ""]
+        doc += [Heading(3, "Evaluations during training"), Paragraph(f"![evaluations]({rel(eval_png)})"),
+                Table(("Policy version", "Mean moving steps", "Episodes per start", "Step cap", "Evaluation"),
+                      (True, True, True, True, False),
+                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", str(p.episodes_per_start or "-"),
+                             str(p.max_steps or "-"), "**final** (Table III)" if p.final else "during training")
+                            for p in report.eval_curve))]
+    doc.append(Heading(2, "Table II: Q-values of the probe scenes"))
     if q_scenes:
-        lines.append(q_value_table_markdown(q_scenes))
-        lines += ["| Scene | What it shows |", "|---|---|"]
-        lines += [f"| {s} | {d} |" for s, d in scene_rows]
-        lines.append("")
-        lines += ["## Fig. 7: receptive fields (top 10 % of pool3, purple) and the chosen command", ""]
+        doc += [Table.from_markdown(q_value_table_markdown(q_scenes)),
+                Table(("Scene", "What it shows"), (False, False), tuple(scene_rows)),
+                Heading(2, "Fig. 7: receptive fields (top 10 % of pool3, purple) and the chosen command")]
         if receptive:
             names = [m.name for m in greedy]
-            lines += ["| Scene | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
-            for scene, _ in scene_rows:
-                cells = [f"![{scene} {n}]({rel(receptive[(scene, n)])})" if (scene, n) in receptive else "-"
-                         for n in names]
-                lines.append(f"| {scene} | " + " | ".join(cells) + " |")
-            lines.append("")
+            doc += [Table(("Scene", *names), (False,) * (len(names) + 1),
+                          tuple((scene, *(f"![{scene} {n}]({rel(receptive[(scene, n)])})"
+                                          if (scene, n) in receptive else "-" for n in names))
+                                for scene, _ in scene_rows))]
     else:
-        lines += ["_No checkpoint to probe: see the notes below._", ""]
+        doc.append(Paragraph("_No checkpoint to probe: see the notes below._"))
     all_notes = notes + probe_notes
     if all_notes:
-        lines += ["## Notes", ""] + [f"- {n}" for n in all_notes] + [""]
-    report.markdown.write_text("\n".join(lines))
+        doc += [Heading(2, "Notes"), Bullets(tuple(all_notes))]
+    report.markdown.write_text(markdown(doc))
+    report.html.write_text(html_page(doc, f"Report: run {run.name}", out))
     return report
 
 
@@ -429,5 +490,6 @@ def run_report(args: argparse.Namespace) -> int:
                           progress=not args.quiet)
     for note in report.notes:
         print(f"note: {note}")
+    print(report.html)
     print(report.markdown)
     return 0

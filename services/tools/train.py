@@ -1,4 +1,4 @@
-"""``cogexplore train --single-process``: the paper's Algorithm 1 in one process.
+"""``cogexplore train``: the paper's Algorithm 1 in one process.
 
     for each episode: reset at a random start
         while no collision: act epsilon-greedily, step, store the transition,
@@ -8,7 +8,7 @@ It is the reference the distributed system is checked against, and its baseline:
 LearnerCore (replay + agent + ratio rule) that the learner service drives, fed directly by
 one environment through the rollout loop (``shared.rollout``) instead of by actors over Zenoh.
 Writes runs/<run>/ like the distributed system: config, checkpoints, stats/learner.csv (loss,
-mean Q) and stats/episodes.csv (length, return, epsilon).
+mean Q) and stats/episodes.csv (length, return, epsilon), both also as TensorBoard events in tb/train/.
 """
 
 from __future__ import annotations
@@ -29,7 +29,14 @@ from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore, RateMeter, resume_from
 from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
-from shared.learning.stats import CsvLog, EpisodeRow, LearnerRow, rewind
+from shared.learning.stats import (
+    CsvLog,
+    EpisodeRow,
+    LearnerRow,
+    TensorBoardLog,
+    episode_row,
+    rewind,
+)
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import validate_name
@@ -39,12 +46,13 @@ log = logging.getLogger("cogexplore.train")
 
 class _Training:
     """Rollout observer: every transition into the learner, the updates it makes due, their log rows
-    and checkpoints; every finished episode to ``episodes.csv`` and the progress bar."""
+    and checkpoints; every finished episode to ``episodes.csv`` and the progress bar. Both kinds of
+    row also go to TensorBoard."""
 
     def __init__(self, cfg: RunConfig, core: LearnerCore, checkpoints: CheckpointManager, guide: ExpertGuide,
-                 learner_log: CsvLog, episode_log: CsvLog, bar: Any):
+                 learner_log: CsvLog, episode_log: CsvLog, bar: Any, board: TensorBoardLog):
         self.cfg, self.core, self.checkpoints, self.guide = cfg, core, checkpoints, guide
-        self.learner_log, self.episode_log, self.bar = learner_log, episode_log, bar
+        self.learner_log, self.episode_log, self.bar, self.board = learner_log, episode_log, bar, board
         self.started = time.monotonic()
         self.update_rate = RateMeter()
         self.config_dict = cfg.to_dict()
@@ -65,12 +73,14 @@ class _Training:
             self.bar.update(1)
             if core.updates % train.log_every == 0:
                 loss, mean_q = core.recent(train.log_every)
-                self.learner_log.write(LearnerRow(
+                row = LearnerRow(
                     time_s=time.monotonic() - self.started, update=core.updates,
                     policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
                     updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
                     replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
-                    demo_agreement=core.recent_demo_agreement(train.log_every)))
+                    demo_agreement=core.recent_demo_agreement(train.log_every))
+                self.learner_log.write(row)
+                self.board.write_row(row)
             if core.updates % train.checkpoint_every == 0:
                 self.save()
 
@@ -78,12 +88,10 @@ class _Training:
         info, epsilon = episode.info, episode.last_step.choice.epsilon
         if not self.guide.active:  # the bar shows the network's episodes, not the expert's
             self.recent_lengths = (self.recent_lengths + [info["step"]])[-20:]
-        self.episode_log.write(EpisodeRow(
-            episode=self.episodes, env_step=self.core.received, update=self.core.updates,
-            start_index=info["start_index"], steps=info["step"], episode_return=episode.episode_return,
-            epsilon=epsilon, collision_cause=info["collision_cause"], distance_m=info["distance_from_start_m"],
-            path_length_m=info["path_length_m"], time_s=time.monotonic() - self.started,
-            expert_guided=int(self.guide.active), world=info["world"]))
+        row = episode_row(episode, env_step=self.core.received, update=self.core.updates,
+                          time_s=time.monotonic() - self.started, expert_guided=self.guide.active)
+        self.episode_log.write(row)
+        self.board.write_row(row)
         self.episodes += 1
         loss, _ = self.core.recent()
         mean_steps = sum(self.recent_lengths) / max(len(self.recent_lengths), 1)
@@ -94,8 +102,9 @@ class _Training:
 
 
 def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
-                         progress: bool = True, max_minutes: float | None = None) -> dict:
-    """Train until ``total_updates`` (or ``max_minutes``, or ``stop``); returns a summary."""
+                         progress: bool = True, max_minutes: float | None = None, tensorboard: bool = True) -> dict:
+    """Train until ``total_updates`` (or ``max_minutes``, or ``stop``); returns a summary. ``tensorboard``:
+    the rows also as TensorBoard events in ``tb/train``."""
     stop = stop or threading.Event()
     paths.make()
     save_config(cfg, paths)
@@ -111,9 +120,10 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                                  guide=guide)
     deadline = time.monotonic() + max_minutes * 60 if max_minutes else None
     with CsvLog(paths.stats, LearnerRow) as learner_log, CsvLog(paths.stats, EpisodeRow) as episode_log, \
+            TensorBoardLog(paths.tensorboard_folder("train") if tensorboard else None) as board, \
             tqdm(total=cfg.train.total_updates, initial=core.updates, desc="train", unit="upd",
                  dynamic_ncols=True, disable=not progress) as bar:
-        training = _Training(cfg, core, checkpoints, guide, learner_log, episode_log, bar)
+        training = _Training(cfg, core, checkpoints, guide, learner_log, episode_log, bar, board)
         loop = Rollout(env, policy, [guide, training], env_steps=core.received)  # epsilon goes on after a resume
         loop.begin_episode(seed=cfg.train.seed + (core.received if resumed else 0))
         while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
@@ -126,9 +136,6 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
 
 
 def run_train_command(args: argparse.Namespace) -> int:
-    if not args.single_process:
-        print("cogexplore train needs --single-process; the distributed trainer is `cogexplore up`")
-        return 2
     run = args.run or time.strftime("train-%Y%m%d-%H%M%S")
     validate_name(run, "run name")
     paths = RunPaths(Path(args.runs_dir) / run)
@@ -137,6 +144,6 @@ def run_train_command(args: argparse.Namespace) -> int:
         cfg = cfg.with_overrides({"train.total_updates": args.updates})
     setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
-                                  max_minutes=args.minutes)
+                                  max_minutes=args.minutes, tensorboard=args.tensorboard)
     print(result)
     return 0

@@ -7,9 +7,10 @@ command lines, meeting at one Zenoh router.
 The bus is closed to everyone but the run's own services (services.bus.security): the first ``up``
 of a run writes ``runs/<run>/secure/`` (a user and password per role, the access control list), the
 router loads its config and every process its role's. On loopback the links are plain TCP; a
-router that listens beyond the machine (``--listen tls/0.0.0.0:7447``) needs the folder made with
-``cogexplore secure init runs/<run>/secure --tls --host <name>``, and ``up`` refuses to start without
-it, or with a plain TCP endpoint there.
+router that listens beyond the machine (``--listen tls/0.0.0.0:7447``) needs the folder with TLS
+certificates: ``--tls`` makes it so (for this machine's name and any ``--host``), as does ``cogexplore
+secure init runs/<run>/secure --tls --host <name>``; ``up`` refuses to start without them, or with a
+plain TCP endpoint there.
 """
 
 from __future__ import annotations
@@ -19,10 +20,12 @@ import collections
 import logging
 import os
 import signal
+import socket
 import subprocess
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -97,7 +100,9 @@ class Launcher:
         self.children: list[Child] = []
         self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
         # checked before the run folder exists: a refused start leaves nothing behind
-        self.secure = secure_files(self.paths.root / "secure", self.run, tls=not all(map(_loopback, self.listen)))
+        make_tls = getattr(args, "tls", False)
+        self.secure = secure_files(self.paths.secure, self.run, tls=make_tls or not all(map(_loopback, self.listen)),
+                                   make_tls=make_tls, hosts=[socket.gethostname(), *(getattr(args, "host", None) or [])])
         self.paths.make()
 
     def settings(self, role: str) -> ZenohSettings:
@@ -122,7 +127,8 @@ class Launcher:
 
     def _common(self, role: str) -> list[str]:
         return ["--run", self.run, "--runs-dir", str(self.args.runs_dir), "--connect", self.endpoint,
-                "--zenoh-mode", "client", "--zenoh-config", str(self.secure.config(role))]
+                "--zenoh-mode", "client", "--zenoh-config", str(self.secure.config(role)),
+                "--tensorboard" if self.args.tensorboard else "--no-tensorboard"]
 
     def start(self) -> None:
         a = self.args
@@ -259,7 +265,7 @@ class Launcher:
             if result.returncode != 0:
                 print(f"{' '.join(argv[3:5])} failed (exit {result.returncode})", file=sys.stderr)
                 return result.returncode
-        print(f"report: {self.paths.report / 'report.md'}", file=sys.stderr)
+        print(f"report: {self.paths.report / 'report.html'} (and report.md)", file=sys.stderr)
         return 0
 
 
@@ -284,15 +290,16 @@ def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> t
     return endpoints, f"{protocol}/localhost:{address.rsplit(':', 1)[1]}"
 
 
-def secure_files(root: Path, run: str, tls: bool) -> SecureFiles:
-    """The run's security folder: made now on first use (credentials and access control, no TLS),
-    refused when TLS is needed and it has none."""
+def secure_files(root: Path, run: str, tls: bool, *, make_tls: bool = False, hosts: Sequence[str] = ()) -> SecureFiles:
+    """The run's security folder: made now on first use (credentials and access control, and with
+    ``make_tls`` certificates for ``hosts``), refused when TLS is needed and it has none."""
     files = SecureFiles(root)
     if not files.credentials.exists():
-        if tls:
-            raise SecurityError(f"a router that listens beyond this machine needs TLS certificates: run `cogexplore "
-                                f"secure init {root} --tls --host <this machine's name>` first")
-        init_secure(root, run)
+        if tls and not make_tls:
+            raise SecurityError(f"a router that listens beyond this machine needs TLS certificates: pass --tls "
+                                f"(--host NAME for a name other machines use), or run `cogexplore secure init {root} "
+                                "--tls --host <this machine's name>` first")
+        init_secure(root, run, tls=make_tls, hosts=hosts if make_tls else ())
     return files.check(run, tls=tls)
 
 

@@ -4,23 +4,34 @@ from __future__ import annotations
 
 import argparse
 
+from services.options import add_runs_dir_argument, add_tensorboard_argument
+from shared.config import DEFAULT_PRESET
+
 
 def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--actors", type=int, default=2, help="actor processes (default: 2)")
-    parser.add_argument("--preset", default="fast", help="preset name or TOML path (default: fast)")
+    parser.add_argument("--preset", default=None,
+                        help=f"preset name or TOML path (default: the run's config.toml if it exists, else "
+                             f"{DEFAULT_PRESET}, the shipped model's recipe)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                         help="override one config field (repeatable)")
     limit = parser.add_mutually_exclusive_group()
     limit.add_argument("--updates", type=int, default=None, help="stop after this many learner updates")
     limit.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
     parser.add_argument("--run", default=None, help="run name (default: run-<date>-<time>)")
-    parser.add_argument("--runs-dir", default="runs")
+    add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
+    add_tensorboard_argument(parser)  # passed on to the learner, actors and evaluator
     parser.add_argument("--port", type=int, default=None, help="router port on loopback (default: a free port)")
     parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
-                        help="where the router listens instead, e.g. tls/0.0.0.0:7447 so that actors on other "
-                             "machines can join (TLS only: make the certificates first with `cogexplore secure init "
-                             "runs/<run>/secure --tls --host <this machine>`); repeatable")
+                        help="where the router listens instead: tls/0.0.0.0:7447 with --tls so that actors on "
+                             "other machines can join (beyond loopback TLS only), tcp/127.0.0.1:PORT for actors "
+                             "started by hand on this one; repeatable")
+    parser.add_argument("--tls", action="store_true",
+                        help="a new run's security folder gets TLS certificates (the router's for localhost, this "
+                             "machine's hostname and each --host): needed to listen beyond loopback")
+    parser.add_argument("--host", action="append", default=[], metavar="NAME",
+                        help="with --tls: another name or address other machines reach this one by (repeatable)")
     parser.add_argument("--eval-every", type=int, default=1000, help="evaluator: updates between evaluations")
     parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
     parser.add_argument("--final-episodes", type=int, default=10,
@@ -58,7 +69,7 @@ def add_bench_fuzz_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--big-bytes", type=int, default=0,
                         help="also one zero-filled payload this large per key and round (memory; e.g. 50000000)")
     parser.add_argument("--preset", default="smoke", help="the fuzzed run's preset (default smoke)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0, help="seed of the payloads (default 0)")
     parser.add_argument("--runs-dir", default=None, help="keep the run folder here (default: a temporary one, "
                                                          "removed unless a service crashed)")
     parser.add_argument("--json", action="store_true", help="print JSON (always)")

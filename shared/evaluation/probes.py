@@ -11,8 +11,8 @@ changes: ``python -m shared.evaluation.probes``), and ``render_probe`` renders a
 other sensor size.
 
 A user's own depth images come in through ``load_probe_image``: a 16-bit PNG in millimetres or
-a ``.npy`` in metres, resized to the sensor's size (nearest neighbour, with a note) when it
-does not match.
+a ``.npy`` in metres, resized to the sensor's size as its camera would sample it
+(``shared.depth.resize_depth``, with a note) when it does not match.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from shared.config import SensorConfig
-from shared.depth import MM_PER_M
+from shared.depth import MM_PER_M, resize_depth
 from shared.errors import CogexploreError
 
 PROBE_DIR = Path(__file__).resolve().with_name("probe_scenes")
@@ -150,22 +150,14 @@ def load_probes(directory: str | Path = PROBE_DIR, sensor_cfg: SensorConfig | No
     return probes
 
 
-def _resize_nearest(depth: np.ndarray, height: int, width: int) -> np.ndarray:
-    # Nearest neighbour: interpolating across an edge would invent depths no surface has, and
-    # would smear "no return" (0) into its neighbours.
-    rows = np.minimum(((np.arange(height) + 0.5) * depth.shape[0] / height).astype(int), depth.shape[0] - 1)
-    cols = np.minimum(((np.arange(width) + 0.5) * depth.shape[1] / width).astype(int), depth.shape[1] - 1)
-    return depth[rows[:, None], cols[None, :]]
-
-
 def load_probe_image(path: str | Path, sensor_cfg: SensorConfig | None = None,
                      resize: bool = True) -> tuple[np.ndarray, list[str]]:
     """A user depth image as (H, W) float32 metres for the sensor, and notes on what was done.
 
     ``.png``: 16-bit (or 8-bit, with a note) grayscale in millimetres, 0 = no return.
     ``.npy``: float metres (NaN refused; a uint16 array is taken as millimetres).
-    A (H, W, 1) array is squeezed. Another size is resized to the sensor's (nearest
-    neighbour) with a note, or refused when ``resize`` is False.
+    A (H, W, 1) array is squeezed. Another size is resized to the sensor's (``resize_depth``)
+    with a note, or refused when ``resize`` is False.
     """
     cfg = sensor_cfg or SensorConfig()
     p = Path(path)
@@ -217,8 +209,8 @@ def load_probe_image(path: str | Path, sensor_cfg: SensorConfig | None = None,
         if not resize:
             raise ProbeError(f"{p}: {depth.shape[1]}x{depth.shape[0]} image, the sensor is {cfg.width}x{cfg.height}")
         notes.append(f"{p.name}: resized from {depth.shape[1]}x{depth.shape[0]} to {cfg.width}x{cfg.height} "
-                     "(nearest neighbour)")
-        depth = _resize_nearest(depth, *want)
+                     "(as the camera samples it)")
+        depth = resize_depth(depth, *want)
     beyond = depth > cfg.max_range_m
     if beyond.any():
         notes.append(f"{p.name}: {int(beyond.sum())} pixels beyond the sensor's {cfg.max_range_m} m range set to 0 "

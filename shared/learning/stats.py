@@ -4,14 +4,23 @@ Each file has one record type, whose fields are its columns in order; the learne
 the single-process trainer both fill a :class:`LearnerRow` by name and write it with
 :class:`CsvLog`, so a new column is one new field and cannot misalign either writer. A field's
 ``fmt`` (a format spec) says how its cell is written; None is an empty cell.
+
+:class:`TensorBoardLog` writes the same rows (and any mapping of numbers, such as an evaluation's
+summary) as TensorBoard scalars, tagged ``<file stem>/<column>`` (``learner/loss``,
+``episodes/steps``) at the row type's ``STEP`` column.
 """
 
 from __future__ import annotations
 
 import csv
+import logging
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
+from numbers import Real
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
+
+log = logging.getLogger("cogexplore.stats")
 
 
 def _cell(fmt: str | None = None, column: str | None = None) -> Any:
@@ -20,10 +29,16 @@ def _cell(fmt: str | None = None, column: str | None = None) -> Any:
 
 class _Row:
     FILE: ClassVar[str]
+    STEP: ClassVar[str]
+    """The column that is the row's x-axis in TensorBoard."""
 
     @classmethod
     def columns(cls) -> tuple[str, ...]:
         return tuple(f.metadata.get("column") or f.name for f in fields(cls))  # type: ignore[arg-type]
+
+    def values(self) -> dict[str, Any]:
+        """The row by column name."""
+        return {column: getattr(self, f.name) for column, f in zip(self.columns(), fields(self))}  # type: ignore[arg-type]
 
     def cells(self) -> list[str]:
         out = []
@@ -39,6 +54,7 @@ class LearnerRow(_Row):
     second (learner service)."""
 
     FILE: ClassVar[str] = "learner.csv"
+    STEP: ClassVar[str] = "update"
 
     time_s: float = _cell(".3f")
     """Seconds since this process started (it restarts at a resume)."""
@@ -65,9 +81,12 @@ class LearnerRow(_Row):
 
 @dataclass(frozen=True)
 class EpisodeRow(_Row):
-    """One row of ``stats/episodes.csv`` (single-process trainer): one training episode."""
+    """One row of ``stats/episodes.csv`` (single-process trainer): one training episode. An actor
+    fills one per episode too, for TensorBoard only (``env_step``: its own steps; ``update``: the
+    policy version acting when it ended)."""
 
     FILE: ClassVar[str] = "episodes.csv"
+    STEP: ClassVar[str] = "env_step"
 
     episode: int = _cell()
     env_step: int = _cell()
@@ -82,6 +101,16 @@ class EpisodeRow(_Row):
     time_s: float = _cell(".3f")
     expert_guided: int = _cell()
     world: str = _cell()
+
+
+def episode_row(episode: Any, *, env_step: int, update: int, time_s: float, expert_guided: bool) -> EpisodeRow:
+    """The row of a finished ``shared.rollout.Episode`` (its info names the rest)."""
+    info = episode.info
+    return EpisodeRow(
+        episode=episode.index, env_step=env_step, update=update, start_index=info["start_index"],
+        steps=info["step"], episode_return=episode.episode_return, epsilon=episode.last_step.choice.epsilon,
+        collision_cause=info["collision_cause"], distance_m=info["distance_from_start_m"],
+        path_length_m=info["path_length_m"], time_s=time_s, expert_guided=int(expert_guided), world=info["world"])
 
 
 RowT = TypeVar("RowT", bound=_Row)
@@ -141,6 +170,93 @@ class CsvLog(Generic[RowT]):
         self._file.close()
 
     def __enter__(self) -> "CsvLog[RowT]":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+TENSORBOARD_FLUSH_S = 5.0
+"""How often a TensorBoard writer flushes its events to disk (a killed process loses at most this)."""
+
+
+def scalars(values: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, float]]:
+    """The numbers of ``values`` as (name, value); a nested mapping's names join with ``/``, anything
+    else (None, text, lists) is left out."""
+    for name, value in values.items():
+        if isinstance(value, Mapping):
+            yield from scalars(value, f"{prefix}{name}/")
+        elif isinstance(value, Real):  # bool too: 0 or 1
+            yield f"{prefix}{name}", float(value)
+
+
+class TensorBoardLog:
+    """One process's scalars as TensorBoard event files in ``folder`` (``runs/<run>/tb/<process>/``,
+    so that no two writers share a file); ``folder`` None writes nothing.
+
+    Tags are ``<group>/<name>``; a row's group is its file's stem and its step its ``STEP`` column,
+    so ``learner.csv``'s ``loss`` at update 200 is ``learner/loss`` at step 200. A row whose step is
+    the one its group wrote last is skipped (the learner logs every second, also while no update
+    runs: one point per step); a lower step is written (a resumed run goes back, and TensorBoard
+    drops the orphaned points after it, as ``rewind`` does the CSV rows). TensorBoard is a view, not
+    the record: no ``tensorboard`` package or a folder that cannot be written is logged once and the
+    process goes on without it. The writer (torch's ``SummaryWriter``, imported only here) flushes
+    every ``flush_s`` seconds and on :meth:`close`.
+    """
+
+    def __init__(self, folder: Path | None, flush_s: float = TENSORBOARD_FLUSH_S):
+        self.folder = None if folder is None else Path(folder)
+        self._writer: Any = None
+        self._last_step: dict[str, int] = {}
+        if self.folder is None:
+            return
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+
+            self._writer = SummaryWriter(str(self.folder), flush_secs=flush_s)
+        except Exception as exc:  # ImportError, OSError, ...: whatever it is, training goes on
+            self._give_up(exc)
+
+    @property
+    def enabled(self) -> bool:
+        return self._writer is not None
+
+    def write_row(self, row: _Row) -> None:
+        values = row.values()
+        step = int(values.pop(row.STEP))
+        group = Path(row.FILE).stem
+        if self._last_step.get(group) != step:
+            self.write(group, values, step)
+
+    def write(self, group: str, values: Mapping[str, Any], step: int) -> None:
+        """``values``' numbers (see :func:`scalars`) as ``<group>/<name>`` at ``step``."""
+        if self._writer is None:
+            return
+        try:
+            for name, value in scalars(values):
+                self._writer.add_scalar(f"{group}/{name}", value, step)
+        except Exception as exc:
+            self._give_up(exc)
+        self._last_step[group] = step
+
+    def _give_up(self, exc: BaseException) -> None:
+        log.warning("TensorBoard off: cannot write %s (%s: %s)", self.folder, type(exc).__name__, exc)
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            try:
+                writer.close()
+            except Exception:
+                pass
+
+    def close(self) -> None:
+        writer, self._writer = self._writer, None
+        if writer is not None:
+            try:
+                writer.close()
+            except Exception as exc:
+                log.warning("TensorBoard: closing %s failed (%s: %s)", self.folder, type(exc).__name__, exc)
+
+    def __enter__(self) -> "TensorBoardLog":
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -7,8 +7,15 @@ depth falls below l_s = 0.55 m -- or the robot body touching an obstacle; ``info
 the cause. Reaching the step cap is ``truncated``, never ``terminated``, so value targets
 bootstrap through it.
 
+Importing this module registers the Gymnasium ids (``shared.sim.gym_register``, which also says
+how the TimeLimit and the env's own step cap meet)::
+
     import shared.sim.env, gymnasium as gym
     env = gym.make("cogexplore/Explore-v0", world="paper-indoor", speed_table="test")
+
+Render modes: ``depth_array`` (the (H, W) image) and ``rgb_array`` (``shared.sim.render``: the
+depth colour-mapped beside a top-down map with the robot and its path this episode), one frame
+per step, so ``render_fps`` is ``1 / control_period_s``.
 """
 
 from __future__ import annotations
@@ -32,11 +39,13 @@ from shared.config import (
     SensorConfig,
 )
 from shared.errors import CogexploreError
+from shared.sim.gym_register import ENV_ID  # noqa: F401  (re-exported; the import registers the ids)
 from shared.sim.robot import Robot, build_model
 from shared.sim.sensor import DepthCamera
 from shared.sim.world import World, WorldError, load_world
 
-ENV_ID = "cogexplore/Explore-v0"
+MAP_RESOLUTION_M = 0.05
+"""Cell side of the occupancy grid that random starts and ``rgb_array`` frames use."""
 log = logging.getLogger("cogexplore.env")
 
 
@@ -62,6 +71,7 @@ class _Scene:
     robot: Robot
     camera: DepthCamera
     _clear: tuple[Any, np.ndarray] | None = None
+    _canvas: Any = None
 
     @classmethod
     def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
@@ -70,14 +80,23 @@ class _Scene:
         return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
 
     def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:
-        """The 5 cm occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
+        """The occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
         if self._clear is None:
             from shared.sim.maps import clearance_map, occupancy_grid
 
-            grid = occupancy_grid(self.world, 0.05)
+            grid = occupancy_grid(self.world, MAP_RESOLUTION_M)
             clearance = clearance_map(grid.occupied, grid.resolution_m)
             self._clear = grid, np.argwhere(clearance >= clearance_m)
         return self._clear
+
+    def canvas(self) -> Any:
+        """The world's top-down map for ``rgb_array`` frames (a ``shared.sim.render.MapCanvas``)."""
+        if self._canvas is None:
+            from shared.sim.maps import occupancy_grid
+            from shared.sim.render import MapCanvas
+
+            self._canvas = MapCanvas(occupancy_grid(self.world, MAP_RESOLUTION_M))
+        return self._canvas
 
 
 class ExploreEnv(gym.Env):
@@ -89,7 +108,7 @@ class ExploreEnv(gym.Env):
     :class:`World`.
     """
 
-    metadata = {"render_modes": ["depth_array"], "render_fps": 2}
+    metadata = {"render_modes": ["depth_array", "rgb_array"], "render_fps": 2}  # fps of the default 0.5 s period
 
     def __init__(self, config: EnvConfig | None = None, sensor: SensorConfig | dict | None = None,
                  render_mode: str | None = None, **overrides: Any):
@@ -103,6 +122,7 @@ class ExploreEnv(gym.Env):
             sensor = SensorConfig(**sensor)
         self.env_config = cfg
         self.sensor_config = sensor or SensorConfig()
+        self.metadata = {**type(self).metadata, "render_fps": 1.0 / cfg.control_period_s}
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise EnvError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
         self.render_mode = render_mode
@@ -128,6 +148,7 @@ class ExploreEnv(gym.Env):
         self._start_index = 0
         self._start_xy = (0.0, 0.0)
         self._last_xy = (0.0, 0.0)
+        self._trail: list[tuple[float, float]] = []  # the episode's (x, y), start first, for rgb_array
         self._path_length = 0.0
         self._steps = 0
         self._random_start = False
@@ -167,6 +188,7 @@ class ExploreEnv(gym.Env):
         x, y, _ = pose
         self._start_index = int(index)
         self._start_xy = self._last_xy = (x, y)
+        self._trail = [(x, y)]
         self._path_length = 0.0
         self._steps = 0
         return self._depth, self._info(None, min_valid_depth(self._depth))
@@ -181,6 +203,7 @@ class ExploreEnv(gym.Env):
         x, y, _ = self.robot.pose()
         self._path_length += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         self._last_xy = (x, y)
+        self._trail.append((x, y))
 
         min_depth = min_valid_depth(self._depth)
         cause = "contact" if touched else ("depth" if min_depth < cfg.collision_distance_m else None)
@@ -195,19 +218,23 @@ class ExploreEnv(gym.Env):
         pose (shared.learning.demos). Only within the episode and world it was taken in; the sensor's noise
         draws (``SensorConfig.noise_std_m``) are not rewound."""
         return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
-                self._depth.copy())
+                self._depth.copy(), tuple(self._trail))
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
         """Return to a :meth:`snapshot` of the current episode."""
-        scene, state, self._steps, self._path_length, self._last_xy, depth = snapshot
+        scene, state, self._steps, self._path_length, self._last_xy, depth, trail = snapshot
         if scene is not self._scene:
             raise EnvError("a snapshot can only be restored in the episode's own world")
         self.robot.set_state(state)
         self._depth = depth.copy()
+        self._trail = list(trail)
 
     def render(self):
         if self.render_mode == "depth_array":
             return self._depth.copy()
+        if self.render_mode == "rgb_array":
+            return self._scene.canvas().frame(self._depth, self.sensor_config.max_range_m, self._trail,
+                                              self.robot.pose(), self.env_config.robot_radius_m)
         return None
 
     def close(self):
@@ -286,7 +313,3 @@ class ExploreEnv(gym.Env):
             "path_length_m": self._path_length,
             "step": self._steps,
         }
-
-
-if ENV_ID not in gym.registry:
-    gym.register(id=ENV_ID, entry_point="shared.sim.env:ExploreEnv")

@@ -509,6 +509,10 @@ class CoverageTracker:
 
 HEATMAP_CMAP = "YlOrRd"
 """Pale yellow (rare) to dark red (busiest): never as dark as an obstacle."""
+MAP_FREE_RGB = (244, 242, 236)
+"""Free cells on every top-down map (these figures and the env's ``rgb_array`` frames)."""
+MAP_OBSTACLE_RGB = (43, 43, 43)
+"""Occupied cells on every top-down map."""
 
 
 def draw_map(ax: Any, world: Mappable, grid: OccupancyGrid, heatmap: np.ndarray | None = None,
@@ -520,8 +524,9 @@ def draw_map(ax: Any, world: Mappable, grid: OccupancyGrid, heatmap: np.ndarray 
     from matplotlib.colors import ListedColormap
 
     xmin, ymin, xmax, ymax = grid.extent
+    cmap = ListedColormap([np.divide(MAP_FREE_RGB, 255), np.divide(MAP_OBSTACLE_RGB, 255)])
     ax.imshow(grid.occupied.astype(np.uint8), origin="lower", extent=(xmin, xmax, ymin, ymax),
-              cmap=ListedColormap(["#f4f2ec", "#2b2b2b"]), vmin=0, vmax=1, interpolation="nearest")
+              cmap=cmap, vmin=0, vmax=1, interpolation="nearest")
     im = None
     if heatmap is not None:
         hm = np.asarray(heatmap, dtype=np.float64)

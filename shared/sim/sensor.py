@@ -29,6 +29,7 @@ import mujoco
 import numpy as np
 
 from shared.config import SensorConfig
+from shared.depth import range_gate
 from shared.sim.robot import CAMERA_NAME, FLOOR_GEOM, ROBOT_BODY
 
 GL_TOLERANCE_M = 0.02
@@ -136,9 +137,7 @@ class DepthCamera:
             depth = depth + self.rng.normal(0.0, cfg.noise_std_m, depth.shape).astype(np.float32) * (depth > 0)
         if cfg.dropout_prob > 0:
             depth = np.where(self.rng.random(depth.shape) < cfg.dropout_prob, 0.0, depth)
-        invalid = (depth < max(cfg.min_range_m, 1e-6)) | (depth > cfg.max_range_m)
-        depth = np.where(invalid, 0.0, depth).astype(np.float32, copy=False)
-        return depth
+        return range_gate(depth, cfg.min_range_m, cfg.max_range_m)
 
     def _raycast(self, data: mujoco.MjData) -> np.ndarray:
         cfg = self.cfg

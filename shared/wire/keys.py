@@ -7,6 +7,7 @@ and read them back with :func:`parse_key`. The layout, for run ``<run>``::
     cogexplore/<run>/weights                    WeightsMessage stream from the learner (put, BLOCK)
     cogexplore/<run>/weights/latest             queryable: the learner's newest WeightsMessage
     cogexplore/<run>/flow                       FlowControl from the learner (replay-ratio credit)
+    cogexplore/<run>/config                     queryable: the learner's RunConfigMessage
     cogexplore/<run>/stats/episode/<actor>      EpisodeStats of one actor
     cogexplore/<run>/stats/learner/<learner>    LearnerStats
     cogexplore/<run>/stats/eval/<evaluator>     EvalResult
@@ -115,6 +116,12 @@ class RunKeys:
         """The learner's queryable answering with its newest WeightsMessage."""
         return f"{self.prefix}/weights/latest"
 
+    # -- configuration -----------------------------------------------------------------
+    @property
+    def config(self) -> str:
+        """The learner's queryable answering with the run's configuration (RunConfigMessage)."""
+        return f"{self.prefix}/config"
+
     # -- flow control ------------------------------------------------------------------
     @property
     def flow(self) -> str:
@@ -157,8 +164,8 @@ class RunKeys:
 class ParsedKey:
     """A concrete key taken apart by :func:`parse_key`.
 
-    ``channel`` is one of ``transitions``, ``weights``, ``weights_latest``, ``stats``,
-    ``alive``. ``kind`` is the stats kind or the liveliness role (None elsewhere); ``source``
+    ``channel`` is one of ``transitions``, ``weights``, ``weights_latest``, ``config``,
+    ``stats``, ``alive``. ``kind`` is the stats kind or the liveliness role (None elsewhere); ``source``
     is the actor / process id (None for the weights keys).
     """
 
@@ -187,6 +194,8 @@ def parse_key(key: object) -> ParsedKey:
             return ParsedKey(run, "weights")
         if rest == ["weights", "latest"]:
             return ParsedKey(run, "weights_latest")
+        if rest == ["config"]:
+            return ParsedKey(run, "config")
         if rest[0] == "stats" and len(rest) == 3:
             return ParsedKey(run, "stats", _validate_stats_kind(rest[1]),
                              validate_name(rest[2], "source id"))
@@ -196,4 +205,4 @@ def parse_key(key: object) -> ParsedKey:
     except KeyExprError as exc:
         raise KeyExprError(f"key {text!r}: {exc}") from None
     raise KeyExprError(f"key {text!r} is not a cogexplore key (expected transitions/<actor>, "
-                       "weights, weights/latest, stats/<kind>/<id> or alive/<role>/<id>)")
+                       "weights, weights/latest, config, stats/<kind>/<id> or alive/<role>/<id>)")

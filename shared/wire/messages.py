@@ -44,7 +44,7 @@ from typing import Any, ClassVar, Mapping, Sequence, TypeVar
 import msgpack
 import numpy as np
 
-from shared.config import NUM_ACTIONS
+from shared.config import NUM_ACTIONS, ConfigError, RunConfig, from_dict
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 from shared.wire.keys import KeyExprError, validate_name
@@ -777,6 +777,37 @@ class EvalResult(Message):
     def mean_steps(self) -> float:
         """The paper's figure of merit: mean steps before collision (capped at max_steps)."""
         return sum(self.steps) / len(self.steps)
+
+
+@_register
+@dataclass(frozen=True)
+class RunConfigMessage(Message):
+    """The configuration a run's learner trains with, the whole :class:`~shared.config.RunConfig` as
+    its sections' tables: what an actor or the evaluator started without a preset takes, and what one
+    started with a preset is checked against (``shared.config.require_same_run``). Built from a
+    RunConfig or its ``to_dict()``; every field is validated as a preset's are."""
+
+    TYPE: ClassVar[str] = "run_config"
+    MAX_BYTES: ClassVar[int] = 64 * 1024
+
+    learner_id: str
+    config: dict[str, dict[str, Any]]
+
+    def __post_init__(self) -> None:
+        _set(self, "learner_id", _chunk(self.learner_id, "learner_id"))
+        config = self.config
+        if not isinstance(config, RunConfig):
+            try:
+                config = from_dict(config)
+            except ConfigError as exc:
+                raise MessageError(RANGE, f"config: {exc}") from None
+            except TypeError as exc:  # names that are not all text (msgpack keys may be bytes)
+                raise MessageError(FIELD_TYPE, f"config: {exc}") from None
+        _set(self, "config", config.to_dict())
+
+    @property
+    def run_config(self) -> RunConfig:
+        return from_dict(self.config)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -58,6 +58,35 @@ def test_the_installed_command_prints_its_tree_quickly_and_names_every_command()
         assert f"    {command}" in proc.stdout, command
 
 
+def test_version_is_the_installed_one(capsys) -> None:
+    import importlib.metadata
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip() == f"cogexplore {importlib.metadata.version('cogexplore')}"
+
+
+def _parsers(parser, path=()):
+    """Every (command path, parser) of the tree."""
+    import argparse
+
+    yield path, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, child in action.choices.items():
+                yield from _parsers(child, (*path, name))
+
+
+def test_every_option_of_every_command_says_what_it_does() -> None:
+    from services.cli import build_parser
+
+    silent = [f"cogexplore {' '.join(path)} {action.option_strings[0]}"
+              for path, parser in _parsers(build_parser()) for action in parser._actions
+              if action.option_strings and not action.help]
+    assert not silent, silent
+
+
 @pytest.mark.parametrize("argv,message", [
     (["actor", "--connect", "not-an-endpoint"], "--connect endpoint 'not-an-endpoint' is invalid"),
     (["learner", "--zenoh-config", "/no/such/zenoh.json5"], "Zenoh config file /no/such/zenoh.json5 does not exist"),

@@ -123,14 +123,14 @@ def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: P
     assert f"{card['eval']['paper-indoor']['mean_steps']:.1f}" in card_md
 
     out = tmp_path / "drl.json"
-    assert main(["evaluate", "--checkpoint", "pretrained", "--starts", "0", "--episodes-per-start", "1",
+    assert main(["evaluate", "--checkpoint", "pretrained", "--starts", "1", "--episodes-per-start", "1",
                  "--max-steps", "10", "--json", str(out), "--device", "cpu", "--quiet"]) == 0
     results = validate_results_json(out.read_text())
     assert results.meta["world"] == "paper-indoor" and results.meta["policy_version"] == drl.policy_version
     assert results.meta["sensor"]["width"] == drl.net.sensor_cfg.width
 
     out = tmp_path / "sl.json"
-    assert main(["evaluate", "--policy", "sl", "--checkpoint", "pretrained", "--starts", "0",
+    assert main(["evaluate", "--policy", "sl", "--checkpoint", "pretrained", "--starts", "1",
                  "--episodes-per-start", "1", "--max-steps", "10", "--json", str(out), "--device", "cpu",
                  "--quiet"]) == 0
     results = validate_results_json(out.read_text())

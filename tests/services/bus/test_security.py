@@ -151,6 +151,20 @@ def test_only_the_learner_answers_the_weights_query_and_announces_a_learner(bus:
         assert KEYS.alive("learner", "fake") not in watch.alive
 
 
+def test_only_the_learner_answers_the_config_query_and_the_actors_and_the_evaluator_may_ask(bus: Bus):
+    rogues = [serve_latest(bus.sessions[role], KEYS.config, lambda: b"rogue")  # noqa: F841
+              for role in ("actor", "evaluator", "viewer")]
+    asking = {role: bus.open(role) for role in ("actor", "evaluator", "viewer")}
+    assert query_latest(asking["actor"], KEYS.config, timeout_s=1.0) is None
+    real = serve_latest(bus.sessions["learner"], KEYS.config, lambda: b"run config")  # noqa: F841
+    settle(timeout_s=0.5)
+    for role in ("actor", "evaluator"):
+        assert query_latest(asking[role], KEYS.config, timeout_s=2.0) == b"run config", role
+    assert query_latest(asking["viewer"], KEYS.config, timeout_s=1.0) is None  # not a viewer's part
+    for session in asking.values():
+        session.close()
+
+
 def test_tls_with_client_certificates(tmp_path: Path):
     bus = Bus(tmp_path / "secure", tls=True)
     try:
@@ -191,3 +205,22 @@ def test_a_secured_service_refuses_to_start_without_its_files_in_one_line(tmp_pa
     assert not (tmp_path / "r").exists(), "a refused start leaves no run folder"
     code = main(["up", "--run", "r", "--runs-dir", str(tmp_path), "--listen", "tcp/0.0.0.0:7447", "--quiet"])
     assert code == 2 and "TLS only" in capsys.readouterr().err
+
+
+def test_up_with_tls_makes_the_certificates_for_this_machine(tmp_path: Path):
+    import argparse
+    import socket
+
+    from cryptography import x509
+
+    from services.up.launcher import Launcher
+    from services.up.options import add_up_arguments
+
+    parser = argparse.ArgumentParser()
+    add_up_arguments(parser)
+    launcher = Launcher(parser.parse_args(["--run", "r", "--runs-dir", str(tmp_path), "--listen", "tls/0.0.0.0:7447",
+                                           "--tls", "--host", "lab.example", "--quiet"]))
+    assert launcher.secure.tls and launcher.endpoint == "tls/localhost:7447"
+    cert = x509.load_pem_x509_certificate((launcher.secure.root / "router.pem").read_bytes())
+    names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(x509.DNSName)
+    assert {"localhost", socket.gethostname(), "lab.example"} <= set(names)

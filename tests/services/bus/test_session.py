@@ -129,6 +129,31 @@ def test_config_file_is_the_base_and_fields_override_it(tmp_path: Path) -> None:
         ZenohSettings(config_file=str(bad)).to_config()
 
 
+def test_a_service_finds_its_runs_credentials_unless_told_others(tmp_path: Path, monkeypatch, caplog) -> None:
+    import argparse
+
+    from services.actor.options import add_actor_arguments
+    from services.bus.security import init_secure
+    from services.bus.session import zenoh_settings
+
+    parser = argparse.ArgumentParser()
+    add_actor_arguments(parser)
+    monkeypatch.delenv("COGEXPLORE_ZENOH_CONFIG", raising=False)
+    argv = ["--connect", "tcp/127.0.0.1:9", "--run", "r1", "--runs-dir", str(tmp_path)]
+    assert zenoh_settings(parser.parse_args(argv), "actor").config_file is None  # no folder: none
+    files = init_secure(tmp_path / "r1" / "secure", "r1")
+    with caplog.at_level("INFO", logger="services.bus.session"):
+        found = zenoh_settings(parser.parse_args(argv), "actor")
+    assert found.config_file == str(files.config("actor")) and found.connect == ("tcp/127.0.0.1:9",)
+    assert str(files.config("actor")) in caplog.text  # the log names the file
+    assert zenoh_settings(parser.parse_args(argv), "evaluator").config_file == str(files.config("evaluator"))
+    assert zenoh_settings(parser.parse_args(argv)).config_file is None  # no role, no search
+    other = tmp_path / "other.json5"
+    assert zenoh_settings(parser.parse_args([*argv, "--zenoh-config", str(other)]), "actor").config_file == str(other)
+    monkeypatch.setenv("COGEXPLORE_ZENOH_CONFIG", str(other))
+    assert zenoh_settings(parser.parse_args(argv), "actor").config_file == str(other)
+
+
 def test_client_without_router_fails_clearly_and_can_wait_for_one() -> None:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     settings = ZenohSettings(mode="client", connect=(endpoint,))

@@ -141,7 +141,8 @@ def test_service_evaluates_due_weights_and_counts_bad_ones(router: str, tmp_path
 def service_process(router: str, runs: Path, *extra: str) -> subprocess.Popen:
     env = {**os.environ, "RERUN_ANALYTICS": "0", "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "services.evaluator", "--run", "proc", "--runs-dir", str(runs),
-           "--connect", router, "--id", "ev-proc", "--max-steps", "4", "--no-record", *SET_ARGS, *extra]
+           "--connect", router, "--id", "ev-proc", "--max-steps", "4", "--no-record", "--preset", "paper", *SET_ARGS,
+           *extra]  # a preset: no learner here to take the run's configuration from
     return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
 

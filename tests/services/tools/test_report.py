@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import base64
 import json
 import re
+from html.parser import HTMLParser
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,14 @@ import pytest
 from PIL import Image
 
 from services.cli import main
-from services.tools.report import build_report
+from services.tools.document import Heading, Paragraph, Table, html_page, markdown
+from services.tools.report import (
+    EvalPoint,
+    build_report,
+    eval_curve_points,
+    load_eval_log,
+    save_eval_curve_png,
+)
 from shared.config import SensorConfig, load_preset, to_toml
 from shared.evaluation.probes import (
     PROBE_DIR,
@@ -21,6 +30,7 @@ from shared.evaluation.probes import (
     load_probe_image,
     load_probes,
 )
+from shared.evaluation.results import load_results
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
@@ -115,6 +125,144 @@ def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_
                           device="cpu", progress=False)
     assert report.results == {"exp@1000": final}
     final.unlink()
+
+
+class PageParts(HTMLParser):
+    """What a browser would show of a report page: headings, tables (rows of cell texts), images, links."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.headings: list[str] = []
+        self.tables: list[list[list[str]]] = []
+        self.images: list[tuple[str, str]] = []
+        self.links: list[str] = []
+        self._text: list[str] | None = None
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        a = dict(attrs)
+        if tag in ("h1", "h2", "h3") or tag in ("td", "th"):
+            self._text = []
+        if tag == "table":
+            self.tables.append([])
+        elif tag == "tr":
+            self.tables[-1].append([])
+        elif tag == "img":
+            self.images.append((a["alt"], a["src"]))
+        elif tag == "a":
+            self.links.append(a["href"])
+
+    def handle_data(self, data: str) -> None:
+        if self._text is not None:
+            self._text.append(data)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in ("h1", "h2", "h3"):
+            self.headings.append("".join(self._text))
+        elif tag in ("td", "th"):
+            self.tables[-1][-1].append("".join(self._text).strip())
+        if tag in ("h1", "h2", "h3", "td", "th"):
+            self._text = None
+
+
+def markdown_tables(text: str) -> list[list[str]]:
+    """The pipe tables of a Markdown text, each as its lines without the rule."""
+    tables: list[list[str]] = []
+    previous = ""
+    for line in text.splitlines():
+        if line.startswith("|") and not line.startswith("|---"):
+            if not previous.startswith("|"):
+                tables.append([])
+            tables[-1].append(line)
+        previous = line
+    return tables
+
+
+def test_html_report_shows_every_section_table_and_image_of_the_markdown(run_dir: Path, tmp_path: Path) -> None:
+    report = build_report(run_dir, out_dir=tmp_path / "r", episodes_per_start=1, max_steps=5, baselines=("reactive",),
+                          device="cpu", progress=False)
+    out = tmp_path / "r"
+    assert report.html == out / "report.html"
+    md, page = report.markdown.read_text(), PageParts()
+    page.feed(report.html.read_text())
+    page.close()
+    # The same sections in the same order.
+    assert page.headings == [line.lstrip("#").strip().replace("`", "") for line in md.splitlines()
+                             if line.startswith("#")]
+    assert {"Evaluations during training", "Notes"} <= set(page.headings)
+    assert report.html.read_text().count("<li>") == sum(line.startswith("- ") for line in md.splitlines())
+    # The same tables, row for row and cell for cell (the Markdown's images and links as their text).
+    tables = markdown_tables(md)
+    assert len(page.tables) == len(tables) >= 7
+    for html_rows, md_rows in zip(page.tables, tables):
+        assert len(html_rows) == len(md_rows)
+        for cells, line in zip(html_rows, md_rows):
+            md_cells = [re.sub(r"!\[[^\]]*\]\([^)]*\)", "", re.sub(r"(?<!!)\[([^\]]+)\]\([^)]*\)", r"\1", c))
+                        .replace("**", "").replace("`", "").strip() for c in line.strip("|").split("|")]
+            assert cells == md_cells
+    curve = next(t for t in page.tables if t[0][0] == "Policy version")
+    assert [row[0] for row in curve[1:]] == ["0", "1000"]  # the final evaluation stands in for version 1000
+    assert curve[1][-1] == "during training" and curve[2][-1] == "final (Table III)"
+    # Every image of the Markdown, inlined byte for byte (the figures are small); every link kept.
+    md_images = re.findall(r"!\[([^\]]*)\]\(([^)]+)\)", md)
+    assert len(md_images) == len(page.images) >= 8
+    for (alt, src), (html_alt, data) in zip(md_images, page.images):
+        assert html_alt == alt and data.startswith("data:image/png;base64,")
+        assert base64.b64decode(data.split(",", 1)[1]) == (out / src).read_bytes()
+    assert page.links == re.findall(r"(?<!!)\[[^\]]+\]\(([^)]+)\)", md)
+    assert all((out / href).is_file() for href in page.links)
+    assert report.html.stat().st_size < 5_000_000
+
+
+def test_html_page_links_images_too_big_to_inline(tmp_path: Path) -> None:
+    noise = np.random.default_rng(0).integers(0, 256, (1300, 1300, 3), dtype=np.uint8)
+    Image.fromarray(noise).save(tmp_path / "big.png")  # about 5 MB: noise does not compress
+    Image.fromarray(noise[:20, :20]).save(tmp_path / "small.png")
+    doc = [Heading(1, "Figures <&>"), Paragraph("![big](big.png) and ![small](small.png)"),
+           Table(("a", "b"), (False, True), (("`x|y`", "**2.0**"),))]
+    for embed, srcs in ((None, ["big.png", "small.png"]), (False, ["big.png", "small.png"])):
+        page = PageParts()
+        page.feed(html_page(doc, "t", tmp_path, embed=embed))
+        assert [src for _, src in page.images] == srcs
+    page = PageParts()
+    page.feed(html_page(doc[:1] + [Paragraph("![small](small.png)")], "t", tmp_path))
+    assert page.headings == ["Figures <&>"] and page.images[0][1].startswith("data:image/png;base64,")
+    assert markdown(doc) == "# Figures <&>\n\n![big](big.png) and ![small](small.png)\n\n| a | b |\n|---|---:|\n" \
+                            "| `x|y` | **2.0** |\n"
+
+
+# -- the evaluation curve -------------------------------------------------------------------------
+
+
+def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) -> None:
+    # A short `cogexplore up`: the evaluator saw version 0 only, the final evaluation the last checkpoint.
+    run = make_run(tmp_path / "short", policy_version=1000)
+    (run / "config.toml").write_text(to_toml(small_config()))
+    (run / "stats").mkdir()
+    periodic = {"policy_version": 0, "episodes_per_start": 1, "max_steps": 200, "summary": {"mean_steps": 3.0}}
+    (run / "stats" / "eval.jsonl").write_text(json.dumps(periodic) + "\n")
+    final_json = run / "stats" / "final-eval.json"
+    assert main(["evaluate", "--checkpoint", str(run), "--episodes-per-start", "1", "--max-steps", "4",
+                 "--json", str(final_json), "--device", "cpu", "--quiet"]) == 0
+    final = load_results(final_json)
+    final_steps = final.summary["overall"]["mean_steps"]
+
+    # The data: version 0 from the evaluator, then the final evaluation at the checkpoint's version.
+    points = eval_curve_points(load_eval_log(run / "stats" / "eval.jsonl"), EvalPoint.final_of(final))
+    assert points == [EvalPoint(0, 3.0, 1, 200), EvalPoint(1000, final_steps, 1, 4, final=True)]
+    # A periodic evaluation of the final version is not drawn a second time: the final one stands for it.
+    again = eval_curve_points([periodic, {**periodic, "policy_version": 1000, "summary": {"mean_steps": 7.0}}],
+                              EvalPoint.final_of(final))
+    assert [(p.policy_version, p.final) for p in again] == [(0, False), (1000, True)]
+    assert again[1].mean_steps == final_steps
+    png = save_eval_curve_png(again, tmp_path / "curve.png")
+    assert png.read_bytes()[:8] == PNG_MAGIC
+
+    # The report reuses the final evaluation and draws both points.
+    report = build_report(run, episodes_per_start=1, max_steps=4, baselines=(), device="cpu", progress=False)
+    assert report.results == {"short@1000": final_json}
+    assert report.eval_curve == points
+    assert (run / "report" / "eval-curve.png").read_bytes()[:8] == PNG_MAGIC
+    assert f"| 1000 | {final_steps:.1f} | 1 | 4 | **final** (Table III) |" in report.markdown.read_text()
 
 
 def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:

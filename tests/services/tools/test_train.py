@@ -17,6 +17,7 @@ from shared.config import load_preset
 from shared.evaluation.policies import make_policy
 from shared.evaluation.protocol import evaluate_policy
 from shared.learning.checkpoints import CheckpointManager, load_model
+from shared.learning.stats import EpisodeRow, LearnerRow
 
 
 @pytest.mark.timeout(900)
@@ -64,3 +65,23 @@ def test_trainer_lets_the_expert_drive_the_drawn_episodes(tmp_path: Path):
     assert {e["world"] for e in guided} == {"box-room", "corridor"}
     assert all(e["collision_cause"] == "" and e["steps"] == "40" for e in guided)
     assert sum(int(e["steps"]) for e in plain) / len(plain) < 30
+
+
+def test_train_writes_its_rows_as_tensorboard_scalars_too(tmp_path: Path, tensorboard_scalars):
+    """`cogexplore train`: learner.csv and episodes.csv, number for number, in tb/train (TensorBoard's
+    reader); --no-tensorboard writes no tb folder."""
+    from services.cli import main
+
+    common = ["train", "--preset", "tiny", "--updates", "30", "--runs-dir", str(tmp_path), "--quiet",
+              "--set", "train.warmup_transitions=64", "--set", "train.log_every=10"]
+    assert main([*common, "--run", "tb"]) == 0
+    run = tmp_path / "tb"
+    board = tensorboard_scalars(run / "tb" / "train")
+    board.assert_steps_increase()
+    assert [s for s, _ in board.tags["learner/loss"]] == [10, 20, 30]
+    assert board.assert_match_csv(run / "stats" / "learner.csv", LearnerRow) == 3
+    assert board.assert_match_csv(run / "stats" / "episodes.csv", EpisodeRow) >= 3
+    assert {"episodes/steps", "episodes/return", "episodes/epsilon", "episodes/update"} <= set(board.tags)
+
+    assert main([*common, "--updates", "10", "--run", "off", "--no-tensorboard"]) == 0
+    assert (tmp_path / "off" / "stats" / "learner.csv").is_file() and not (tmp_path / "off" / "tb").exists()

@@ -58,7 +58,7 @@ RERUN_BIN = Path(rerun_cli.__file__).with_name("rerun")  # the binary itself: a 
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
 SET_ARGS = [a for k, v in SMALL.items() if k.startswith("sensor.") for a in ("--set", f"{k}={v}")]
 EVAL_ARGS = ["--policy", "random", "--world", "box-room", "--episodes-per-start", "1", "--max-steps", "3",
-             "--starts", "0", "1", "--quiet", *SET_ARGS]
+             "--starts", "1", "2", "--quiet", *SET_ARGS]
 CHILD_ENV = {**os.environ, "RERUN_ANALYTICS": "0", "OMP_NUM_THREADS": "1"}
 
 

@@ -282,6 +282,15 @@ def test_evaluate_baseline_out_of_the_box(tmp_path: Path) -> None:
     assert results.meta["sensor"]["width"] == 64
 
 
+def test_evaluate_starts_are_numbered_from_one_as_in_the_tables(tmp_path: Path) -> None:
+    out = tmp_path / "two.json"
+    assert evaluate(["--policy", "reactive", "--world", "box-room", "--starts", "2", "4", "--episodes-per-start",
+                     "1", "--max-steps", "3", "--json", str(out), "--set", "sensor.width=64",
+                     "--set", "sensor.height=48", "--quiet"]) == 0
+    results = validate_results_json(out.read_text())
+    assert [e.start_index for e in results.episodes] == [1, 3]  # the JSON's start_index is 0-based
+
+
 def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> None:
     run = make_run(tmp_path / "run")
     status = evaluate((["--checkpoint", str(run), "--world", "box-room,corridor", "--episodes-per-start",
@@ -311,6 +320,8 @@ def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> 
     (["--policy", "random", "--world", "nowhere"], "unknown world"),
     (["--policy", "random", "--set", "dqn.lr=1"], "only takes sensor"),
     (["--policy", "random", "--episodes-per-start", "0", "--world", "box-room"], "episodes_per_start"),
+    (["--policy", "random", "--world", "box-room", "--starts", "0"], "--starts 0: world 'box-room' has starts 1-4"),
+    (["--policy", "random", "--world", "box-room", "--starts", "1", "5"], "--starts 5: world 'box-room' has"),
 ])
 def test_evaluate_refuses_bad_options_clearly(argv: list[str], message: str, capsys) -> None:
     assert evaluate(argv + ["--quiet"]) == 2

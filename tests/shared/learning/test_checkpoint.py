@@ -243,7 +243,7 @@ def test_init_from_starts_the_whole_network_from_a_weights_file_and_refuses_misf
     ckpt = save_checkpoint(tmp_path / "ckpt.safetensors", source)
     with pytest.raises(CheckpointError, match="model export"):
         LearnerCore(base.with_overrides({"train.init_from": str(ckpt)}), device="cpu")
-    code = main(["train", "--single-process", "--preset", "tiny", "--runs-dir", str(tmp_path / "runs"),
+    code = main(["train", "--preset", "tiny", "--runs-dir", str(tmp_path / "runs"),
                  "--run", "bad", "--updates", "1", "--quiet", "--set", f"train.init_from={tmp_path}/none.safetensors"])
     assert code == 2 and "no such file" in capsys.readouterr().err
 

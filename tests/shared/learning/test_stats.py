@@ -1,13 +1,21 @@
-"""The statistics files as named records: columns from the fields, one writer, cells by format."""
+"""The statistics files as named records: columns from the fields, one writer, cells by format; the
+same rows as TensorBoard scalars, read back with TensorBoard's own reader."""
 
 from __future__ import annotations
 
 import csv
+import logging
 from pathlib import Path
 
 import pytest
 
-from shared.learning.stats import CsvLog, EpisodeRow, LearnerRow
+from shared.learning.stats import (
+    CsvLog,
+    EpisodeRow,
+    LearnerRow,
+    TensorBoardLog,
+    scalars,
+)
 
 
 def row(**changes) -> LearnerRow:
@@ -43,3 +51,38 @@ def test_a_log_writes_its_header_once_across_reopening_and_formats_each_cell(tmp
 def test_a_record_needs_every_column():
     with pytest.raises(TypeError):
         LearnerRow(time_s=0.0, update=1)  # type: ignore[call-arg]
+
+
+def test_rows_become_scalars_tagged_by_file_and_column_at_their_step_column(tmp_path: Path, tensorboard_scalars):
+    with TensorBoardLog(tmp_path / "tb" / "learner") as board:
+        assert board.enabled
+        board.write_row(row(update=10, mean_q=2.5))
+        board.write_row(row(update=10, loss=9.0))  # the same update again: one point per step
+        board.write_row(row(update=20, loss=0.25, demo_agreement=None))
+        board.write("eval", {"mean_steps": 12.5, "collisions": {"depth": 3}, "world": "box-room", "none": None}, 20)
+    got = tensorboard_scalars(tmp_path / "tb" / "learner").tags
+    numeric = {"time_s", "policy_version", "loss", "mean_q", "updates_per_s", "transitions", "replay_size",
+               "rejected", "actors_alive", "mean_weight_lag", "demo_agreement"}
+    assert set(got) == {f"learner/{c}" for c in numeric} | {"eval/mean_steps", "eval/collisions/depth"}
+    assert got["learner/loss"] == [(10, 0.5), (20, 0.25)]
+    assert got["learner/mean_q"] == [(10, 2.5)]  # None at update 20: no point
+    assert got["learner/demo_agreement"] == [(10, 0.875)]
+    assert got["learner/time_s"] == [(10, pytest.approx(1.23456)), (20, pytest.approx(1.23456))]
+    assert got["eval/collisions/depth"] == [(20, 3.0)]
+
+
+def test_scalars_flatten_mappings_and_keep_only_numbers():
+    assert dict(scalars({"a": 1, "b": {"c": 2.5, "d": {"e": True}}, "f": "text", "g": None, "h": [1]})) == \
+        {"a": 1.0, "b/c": 2.5, "b/d/e": 1.0}
+
+
+def test_a_folder_that_cannot_be_made_turns_tensorboard_off_with_one_warning(tmp_path: Path, caplog):
+    (tmp_path / "tb").write_text("a file where the folder should be")
+    with caplog.at_level(logging.WARNING, logger="cogexplore.stats"), \
+            TensorBoardLog(tmp_path / "tb" / "learner") as board:
+        board.write_row(row())
+        board.write_row(row(update=60))
+    assert not board.enabled
+    warnings = [r.getMessage() for r in caplog.records if r.name == "cogexplore.stats"]
+    assert len(warnings) == 1 and "TensorBoard off" in warnings[0] and str(tmp_path / "tb") in warnings[0]
+    assert TensorBoardLog(None).enabled is False

@@ -22,6 +22,7 @@ def test_keys_follow_the_documented_layout() -> None:
     assert keys.all_transitions == "cogexplore/exp-1/transitions/*"
     assert keys.weights == "cogexplore/exp-1/weights"
     assert keys.weights_latest == "cogexplore/exp-1/weights/latest"
+    assert keys.config == "cogexplore/exp-1/config"
     assert keys.episode_stats("actor-0") == "cogexplore/exp-1/stats/episode/actor-0"
     assert keys.learner_stats("learner") == "cogexplore/exp-1/stats/learner/learner"
     assert keys.eval_results("eval.0") == "cogexplore/exp-1/stats/eval/eval.0"
@@ -37,6 +38,7 @@ def test_concrete_keys_parse_back() -> None:
     assert parse_key(keys.transitions("a7")) == ParsedKey("run_2", "transitions", None, "a7")
     assert parse_key(keys.weights) == ParsedKey("run_2", "weights")
     assert parse_key(keys.weights_latest) == ParsedKey("run_2", "weights_latest")
+    assert parse_key(keys.config) == ParsedKey("run_2", "config")
     assert parse_key(keys.eval_results("ev")) == ParsedKey("run_2", "stats", "eval", "ev")
     assert parse_key(keys.alive("actor", "a7")) == ParsedKey("run_2", "alive", "actor", "a7")
     # zenoh.KeyExpr (what a sample carries) parses too
@@ -47,6 +49,7 @@ def test_concrete_keys_parse_back() -> None:
     "other/run/weights", "cogexplore/run", "cogexplore/run/weights/oldest",
     "cogexplore/run/transitions", "cogexplore/run/transitions/a/b", "cogexplore/run/stats/bogus/x",
     "cogexplore/run/alive/wizard/x", "cogexplore/r*n/weights", "cogexplore/run/transitions/*",
+    "cogexplore/run/config/x",
 ])
 def test_foreign_keys_are_refused(key: str) -> None:
     with pytest.raises(KeyExprError):
@@ -55,7 +58,7 @@ def test_foreign_keys_are_refused(key: str) -> None:
 
 def test_keys_are_valid_zenoh_key_expressions_and_wildcards_match() -> None:
     keys = RunKeys("exp")
-    for concrete in (keys.transitions("a"), keys.weights, keys.weights_latest,
+    for concrete in (keys.transitions("a"), keys.weights, keys.weights_latest, keys.config,
                      keys.episode_stats("a"), keys.alive("evaluator", "e")):
         zenoh.KeyExpr(concrete)  # raises on an invalid key expression
     assert zenoh.KeyExpr(keys.all_transitions).includes(zenoh.KeyExpr(keys.transitions("a")))

@@ -12,6 +12,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from shared.config import load_preset
 from shared.depth import depth_from_mm, depth_to_mm
 from shared.wire import messages as m
 from shared.wire.messages import (
@@ -20,6 +21,7 @@ from shared.wire.messages import (
     LearnerStats,
     MessageError,
     RejectCounter,
+    RunConfigMessage,
     TransitionBatch,
     WeightsMessage,
     decode_message,
@@ -357,6 +359,25 @@ def test_construction_validates_too() -> None:
     assert info.value.cause == m.DTYPE
     with pytest.raises(ValueError, match="unknown MessageError cause"):
         MessageError("oops")
+
+
+def test_run_config_round_trip_and_validation() -> None:
+    cfg = load_preset("fast-40x30").with_overrides({"env.start_index": None, "train.seed": 3})
+    msg = RunConfigMessage(learner_id="learner", config=cfg)
+    data = msg.encode()
+    assert len(data) < RunConfigMessage.MAX_BYTES // 8
+    back = decode_message(data)
+    assert isinstance(back, RunConfigMessage) and back.learner_id == "learner" and back.run_config == cfg
+    # every field is validated as a preset's: a value out of range, of the wrong type, unknown, or unhashable
+    assert cause_of(rewrite(data, lambda o: o["config"]["sensor"].update(width=4)), RunConfigMessage) == m.RANGE
+    assert cause_of(rewrite(data, lambda o: o["config"]["sensor"].update(width="40")), RunConfigMessage) == m.RANGE
+    assert cause_of(rewrite(data, lambda o: o["config"]["dqn"].update(magic=1)), RunConfigMessage) == m.RANGE
+    assert cause_of(rewrite(data, lambda o: o["config"]["env"].update(speed_table=[1])), RunConfigMessage) == m.RANGE
+    assert cause_of(rewrite(data, lambda o: o.update(config=[1, 2])), RunConfigMessage) == m.RANGE
+    bytes_names = msgpack.packb({**msgpack.unpackb(data), "config": {"sensor": {b"width": 40, "bogus": 30}}})
+    assert cause_of(bytes_names, RunConfigMessage) == m.FIELD_TYPE
+    assert cause_of(rewrite(data, lambda o: o.update(learner_id="a/b")), RunConfigMessage) == m.RANGE
+    assert cause_of(bytes(RunConfigMessage.MAX_BYTES + 1), RunConfigMessage) == m.OVERSIZE
 
 
 # --- counting rejects ------------------------------------------------------------------------

@@ -1,0 +1,168 @@
+"""A report as a list of blocks, written out as Markdown and as one HTML page.
+
+Blocks hold their text in the small Markdown subset the tools write (```code```, ``**bold**``,
+``_emphasis_``, ``[text](href)``, ``![alt](src)``); ``markdown`` writes them as they are,
+``html`` translates them, so both files come from the same content. Tables that other modules
+produce as Markdown come in through ``Table.from_markdown``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import re
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from shared.errors import CogexploreError
+
+# A page with every image inlined stays below this (base64 adds a third); else images are linked.
+EMBED_LIMIT_BYTES = 5_000_000
+
+_INLINE = re.compile(r"`(?P<code>[^`]+)`"
+                     r"|\*\*(?P<bold>.+?)\*\*"
+                     r"|!\[(?P<alt>[^\]]*)\]\((?P<src>[^)\s]+)\)"
+                     r"|\[(?P<text>[^\]]+)\]\((?P<href>[^)\s]+)\)"
+                     r"|(?<!\w)_(?P<em>[^_]+?)_(?!\w)")
+_IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)")
+_STYLE = """body{font-family:system-ui,sans-serif;max-width:72rem;margin:2rem auto;padding:0 1rem;line-height:1.45}
+table{border-collapse:collapse;margin:0.8rem 0}th,td{border:1px solid #ccc;padding:0.25rem 0.6rem}
+th{background:#f3f3f3}td.num{text-align:right;font-variant-numeric:tabular-nums}
+img{max-width:100%}td img{max-width:22rem}code{background:#f3f3f3;padding:0 0.2rem}"""
+
+
+class DocumentError(CogexploreError):
+    """A table the document cannot read."""
+
+
+@dataclass(frozen=True)
+class Heading:
+    level: int
+    text: str
+
+
+@dataclass(frozen=True)
+class Paragraph:
+    text: str
+
+
+@dataclass(frozen=True)
+class Bullets:
+    items: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class Table:
+    """A pipe table: header cells, ``right`` per column (numbers), rows of cells."""
+
+    header: tuple[str, ...]
+    right: tuple[bool, ...]
+    rows: tuple[tuple[str, ...], ...]
+
+    @classmethod
+    def from_markdown(cls, text: str) -> Table:
+        """The table a Markdown pipe table (header, rule, rows) holds."""
+        lines = [line.strip() for line in text.strip().splitlines()]
+        if len(lines) < 2 or not all(line.startswith("|") and line.endswith("|") for line in lines):
+            raise DocumentError(f"not a Markdown pipe table: {text[:80]!r}")
+        header, rule, *rows = ([c.strip() for c in line[1:-1].split("|")] for line in lines)
+        if len(rule) != len(header) or not all(re.fullmatch(r":?-+:?", c) for c in rule):
+            raise DocumentError(f"the table's second line is not a rule of {len(header)} columns: {lines[1]!r}")
+        return cls(tuple(header), tuple(c.endswith(":") for c in rule), tuple(tuple(r) for r in rows))
+
+
+Block = Heading | Paragraph | Bullets | Table
+
+
+# -- Markdown ---------------------------------------------------------------------------------
+
+
+def _markdown_block(block: Block) -> str:
+    if isinstance(block, Heading):
+        return "#" * block.level + " " + block.text
+    if isinstance(block, Paragraph):
+        return block.text
+    if isinstance(block, Bullets):
+        return "\n".join(f"- {item}" for item in block.items)
+    rule = "|" + "".join("---:|" if r else "---|" for r in block.right)
+    return "\n".join([_markdown_row(block.header), rule, *(_markdown_row(r) for r in block.rows)])
+
+
+def _markdown_row(cells: Sequence[str]) -> str:
+    return "| " + " | ".join(cells) + " |"
+
+
+def markdown(blocks: Sequence[Block]) -> str:
+    """The blocks as a Markdown file's text."""
+    return "\n\n".join(_markdown_block(b) for b in blocks) + "\n"
+
+
+# -- HTML -------------------------------------------------------------------------------------
+
+
+def inline_html(text: str, image_src: Callable[[str], str] = lambda src: src) -> str:
+    """``text`` (the Markdown subset) as HTML; ``image_src`` maps an image's path to its ``src``."""
+    out, pos = [], 0
+    for m in _INLINE.finditer(text):
+        out.append(html.escape(text[pos:m.start()]))
+        pos = m.end()
+        if m["code"] is not None:
+            out.append(f"<code>{html.escape(m['code'])}</code>")
+        elif m["bold"] is not None:
+            out.append(f"<strong>{inline_html(m['bold'], image_src)}</strong>")
+        elif m["src"] is not None:
+            out.append(f'<img src="{html.escape(image_src(m["src"]))}" alt="{html.escape(m["alt"])}">')
+        elif m["href"] is not None:
+            out.append(f'<a href="{html.escape(m["href"])}">{inline_html(m["text"], image_src)}</a>')
+        else:
+            out.append(f"<em>{inline_html(m['em'], image_src)}</em>")
+    out.append(html.escape(text[pos:]))
+    return "".join(out)
+
+
+def images(blocks: Sequence[Block]) -> list[str]:
+    """Every image path the blocks show, in order."""
+    texts = [t for b in blocks for t in _texts(b)]
+    return [src for t in texts for src in _IMAGE.findall(t)]
+
+
+def _texts(block: Block) -> list[str]:
+    if isinstance(block, (Heading, Paragraph)):
+        return [block.text]
+    if isinstance(block, Bullets):
+        return list(block.items)
+    return [*block.header, *(c for r in block.rows for c in r)]
+
+
+def _html_block(block: Block, src: Callable[[str], str]) -> str:
+    if isinstance(block, Heading):
+        return f"<h{block.level}>{inline_html(block.text, src)}</h{block.level}>"
+    if isinstance(block, Paragraph):
+        return f"<p>{inline_html(block.text, src)}</p>"
+    if isinstance(block, Bullets):
+        return "<ul>\n" + "\n".join(f"<li>{inline_html(i, src)}</li>" for i in block.items) + "\n</ul>"
+    head = "".join(f"<th>{inline_html(c, src)}</th>" for c in block.header)
+    body = "\n".join("<tr>" + "".join(f'<td class="num">{inline_html(c, src)}</td>' if right
+                                      else f"<td>{inline_html(c, src)}</td>"
+                                      for c, right in zip(row, block.right)) + "</tr>" for row in block.rows)
+    return f"<table>\n<thead><tr>{head}</tr></thead>\n<tbody>\n{body}\n</tbody>\n</table>"
+
+
+def html_page(blocks: Sequence[Block], title: str, base: Path, embed: bool | None = None) -> str:
+    """The blocks as one HTML page. Image paths are relative to ``base``; they are inlined as
+    data URIs when ``embed`` (default: when all of them together fit ``EMBED_LIMIT_BYTES``),
+    else linked, so the page opens from its folder either way."""
+    paths = {src: base / src for src in images(blocks)}
+    if embed is None:
+        embed = sum(p.stat().st_size for p in paths.values() if p.is_file()) * 4 / 3 < EMBED_LIMIT_BYTES
+
+    def src(path: str) -> str:
+        file = paths.get(path)
+        if not embed or file is None or not file.is_file() or file.suffix.lower() != ".png":
+            return path
+        return "data:image/png;base64," + base64.b64encode(file.read_bytes()).decode("ascii")
+
+    body = "\n".join(_html_block(b, src) for b in blocks)
+    return (f'<!DOCTYPE html>\n<html lang="en">\n<head>\n<meta charset="utf-8">\n<title>{html.escape(title)}</title>\n'
+            f"<style>\n{_STYLE}\n</style>\n</head>\n<body>\n{body}\n</body>\n</html>\n")

@@ -1,0 +1,147 @@
+"""``cogexplore.load_policy`` and ``Policy``: the shipped model on depth images of any resolution,
+checked against the project's own observation path (the env's camera and the evaluator's policy)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import cogexplore
+from shared.config import SPEED_TABLES
+from shared.evaluation.policies import GreedyPolicy
+from shared.evaluation.protocol import protocol_env_config
+from shared.evaluation.setup import setup_evaluation
+from shared.learning.checkpoints import PRETRAINED_DIR
+from shared.learning.policy import PolicyError
+from shared.sim.env import ExploreEnv
+from shared.sim.sensor import DepthCamera
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+@pytest.fixture(scope="module")
+def policy() -> cogexplore.Policy:
+    return cogexplore.load_policy("pretrained", device="cpu")
+
+
+@pytest.fixture(scope="module")
+def scenes(policy: cogexplore.Policy) -> list[dict[str, np.ndarray]]:
+    """At every start pose of the policy's world: the env's own observation (40 x 30) and the same
+    view rendered by the same camera model at other resolutions."""
+    setup = setup_evaluation(None, model=policy.model)
+    env = ExploreEnv(protocol_env_config(setup.env_cfg, setup.world, 200), policy.sensor)
+    cameras = {size: DepthCamera(env.model, dataclasses.replace(policy.sensor, width=size[0], height=size[1]))
+               for size in ((640, 480), (160, 120), (120, 90))}
+    out = []
+    try:
+        for start in range(len(env.world.starts)):
+            obs, _ = env.reset(seed=0, options={"start_index": start})
+            out.append({"env": obs, **{size: cam.capture(env.data) for size, cam in cameras.items()}})
+    finally:
+        env.close()
+    return out
+
+
+def test_the_shipped_model_loads_with_its_camera_and_commands(policy: cogexplore.Policy) -> None:
+    assert policy.model.path == PRETRAINED_DIR / "drl.safetensors"
+    assert (policy.sensor.width, policy.sensor.height) == (40, 30) and policy.model.net.model_cfg.previous_action
+    assert policy.command_names == cogexplore.COMMAND_NAMES == ("left", "half-left", "straight", "half-right", "right")
+    angular, linear = SPEED_TABLES["test"]
+    assert policy.twist(0) == cogexplore.Command(linear, angular[0]) and policy.twist(0).angular_rps > 0  # left
+    assert policy.twist(2) == (0.25, 0.0) and policy.twist(4, "train") == (0.32, -1.4)
+    assert policy.control_period_s > 0 and "drl@" in repr(policy)
+
+
+def test_act_at_any_resolution_gives_the_command_of_the_env_observation(
+        policy: cogexplore.Policy, scenes: list[dict[str, np.ndarray]]) -> None:
+    reference = GreedyPolicy(policy.model.net)  # what `cogexplore evaluate` runs on the env's images
+    for i, scene in enumerate(scenes):
+        obs = scene["env"]
+        reference.reset()
+        want, want_q = reference(obs)
+        # The env's image at the network's size is taken as it is.
+        np.testing.assert_array_equal(policy.observation(obs), obs)
+        # An odd multiple (3x) puts a source pixel centre on every network pixel centre: exact.
+        np.testing.assert_allclose(policy.observation(scene[(120, 90)]), obs, atol=1e-6)
+        for size in ((640, 480), (160, 120)):
+            seen = policy.observation(scene[size])
+            close = np.isclose(seen, obs, rtol=1e-4, atol=1e-4)
+            # Only pixels whose centre lies on an edge (a 1-in-16 chance for each edge at 640 x 480,
+            # 1 in 4 at 160 x 120) or at the range limit may take the other side; the rest is exact.
+            assert close.mean() >= (0.96 if size == (640, 480) else 0.85), (i, size, close.mean())
+        for image in (obs, scene[(640, 480)], scene[(120, 90)]):
+            policy.reset()
+            q = policy.q_values(image)
+            assert policy.act(image) == want, (i, image.shape)
+            np.testing.assert_allclose(q, want_q, atol=0.05 * np.abs(want_q).max())
+    assert len({int(np.argmax(GreedyPolicy(policy.model.net)(s["env"])[1])) for s in scenes}) >= 3  # not constant
+
+
+def test_no_return_nan_inf_and_beyond_range_read_alike(policy: cogexplore.Policy,
+                                                     scenes: list[dict[str, np.ndarray]]) -> None:
+    image = scenes[0][(640, 480)].copy()
+    missing = image == 0
+    assert missing.any()
+    for fill in (np.nan, np.inf, 9.0):  # beyond the camera's 4 m: the simulated camera reports no return
+        other = np.where(missing, fill, image)
+        np.testing.assert_array_equal(policy.observation(other), policy.observation(image))
+        policy.reset()
+        q = policy.q_values(other)
+        policy.reset()
+        np.testing.assert_array_equal(q, policy.q_values(image))
+    millimetres = np.rint(image * 1000).astype(np.uint16)
+    np.testing.assert_allclose(policy.observation(millimetres), policy.observation(image), atol=6e-4)
+    assert policy.observation(image[..., None]).shape == (30, 40)
+
+
+def test_the_previous_command_is_remembered_until_reset(policy: cogexplore.Policy,
+                                                        scenes: list[dict[str, np.ndarray]]) -> None:
+    image = scenes[3]["env"]
+    policy.reset()
+    assert policy.previous_command is None
+    fresh = policy.q_values(image)
+    assert policy.previous_command is None  # q_values changes nothing
+    first = policy.act(image)
+    assert policy.previous_command == first
+    after = policy.q_values(image)
+    assert not np.allclose(after, fresh)  # the network reads the previous command
+    reference = GreedyPolicy(policy.model.net)
+    reference(image)
+    np.testing.assert_allclose(after, reference(image)[1], rtol=1e-6)
+    policy.reset()
+    assert policy.previous_command is None
+    np.testing.assert_array_equal(policy.q_values(image), fresh)
+    assert policy(image) == first  # a Policy is a callable depth -> command
+
+
+@pytest.mark.parametrize(("depth", "message"), [
+    (np.zeros((0, 0)), "empty"),
+    (np.zeros((30, 0)), "empty"),
+    (np.ones(40), r"one \(H, W\) depth image, got shape \(40,\)"),
+    (np.ones((2, 30, 40)), r"got shape \(2, 30, 40\)"),
+    (np.ones((480, 848)), "848 x 480 pixels; the network's camera is 40 x 30"),
+    (np.ones((30, 40), dtype=np.int64), "float metres"),
+    (-np.ones((30, 40)), "negative"),
+    ([[1.0, 2.0], [3.0]], "array of depths"),
+])
+def test_bad_images_are_clear_errors(policy: cogexplore.Policy, depth, message: str) -> None:
+    for call in (policy.act, policy.q_values, policy.observation):
+        with pytest.raises(PolicyError, match=message):
+            call(depth)
+    assert issubclass(PolicyError, cogexplore.CogexploreError)
+
+
+def test_bad_sources_and_commands_are_clear_errors(policy: cogexplore.Policy, tmp_path) -> None:
+    with pytest.raises(cogexplore.CogexploreError, match="does not exist"):
+        cogexplore.load_policy(tmp_path / "nothing-here")
+    with pytest.raises(cogexplore.CogexploreError, match="unknown shipped model"):
+        cogexplore.load_policy("pretrained:big")
+    with pytest.raises(PolicyError, match="source must be"):
+        cogexplore.load_policy(3)
+    for command, message in ((5, "index in 0..4"), (True, "index in 0..4"), (1.0, "index in 0..4")):
+        with pytest.raises(PolicyError, match=message):
+            policy.twist(command)
+    with pytest.raises(PolicyError, match="unknown speed table"):
+        policy.twist(0, "fast")

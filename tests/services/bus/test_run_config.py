@@ -1,0 +1,119 @@
+"""The run's configuration over a real loopback router: taken from the learner without --preset,
+checked against it with one; and one default preset for ``up`` and the services."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from services.actor.options import add_actor_arguments
+from services.bus.run_config import RunConfigCheck, fetch_run_config, join_run_config
+from services.bus.session import (
+    TransportError,
+    ZenohSettings,
+    free_tcp_port,
+    open_router,
+    open_session,
+    serve_latest,
+)
+from services.evaluator.options import add_evaluator_arguments
+from services.learner.options import add_learner_arguments
+from services.runs import RunPaths, resolve_config
+from services.up.options import add_up_arguments
+from shared.config import DEFAULT_PRESET, ConfigMismatchError, load_preset
+from shared.wire.keys import RunKeys
+from shared.wire.messages import RunConfigMessage
+
+RUN = "cfg"
+KEYS = RunKeys(RUN)
+
+
+@pytest.fixture(scope="module")
+def router() -> Iterator[str]:
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        yield endpoint
+
+
+@pytest.fixture
+def learner(router: str) -> Iterator[None]:
+    """A session answering the config query as the learner does (the smoke preset)."""
+    payload = RunConfigMessage(learner_id="learner", config=load_preset("smoke")).encode()
+    with open_session(ZenohSettings(connect=(router,))) as session:
+        queryable = serve_latest(session, KEYS.config, lambda: payload)  # noqa: F841
+        time.sleep(0.2)  # the queryable reaches the router
+        yield
+
+
+def parse(add, argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add(parser)
+    return parser.parse_args(argv)
+
+
+def actor_args(router: str, tmp_path: Path, *extra: str) -> argparse.Namespace:
+    return parse(add_actor_arguments, ["--connect", router, "--run", RUN, "--runs-dir", str(tmp_path), *extra])
+
+
+def test_without_a_preset_an_actor_takes_the_learners_with_its_set_over_it(router: str, learner: None,
+                                                                           tmp_path: Path) -> None:
+    settings = ZenohSettings(connect=(router,))
+    args = actor_args(router, tmp_path, "--set", "env.world=procedural:7", "--set", "explore.eps_end=0.2")
+    cfg, check = join_run_config(args, RunPaths(tmp_path / RUN), settings, "this actor")
+    assert check is None
+    assert cfg == load_preset("smoke").with_overrides({"env.world": "procedural:7", "explore.eps_end": 0.2})
+    # a --set the run's data depends on is refused at once, naming what to drop
+    args = actor_args(router, tmp_path, "--set", "sensor.width=64")
+    with pytest.raises(ConfigMismatchError, match=r"^this actor's sensor.width=64 differs from the run's 40 "
+                                                  r"\(learner 'learner' of run 'cfg'\); .*drop its --set"):
+        join_run_config(args, RunPaths(tmp_path / RUN), settings, "this actor")
+
+
+def test_without_a_learner_the_wait_is_bounded(router: str) -> None:
+    started = time.monotonic()
+    with pytest.raises(TransportError, match="no learner of run 'cfg' answered cogexplore/cfg/config within 1 s"):
+        fetch_run_config(ZenohSettings(connect=(router,)), KEYS, wait_s=1.0)
+    assert time.monotonic() - started < 5.0
+
+
+def test_a_named_preset_is_checked_once_a_learner_answers(router: str, tmp_path: Path) -> None:
+    settings = ZenohSettings(connect=(router,))
+    cfg, check = join_run_config(actor_args(router, tmp_path, "--preset", "paper"), RunPaths(tmp_path / RUN), settings,
+                                 "this actor")
+    assert cfg == load_preset("paper") and check is not None
+    stop = threading.Event()
+    check.start(settings, stop)
+    assert not stop.wait(1.0)  # no learner yet: the process goes on
+    payload = RunConfigMessage(learner_id="learner", config=load_preset("smoke")).encode()
+    with open_session(settings) as session:
+        queryable = serve_latest(session, KEYS.config, lambda: payload)  # noqa: F841
+        assert stop.wait(10.0), "a learner of another configuration stops the process"
+    error = check.finish()
+    assert isinstance(error, ConfigMismatchError)
+    assert str(error).startswith("this actor's sensor.width=160 differs from the run's 40 (learner 'learner' of "
+                                 "run 'cfg'; also differ: sensor.height, model.fc1")
+    # the same preset as the learner's passes, and the process is not stopped
+    same = RunConfigCheck(KEYS, load_preset("smoke").with_overrides({"env.world": "corridor"}), "this actor")
+    stop = threading.Event()
+    with open_session(settings) as session:
+        queryable = serve_latest(session, KEYS.config, lambda: payload)  # noqa: F841
+        same.start(settings, stop)
+        time.sleep(1.5)
+        assert same.finish() is None and not stop.is_set()
+
+
+def test_one_default_preset_for_up_and_the_services(tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setenv("COGEXPLORE_PRESET", "")  # what docker-compose.yml sets by default: unset
+    fresh = RunPaths(tmp_path / "fresh")
+    for add in (add_up_arguments, add_learner_arguments):
+        args = parse(add, [])
+        assert args.preset is None and resolve_config(args, fresh) == load_preset(DEFAULT_PRESET)
+    for add in (add_actor_arguments, add_evaluator_arguments):  # theirs is the learner's
+        assert parse(add, []).preset is None
+    monkeypatch.setenv("COGEXPLORE_PRESET", "paper")
+    assert parse(add_actor_arguments, []).preset == "paper"
