@@ -175,3 +175,18 @@ def test_sigterm_stops_the_service_cleanly(router: str, tmp_path: Path) -> None:
             assert proc.returncode == 0, out
             assert "signal SIGTERM: stopping" in out
             assert alive.wait(lambda k: not k, 10.0)
+
+
+def test_a_preset_the_runs_weights_do_not_fit_stops_the_evaluator_in_one_line(router: str, tmp_path: Path) -> None:
+    from shared.wire.messages import RunConfigMessage
+
+    keys = RunKeys("proc")
+    payload = RunConfigMessage(learner_id="learner", config=load_preset("smoke")).encode()
+    with open_session(ZenohSettings(connect=(router,))) as session:
+        queryable = serve_latest(session, keys.config, lambda: payload)  # noqa: F841
+        proc = service_process(router, tmp_path)  # paper with a 64 x 48 image, against the learner's 40 x 30
+        out, _ = proc.communicate(timeout=120)
+    last = out.strip().splitlines()[-1]
+    assert proc.returncode == 2 and "Traceback" not in out, out
+    assert last.startswith("cogexplore evaluator: error: this evaluator's sensor.width=64 differs from the run's 40 "
+                           "(learner 'learner' of run 'proc'"), last
