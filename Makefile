@@ -22,9 +22,12 @@ $(STAMP): pyproject.toml scripts/install_torch.py
 	touch $(STAMP)
 
 # The main job: the distributed system on this machine (router, learner, 2 actors, evaluator),
-# 500 learner updates of the `fast` preset on paper-indoor (the paper's "DRL 500" stage), then
-# the test protocol and the report. Everything lands in runs/main/.
-RUN_ARGS ?= --actors 2 --preset fast --updates 500 --run main --final-episodes 2
+# 500 learner updates of the default preset (shared.config.DEFAULT_PRESET, the shipped model's
+# recipe) on paper-indoor (the paper's "DRL 500" stage), then the test protocol and the report.
+# Everything lands in runs/main/. A second `make run` refuses the finished run; then
+# `.venv/bin/cogexplore up --run main --resume --final-episodes 2` redoes its report, and
+# `--fresh` instead of `--resume` starts over (the old run kept aside as runs/main.old-<time>).
+RUN_ARGS ?= --actors 2 --updates 500 --run main --final-episodes 2
 
 run: venv
 	$(VENV)/bin/cogexplore up $(RUN_ARGS)

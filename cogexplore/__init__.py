@@ -10,9 +10,11 @@ image and in the paper's test protocol.
     print(results.mean_steps, results.per_start_steps)
 
 ``evaluate`` also takes any callable ``depth_m -> command`` (with an optional ``reset()``), so your
-own controller runs the same protocol. Importing this package is cheap: torch and MuJoCo load on the
-first use of ``load_policy``, ``Policy``, ``evaluate`` or ``Results``. Every error a caller can cause is
-a :class:`CogexploreError` (a ``ValueError``) with a one-line message.
+own controller runs the same protocol. ``load_onnx_policy("F.onnx")`` gives the same policy without
+torch (an export of ``cogexplore model export --onnx``; onnxruntime and numpy only). Importing this
+package is cheap: torch and MuJoCo load on the first use of ``load_policy``, ``Policy``, ``evaluate``
+or ``Results``. Every error a caller can cause is a :class:`CogexploreError` (a ``ValueError``) with a
+one-line message.
 """
 
 from __future__ import annotations
@@ -22,9 +24,10 @@ from typing import Any
 from cogexplore.version import __version__
 from shared.errors import CogexploreError
 
-_LAZY = {"load_policy": "cogexplore.policy", "Policy": "cogexplore.policy", "Command": "cogexplore.policy",
-         "COMMAND_NAMES": "cogexplore.policy", "evaluate": "cogexplore.evaluation",
-         "Results": "cogexplore.evaluation"}
+_LAZY = {"load_policy": "cogexplore.policy", "Policy": "cogexplore.policy", "Command": "cogexplore._policy_io",
+         "COMMAND_NAMES": "cogexplore._policy_io", "evaluate": "cogexplore.evaluation",
+         "Results": "cogexplore.evaluation", "load_onnx_policy": "cogexplore.onnx_runner",
+         "OnnxPolicy": "cogexplore.onnx_runner"}
 
 __all__ = ["__version__", "CogexploreError", *_LAZY]
 

@@ -1,4 +1,4 @@
-"""The paper's test protocol from Python: :func:`evaluate` a :class:`~cogexplore.Policy` or your own
+"""The test protocol from Python: :func:`evaluate` a :class:`~cogexplore.Policy` or your own
 controller, and its :class:`Results`.
 
 It is ``cogexplore evaluate``: the same setup (``shared.evaluation.setup``: the network's camera,
@@ -17,7 +17,13 @@ from typing import Any
 import numpy as np
 
 from cogexplore.policy import Policy
-from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation import (
+    DEFAULT_PROTOCOL,
+    PAPER_EPISODES_PER_START,
+    PAPER_MAX_STEPS,
+    ProtocolConfig,
+    protocol_named,
+)
 from shared.evaluation.protocol import evaluate_policy
 from shared.evaluation.results import EvalResults, save_results, table_markdown
 from shared.evaluation.setup import setup_evaluation
@@ -43,7 +49,7 @@ class Results(EvalResults):
         return table_markdown({str(self.meta.get("model", "policy")): self})
 
     def save(self, path: str | Path) -> Path:
-        """Write the results JSON (``cogexplore.eval-results/1``, what ``cogexplore evaluate --json``
+        """Write the results JSON (``cogexplore.eval-results/2``, what ``cogexplore evaluate --json``
         writes and ``cogexplore report`` reads)."""
         return save_results(self, path)
 
@@ -69,8 +75,8 @@ def _name(fn: Any) -> str:
 def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = None, *,
              episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
              starts: Sequence[int] | None = None, seed: int = 0, resolution: tuple[int, int] | None = None,
-             progress: bool = False) -> Results:
-    """Run the paper's test protocol and return its :class:`Results`.
+             progress: bool = False, protocol: str | ProtocolConfig = DEFAULT_PROTOCOL) -> Results:
+    """Run the test protocol and return its :class:`Results`.
 
     ``policy``: a :class:`Policy` (:func:`cogexplore.load_policy`), or any callable taking a float32
     (H, W) depth image in metres (0 = no return) and returning a command index 0..4 (see
@@ -78,12 +84,14 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
     A Policy sees its network's camera and plays in its run's world; a callable sees the paper's
     160 x 120 camera and plays in ``paper-indoor``. ``world``: a world name (``paper-indoor``,
     ``procedural:101``, a world XML file...), None for that default. ``episodes_per_start`` (the
-    paper's 10; the simulation without sensor noise repeats each one exactly, so 1 gives the same
-    mean) episodes from each of ``starts`` (start indices from 0, as in the results; the tables and
+    paper's 10: ten different draws under ``robust``; under ``paper`` each repeats exactly, so 1
+    gives the same mean) episodes from each of ``starts`` (start indices from 0, as in the results; the tables and
     ``cogexplore evaluate --starts`` number them from 1; None: every start pose), each at most
     ``max_steps`` moving steps. ``seed`` seeds the episodes. ``resolution`` ``(width, height)`` renders the camera
     at another size (same field of view; a Policy resizes the images back to its network's).
-    ``progress`` shows a progress bar.
+    ``progress`` shows a progress bar. ``protocol``: ``robust`` (the default of ``cogexplore
+    evaluate`` too: each start jittered by up to ±5 cm and ±3°, Kinect-like depth noise), ``paper``
+    (the exact starts, no noise) or a ``shared.evaluation.ProtocolConfig``.
     """
     if isinstance(policy, Policy):
         setup = setup_evaluation(None, model=policy.model, world=world)
@@ -103,5 +111,6 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
     results = evaluate_policy(_Controller(policy), world=setup.world, sensor_cfg=sensor, env_cfg=setup.env_cfg,
                               episodes_per_start=episodes_per_start, max_steps=max_steps, seed=seed, starts=starts,
                               policy_version=setup.model.policy_version if setup.model else 0,
-                              progress=progress, meta=meta)
+                              progress=progress, meta=meta,
+                              protocol=protocol_named(protocol) if isinstance(protocol, str) else protocol)
     return Results(results.episodes, results.meta)

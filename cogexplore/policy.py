@@ -9,53 +9,24 @@ encodes it (``shared.learning.model``) with the previous command, which the poli
 from __future__ import annotations
 
 import os
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
-from shared.config import ACTION_NAMES, SPEED_TABLES, SensorConfig
-from shared.depth import depth_from_mm, range_gate, resize_depth
+from cogexplore._policy_io import (
+    ASPECT_TOLERANCE,
+    COMMAND_NAMES,
+    Command,
+    camera_observation,
+    twist,
+)
+from shared.config import SensorConfig
+from shared.errors import PolicyError
 from shared.evaluation.setup import EvalSetup, setup_evaluation
 from shared.learning.checkpoints import LoadedModel
 from shared.learning.model import InferenceRunner
-from shared.learning.policy import PolicyError
 
-COMMAND_NAMES: tuple[str, ...] = ACTION_NAMES
-"""The five moving commands by index: left, half-left, straight, half-right, right."""
-ASPECT_TOLERANCE = 0.05
-"""How far (relative) an image's width / height may be from the network's before it is refused:
-another aspect ratio is another field of view, which resizing cannot make up."""
-
-
-class Command(NamedTuple):
-    """A moving command as the robot drives it, for one control period."""
-
-    linear_mps: float
-    """Forward speed, m/s."""
-    angular_rps: float
-    """Turn rate, rad/s; positive turns left."""
-
-
-def _metres(depth_m: Any) -> np.ndarray:
-    """A user's depth image as (H, W) float metres (NaN and infinity kept: resizing reads them as
-    no return); PolicyError for anything that is not one image of depths."""
-    try:
-        depth = np.asarray(depth_m)
-    except (TypeError, ValueError) as exc:
-        raise PolicyError(f"depth_m must be an (H, W) array of depths in metres: {exc}") from None
-    if depth.ndim == 3 and depth.shape[-1] == 1:  # (H, W, 1), as many camera drivers give it
-        depth = depth[..., 0]
-    if depth.ndim != 2:
-        raise PolicyError(f"depth_m must be one (H, W) depth image, got shape {depth.shape}")
-    if depth.size == 0:
-        raise PolicyError(f"depth_m is empty (shape {depth.shape})")
-    if depth.dtype == np.uint16:
-        return depth_from_mm(depth)
-    if not np.issubdtype(depth.dtype, np.floating):
-        raise PolicyError(f"depth_m must be float metres (or uint16 millimetres), got {depth.dtype}")
-    if (depth < 0).any():
-        raise PolicyError("depth_m has negative depths; expected metres >= 0 (0, NaN or inf: no return)")
-    return depth
+__all__ = ["ASPECT_TOLERANCE", "COMMAND_NAMES", "Command", "Policy", "load_policy"]
 
 
 class Policy:
@@ -99,14 +70,7 @@ class Policy:
         ratio, i.e. its field of view; NaN, infinity and 0 are no return; uint16 is millimetres.
         Raises PolicyError for a wrong shape, an empty array or another aspect ratio.
         """
-        depth = _metres(depth_m)
-        cfg = self.sensor
-        h, w = depth.shape
-        if abs((w / h) / (cfg.width / cfg.height) - 1.0) > ASPECT_TOLERANCE:
-            raise PolicyError(f"depth_m is {w} x {h} pixels; the network's camera is {cfg.width} x {cfg.height} "
-                              f"({cfg.hfov_deg:g} x {cfg.vfov_deg:g} degrees): crop the image to that field of "
-                              "view first")
-        return range_gate(resize_depth(depth, cfg.height, cfg.width), cfg.min_range_m, cfg.max_range_m)
+        return camera_observation(depth_m, self.sensor)
 
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;
@@ -115,8 +79,12 @@ class Policy:
 
     def act(self, depth_m: Any) -> int:
         """The greedy command (0..4) for one depth image; it becomes the previous command."""
-        action, _q = self._greedy(self.observation(depth_m))
-        return action
+        return self.decide(depth_m)[0]
+
+    def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
+        """:meth:`act` with the (5,) float32 Q-values the command was chosen from (one network pass)."""
+        action, q = self._greedy(self.observation(depth_m))
+        return action, q
 
     __call__ = act
 
@@ -127,13 +95,7 @@ class Policy:
     def twist(self, command: int, speed_table: str = "test") -> Command:
         """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
         protocol's) or its ``train`` speeds."""
-        if speed_table not in SPEED_TABLES:
-            raise PolicyError(f"unknown speed table {speed_table!r}; choose {' or '.join(SPEED_TABLES)}")
-        if not (isinstance(command, (int, np.integer)) and not isinstance(command, bool)
-                and 0 <= command < len(COMMAND_NAMES)):
-            raise PolicyError(f"command must be an index in 0..{len(COMMAND_NAMES) - 1}, got {command!r}")
-        angular, linear = SPEED_TABLES[speed_table]
-        return Command(float(linear), float(angular[int(command)]))
+        return twist(command, speed_table)
 
     def __repr__(self) -> str:
         return (f"Policy({self.label!r}, {self.sensor.width}x{self.sensor.height} px, "

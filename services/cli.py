@@ -52,7 +52,13 @@ COMMANDS: dict[str, Command | Group] = {
                      "services.actor.options:add_actor_arguments", "services.actor.service:run_actor_command"),
     "evaluator": Command("run the evaluator service (tests the newest weights every K updates)",
                          "services.evaluator.options:add_evaluator_arguments", "services.evaluator.service:run_evaluator"),
-    "evaluate": Command("run the paper's test protocol on a checkpoint or a baseline policy",
+    "drive": Command("drive a ROS 2 robot with a trained policy over Zenoh (rmw_zenoh or zenoh-bridge-ros2dds): "
+                     "depth image in, cmd_vel out, with a watchdog and a collision stop",
+                     "services.drive.options:add_drive_arguments", "services.drive.service:run_drive_command"),
+    "sim-robot": Command("the MuJoCo world as a ROS 2 robot over Zenoh (depth Image, Odometry, cmd_vel): a robot "
+                         "to try `drive` on", "services.sim_robot.options:add_sim_robot_arguments",
+                         "services.sim_robot.service:run_sim_robot_command"),
+    "evaluate": Command("run the test protocol (robust, or the paper's) on a checkpoint or a baseline policy",
                         f"{TOOLS}:add_evaluate_arguments", "services.tools.evaluate:run_evaluate"),
     "report": Command("the paper's tables and figures (PNG, Markdown and HTML) for a run",
                       f"{TOOLS}:add_report_arguments", "services.tools.report:run_report"),
@@ -77,7 +83,8 @@ COMMANDS: dict[str, Command | Group] = {
         "summary": Command("each layer's output shape and parameter count", f"{TOOLS}:add_model_summary_arguments",
                            "services.tools.model:run_summary"),
         "export": Command("write a checkpoint's online weights as a weights-only file (deployment, "
-                          "`evaluate --checkpoint FILE`); several checkpoints are averaged",
+                          "`evaluate --checkpoint FILE`) and/or, with --onnx, an ONNX file that runs without "
+                          "torch (`drive --onnx`); several checkpoints are averaged",
                           f"{TOOLS}:add_model_export_arguments", "services.tools.model:run_export"),
         "select": Command("choose the model to ship from a run: the mean of N consecutive checkpoints' weights "
                           "that reaches --gate-min on --gate-world and, among those, scores best on the --validate "
@@ -103,6 +110,8 @@ COMMANDS: dict[str, Command | Group] = {
         "fuzz": Command("malformed and hostile payloads on every key a secured run's services listen to: crashes, "
                         "rejects by cause against what was sent, memory", "services.up.options:add_bench_fuzz_arguments",
                         "services.up.fuzz:run_command"),
+        "drive": Command("image-to-command latency of `drive` through a loopback router (median, p99)",
+                         "services.bench.options:add_drive_arguments", "services.bench.drive:run_command"),
         "system": Command("env steps/s, updates/s, weight lag and replay ratio of router + learner + N actors as "
                           "real processes", "services.up.options:add_bench_system_arguments",
                           "services.up.bench:run_command"),

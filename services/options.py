@@ -1,5 +1,6 @@
 """The options every service process takes (``learner``, ``actor``, ``evaluator``), with the
-environment variables containers set instead (docker-compose.yml)."""
+environment variables containers set instead (docker-compose.yml), and the test-protocol options of
+every command that runs the protocol (``evaluate``, the evaluator, ``experiment``, ``model select``)."""
 
 from __future__ import annotations
 
@@ -8,6 +9,12 @@ import os
 
 from services.runs import CONFIG_FILE
 from shared.config import DEFAULT_PRESET
+from shared.evaluation import (
+    DEFAULT_PROTOCOL,
+    PROTOCOLS,
+    ProtocolConfig,
+    protocol_named,
+)
 
 ENV_RUN = "COGEXPLORE_RUN"
 ENV_PRESET = "COGEXPLORE_PRESET"
@@ -72,3 +79,22 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = Tru
                         "credentials, runs/<run>/secure/<role>.json5, where they exist")
 
 
+def add_protocol_arguments(parser: argparse.ArgumentParser, default: str = DEFAULT_PROTOCOL) -> None:
+    """``--protocol`` and the options that override its set (``protocol_from_args`` reads them)."""
+    group = parser.add_argument_group("test protocol", "; ".join(p.describe() for p in PROTOCOLS.values()))
+    group.add_argument("--protocol", choices=tuple(PROTOCOLS), default=default,
+                       help=f"the named test conditions (default {default}); the options below override them, "
+                            "and the results then name the protocol `custom`")
+    group.add_argument("--start-jitter-m", type=float, default=None, metavar="M",
+                       help="each episode starts within ±M m in x and y of the named start pose")
+    group.add_argument("--start-jitter-deg", type=float, default=None, metavar="D",
+                       help="and within ±D degrees of its heading")
+    group.add_argument("--sensor-noise-m", type=float, default=None, metavar="S",
+                       help="Gaussian depth noise of S m at every distance, instead of the set's (0: none)")
+
+
+def protocol_from_args(args: argparse.Namespace) -> ProtocolConfig:
+    """The protocol of ``add_protocol_arguments``' options."""
+    return protocol_named(args.protocol).overridden(
+        start_jitter_m=args.start_jitter_m, start_jitter_deg=args.start_jitter_deg,
+        sensor_noise_std_m=args.sensor_noise_m)

@@ -85,7 +85,12 @@ class SensorConfig:
     """'raycast' (mujoco.mj_multiRay, no OpenGL, deterministic) or 'gl' (MuJoCo renderer;
     needs MUJOCO_GL=egl or osmesa)."""
     noise_std_m: float = 0.0
-    """Standard deviation of additive Gaussian depth noise in metres (0 = off)."""
+    """Standard deviation of additive Gaussian depth noise in metres (0 = off); with
+    ``noise_quadratic_per_m`` the part that does not grow with distance."""
+    noise_quadratic_per_m: float = 0.0
+    """Growth of the depth noise with distance z: sigma(z) = noise_std_m + noise_quadratic_per_m *
+    max(z - 0.4 m, 0)^2, a Kinect's axial noise model (Nguyen et al. 2012: 0.0012 m and
+    0.0019 / m; ``shared.sim.sensor.KINECT_NOISE_OFFSET_M``); 0 = the same sigma at every distance."""
     dropout_prob: float = 0.0
     """Probability that a valid pixel reads 0 (dropped return), per pixel and frame."""
 
@@ -109,6 +114,8 @@ class SensorConfig:
         _check(self.backend in ("raycast", "gl"), s, "backend", self.backend, "'raycast' or 'gl'")
         _check(_finite(self.noise_std_m) and 0 <= self.noise_std_m <= 1.0, s, "noise_std_m",
                self.noise_std_m, "metres in [0, 1]")
+        _check(_finite(self.noise_quadratic_per_m) and 0 <= self.noise_quadratic_per_m <= 1.0, s,
+               "noise_quadratic_per_m", self.noise_quadratic_per_m, "a number in [0, 1] (metres per m^2)")
         _check(_finite(self.dropout_prob) and 0 <= self.dropout_prob < 1.0, s, "dropout_prob",
                self.dropout_prob, "a probability in [0, 1)")
 

@@ -92,3 +92,13 @@ class TensorBoardScalars:
 def tensorboard_scalars():
     """``tensorboard_scalars(folder)``: that folder's TensorBoard scalars (:class:`TensorBoardScalars`)."""
     return TensorBoardScalars
+
+
+@pytest.fixture(scope="module")
+def loopback_router():
+    """A Zenoh router in this process on a free loopback port: its endpoint."""
+    from services.bus.session import free_tcp_port, open_router
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        yield endpoint

@@ -336,3 +336,30 @@ def test_the_secure_service_writes_what_the_router_and_every_service_read(servic
         assert (tmp_path / "secure" / role_config.removeprefix("/secure/")).is_file(), name
         mounts = [v.split(":")[1] for v in services[name]["volumes"] if isinstance(v, str)]
         assert "/secure" in mounts, name
+
+
+# -- the robot example ----------------------------------------------------------------------
+
+ROBOT_COMPOSE_FILE = ROOT / "docker-compose.robot.yml"
+
+
+def test_the_robot_compose_file_is_valid_and_its_commands_start(tmp_path: Path) -> None:
+    exe = compose_binary()
+    env = {k: v for k, v in os.environ.items() if k not in ("ROBOT_ROUTER", "ROS2_FORMAT", "DEPTH_TOPIC")}
+    proc = subprocess.run([exe, "-f", str(ROBOT_COMPOSE_FILE), "--profile", "sim", "config"], capture_output=True,
+                          text=True, env=env, cwd=ROOT, timeout=120)
+    if proc.returncode != 0 and "profile" in proc.stderr and "no such option" in proc.stderr.lower():
+        pytest.skip(f"this docker-compose has no --profile: {proc.stderr.strip()}")
+    assert proc.returncode == 0, f"docker-compose config rejected the file:\n{proc.stderr}"
+    services = yaml.safe_load(proc.stdout)["services"]
+    assert {"drive", "sim-robot", "robot-router"} <= set(services)
+    for name in ("drive", "sim-robot"):
+        command = services[name]["command"]
+        assert command[0] == "cogexplore"
+        text = run_help(cogexplore_argv(command[1:]))
+        missing = [o for o in options_in(command) if o not in text]
+        assert not missing, f"`{' '.join(command)}`: options {missing} are not in its --help"
+        # both sides of the example meet at one router, in one wire format
+        assert command[command.index("--connect") + 1] == "tcp/robot-router:7447"
+        assert command[command.index("--ros2-format") + 1] == "rmw_zenoh"
+    assert services["robot-router"]["image"] == yaml.safe_load(COMPOSE_FILE.read_text())["services"]["router"]["image"]

@@ -23,7 +23,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 HEAVY = ("torch", "mujoco", "zenoh", "rerun")
-ROOMS = ("actor", "learner", "evaluator", "router", "up", "tools", "bench")
+ROOMS = ("actor", "learner", "evaluator", "router", "up", "tools", "bench", "drive", "sim_robot")
 HOMES = ("bus", "viz")
 
 

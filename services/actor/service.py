@@ -173,6 +173,8 @@ class Outbox:
         self.main_world = main_world
         self.policy_version = 0
         self.batches = 0
+        self.held_s = 0.0
+        """Seconds of the current episode spent held by flow control."""
 
     def begin_episode(self, episode: Episode) -> None:
         self.batcher.begin_episode(episode.first_obs, episode.first_info["start_index"])
@@ -194,7 +196,9 @@ class Outbox:
             path_length_m=info["path_length_m"], distance_from_start_m=info["distance_from_start_m"],
             epsilon=episode.last_step.choice.epsilon, policy_version=self.policy_version,
             duration_s=time.monotonic() - episode.started_s,
-            extra={"expert_guided": float(self.guide.active), "extra_world": float(info["world"] != self.main_world)})
+            extra={"expert_guided": float(self.guide.active), "extra_world": float(info["world"] != self.main_world),
+                   EpisodeStats.HELD_S: self.held_s})
+        self.held_s = 0.0
         self.stats_publisher.put(stats.encode())
 
 
@@ -300,7 +304,9 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 held = time.monotonic()
                 gate.changed.clear()
                 gate.changed.wait(0.5)
-                counters["throttled_s"] += time.monotonic() - held
+                held = time.monotonic() - held
+                counters["throttled_s"] += held
+                outbox.held_s += held
                 continue
 
             message = follower.take()

@@ -32,3 +32,16 @@ def add_transport_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", action="store_true",
                    help="publisher and subscriber as threads of this process, not spawned processes")
     p.add_argument("--json", action="store_true", help="print JSON")
+
+
+def add_drive_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--checkpoint", default="pretrained", help="the policy drive runs (default pretrained)")
+    p.add_argument("--onnx", default=None, metavar="FILE", help="time `drive --onnx FILE` instead")
+    p.add_argument("--images", type=int, default=300, help="images timed (default 300)")
+    p.add_argument("--width", type=int, default=None,
+                   help="image width sent (default: the network's, 40 for the shipped model; a Kinect sends 640)")
+    p.add_argument("--height", type=int, default=None, help="image height sent (default: the network's)")
+    p.add_argument("--encoding", choices=("32FC1", "16UC1"), default="16UC1",
+                   help="image encoding sent (default 16UC1, what depth drivers publish)")
+    p.add_argument("--ros2-format", choices=("rmw_zenoh", "ros2dds"), default="rmw_zenoh", help="wire format")
+    p.add_argument("--json", action="store_true", help="print JSON")

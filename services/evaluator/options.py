@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.options import add_service_arguments
+from services.options import add_protocol_arguments, add_service_arguments
 from services.viz import ENV_RERUN_URL
 from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
 
@@ -42,3 +42,4 @@ def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
                         help="with --once: how long to wait for weights (default 60)")
     parser.add_argument("--query-timeout", type=float, default=2.0, metavar="SECONDS",
                         help="timeout of the start-up query for the latest weights (default 2)")
+    add_protocol_arguments(parser)

@@ -10,7 +10,8 @@ evaluates it when it is due: the first weights it sees, then whenever the policy
 learner's update count at publication) enters a new multiple of ``--every-updates``. A message for another architecture (fingerprint)
 or one that does not decode is counted by cause and dropped; the service carries on.
 
-Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 10 per start)
+Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 10 per start), under
+``--protocol`` (default ``robust``: jittered starts and sensor noise; ``paper``: exact starts)
 
 - publishes an ``EvalResult`` on ``stats/eval/<id>``;
 - appends one JSON line to ``runs/<run>/stats/eval.jsonl`` (summary, per start, rejects);
@@ -59,12 +60,19 @@ from services.evaluator.options import (
     DEFAULT_IMAGE_EVERY,
     add_evaluator_arguments,
 )
+from services.options import protocol_from_args
 from services.process import default_process_id, setup_logging, stop_event_on_signals
 from services.runs import run_paths
 from services.viz.rerun import ViewerLink, evaluate_recorded
 from shared.config import ConfigError, RunConfig
 from shared.errors import CogexploreError
-from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation import (
+    DEFAULT_PROTOCOL,
+    PAPER_EPISODES_PER_START,
+    PAPER_MAX_STEPS,
+    PROTOCOLS,
+    ProtocolConfig,
+)
 from shared.evaluation.policies import GreedyPolicy
 from shared.evaluation.protocol import EvaluationCancelled
 from shared.evaluation.results import EvalResults, save_results
@@ -97,7 +105,8 @@ class EvaluatorService:
                  every_updates: int = DEFAULT_EVERY_UPDATES, episodes_per_start: int = CHEAP_EPISODES_PER_START,
                  max_steps: int = PAPER_MAX_STEPS, world: str | None = None, image_every: int = DEFAULT_IMAGE_EVERY,
                  record: bool = True, seed: int = 0, device: str = "cpu", query_timeout_s: float = 2.0,
-                 connect_wait_s: float = 30.0, rerun_url: str | None = None, tensorboard: Path | None = None):
+                 connect_wait_s: float = 30.0, rerun_url: str | None = None, tensorboard: Path | None = None,
+                 protocol: ProtocolConfig = PROTOCOLS[DEFAULT_PROTOCOL]):
         for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),
                             ("max_steps", max_steps), ("image_every", image_every)):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
@@ -109,6 +118,7 @@ class EvaluatorService:
         self.settings = settings
         self.evaluator_id = validate_name(evaluator_id, "evaluator id")
         self.every_updates = every_updates
+        self.protocol = protocol
         self.episodes_per_start = episodes_per_start
         self.max_steps = max_steps
         self.world = world or cfg.env.world
@@ -155,8 +165,8 @@ class EvaluatorService:
         self.last_version = message.version
         stats = self.root / "stats"
         rrd = recording_path(self.root / "recordings", version) if self.record else None
-        log.info("evaluating policy version %d on %s (%d episode(s) per start, %d steps)", version, self.world,
-                 self.episodes_per_start, self.max_steps)
+        log.info("evaluating policy version %d on %s (%s protocol, %d episode(s) per start, %d steps)", version,
+                 self.world, self.protocol.name, self.episodes_per_start, self.max_steps)
         started = time.monotonic()
         meta = {"policy": "greedy", "model": f"{self.run_name}@{version}", "policy_version": version,
                 "fingerprint": self.fingerprint, "weights_sha256": weights_sha256(self.net),
@@ -166,12 +176,13 @@ class EvaluatorService:
                                     episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
                                     seed=self.seed, rrd=rrd, image_every=self.image_every, policy_version=version,
                                     recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
-                                    stop=stop, rerun_connect=live)
+                                    stop=stop, rerun_connect=live, protocol=self.protocol)
         duration = time.monotonic() - started
         save_results(results, stats / "eval" / f"eval-{version:06d}.json")
         summary = results.summary
         row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, "policy_version": version,
-               "world": self.world, "episodes_per_start": self.episodes_per_start, "max_steps": self.max_steps,
+               "world": self.world, "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
+               "max_steps": self.max_steps,
                "seed": self.seed, "duration_s": round(duration, 3), "summary": summary["overall"],
                "per_start": summary["per_start"], "recording": str(rrd) if rrd is not None else None,
                "streamed_to": live,
@@ -214,8 +225,9 @@ class EvaluatorService:
             subscriber = self.weights.subscribe(session, self.keys, self.query_timeout_s)
             # Announced once subscribed: whoever sees the token can publish weights to us.
             token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))
-            log.info("evaluator %s on run %r: every %d updates, %d episode(s) per start, world %s",
-                     self.evaluator_id, self.run_name, self.every_updates, self.episodes_per_start, self.world)
+            log.info("evaluator %s on run %r: every %d updates, %d episode(s) per start, world %s, protocol %s",
+                     self.evaluator_id, self.run_name, self.every_updates, self.episodes_per_start, self.world,
+                     self.protocol.describe())
             try:
                 deadline = time.monotonic() + wait_weights_s
                 while not stop.is_set():
@@ -267,7 +279,8 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
                                    max_steps=args.max_steps, world=args.world, image_every=args.image_every,
                                    record=not args.no_record, seed=args.seed, device=device,
                                    query_timeout_s=args.query_timeout, rerun_url=args.rerun_connect,
-                                   tensorboard=paths.tensorboard_folder(evaluator_id) if args.tensorboard else None)
+                                   tensorboard=paths.tensorboard_folder(evaluator_id) if args.tensorboard else None,
+                                   protocol=protocol_from_args(args))
     except CogexploreError as exc:  # config, world, run name, device: the message says which
         print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
         return 2

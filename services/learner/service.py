@@ -141,7 +141,9 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
 
         last_stats = last_flow = 0.0
         last_published = core.updates
+        waiting_s = waiting_reported_s = 0.0  # time in passes with no update due: the learner waited for data
         while not stop.is_set() and not core.done:
+            pass_started = time.monotonic()
             # 1. data in
             drained = 0
             while True:
@@ -177,6 +179,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                                          learner_epoch=epoch).encode())
                 last_flow = now
             if now - last_stats >= stats_every_s:
+                waiting_share = min(1.0, (waiting_s - waiting_reported_s) / max(1e-9, now - max(last_stats, started)))
+                waiting_reported_s = waiting_s
                 loss, mean_q = core.recent()
                 agreement = core.recent_demo_agreement()
                 lag = core.weight_lag()
@@ -188,6 +192,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                     updates_per_s=update_rate.rate(now), transitions_per_s=transition_rate.rate(now),
                     uptime_s=now - started, rejects=rejects.counts,
                     extra={"actors_alive": live, "dropped_nonfinite": core.dropped_nonfinite,
+                           LearnerStats.WAITING_SHARE: waiting_share,
                            **({} if agreement is None else {"demo_agreement": agreement}),
                            "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
                            **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[-24:]},  # the 24 heard last
@@ -204,6 +209,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 last_stats = now
             if not drained and not due:
                 time.sleep(0.005)  # idle: wait for data without spinning a core
+            if not due:
+                waiting_s += time.monotonic() - pass_started
 
         # Final: weights out (actors and evaluator see the last version), checkpoint.
         sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())

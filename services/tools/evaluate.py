@@ -1,12 +1,16 @@
-"""``cogexplore evaluate``: the paper's test protocol on a checkpoint or a baseline policy.
+"""``cogexplore evaluate``: the test protocol on a checkpoint or a baseline policy.
 
     cogexplore evaluate --checkpoint runs/exp1 --json out.json --rrd out.rrd
+    cogexplore evaluate --checkpoint pretrained --protocol paper      # exact starts, no noise
     cogexplore evaluate --policy random --world paper-indoor --episodes-per-start 2 --json out.json
     cogexplore evaluate --checkpoint runs/exp1 --rerun-connect rerun+http://127.0.0.1:9876/proxy
     cogexplore evaluate --checkpoint runs/exp1 --rerun-serve     # then open the printed address
 
 Greedy episodes (dropout off) at the TEST speed table from every start pose of the world,
-``--episodes-per-start`` each, capped at ``--max-steps`` moving steps; results per start and
+``--episodes-per-start`` each, capped at ``--max-steps`` moving steps, under ``--protocol``
+(default ``robust``: each start jittered by up to ±5 cm and ±3°, Kinect-like depth noise;
+``paper``: the exact starts, no noise; ``--start-jitter-m``, ``--start-jitter-deg`` and
+``--sensor-noise-m`` override the set: ``shared.evaluation.PROTOCOLS``); results per start and
 overall (``shared.evaluation.results``) go to the JSON, the steps to an optional Rerun recording: a file
 (``--rrd``), a running viewer (``--rerun-connect URL``, e.g. one started with ``rerun``; a
 viewer that does not answer is warned about and skipped) or a gRPC server plus web viewer that
@@ -33,6 +37,7 @@ from typing import Any
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
+from services.options import protocol_from_args
 from services.process import stop_event_on_signals
 from services.viz.rerun import (
     evaluate_recorded,
@@ -41,6 +46,7 @@ from services.viz.rerun import (
     parse_viewer_url,
 )
 from shared.config import ConfigError, parse_world_list
+from shared.evaluation import ProtocolConfig
 from shared.evaluation.protocol import evaluate_policy, protocol_env_config
 from shared.evaluation.results import (
     EvalResults,
@@ -122,12 +128,17 @@ def run_evaluate(args: argparse.Namespace) -> int:
     recorder = None  # only with --rerun-serve, which takes one world
     done: list[tuple[EvalSetup, EvalResults]] = []
     _check_live_options(args)
+    try:
+        protocol = protocol_from_args(args)
+    except ConfigError as exc:
+        raise EvaluateError(f"--protocol: {exc}") from None
     model = None
     for world in _worlds_of(args):
-        setup, results, recorder = _evaluate_one(args, world, model)
+        setup, results, recorder = _evaluate_one(args, world, model, protocol)
         done.append((setup, results))
         model = setup.model  # loaded once for every world
     several = len(done) > 1
+    print(f"protocol {protocol.describe()}")
     for setup, results in done:
         json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None
         if json_path is not None:
@@ -136,14 +147,15 @@ def run_evaluate(args: argparse.Namespace) -> int:
         if several:
             print(f"## {setup.world}")
         print(table_markdown({setup.meta()["model"]: results}), end="")
-        print(json.dumps({"model": setup.meta()["model"], "world": setup.world, **{k: summary[k] for k in (
+        print(json.dumps({"model": setup.meta()["model"], "world": setup.world, "protocol": protocol.name,
+                          **{k: summary[k] for k in (
             "episodes", "mean_steps", "mean_distance_m", "mean_path_length_m", "mean_coverage_pct",
             "collisions", "reached_cap")}}, default=float))
         if json_path is not None:
             print(f"results: {json_path}")
     if several:
         per_world = {setup.world: float(results.summary["overall"]["mean_steps"]) for setup, results in done}
-        print(json.dumps({"model": done[0][0].meta()["model"], "worlds": len(per_world),
+        print(json.dumps({"model": done[0][0].meta()["model"], "protocol": protocol.name, "worlds": len(per_world),
                           "mean_steps_over_worlds": sum(per_world.values()) / len(per_world),
                           "per_world_mean_steps": per_world}))
     if args.rrd:
@@ -163,14 +175,14 @@ def run_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedModel | None
-                  ) -> tuple[EvalSetup, EvalResults, Any]:
+def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedModel | None,
+                  protocol: ProtocolConfig) -> tuple[EvalSetup, EvalResults, Any]:
     """One world of ``cogexplore evaluate``: (setup, results, the live-served recorder or None)."""
     setup = setup_evaluation(args.policy, None if model is not None else args.checkpoint, world=world,
                              preset=args.preset, overrides=args.overrides, seed=args.seed, device=args.device,
                              model=model)
     log.info("evaluating %s on %s", setup.meta()["model"], setup.world)
-    recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"
+    recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"  # the protocol: a property
     recorder = None
     if args.rerun_serve:
         # Opened here, not in evaluate_policy: the server must outlive the evaluation.
@@ -182,17 +194,18 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
                                  recording_name=recording_name)
         print(f"rerun: open {recorder.web_url} in a browser, or run `rerun --connect {recorder.viewer_url}` "
               "(from another machine, put this machine's name in place of localhost/127.0.0.1)", flush=True)
-    protocol = dict(episodes_per_start=args.episodes_per_start, max_steps=args.max_steps, seed=args.seed,
-                    starts=_start_indices(args.starts, setup.world), policy_version=setup.model.policy_version if setup.model else 0,
-                    progress=not args.quiet, meta=setup.meta())
+    run = {"episodes_per_start": args.episodes_per_start, "max_steps": args.max_steps, "seed": args.seed,
+           "starts": _start_indices(args.starts, setup.world),
+           "policy_version": setup.model.policy_version if setup.model else 0,
+           "progress": not args.quiet, "meta": setup.meta(), "protocol": protocol}
     try:
         if recorder is not None:
             results = evaluate_policy(setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
-                                      env_cfg=setup.env_cfg, recorder=recorder, **protocol)
+                                      env_cfg=setup.env_cfg, recorder=recorder, **run)
         else:
             results = evaluate_recorded(setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
                                         env_cfg=setup.env_cfg, rrd=args.rrd, rerun_connect=args.rerun_connect,
-                                        image_every=args.image_every, recording_name=recording_name, **protocol)
+                                        image_every=args.image_every, recording_name=recording_name, **run)
     except BaseException:
         if recorder is not None:
             recorder.close()

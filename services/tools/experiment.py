@@ -17,7 +17,9 @@ resumes from its run's latest checkpoint):
    conv layers initialised from the SL model; after each stage ``checkpoints/latest`` is exported
    to ``<out>/models/drl-<u>.safetensors``;
 4. ``eval-<model>``: the full test protocol (``--episodes-per-start`` 10 episodes from every start,
-   ``--max-steps`` 200, test speeds) for SL, RL, every DRL checkpoint, reactive and random;
+   ``--max-steps`` 200, test speeds, ``--protocol`` default ``paper``: the exact starts without
+   noise, as the paper's comparison; ``robust`` jitters them and adds sensor noise) for SL, RL,
+   every DRL checkpoint, reactive and random;
 5. ``eval-<model>@<world>`` for each of ``--unseen-worlds`` (default ``procedural:101-103``,
    worlds that neither the runs nor the SL data played): the same protocol there, the paper's
    generalisation question;
@@ -49,8 +51,15 @@ from typing import Any
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
-from shared.config import RunConfig, load_preset, parse_override, parse_world_list
+from shared.config import (
+    ConfigError,
+    RunConfig,
+    load_preset,
+    parse_override,
+    parse_world_list,
+)
 from shared.errors import CogexploreError
+from shared.evaluation import PROTOCOL_SENSOR_FIELDS, PROTOCOLS, ProtocolConfig
 
 log = logging.getLogger("cogexplore.experiment")
 
@@ -64,7 +73,7 @@ PAPER_BASELINE_STEPS = {"SL": 14.6, "RL": 20.9}
 PAPER_DRL_STEPS = {500: 9.3, 4000: 21.6, 7500: 27.3, 40000: 92.6}
 # Options that fix what the finished stages computed: a resumed experiment must not change them.
 FIXED_OPTIONS = ("experiment", "world", "preset", "overrides", "sl_model", "sl_worlds", "sl_frames", "sl_epochs",
-                 "rl_updates", "episodes_per_start", "max_steps", "seed")
+                 "rl_updates", "episodes_per_start", "max_steps", "seed", "protocol")
 
 
 class ExperimentError(CogexploreError):
@@ -105,9 +114,11 @@ class Options:
     seed: int
     device: str | None
     quiet: bool
+    protocol: ProtocolConfig = PROTOCOLS["paper"]
 
     def fixed(self) -> dict[str, Any]:
-        return json.loads(json.dumps({k: getattr(self, k) for k in FIXED_OPTIONS}))
+        return json.loads(json.dumps({k: getattr(self, k).to_dict() if k == "protocol" else getattr(self, k)
+                                      for k in FIXED_OPTIONS}))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -129,6 +140,8 @@ class ExperimentState:
                 raise ExperimentError(f"{path} is not valid JSON ({exc}): move it away to start afresh") from None
             if old.get("format") != STATE_FORMAT or old.get("version") != STATE_VERSION:
                 raise ExperimentError(f"{path} is not a {STATE_FORMAT} v{STATE_VERSION} state file")
+            # State files from before the protocol was an option were evaluated under the paper's.
+            old["options"].setdefault("protocol", PROTOCOLS["paper"].to_dict())
             differ = sorted(k for k in FIXED_OPTIONS if old["options"].get(k) != self.data["options"][k])
             if differ:
                 was = {k: old["options"].get(k) for k in differ}
@@ -185,7 +198,11 @@ class Experiment:
                                   + ("it" if len(seen) == 1 else "them") + "; choose worlds never trained on")
 
     def _eval_overrides(self) -> list[str]:
-        return [x for x in self.o.overrides if x.strip().startswith(("sensor.", "env."))]
+        """The sensor and env overrides, less the sensor noise: training's noise is training's, the
+        test's is the protocol's."""
+        owned = tuple(f"sensor.{f}" for f in PROTOCOL_SENSOR_FIELDS)
+        return [x for x in self.o.overrides if x.strip().startswith(("sensor.", "env."))
+                and parse_override(x)[0] not in owned]
 
     @property
     def sl_path(self) -> Path:
@@ -328,7 +345,7 @@ class Experiment:
         results = evaluate_policy(setup.policy_fn, world=world, sensor_cfg=setup.sensor_cfg,
                                   env_cfg=setup.env_cfg, episodes_per_start=self.o.episodes_per_start,
                                   max_steps=self.o.max_steps, seed=self.o.seed, progress=not self.o.quiet,
-                                  meta={**setup.meta(), "model": label})
+                                  meta={**setup.meta(), "model": label}, protocol=self.o.protocol)
         folder = self.out / "eval" if world == self.o.world else self.out / "eval" / slug(world)
         path = folder / f"{slug(label)}.json"
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -377,13 +394,13 @@ class Experiment:
         lines = [f"# Experiment `{self.o.experiment}`: SL, RL, DRL and baselines on `{self.o.world}`", "",
                  f"Preset `{self.o.preset}`" + (f", overrides `{' '.join(self.o.overrides)}`" if self.o.overrides
                                                 else "")
-                 + f"; protocol: {self.o.episodes_per_start} episode(s) from each start, at most "
-                   f"{self.o.max_steps} steps, test speeds, seed {self.o.seed}.", ""]
+                 + f"; protocol {self.o.protocol.describe()}; {self.o.episodes_per_start} episode(s) from each "
+                   f"start, at most {self.o.max_steps} steps, test speeds, seed {self.o.seed}.", ""]
         if sl.get("accuracy") is not None:
             lines += [f"SL model `{sl['model']}`: test accuracy {sl['accuracy']:.3f}"
                       + (f" (balanced {sl['balanced_accuracy']:.3f}, {sl['frames']} frames)"
                          if "balanced_accuracy" in sl else "") + ".", ""]
-        lines += ["## Count / Distance / Coverage per start (Table III)", "", table,
+        lines += [f"## Count / Distance / Coverage per start (Table III, {self.o.protocol.name} protocol)", "", table,
                   "## Trajectory heatmaps (Fig. 6)", "", f"![heatmaps]({heatmaps.name})", ""]
         if curve is not None:
             lines += ["## Learning curve", "", "Mean moving steps of each DRL checkpoint against updates and "
@@ -529,6 +546,7 @@ class Experiment:
 
 
 def options_from_args(args: argparse.Namespace) -> Options:
+    from services.options import protocol_from_args
     from services.tools.pretrain import parse_worlds
 
     checkpoints = parse_checkpoints(args.checkpoints)
@@ -539,6 +557,10 @@ def options_from_args(args: argparse.Namespace) -> Options:
         raise ExperimentError(f"--rl-updates must be >= 1, got {args.rl_updates}")
     if args.minutes_per_stage is not None and not args.minutes_per_stage > 0:
         raise ExperimentError(f"--minutes-per-stage must be > 0, got {args.minutes_per_stage}")
+    try:
+        protocol = protocol_from_args(args)
+    except ConfigError as exc:
+        raise ExperimentError(f"--protocol: {exc}") from None
     return Options(experiment=args.experiment, out=Path(args.out), world=args.world, checkpoints=checkpoints,
                    actors=args.actors, preset=args.preset, overrides=list(args.overrides),
                    minutes_per_stage=args.minutes_per_stage,
@@ -546,7 +568,8 @@ def options_from_args(args: argparse.Namespace) -> Options:
                    sl_worlds=parse_worlds(args.sl_worlds), sl_frames=args.sl_frames, sl_epochs=args.sl_epochs,
                    rl_updates=args.rl_updates or checkpoints[-1],
                    unseen_worlds=list(parse_world_list(args.unseen_worlds)), episodes_per_start=args.episodes_per_start,
-                   max_steps=args.max_steps, seed=args.seed, device=args.device, quiet=args.quiet)
+                   max_steps=args.max_steps, seed=args.seed, device=args.device, quiet=args.quiet,
+                   protocol=protocol)
 
 
 def run_experiment_command(args: argparse.Namespace) -> int:

@@ -1,5 +1,5 @@
-"""``cogexplore model summary|export|select``: a Q-network's layers, a weights-only export, and the
-choice of the model to ship from a run's checkpoints."""
+"""``cogexplore model summary|export|select``: a Q-network's layers, a weights-only or ONNX export, and
+the choice of the model to ship from a run's checkpoints."""
 
 from __future__ import annotations
 
@@ -27,12 +27,14 @@ def run_summary(args: argparse.Namespace) -> int:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    if not (args.out or args.onnx):
+        raise ConfigError("give --out FILE.safetensors (weights for torch), --onnx FILE.onnx (runs without torch) "
+                          "or both")
+    if args.half and not args.out:
+        raise ConfigError("--half stores the --out weights as float16; an --onnx export is float32")
     from shared.learning.checkpoints import average_models, export_weights, load_model
 
     loaded = average_models([load_model(c) for c in args.checkpoint])
-    extra: dict[str, Any] = {}
-    if loaded.averaged_from:
-        extra["averaged_from"] = list(loaded.averaged_from)
     card = {}
     if args.card:
         try:
@@ -41,15 +43,27 @@ def run_export(args: argparse.Namespace) -> int:
             raise ConfigError(f"--card {args.card}: {exc}") from None
         if not isinstance(card, dict):
             raise ConfigError(f"--card {args.card} must hold a JSON object")
-    if card:
-        extra["card"] = card
-    out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
-    _print_json({"out": str(out), "bytes": out.stat().st_size, "policy_version": loaded.policy_version,
-                 "source": str(loaded.path), "averaged": max(1, len(loaded.averaged_from)), "half": args.half})
+    report: dict[str, Any] = {}
+    if args.onnx:  # first: its check against torch may refuse it, and then nothing is written
+        from shared.learning.onnx_export import export_onnx
+
+        onnx_path = export_onnx(loaded, args.onnx, extra={"card": card} if card else None)
+        report["onnx"] = {"out": str(onnx_path), "bytes": onnx_path.stat().st_size}
+    if args.out:
+        extra: dict[str, Any] = {}
+        if loaded.averaged_from:
+            extra["averaged_from"] = list(loaded.averaged_from)
+        if card:
+            extra["card"] = card
+        out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
+        report.update(out=str(out), bytes=out.stat().st_size, half=args.half)
+    _print_json({**report, "policy_version": loaded.policy_version, "source": str(loaded.path),
+                 "averaged": max(1, len(loaded.averaged_from))})
     return 0
 
 
 def run_select(args: argparse.Namespace) -> int:
+    from services.options import protocol_from_args
     from services.tools.selection import SelectOptions, select
 
     opts = SelectOptions(run=Path(args.run), out=Path(args.out), window=args.window, stride=args.stride,
@@ -58,7 +72,7 @@ def run_select(args: argparse.Namespace) -> int:
                          validation_worlds=parse_world_list(args.validate),
                          test_worlds=parse_world_list(args.test) if args.test else (),
                          episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
-                         half=args.half, device=args.device)
+                         half=args.half, device=args.device, protocol=protocol_from_args(args))
     summary = select(opts, echo=lambda msg: print(msg, file=sys.stderr, flush=True))
     print(summary.pop("table"), end="", file=sys.stderr)
     _print_json(summary)

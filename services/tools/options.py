@@ -6,19 +6,26 @@ from __future__ import annotations
 
 import argparse
 
-from services.options import add_runs_dir_argument, add_tensorboard_argument
+from services.options import (
+    add_protocol_arguments,
+    add_runs_dir_argument,
+    add_tensorboard_argument,
+)
 from shared.config import SPEED_TABLES
 from shared.evaluation import (
     DEFAULT_WORLD,
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
     POLICY_NAMES,
+    PROTOCOLS,
 )
 
 PRETRAIN_WORLDS = ("corridor", "paper-indoor")
 """Worlds the supervised data is collected in by default (the paper's corridors and the test world)."""
 PRETRAIN_OUT = "runs/pretrain/sl.safetensors"
 EXPERIMENTS = ("paper",)
+REPORT_PROTOCOLS = ("robust", "paper")
+"""The protocols ``cogexplore report`` shows, in Table III's order: the robust one leads."""
 UNSEEN_WORLDS = "procedural:101-103"
 """Worlds the experiment also tests every model in by default: no run or SL data plays them (the
 shipped model's validation worlds are 201-210, its test worlds 301-330)."""
@@ -69,8 +76,10 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                         help="config preset for a baseline's sensor and env (default: the checkpoint's config, "
                              "else paper)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
-                        help="override a sensor./env. field, e.g. --set sensor.noise_std_m=0.02 (repeatable)")
+                        help="override a sensor./env. field, e.g. --set sensor.max_range_m=3.5 (repeatable; the "
+                             "sensor's noise is the protocol's)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_protocol_arguments(parser)
 
 
 def add_report_arguments(parser: argparse.ArgumentParser) -> None:
@@ -89,6 +98,10 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and the random baseline")
     parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--protocol", nargs="+", choices=tuple(PROTOCOLS), default=list(REPORT_PROTOCOLS),
+                        metavar="NAME", help="the test protocols of Table III, in order (default: "
+                                             f"{' '.join(REPORT_PROTOCOLS)}; " + "; ".join(
+                                                 p.describe() for p in PROTOCOLS.values()) + ")")
 
 
 def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
@@ -124,6 +137,7 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seed of the supervised model's training and of the test episodes (default 0)")
     parser.add_argument("--device", default=None, help="torch device for training: auto, cpu, cuda")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_protocol_arguments(parser, default="paper")
 
 
 def add_pretrain_arguments(parser: argparse.ArgumentParser) -> None:
@@ -214,10 +228,14 @@ def add_model_summary_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_model_export_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("checkpoint", nargs="+",
-                   help="checkpoint file or directory, or run folder; with several (one run's later "
-                        "checkpoints), their weights' mean, labelled with the last one's update")
-    p.add_argument("--out", required=True, help="output .safetensors path")
-    p.add_argument("--half", action="store_true", help="store float16 (half the size)")
+                   help="checkpoint file or directory, run folder, weights export or `pretrained` (the shipped "
+                        "model); with several (one run's later checkpoints), their weights' mean, labelled with "
+                        "the last one's update")
+    p.add_argument("--out", default=None, help="output .safetensors path (weights only, for torch)")
+    p.add_argument("--onnx", default=None, metavar="F.onnx",
+                   help="output ONNX path, instead of --out or beside it: the network for a robot computer "
+                        "without torch (onnxruntime; `drive --onnx`), checked against torch before it is written")
+    p.add_argument("--half", action="store_true", help="store the --out weights as float16 (half the size)")
     p.add_argument("--card", metavar="JSON", help="a JSON object stored in the file's metadata (model card)")
 
 
@@ -243,8 +261,10 @@ def add_model_select_arguments(p: argparse.ArgumentParser) -> None:
                    help="test worlds the chosen window alone plays after the choice, reported apart "
                         "(e.g. procedural:301-330)")
     p.add_argument("--episodes-per-start", type=int, default=1,
-                   help="episodes per start (default 1: the protocol is deterministic without sensor noise)")
+                   help="episodes per start (default 1: one draw per start under the robust protocol; the "
+                        "paper's repeats one episode exactly)")
     p.add_argument("--max-steps", type=int, default=PAPER_MAX_STEPS,
                    help=f"moving steps per episode at most (default {PAPER_MAX_STEPS})")
     p.add_argument("--half", action="store_true", help="store float16")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
+    add_protocol_arguments(p)

@@ -1,22 +1,23 @@
 """``cogexplore report RUN_DIR``: the paper's tables and figures for a run, as PNG + Markdown + HTML.
 
     cogexplore report runs/exp1 [--compare CKPT ...] [--out DIR] [--episodes-per-start N] [--world W]
-                                [--probe depth.png ...]
+                                [--probe depth.png ...] [--protocol robust paper]
 
 Into ``RUN_DIR/report/`` (or ``--out``), shown by ``report.html`` (for a browser, the figures
 inlined while they stay small) and linked from ``report.md`` (the same sections, for terminals and GitHub):
 
 - Table III (Count / Distance per start, plus coverage) for the run's latest checkpoint, each
-  ``--compare`` checkpoint and the ``random`` and ``reactive`` baselines, with collisions by
-  cause and capped episodes per model. Results JSON already in the run (``report/results/``,
-  the evaluator service's ``stats/eval/``, ``stats/``, the run folder) is reused when its
-  weights and protocol match; everything else is evaluated (the full protocol, 10 episodes per
-  start, by default) and saved to ``report/results/`` for next time;
-- trajectory heatmaps per model and side by side (Fig. 6);
+  ``--compare`` checkpoint and the ``random`` and ``reactive`` baselines, once per test protocol
+  (``--protocol``, default the robust one first, then the paper's: ``shared.evaluation.PROTOCOLS``),
+  with collisions by cause and capped episodes per model and protocol. Results JSON already in the
+  run (``report/results/``, the evaluator service's ``stats/eval/``, ``stats/``, the run folder) is
+  reused when its weights and protocol match; everything else is evaluated (the full protocol, 10
+  episodes per start, by default) and saved to ``report/results/`` for next time;
+- trajectory heatmaps per model and side by side (Fig. 6), under the first protocol;
 - the loss curve over learner updates (Fig. 5) from ``stats/learner.csv``, and the evaluator
   service's mean steps per policy version from ``stats/eval.jsonl``, when they exist, ending in
   the report's own evaluation of the run's checkpoint (the final one of ``cogexplore up``) at its
-  version;
+  version under the evaluator's protocol;
 - the Q-values of the probe scenes (Table II: ``shared/evaluation/probe_scenes`` plus ``--probe`` images) and
   their receptive-field maps with the chosen command (Fig. 7), for every checkpoint model.
 """
@@ -44,8 +45,14 @@ from services.tools.document import (
     html_page,
     markdown,
 )
+from services.tools.options import REPORT_PROTOCOLS
 from shared.errors import CogexploreError
-from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation import (
+    PAPER_EPISODES_PER_START,
+    PAPER_MAX_STEPS,
+    ProtocolConfig,
+    protocol_named,
+)
 from shared.evaluation.protocol import evaluate_policy
 from shared.evaluation.results import (
     EvalResults,
@@ -66,7 +73,7 @@ LEARNER_LOG = "learner.csv"
 EVAL_LOG = "eval.jsonl"
 # Meta fields that must agree for a stored result to stand for a new evaluation.
 PROTOCOL_KEYS: tuple[str, ...] = ("policy", "world", "speed_table", "starts", "episodes_per_start", "max_steps",
-                                  "seed", "sensor", "env")
+                                  "seed", "protocol", "sensor", "env")
 
 
 class ReportError(CogexploreError):
@@ -75,12 +82,12 @@ class ReportError(CogexploreError):
 
 @dataclass
 class ReportModel:
-    """One column group of the report: a model, how it was evaluated, and its results."""
+    """One column group of the report: a model, how it was evaluated, and its results by protocol name."""
 
     name: str
     setup: EvalSetup
-    results: EvalResults | None = None
-    reused_from: Path | None = None
+    results: dict[str, EvalResults] = field(default_factory=dict)
+    reused_from: dict[str, Path] = field(default_factory=dict)
 
     @property
     def model(self) -> LoadedModel | None:
@@ -89,13 +96,13 @@ class ReportModel:
 
 @dataclass
 class Report:
-    """What ``build_report`` produced: the Markdown and HTML files, every figure, notes and the
-    evaluation curve's points."""
+    """What ``build_report`` produced: the Markdown and HTML files, every figure, the results files
+    (``{protocol name: {model name: path}}``), notes and the evaluation curve's points."""
 
     markdown: Path
     html: Path
     figures: list[Path] = field(default_factory=list)
-    results: dict[str, Path] = field(default_factory=dict)
+    results: dict[str, dict[str, Path]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     eval_curve: list[EvalPoint] = field(default_factory=list)
 
@@ -122,7 +129,7 @@ def find_results(search_dirs: Sequence[Path], want: Mapping[str, Any]) -> tuple[
 
 
 def _protocol_meta(setup: EvalSetup, world: str, episodes_per_start: int, max_steps: int, seed: int,
-                   starts: list[int]) -> dict[str, Any]:
+                   starts: list[int], protocol: ProtocolConfig) -> dict[str, Any]:
     from dataclasses import asdict
 
     from shared.evaluation.protocol import protocol_env_config
@@ -130,7 +137,7 @@ def _protocol_meta(setup: EvalSetup, world: str, episodes_per_start: int, max_st
     env = protocol_env_config(setup.env_cfg, world, max_steps)
     want = {"policy": setup.policy, "world": world, "speed_table": "test", "starts": starts,
             "episodes_per_start": episodes_per_start, "max_steps": max_steps, "seed": seed,
-            "sensor": asdict(setup.sensor_cfg),
+            "protocol": protocol.to_dict(), "sensor": asdict(protocol.sensor(setup.sensor_cfg)),
             "env": {k: v for k, v in asdict(env).items() if k != "start_index"}}
     if setup.model is not None:
         want["weights_sha256"] = setup.model.weights_sha256
@@ -173,19 +180,22 @@ class EvalPoint:
     episodes_per_start: int | None
     max_steps: int | None
     final: bool = False
+    protocol: str = "paper"
+    """The test protocol's name (rows the evaluator wrote before it recorded one ran the paper's)."""
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> EvalPoint:
         """A periodic evaluation, from a row of ``eval.jsonl``."""
         return cls(row["policy_version"], float(row["summary"]["mean_steps"]), row.get("episodes_per_start"),
-                   row.get("max_steps"))
+                   row.get("max_steps"), protocol=str(row.get("protocol", "paper")))
 
     @classmethod
     def final_of(cls, results: EvalResults) -> EvalPoint:
         """The final evaluation of a checkpoint, at the version its weights were saved at."""
         meta = results.meta
         return cls(int(meta["policy_version"]), float(results.summary["overall"]["mean_steps"]),
-                   meta.get("episodes_per_start"), meta.get("max_steps"), final=True)
+                   meta.get("episodes_per_start"), meta.get("max_steps"), final=True,
+                   protocol=results.protocol.name)
 
 
 def eval_curve_points(rows: Sequence[Mapping[str, Any]], final: EvalPoint | None = None) -> list[EvalPoint]:
@@ -218,7 +228,8 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("policy version (learner updates)")
     ax.set_ylabel("mean moving steps")
-    ax.set_title("Evaluations during training")
+    protocols = sorted({p.protocol for p in points})
+    ax.set_title(f"Evaluations during training ({', '.join(protocols)} protocol)")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -236,8 +247,10 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
                  episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
                  world: str | None = None, probe_files: Sequence[str | Path] = (), seed: int = 0,
                  device: str = "cpu", progress: bool = True,
-                 baselines: Sequence[str] = BASELINES) -> Report:
-    """Evaluate (or reuse results for) every model and write the report; see the module docstring."""
+                 baselines: Sequence[str] = BASELINES,
+                 protocols: Sequence[str | ProtocolConfig] = REPORT_PROTOCOLS) -> Report:
+    """Evaluate (or reuse results for) every model under every protocol (names or configs, in
+    Table III's order) and write the report; see the module docstring."""
     from services.tools.receptive import (
         ReceptiveFieldError,
         receptive_field,
@@ -258,6 +271,10 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     run = Path(run_dir)
     if not run.is_dir():
         raise ReportError(f"run folder {run} does not exist")
+    conditions = [protocol_named(p) if isinstance(p, str) else p for p in protocols]
+    if not conditions or len({c.name for c in conditions}) != len(conditions):
+        raise ReportError(f"give one or more different protocols, got {[c.name for c in conditions]}")
+    lead = conditions[0].name
     out = Path(out_dir) if out_dir is not None else run / "report"
     out.mkdir(parents=True, exist_ok=True)
     report = Report(markdown=out / "report.md", html=out / "report.html")
@@ -296,39 +313,38 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     results_dir = out / "results"
     # Ours first, then the evaluator service's (stats/eval/), then anything the user put in the run.
     search = [results_dir, run / "stats" / "eval", run / "stats", run, run / "results"]
-    for m in models:
-        want = _protocol_meta(m.setup, world_name, episodes_per_start, max_steps, seed, starts)
-        found = find_results(search, want)
-        if found is not None:
-            m.results, m.reused_from = found
-            log.info("%s: reusing %s", m.name, m.reused_from)
-            continue
-        log.info("%s: evaluating (%d starts x %d episodes, %d steps at most)", m.name, len(starts),
-                 episodes_per_start, max_steps)
-        m.results = evaluate_policy(m.setup.policy_fn, world=world_name, sensor_cfg=m.setup.sensor_cfg,
-                                    env_cfg=m.setup.env_cfg, episodes_per_start=episodes_per_start,
-                                    max_steps=max_steps, seed=seed, progress=progress,
-                                    meta={**m.setup.meta(), "model": m.name})
-        path = save_results(m.results, results_dir / f"{slug(m.name)}.json")
-        report.results[m.name] = path
-    for m in models:
-        if m.reused_from is not None:
-            report.results[m.name] = m.reused_from
+    for protocol in conditions:
+        saved: dict[str, Path] = {}
+        for m in models:
+            want = _protocol_meta(m.setup, world_name, episodes_per_start, max_steps, seed, starts, protocol)
+            found = find_results(search, want)
+            if found is not None:
+                m.results[protocol.name], m.reused_from[protocol.name] = found
+                log.info("%s, %s protocol: reusing %s", m.name, protocol.name, found[1])
+                continue
+            log.info("%s, %s protocol: evaluating (%d starts x %d episodes, %d steps at most)", m.name,
+                     protocol.name, len(starts), episodes_per_start, max_steps)
+            m.results[protocol.name] = evaluate_policy(
+                m.setup.policy_fn, world=world_name, sensor_cfg=m.setup.sensor_cfg, env_cfg=m.setup.env_cfg,
+                episodes_per_start=episodes_per_start, max_steps=max_steps, seed=seed, progress=progress,
+                meta={**m.setup.meta(), "model": m.name}, protocol=protocol)
+            saved[m.name] = save_results(m.results[protocol.name],
+                                         results_dir / f"{slug(m.name)}-{slug(protocol.name)}.json")
+        report.results[protocol.name] = {m.name: m.reused_from.get(protocol.name) or saved[m.name] for m in models}
 
     # -- heatmaps ---------------------------------------------------------------------------
     grid = occupancy_grid(world_obj)
     heatmaps: dict[str, Path] = {}
     for m in models:
-        assert m.results is not None
         try:
-            heatmaps[m.name] = save_heatmap_png(world_obj, grid, m.results, out / f"heatmap-{slug(m.name)}.png",
-                                                title=f"{m.name} on {world_name}")
+            heatmaps[m.name] = save_heatmap_png(world_obj, grid, m.results[lead], out / f"heatmap-{slug(m.name)}.png",
+                                                title=f"{m.name} on {world_name} ({lead} protocol)")
         except FigureError as exc:
             notes.append(f"No heatmap for {m.name}: {exc}")
     side_by_side = None
     if heatmaps:
-        side_by_side = save_heatmaps_side_by_side(world_obj, grid, {n: next(m.results for m in models if m.name == n)
-                                                                    for n in heatmaps}, out / "heatmaps.png")
+        side_by_side = save_heatmaps_side_by_side(world_obj, grid, {m.name: m.results[lead] for m in models
+                                                                    if m.name in heatmaps}, out / "heatmaps.png")
     report.figures += list(heatmaps.values()) + ([side_by_side] if side_by_side else [])
 
     # -- training curves --------------------------------------------------------------------
@@ -346,7 +362,9 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     eval_log = run / "stats" / EVAL_LOG
     rows = load_eval_log(eval_log) if eval_log.is_file() else []
     if rows:  # the evaluator ran during training: its curve, ending in this report's evaluation of the run
-        final = EvalPoint.final_of(models[0].results) if run_has_checkpoint else None  # models[0]: the run's
+        evaluator_protocol = EvalPoint.from_row(rows[-1]).protocol
+        run_results = models[0].results.get(evaluator_protocol) if run_has_checkpoint else None  # the run's
+        final = EvalPoint.final_of(run_results) if run_results is not None else None
         report.eval_curve = eval_curve_points(rows, final)
         eval_png = save_eval_curve_png(report.eval_curve, out / "eval-curve.png")
         report.figures.append(eval_png)
@@ -407,25 +425,36 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
         (f"World `{world_name}` ({len(starts)} start poses, {free:.1f} m² free), TEST speed table, "
          f"greedy policies (dropout off)."),
         f"{episodes_per_start} episode(s) per start, at most {max_steps} moving steps each; seed {seed}.",
+        *(f"Protocol {c.describe()}." for c in conditions),
+        *((("Jittered starts and sensor noise are drawn from (seed, start, episode) alone: every model meets "
+            "the same."),) if not all(c.exact for c in conditions) else ()),
         ("Count = mean moving steps before a collision or the cap; Distance = mean straight-line distance "
          "from the start to the end pose (m); Coverage = mean % of the free area the camera saw.")))]
     model_rows = []
     for m in models:
         src = f"`{m.model.path}` (version {m.model.policy_version})" if m.model is not None else "baseline"
-        res = report.results.get(m.name)
-        how = "reused" if m.reused_from is not None else "evaluated"
-        model_rows.append((m.name, m.setup.policy, src, f"{how}: [{res.name}]({rel(res)})"))
+        links_ = []
+        for c in conditions:
+            res = report.results[c.name][m.name]
+            how = "reused" if c.name in m.reused_from else "evaluated"
+            links_.append(f"{c.name} {how}: [{res.name}]({rel(res)})")
+        model_rows.append((m.name, m.setup.policy, src, "; ".join(links_)))
     doc += [Heading(2, "Models"), Table(("Model", "Policy", "Source", "Results"), (False,) * 4, tuple(model_rows))]
-    doc += [Heading(2, "Table III: moving steps and distance per start point"),
-            Table.from_markdown(table_markdown({m.name: m.results for m in models}))]
+    for c in conditions:
+        doc += [Heading(2, f"Table III, {c.name} protocol: moving steps and distance per start point"),
+                Paragraph(f"_{c.describe()}._"),
+                Table.from_markdown(table_markdown({m.name: m.results[c.name] for m in models}))]
     outcome_rows = []
-    for m in models:
-        o = aggregate(m.results.episodes)["overall"]
-        outcome_rows.append((m.name, str(o["episodes"]), str(o["collisions"]["depth"]),
-                             str(o["collisions"]["contact"]), str(o["reached_cap"]), f"{o['mean_path_length_m']:.2f}"))
-    doc.append(Table(("Model", "Episodes", "Collisions (depth)", "Collisions (contact)", "Reached cap",
-                      "Mean path (m)"), (False,) + (True,) * 5, tuple(outcome_rows)))
-    doc.append(Heading(2, "Fig. 6: trajectory heatmaps"))
+    for c in conditions:
+        for m in models:
+            o = aggregate(m.results[c.name].episodes)["overall"]
+            outcome_rows.append((m.name, c.name, str(o["episodes"]), str(o["collisions"]["depth"]),
+                                 str(o["collisions"]["contact"]), str(o["reached_cap"]),
+                                 f"{o['mean_path_length_m']:.2f}"))
+    doc += [Heading(3, "Outcomes"),
+            Table(("Model", "Protocol", "Episodes", "Collisions (depth)", "Collisions (contact)", "Reached cap",
+                   "Mean path (m)"), (False, False) + (True,) * 5, tuple(outcome_rows))]
+    doc.append(Heading(2, f"Fig. 6: trajectory heatmaps ({lead} protocol)"))
     if side_by_side is not None:
         doc.append(Paragraph(f"![heatmaps]({rel(side_by_side)})"))
     if heatmaps:
@@ -434,9 +463,9 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
             Paragraph(f"![loss]({rel(loss_png)})" if loss_png else "_No loss curve: see the notes below._")]
     if eval_png is not None:
         doc += [Heading(3, "Evaluations during training"), Paragraph(f"![evaluations]({rel(eval_png)})"),
-                Table(("Policy version", "Mean moving steps", "Episodes per start", "Step cap", "Evaluation"),
-                      (True, True, True, True, False),
-                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", str(p.episodes_per_start or "-"),
+                Table(("Policy version", "Mean moving steps", "Protocol", "Episodes per start", "Step cap",
+                       "Evaluation"), (True, True, False, True, True, False),
+                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", p.protocol, str(p.episodes_per_start or "-"),
                              str(p.max_steps or "-"), "**final** (Table III)" if p.final else "during training")
                             for p in report.eval_curve))]
     doc.append(Heading(2, "Table II: Q-values of the probe scenes"))
@@ -487,7 +516,7 @@ def run_report(args: argparse.Namespace) -> int:
     report = build_report(args.run_dir, compare=args.compare, out_dir=args.out,
                           episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
                           world=args.world, probe_files=args.probe, seed=args.seed, device=args.device,
-                          progress=not args.quiet)
+                          progress=not args.quiet, protocols=args.protocol)
     for note in report.notes:
         print(f"note: {note}")
     print(report.html)

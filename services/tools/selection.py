@@ -4,8 +4,10 @@ The greedy policy of a DQN run swings from checkpoint to checkpoint, so the ship
 the mean of ``window`` consecutive checkpoints' weights (``shared.learning.model.average_weights``), and
 the window is chosen by a rule fixed before any test world is played:
 
-1. every window is scored on the *gate* world (``paper-indoor``: the training world, the
-   paper's protocol) and kept when it reaches ``gate_min`` mean steps (the goal, 150) and, with
+1. every window is scored on the *gate* world (``paper-indoor``: the training world) under the
+   test ``protocol`` (default the robust one: jittered starts and sensor noise, so a window
+   cannot pass by remembering trajectories from exact poses) and kept when it reaches
+   ``gate_min`` mean steps (the goal, 150) and, with
    ``gate_start_min``, every start of it reaches that many (the goal: 60);
 2. the kept windows are scored on the *validation* worlds (procedural worlds never trained on
    and never used as test worlds) and the best mean over them wins (ties: the later window);
@@ -33,6 +35,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from shared.errors import CogexploreError
+from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, ProtocolConfig
 
 log = logging.getLogger("cogexplore.select")
 
@@ -232,12 +235,15 @@ class SelectOptions:
     max_steps: int = 200
     half: bool = False
     device: str = "auto"
+    protocol: ProtocolConfig = PROTOCOLS[DEFAULT_PROTOCOL]
+    """The test conditions every window is scored under (the export's ``selection`` records it)."""
 
 
 def _protocol_key(o: SelectOptions) -> dict[str, Any]:
     return {"gate_world": o.gate_world, "gate_min": o.gate_min, "gate_start_min": o.gate_start_min,
             "validation_worlds": list(o.validation_worlds),
-            "episodes_per_start": o.episodes_per_start, "max_steps": o.max_steps}
+            "episodes_per_start": o.episodes_per_start, "max_steps": o.max_steps,
+            "protocol": o.protocol.to_dict()}
 
 
 def _load_cache(path: Path, key: dict[str, Any]) -> dict[str, WindowScore]:
@@ -295,6 +301,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     todo = windows(run_checkpoints(o.run), o.window, first_end=o.first_end, last_end=o.last_end, stride=o.stride)
     if not todo:
         raise SelectionError(f"no window of {o.window} checkpoints ends in the given range")
+    echo(f"protocol {o.protocol.describe()}")
     cache_path = o.out.with_name(o.out.stem + "-windows.jsonl")
     key = _protocol_key(o)
     cache = _load_cache(cache_path, key)
@@ -304,7 +311,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
         """(mean steps, the lowest start's mean steps)."""
         results = evaluate_policy(setup.policy_fn, world=world, sensor_cfg=setup.sensor_cfg, env_cfg=setup.env_cfg,
                                   episodes_per_start=o.episodes_per_start, max_steps=o.max_steps, progress=False,
-                                  meta=setup.meta())
+                                  meta=setup.meta(), protocol=o.protocol)
         summary = results.summary
         return (float(summary["overall"]["mean_steps"]),
                 float(min(p["mean_steps"] for p in summary["per_start"])))
@@ -341,7 +348,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     selection = {"rule": rule, "window": o.window, "end_update": chosen.end_update, "gate_world": o.gate_world,
                  "gate_min": o.gate_min, "gate_start_min": o.gate_start_min, "gate": chosen.gate,
                  "gate_worst_start": chosen.gate_worst_start, "validation_worlds": list(o.validation_worlds),
-                 "validation": chosen.validation, "windows_scored": len(scores)}
+                 "validation": chosen.validation, "windows_scored": len(scores), "protocol": o.protocol.to_dict()}
     if o.test_worlds:
         echo(f"testing the window ending at {chosen.end_update} on {len(o.test_worlds)} test world(s)")
         per_world = {w: mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w)
@@ -352,14 +359,16 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     run_dir = o.run.parent if o.run.name == "checkpoints" else o.run
     clock = wall_minutes(run_dir / "stats" / "learner.csv")
     png = save_selection_png(scores, o.out.with_name(o.out.stem + "-windows.png"), gate_min=o.gate_min,
-                             gate_start_min=o.gate_start_min, chosen=chosen, gate_world=o.gate_world, clock=clock)
+                             gate_start_min=o.gate_start_min, chosen=chosen, gate_world=o.gate_world, clock=clock,
+                             title=f"mean of consecutive checkpoints' weights, by window ({o.protocol.name} protocol)")
     first = min((s for s in scores if s.passes(o.gate_min, o.gate_start_min)), key=lambda s: s.end_update,
                 default=None)
     minutes = (lambda update: None) if clock is None else (lambda update: round(float(np.interp(update, *clock)), 1))
     timing = {"chosen_minutes": minutes(chosen.end_update),
               "first_gate_update": None if first is None else first.end_update,
               "first_gate_minutes": None if first is None else minutes(first.end_update)}
-    return {"out": str(out), "chosen": chosen.to_json(), "rule": rule, "test": selection.get("test"), **timing,
+    return {"out": str(out), "protocol": o.protocol.name, "chosen": chosen.to_json(), "rule": rule,
+            "test": selection.get("test"), **timing,
             "windows": len(scores),
             "figure": str(png), "scores": str(cache_path),
             "table": window_rows_markdown(scores, chosen, o.gate_world)}

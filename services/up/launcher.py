@@ -11,12 +11,19 @@ router that listens beyond the machine (``--listen tls/0.0.0.0:7447``) needs the
 certificates: ``--tls`` makes it so (for this machine's name and any ``--host``), as does ``cogexplore
 secure init runs/<run>/secure --tls --host <name>``; ``up`` refuses to start without them, or with a
 plain TCP endpoint there.
+
+The progress line (:func:`progress_line`) says what limits the run, from what the services report:
+the learner's share of time waiting for data (``LearnerStats.WAITING_SHARE``) and the actors' time
+held by its flow control (``EpisodeStats.HELD_S``). A run that exists resumes from its newest
+checkpoint and says so; one whose learner already reached ``train.total_updates`` is refused unless
+``--resume`` (its report is made again) or ``--fresh`` (the old folder is renamed, never deleted).
 """
 
 from __future__ import annotations
 
 import argparse
 import collections
+import csv
 import logging
 import os
 import signal
@@ -43,6 +50,8 @@ from services.bus.session import (
 from services.process import setup_logging
 from services.runs import RunPaths, resolve_config, save_config
 from shared.config import ConfigError
+from shared.errors import CogexploreError
+from shared.learning.stats import LearnerRow
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EpisodeStats, LearnerStats, RejectCounter
 
@@ -67,28 +76,176 @@ class Child:
     logfile: Path
 
 
+LEARNER_WAITS = 0.1
+"""From this share of its time waiting for data (no update due) the learner is fed too slowly: the
+actors are the limit. Below it the learner nearly always has an update due."""
+ACTORS_HELD = 0.2
+"""From this share of their episodes' time held by flow control the actors wait for the learner."""
+HELD_WINDOW_S = 60.0
+"""The actors' held share is taken over the episodes that ended this long ago at most."""
+ETA_AFTER_S = 60.0
+"""Seconds of learning (warm-up excluded) before the end time is estimated: earlier rates still
+include the first, slower updates (weights sent, caches warming)."""
+ETA_AFTER_SHARE = 0.05
+"""...or this share of the session's updates, whichever comes first (short runs)."""
+
+
+@dataclass(frozen=True)
+class ProgressFigures:
+    """One moment of a run, as the progress line shows it: plain numbers, so the line can be made
+    (:func:`progress_line`) and tested without a bus or a clock."""
+
+    updates: int
+    """Learner updates so far (the run's, across resumes)."""
+    total_updates: int
+    """Where the learner stops (``train.total_updates``)."""
+    transitions_received: int | None
+    """Transitions the learner holds an account of (None: no learner statistics yet)."""
+    warmup_transitions: int
+    """Transitions the learner needs before its first update (``train.warmup_transitions``, at least a batch)."""
+    learning_s: float | None
+    """Seconds since this session's learner made its first update (None: not yet)."""
+    learning_updates: int
+    """Updates since then."""
+    learning_goal: int
+    """Updates this session had left to make when learning began (what :data:`ETA_AFTER_SHARE` is a share of)."""
+    waiting_share: float | None
+    """The learner's recent share of time waiting for data (LearnerStats.WAITING_SHARE; None: not reported)."""
+    held_share: float | None
+    """The share of the actors' recent episodes' time they were held by flow control (EpisodeStats.HELD_S;
+    None: no episode of theirs ended since learning began, or none reported it)."""
+    env_steps: int
+    """Environment steps of the episodes finished so far (all actors)."""
+    env_s: float | None
+    """Seconds since the first finished episode began (None: none finished yet)."""
+    episodes: int
+    mean_steps: float | None
+    """Mean length of the network's recent episodes (expert-guided ones left out)."""
+    loss: float | None
+    actors_alive: int
+    clock_s: float
+    """The wall clock now (``time.time()``): the end time is shown in local time."""
+
+
+def limiter(f: ProgressFigures) -> str:
+    """What holds the run back now: the warm-up, the learner or the actors."""
+    if f.transitions_received is None:
+        return "starting: waiting for the learner"
+    if f.learning_s is None:
+        return f"warm-up: filling replay {min(f.transitions_received, f.warmup_transitions)}/{f.warmup_transitions}"
+    if f.updates >= f.total_updates:
+        return "finishing: final checkpoint"
+    if f.actors_alive == 0:
+        return "no actor alive: the learner waits"
+    if f.waiting_share is not None and f.waiting_share >= LEARNER_WAITS:
+        return f"actor-bound: the learner waits for data {f.waiting_share:.0%} of the time"
+    if f.held_share is not None and f.held_share >= ACTORS_HELD:
+        return f"learner-bound: actors held by flow control {f.held_share:.0%} of the time"
+    if f.waiting_share is None:
+        return "learning"
+    if f.held_share is None:  # the actors' word comes when their episodes end
+        return "learner-bound: the learner never waits for data"
+    return "balanced: the learner never waits, the actors are not held"
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0, round(seconds))
+    if seconds >= 3600:
+        return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m"
+    if seconds >= 60:
+        return f"{seconds // 60}m{seconds % 60:02d}s"
+    return f"{seconds}s"
+
+
+def eta(f: ProgressFigures) -> str:
+    """The estimated end of training, from the updates/s since learning began (warm-up excluded),
+    once there are :data:`ETA_AFTER_S` seconds or :data:`ETA_AFTER_SHARE` of the updates to go by."""
+    enough = f.learning_s is not None and f.learning_updates > 0 and (
+        f.learning_s >= ETA_AFTER_S or f.learning_updates >= ETA_AFTER_SHARE * max(1, f.learning_goal))
+    if not enough:
+        return "ETA after the first minute"
+    left_s = max(0, f.total_updates - f.updates) * f.learning_s / f.learning_updates
+    return f"ends ~{time.strftime('%H:%M', time.localtime(f.clock_s + left_s))} ({_duration(left_s)} left)"
+
+
+def progress_line(f: ProgressFigures) -> str:
+    """The text beside the bar: limiter | env steps/s over the run | episodes | loss | actors | ETA."""
+    env = f"{f.env_steps / f.env_s:.0f}" if f.env_s else "-"
+    steps = f"{f.mean_steps:.1f}" if f.mean_steps is not None else "-"
+    loss = f"{f.loss:.3g}" if f.loss is not None else "-"
+    return (f"{limiter(f)} | env {env} st/s avg | ep {f.episodes} | steps/ep {steps} | loss {loss} | "
+            f"actors {f.actors_alive} | {eta(f)}")
+
+
 @dataclass
 class Progress:
-    """What the display shows, fed by the stats subscribers (Zenoh threads)."""
+    """What the display shows, fed by the stats subscribers (Zenoh threads); ``now`` (monotonic
+    seconds) is for tests, the callbacks read the clock."""
 
+    total_updates: int
+    warmup_transitions: int
     updates: int = 0
     loss: float | None = None
+    transitions_received: int | None = None
+    session_first_updates: int | None = None
+    """The updates of this session's first learner report (a resumed run's starting point)."""
+    learning_since: tuple[float, int] | None = None
+    """(time, updates) when this session's updates first advanced."""
+    waiting: collections.deque = field(default_factory=lambda: collections.deque(maxlen=10))
+    held: collections.deque = field(default_factory=lambda: collections.deque(maxlen=500))
+    """(time, held_s, duration_s) of the episodes that reported their time held by flow control."""
     env_steps: int = 0
+    env_since: float | None = None
     episodes: int = 0
     recent_steps: collections.deque = field(default_factory=lambda: collections.deque(maxlen=50))
     lock: threading.Lock = field(default_factory=threading.Lock)
 
-    def on_learner(self, stats: LearnerStats, _key: str) -> None:
+    def on_learner(self, stats: LearnerStats, _key: str = "", now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
         with self.lock:
+            if self.session_first_updates is None:
+                self.session_first_updates = stats.updates
+            elif self.learning_since is None and stats.updates > self.session_first_updates:
+                self.learning_since = (now, stats.updates)
             self.updates = max(self.updates, stats.updates)
+            self.transitions_received = stats.transitions_received
             self.loss = stats.loss if stats.loss is not None else self.loss
+            share = stats.extra.get(LearnerStats.WAITING_SHARE)
+            if share is not None:  # ~10 s of reports: one slow update does not flip the label
+                self.waiting.append(share)
 
-    def on_episode(self, stats: EpisodeStats, _key: str) -> None:
+    def on_episode(self, stats: EpisodeStats, _key: str = "", now: float | None = None) -> None:
+        now = time.monotonic() if now is None else now
         with self.lock:
+            if self.env_since is None:  # the clock starts when the first episode began, not when it ended
+                self.env_since = now - stats.duration_s
             self.episodes += 1
             self.env_steps += stats.steps
+            held_s = stats.extra.get(EpisodeStats.HELD_S)
+            if held_s is not None:
+                self.held.append((now, held_s, stats.duration_s))
             if not stats.extra.get("expert_guided"):  # the network's episodes, not the expert's
                 self.recent_steps.append(stats.steps)
+
+    def figures(self, actors_alive: int, now: float | None = None, clock_s: float | None = None) -> ProgressFigures:
+        now = time.monotonic() if now is None else now
+        with self.lock:
+            since = self.learning_since
+            # episodes that ended before learning began say nothing of the learner's pace
+            recent = [(h, d) for t, h, d in self.held if since is not None and t >= max(since[0], now - HELD_WINDOW_S)]
+            held_time = sum(d for _, d in recent)
+            return ProgressFigures(
+                updates=self.updates, total_updates=self.total_updates,
+                transitions_received=self.transitions_received, warmup_transitions=self.warmup_transitions,
+                learning_s=None if since is None else now - since[0],
+                learning_updates=0 if since is None else self.updates - since[1],
+                learning_goal=0 if since is None else self.total_updates - since[1],
+                waiting_share=sum(self.waiting) / len(self.waiting) if self.waiting else None,
+                held_share=min(1.0, sum(h for h, _ in recent) / held_time) if held_time > 0 else None,
+                env_steps=self.env_steps, env_s=None if self.env_since is None else max(1e-9, now - self.env_since),
+                episodes=self.episodes,
+                mean_steps=sum(self.recent_steps) / len(self.recent_steps) if self.recent_steps else None,
+                loss=self.loss, actors_alive=actors_alive, clock_s=time.time() if clock_s is None else clock_s)
 
 
 class Launcher:
@@ -99,10 +256,22 @@ class Launcher:
         self.paths = RunPaths(Path(args.runs_dir) / self.run)
         self.children: list[Child] = []
         self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
+        if getattr(args, "resume", False) and not self.paths.root.exists():
+            raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
+        moved_to = move_aside(self.paths.root) if getattr(args, "fresh", False) and self.paths.root.exists() else None
         # checked before the run folder exists: a refused start leaves nothing behind
         make_tls = getattr(args, "tls", False)
-        self.secure = secure_files(self.paths.secure, self.run, tls=make_tls or not all(map(_loopback, self.listen)),
-                                   make_tls=make_tls, hosts=[socket.gethostname(), *(getattr(args, "host", None) or [])])
+        try:
+            self.secure = secure_files(self.paths.secure, self.run,
+                                       tls=make_tls or not all(map(_loopback, self.listen)), make_tls=make_tls,
+                                       hosts=[socket.gethostname(), *(getattr(args, "host", None) or [])])
+        except SecurityError:
+            if moved_to is not None:  # refused: the old run is where it was
+                moved_to.rename(self.paths.root)
+            raise
+        if moved_to is not None:
+            print(f"--fresh: the old run {self.run!r} is now {moved_to} (delete it when you no longer need it)",
+                  file=sys.stderr)
         self.paths.make()
 
     def settings(self, role: str) -> ZenohSettings:
@@ -172,15 +341,16 @@ class Launcher:
         cfg_updates = self.total_updates
         deadline = time.monotonic() + a.minutes * 60 if a.minutes else None
         keys = RunKeys(self.run)
-        progress = Progress()
+        # the learner's first update waits for both (shared.learning.learner.LearnerCore.updates_due)
+        progress = Progress(cfg_updates, max(self.config.train.warmup_transitions, self.config.dqn.batch_size))
         rejects = RejectCounter("stats message", log)
         with open_session(self.settings("viewer"), wait_s=30.0) as session:
             subs = [subscribe_messages(session, keys.all_stats("learner"), LearnerStats, progress.on_learner, rejects),
                     subscribe_messages(session, keys.all_stats("episode"), EpisodeStats, progress.on_episode, rejects)]
             actors = LivelinessWatch(session, keys.all_alive("actor"))
-            bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True,
-                       disable=a.quiet)
-            last_steps, last_t = 0, time.monotonic()
+            # tqdm's own rate and remaining time would count the warm-up: progress_line has the estimate
+            bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True, disable=a.quiet,
+                       bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} upd [{elapsed}{postfix}]")
             reason = "done"
             try:
                 while True:
@@ -190,7 +360,7 @@ class Launcher:
                     if deadline is not None and time.monotonic() >= deadline:
                         reason = "time"
                         break
-                    learner = [c for c in self.children if c.role == "learner"][0]
+                    learner = next(c for c in self.children if c.role == "learner")
                     if learner.process.poll() is not None:
                         reason = "done" if learner.process.returncode == 0 else "failed: learner"
                         break
@@ -198,17 +368,9 @@ class Launcher:
                         reason = "failed: router"
                         break
                     stop.wait(1.0)
-                    with progress.lock:
-                        now = time.monotonic()
-                        rate = (progress.env_steps - last_steps) / max(1e-6, now - last_t)
-                        last_steps, last_t = progress.env_steps, now
-                        mean_steps = (sum(progress.recent_steps) / len(progress.recent_steps)
-                                      if progress.recent_steps else 0.0)
-                        bar.n = min(progress.updates, cfg_updates)
-                        bar.set_postfix_str(
-                            f"env {rate:5.0f} st/s | ep {progress.episodes} | steps/ep {mean_steps:5.1f} | "
-                            f"loss {progress.loss if progress.loss is not None else float('nan'):.3g} | "
-                            f"actors {len(actors.alive)}", refresh=True)
+                    figures = progress.figures(len(actors.alive))
+                    bar.n = min(figures.updates, cfg_updates)
+                    bar.set_postfix_str(progress_line(figures), refresh=True)
             finally:
                 bar.close()
                 actors.close()
@@ -226,7 +388,21 @@ class Launcher:
         self.config = resolve_config(a, self.paths)
         if overrides:
             self.config = self.config.with_overrides(overrides)
+        done = checkpoint_updates(self.paths)
+        finished = done is not None and done >= self.total_updates
+        if finished and not getattr(a, "resume", False):
+            raise RunStateError(
+                f"run {self.run!r} has finished: its learner reached {done}/{self.total_updates} updates "
+                f"({self.paths.checkpoints}); --resume redoes its final evaluation and report (with --updates N "
+                f"above {done} it trains on to N), --fresh moves it aside to {self.paths.root.name}.old-<time> "
+                "and starts over")
         save_config(self.config, self.paths)
+        if finished:
+            print(f"run {self.run!r} has finished training ({done}/{self.total_updates} updates)"
+                  + ("" if a.no_report else ": redoing its final evaluation and report"), file=sys.stderr)
+            return 0 if a.no_report else self.final_report()
+        if done is not None:
+            print(resume_line(self.run, self.paths, done, self.total_updates), file=sys.stderr)
         stop = threading.Event()
         previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
@@ -261,12 +437,66 @@ class Launcher:
                           "--rrd", str(self.paths.recordings / "final-eval.rrd")]
         report = cmd + ["report", str(self.paths.root), "--episodes-per-start", str(a.final_episodes)]
         for argv in (evaluate, report):
-            result = subprocess.run(argv, env=dict(os.environ, RERUN_ANALYTICS="0"))
+            result = subprocess.run(argv, check=False, env=dict(os.environ, RERUN_ANALYTICS="0"))
             if result.returncode != 0:
                 print(f"{' '.join(argv[3:5])} failed (exit {result.returncode})", file=sys.stderr)
                 return result.returncode
         print(f"report: {self.paths.report / 'report.html'} (and report.md)", file=sys.stderr)
         return 0
+
+
+class RunStateError(CogexploreError):
+    """The run folder is not what the options take it for (finished without --resume, absent with it)."""
+
+
+def move_aside(root: Path) -> Path:
+    """Rename a run folder to ``<run>.old-<date>-<time>`` (never deleted: it is the user's work)."""
+    stem = f"{root.name}.old-{time.strftime('%Y%m%d-%H%M%S')}"
+    target, n = root.with_name(stem), 1
+    while target.exists():
+        n += 1
+        target = root.with_name(f"{stem}-{n}")
+    root.rename(target)
+    return target
+
+
+def checkpoint_updates(paths: RunPaths) -> int | None:
+    """The updates of the checkpoint the run's learner would resume from (None: it has none)."""
+    if not paths.checkpoints.is_dir() or not any(paths.checkpoints.iterdir()):
+        return None  # a new run: no need to import torch here
+    from shared.learning.checkpoints import CheckpointManager
+
+    checkpoint = CheckpointManager(paths.checkpoints).load_latest()
+    return None if checkpoint is None else checkpoint.update_count
+
+
+def recorded_update_rate(learner_csv: Path) -> float | None:
+    """The mean updates/s a run's learner reported while it was learning (its ``updates_per_s``
+    column, one row a second, warm-up rows left out); None under a minute of them on record."""
+    rates = []
+    try:
+        with open(learner_csv, newline="") as fh:
+            for row in csv.DictReader(fh):
+                try:
+                    rate = float(row["updates_per_s"])
+                except (KeyError, TypeError, ValueError):
+                    continue  # a torn last line of a killed learner
+                if rate > 0:
+                    rates.append(rate)
+    except OSError:
+        return None
+    return sum(rates) / len(rates) if len(rates) >= ETA_AFTER_S else None
+
+
+def resume_line(run: str, paths: RunPaths, done: int, total: int) -> str:
+    """What a resumed run says before it starts: from which update, and, where the run's own learner
+    has a minute of learning on record, how long the rest should take at its rate."""
+    line = f"run {run!r}: resuming from update {done}/{total}"
+    rate = recorded_update_rate(paths.stats / LearnerRow.FILE)
+    if rate is not None:
+        line += (f"; its learner made {rate:.1f} updates/s so far: the {total - done} left should take "
+                 f"~{_duration((total - done) / rate)}, then the final evaluation")
+    return line
 
 
 def _loopback(endpoint: str) -> bool:

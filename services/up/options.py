@@ -19,6 +19,13 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     limit.add_argument("--updates", type=int, default=None, help="stop after this many learner updates")
     limit.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
     parser.add_argument("--run", default=None, help="run name (default: run-<date>-<time>)")
+    again = parser.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="continue the existing run --run names: a finished one (its learner reached the total "
+                            "updates) redoes its final evaluation and report, or trains on with a higher --updates; "
+                            "without either flag an unfinished run resumes and a finished one is refused")
+    again.add_argument("--fresh", action="store_true",
+                       help="start the run over: its existing folder is kept, renamed to <run>.old-<date>-<time>")
     add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
     add_tensorboard_argument(parser)  # passed on to the learner, actors and evaluator

@@ -49,9 +49,10 @@ import re
 import socket
 import threading
 import uuid
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 from urllib.parse import quote, urlsplit
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
@@ -488,10 +489,15 @@ class EvalRecorder:
         updates_per_s, episode_length, ...); names are lower_snake_case, values finite."""
         self._log_metrics("train", update, metrics)
 
-    def log_evaluation(self, update: int, summary: Mapping[str, Any]) -> None:
+    def log_evaluation(self, update: int, summary: Mapping[str, Any],
+                       protocol: Mapping[str, Any] | None = None) -> None:
         """An evaluation of the policy of ``update``: the numeric entries of ``summary`` (an
         ``aggregate(...)`` result or its ``overall`` part) as ``eval/<name>``; collisions by
-        cause become ``eval/collisions_<cause>``."""
+        cause become ``eval/collisions_<cause>``. ``protocol`` (``ProtocolConfig.to_dict()``)
+        becomes the recording's ``protocol`` property: which test conditions the figures are of."""
+        if protocol is not None:
+            self._check_open()
+            self.rec.send_property("protocol", rr.AnyValues(**{k: [v] for k, v in protocol.items()}))
         overall = summary.get("overall", summary)
         flat: dict[str, float] = {}
         for key, value in overall.items():
@@ -537,7 +543,7 @@ class EvalRecorder:
         if self._owns_stream:
             self.rec.disconnect()
 
-    def __enter__(self) -> "EvalRecorder":
+    def __enter__(self) -> EvalRecorder:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -647,7 +653,7 @@ class EpisodeStream:
             return
         self._thread.join(timeout_s)
 
-    def __enter__(self) -> "EpisodeStream":
+    def __enter__(self) -> EpisodeStream:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -783,3 +789,63 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
             recorder.close()
             if not ok and recorder.path is not None:
                 recorder.path.unlink(missing_ok=True)
+
+
+TIMELINE_DECISION = "decision"
+DRIVE = "drive"
+
+
+class DriveRecorder:
+    """What ``cogexplore drive`` sees and decides, to a Rerun file and/or a live viewer: on a
+    ``decision`` timeline, the depth image the policy read, the command (or the stop and its
+    reason), each Q-value, the nearest valid depth and the image-to-command latency."""
+
+    def __init__(self, rrd: str | Path | None, *, connect_url: str | None = None, robot: str = "robot"):
+        sinks: list[Any] = []
+        self.path = Path(rrd) if rrd is not None else None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            sinks.append(rr.FileSink(self.path))
+        self.link = ViewerLink(connect_url, "drive streaming") if connect_url else None
+        if self.link is not None and self.link.up():
+            sinks.append(rr.GrpcSink(connect_url))
+        self.live = self.link is not None
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"drive-{robot}-{uuid.uuid4().hex[:8]}")
+        if sinks:
+            self.rec.set_sinks(*sinks)
+        self.rec.send_recording_name(f"drive {robot}")
+        self._closed = not sinks
+
+    def log_decision(self, diagnostics: Any, depth_m: np.ndarray | None) -> None:
+        """One :class:`shared.wire.robot.DriveDiagnostics`, with the image it came from (None: a stop)."""
+        if self._closed:
+            return
+        d = diagnostics
+        rec = self.rec
+        rec.set_time(TIMELINE_DECISION, sequence=int(d.decision))
+        if depth_m is not None:
+            depth = np.rint(np.clip(np.nan_to_num(depth_m, nan=0.0, posinf=0.0), 0.0, 65.535) * MM_PER_M)
+            rec.log(f"{DRIVE}/depth", rr.DepthImage(depth.astype(np.uint16), meter=MM_PER_M))
+        rec.log(f"{DRIVE}/command", rr.Scalars(float(d.command) if d.command is not None else -1.0))
+        rec.log(f"{DRIVE}/twist/linear_mps", rr.Scalars(d.linear_mps))
+        rec.log(f"{DRIVE}/twist/angular_rps", rr.Scalars(d.angular_rps))
+        rec.log(f"{DRIVE}/decision", rr.TextLog(ACTION_NAMES[d.command] if d.command is not None
+                                                 else f"stop: {d.stop_reason}"))
+        for a, q in enumerate(d.q_values):
+            rec.log(f"{DRIVE}/q/{ACTION_NAMES[a]}", rr.Scalars(q))
+        if d.nearest_depth_m is not None:
+            rec.log(f"{DRIVE}/nearest_depth_m", rr.Scalars(d.nearest_depth_m))
+        if d.latency_ms is not None:
+            rec.log(f"{DRIVE}/latency_ms", rr.Scalars(d.latency_ms))
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self.rec.flush(timeout_sec=10.0)
+        except RuntimeError as exc:
+            if not self.live:
+                raise
+            log.warning("Rerun live stream failed (%s); the recording file, if any, is complete", exc)
+        self.rec.disconnect()

@@ -1,7 +1,9 @@
-"""The paper's test protocol (Section V-A): greedy episodes from every start pose.
+"""The test protocol (the paper's Section V-A): greedy episodes from every start pose.
 
 From every start pose of a world, N episodes at the TEST speed table, each stopped at a collision
-or after at most 200 moving steps; :mod:`shared.evaluation.results` holds what comes out. The
+or after at most 200 moving steps, under the conditions of a :class:`ProtocolConfig` (exact or
+jittered starts, the sensor's noise: ``shared.evaluation.PROTOCOLS``), which the results record
+(``meta.protocol``); :mod:`shared.evaluation.results` holds what comes out. The
 episodes run through the one rollout loop (``shared.rollout``) with two observers of their own,
 the trajectory and the coverage (``shared.sim.maps.CoverageTracker``), and, optionally, a
 recorder (``services.viz.rerun.EvalRecorder``, or anything with its ``begin_episode`` /
@@ -20,7 +22,13 @@ import numpy as np
 from tqdm import tqdm
 
 from shared.config import ACTION_NAMES, EnvConfig, SensorConfig
-from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation import (
+    PAPER_EPISODES_PER_START,
+    PAPER_MAX_STEPS,
+    PROTOCOL_SENSOR_FIELDS,
+    PROTOCOLS,
+    ProtocolConfig,
+)
 from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError, _is_int
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.world import load_world
@@ -35,7 +43,8 @@ class EvaluationCancelled(RuntimeError):
 
 def episode_seed(seed: int, start_index: int, episode: int) -> int:
     """The reset seed of one episode: a function of (seed, start, episode) only, so any
-    subset of the protocol reproduces the same episodes."""
+    subset of the protocol reproduces the same episodes (and, under a jittered protocol, the
+    same start draws and sensor noise for every policy)."""
     return int(np.random.SeedSequence([seed, start_index, episode]).generate_state(1, dtype=np.uint32)[0])
 
 
@@ -106,12 +115,14 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
                  episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
                  seed: int = 0, recorder: Any = None, progress: bool = True,
                  keep_trajectories: bool = True, meta: Mapping[str, Any] | None = None,
-                 stop: threading.Event | None = None) -> EvalResults:
+                 stop: threading.Event | None = None, protocol: ProtocolConfig = PROTOCOLS["paper"]) -> EvalResults:
     """Run exactly ``len(starts) * episodes_per_start`` episodes and return their results.
 
     ``policy_fn(depth_m) -> (action, q_values or None)`` picks each command (greedy for the
-    paper's protocol); ``make_env()`` returns an ``ExploreEnv`` (test speeds for the paper),
-    built once and reset per episode with ``episode_seed(seed, start, episode)``. ``starts``
+    paper's protocol); ``make_env()`` returns an ``ExploreEnv`` (test speeds for the paper) whose
+    sensor has ``protocol``'s noise (``protocol.sensor(cfg)``; ResultsError otherwise), built once
+    and reset per episode with ``episode_seed(seed, start, episode)`` and, under a jittered
+    ``protocol``, its start drawn around the named one by the env. ``starts``
     are start indices (None: all of the world's). Each episode stops at a collision or after
     ``max_steps`` steps, whichever comes first; a ``policy_fn`` with a ``reset()`` method (one that
     remembers its last command) is reset before each episode. ``recorder`` (an ``EvalRecorder``) gets
@@ -133,6 +144,14 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
         if env.env_config.max_episode_steps < max_steps:
             raise ResultsError(f"the env truncates at {env.env_config.max_episode_steps} steps, before the "
                                f"protocol's max_steps={max_steps}: build it with max_episode_steps >= {max_steps}")
+        differ = [f for f in PROTOCOL_SENSOR_FIELDS
+                  if getattr(env.sensor_config, f) != getattr(protocol, f"sensor_{f}")]
+        if differ:
+            raise ResultsError(f"the env's sensor has {', '.join(f'{f}={getattr(env.sensor_config, f)!r}' for f in differ)}"
+                               f", not the {protocol.name} protocol's: build it with protocol.sensor(sensor_cfg)")
+        reset_options: dict[str, Any] = {}
+        if protocol.jittered:
+            reset_options["start_jitter"] = (protocol.start_jitter_m, protocol.start_jitter_deg)
         trace = _Trace(env)
         loop = Rollout(env, _ProtocolPolicy(policy_fn, stop),
                        [trace] + ([_RecorderSteps(recorder)] if recorder is not None else []),
@@ -145,7 +164,7 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
                     if recorder is not None:
                         recorder.begin_episode(start_index, k)
                     episode = loop.run_episode(seed=episode_seed(seed, start_index, k),
-                                               options={"start_index": start_index})
+                                               options={"start_index": start_index, **reset_options})
                     info = episode.info
                     area, fraction = trace.coverage()
                     result = EpisodeResult(
@@ -162,7 +181,7 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
                     bar.set_postfix(mean_steps=f"{np.mean([e.steps for e in episodes]):.1f}")
         run_meta = {"world": env.world.name, "speed_table": env.env_config.speed_table,
                     "starts": start_list, "episodes_per_start": episodes_per_start,
-                    "max_steps": max_steps, "seed": seed}
+                    "max_steps": max_steps, "seed": seed, "protocol": protocol.to_dict()}
         run_meta.update(meta or {})
         return EvalResults(tuple(episodes), run_meta)
     finally:
@@ -173,17 +192,21 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
                     episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
                     seed: int = 0, starts: Sequence[int] | None = None, policy_version: int = 0,
                     progress: bool = True, meta: Mapping[str, Any] | None = None,
-                    stop: threading.Event | None = None, recorder: Any = None) -> EvalResults:
+                    stop: threading.Event | None = None, recorder: Any = None,
+                    protocol: ProtocolConfig = PROTOCOLS["paper"]) -> EvalResults:
     """Run the protocol with ``policy_fn`` in ``world`` and return its results.
 
-    The results' meta holds the sensor and env configs beside ``meta``. ``recorder`` (opened and
-    closed by the caller, e.g. ``services.viz.rerun.evaluate_recorded``) gets every episode and
-    step, then the summary at update ``policy_version``. ``stop``: when set, the run ends within
-    one step with :class:`EvaluationCancelled`.
+    ``protocol`` (default the paper's: exact starts, no noise) sets the starts and the sensor's
+    noise (``sensor_cfg``'s own noise fields are replaced: the test's noise is the protocol's).
+    The results' meta holds the protocol, the sensor and the env configs beside ``meta``.
+    ``recorder`` (opened and closed by the caller, e.g. ``services.viz.rerun.evaluate_recorded``)
+    gets every episode and step, then the summary at update ``policy_version`` and the protocol.
+    ``stop``: when set, the run ends within one step with :class:`EvaluationCancelled`.
     """
     from shared.sim.env import ExploreEnv
 
     cfg = protocol_env_config(env_cfg, world, max_steps)
+    sensor_cfg = protocol.sensor(sensor_cfg)
     world_obj = load_world(world)  # fail early, with the world's own error, before any env is built
 
     def make_env() -> ExploreEnv:
@@ -193,7 +216,7 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
     full_meta.update(meta or {})
     results = run_protocol(policy_fn, make_env, starts=starts, episodes_per_start=episodes_per_start,
                            max_steps=max_steps, seed=seed, recorder=recorder, progress=progress,
-                           meta=full_meta, stop=stop)
+                           meta=full_meta, stop=stop, protocol=protocol)
     if recorder is not None:
-        recorder.log_evaluation(policy_version, results.summary)
+        recorder.log_evaluation(policy_version, results.summary, protocol=protocol.to_dict())
     return results

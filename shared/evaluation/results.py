@@ -2,7 +2,9 @@
 the paper's test protocol.
 
 Protocol (paper, Section V-A): from every start pose, N episodes with the greedy policy at
-the test speeds, each stopped after at most 200 moving steps. Per start and overall we report
+the test speeds, each stopped after at most 200 moving steps, from the exact or jittered start
+and with the sensor noise of the protocol the results record (``meta.protocol``, a
+``shared.evaluation.ProtocolConfig``: ``paper`` or ``robust``). Per start and overall we report
 the mean moving steps, mean start-to-end distance, mean path length, coverage (m^2 and % of
 the free area), collisions by cause and episodes that reached the cap.
 
@@ -18,12 +20,16 @@ Definitions:
 - ``trajectory_xy``: the start position and the position after every step (``steps + 1``
   points), or empty when a caller drops it to save space.
 
-The results JSON (schema ``cogexplore.eval-results/1``)::
+The results JSON (schema ``cogexplore.eval-results/2``)::
 
-    {"schema": "cogexplore.eval-results/1",
-     "meta": {...},                 # free-form JSON object: model, policy_version, world, seed, ...
+    {"schema": "cogexplore.eval-results/2",
+     "meta": {"protocol": {...},    # required: the ProtocolConfig's every field (name, jitter, noise)
+              ...},                 # free-form otherwise: model, policy_version, world, seed, ...
      "episodes": [EpisodeResult, ...],   # fields as in EpisodeResult, trajectory as [[x, y], ...]
      "summary": aggregate(episodes)}     # derived; checked against the episodes on load
+
+Schema 1 (before results recorded their protocol) is refused: its figures cannot say whether the
+starts were exact or jittered.
 """
 
 from __future__ import annotations
@@ -37,9 +43,12 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from shared.config import ConfigError
 from shared.errors import CogexploreError
+from shared.evaluation import ProtocolConfig
 
-SCHEMA_ID = "cogexplore.eval-results/1"
+SCHEMA_ID = "cogexplore.eval-results/2"
+_SCHEMA_WITHOUT_PROTOCOL = "cogexplore.eval-results/1"
 COLLISION_CAUSES: tuple[str, ...] = ("depth", "contact")
 
 
@@ -213,7 +222,14 @@ class EvalResults:
     def summary(self) -> dict[str, Any]:
         return aggregate(self.episodes)
 
+    @property
+    def protocol(self) -> ProtocolConfig:
+        """The conditions the episodes ran under (``meta.protocol``); ResultsError without one."""
+        return _protocol_of(self.meta)
+
     def to_dict(self) -> dict[str, Any]:
+        """The results document; ResultsError when ``meta`` lacks the protocol (it could not be read back)."""
+        _protocol_of(self.meta)
         return {"schema": SCHEMA_ID, "meta": dict(self.meta),
                 "episodes": [e.to_dict() for e in self.episodes], "summary": self.summary}
 
@@ -252,6 +268,16 @@ def load_results(path: str | Path) -> EvalResults:
         raise ResultsError(f"{p}: {exc}") from None
 
 
+def _protocol_of(meta: Mapping[str, Any]) -> ProtocolConfig:
+    if "protocol" not in meta:
+        raise ResultsError("meta.protocol: missing; results must say which test protocol ran (evaluate again: "
+                           "--protocol paper gives the exact starts without noise)")
+    try:
+        return ProtocolConfig.from_dict(meta["protocol"])
+    except ConfigError as exc:
+        raise ResultsError(f"meta.protocol: {exc}") from None
+
+
 def _close(a: Any, b: Any, where: str) -> None:
     if isinstance(a, Mapping) and isinstance(b, Mapping):
         if set(a) != set(b):
@@ -284,10 +310,14 @@ def validate_results_json(data: str | bytes | Mapping[str, Any]) -> EvalResults:
     if set(data) != want:
         raise ResultsError(f"top-level keys must be {sorted(want)}; missing {sorted(want - set(data))}, "
                            f"unknown {sorted(set(data) - want)}")
+    if data["schema"] == _SCHEMA_WITHOUT_PROTOCOL:
+        raise ResultsError(f"schema {_SCHEMA_WITHOUT_PROTOCOL!r} was written before results recorded their "
+                           "test protocol; evaluate again (--protocol paper gives the exact starts without noise)")
     if data["schema"] != SCHEMA_ID:
         raise ResultsError(f"schema: expected {SCHEMA_ID!r}, got {data['schema']!r}")
     if not isinstance(data["meta"], Mapping):
         raise ResultsError(f"meta: expected an object, got {type(data['meta']).__name__}")
+    _protocol_of(data["meta"])
     if not isinstance(data["episodes"], list) or not data["episodes"]:
         raise ResultsError("episodes: expected a non-empty list")
     episodes = [EpisodeResult.from_dict(e, f"episodes[{i}]") for i, e in enumerate(data["episodes"])]

@@ -12,7 +12,12 @@ from typing import Any
 
 from shared.config import EnvConfig, SensorConfig, load_preset, parse_override
 from shared.errors import CogexploreError
-from shared.evaluation import BASELINE_POLICIES, DEFAULT_WORLD, POLICY_NAMES
+from shared.evaluation import (
+    BASELINE_POLICIES,
+    DEFAULT_WORLD,
+    POLICY_NAMES,
+    PROTOCOL_SENSOR_FIELDS,
+)
 from shared.evaluation.policies import make_policy
 from shared.evaluation.protocol import PolicyFn
 from shared.learning.checkpoints import LoadedModel, load_model, load_supervised_model
@@ -81,6 +86,10 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     bad = sorted(k for k in parsed if not k.startswith(("sensor.", "env.")))
     if bad:
         raise EvaluateError(f"evaluate only takes sensor.* and env.* overrides, got {bad}")
+    owned = sorted(k for k in parsed if k in {f"sensor.{f}" for f in PROTOCOL_SENSOR_FIELDS})
+    if owned:
+        raise EvaluateError(f"{', '.join(owned)}: the test protocol sets the sensor's noise; use --protocol or "
+                            "--sensor-noise-m")
     cfg = base.with_overrides(parsed) if parsed else base
     if model is not None and (cfg.sensor.width, cfg.sensor.height) != (model.net.sensor_cfg.width,
                                                                         model.net.sensor_cfg.height):

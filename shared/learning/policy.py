@@ -15,13 +15,8 @@ from typing import Any
 import numpy as np
 
 from shared.config import NUM_ACTIONS, ExploreConfig
-from shared.errors import CogexploreError
+from shared.errors import PolicyError  # defined torch-free, for the ONNX runner too
 from shared.learning.model import InferenceRunner, QNetwork
-
-
-class PolicyError(CogexploreError):
-    """A policy that cannot be built or fed: bad schedule parameters or actor index, an unknown
-    policy name, a missing network, a wrong-sized image."""
 
 
 def linear_epsilon(step: int, cfg: ExploreConfig) -> float:

@@ -46,12 +46,29 @@ from shared.sim.world import World, WorldError, load_world
 
 MAP_RESOLUTION_M = 0.05
 """Cell side of the occupancy grid that random starts and ``rgb_array`` frames use."""
+START_DEPTH_MARGIN_M = 0.1
+"""A drawn start (random or jittered) must see nothing nearer than the collision distance plus this."""
+START_DRAW_TRIES = 100
+"""Draws of a jittered start before the reset gives up (``reset(options={"start_jitter": ...})``)."""
 log = logging.getLogger("cogexplore.env")
 
 
 class EnvError(CogexploreError):
     """A start index, command, render mode or snapshot the environment cannot take (a ValueError,
     as Gymnasium expects of bad arguments)."""
+
+
+def _start_jitter(value: Any) -> tuple[float, float] | None:
+    """The ``start_jitter`` reset option as (metres, degrees); None when absent or zero."""
+    if value is None:
+        return None
+    ok = isinstance(value, (tuple, list)) and len(value) == 2 and all(
+        isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+        and math.isfinite(v) and v >= 0 for v in value)
+    if not ok:
+        raise EnvError(f"start_jitter {value!r}: expected (metres, degrees), both finite and >= 0")
+    jitter_m, jitter_deg = float(value[0]), float(value[1])
+    return (jitter_m, jitter_deg) if jitter_m > 0 or jitter_deg > 0 else None
 
 
 def min_valid_depth(depth_m: np.ndarray) -> float:
@@ -71,6 +88,7 @@ class _Scene:
     robot: Robot
     camera: DepthCamera
     _clear: tuple[Any, np.ndarray] | None = None
+    _clearance: tuple[Any, np.ndarray] | None = None
     _canvas: Any = None
 
     @classmethod
@@ -79,13 +97,19 @@ class _Scene:
         data = mujoco.MjData(model)
         return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
 
-    def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:
-        """The occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
-        if self._clear is None:
+    def clearance(self) -> tuple[Any, np.ndarray]:
+        """The occupancy grid and each cell's distance (m) to the nearest obstacle cell."""
+        if self._clearance is None:
             from shared.sim.maps import clearance_map, occupancy_grid
 
             grid = occupancy_grid(self.world, MAP_RESOLUTION_M)
-            clearance = clearance_map(grid.occupied, grid.resolution_m)
+            self._clearance = grid, clearance_map(grid.occupied, grid.resolution_m)
+        return self._clearance
+
+    def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:
+        """The occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
+        if self._clear is None:
+            grid, clearance = self.clearance()
             self._clear = grid, np.argwhere(clearance >= clearance_m)
         return self._clear
 
@@ -106,6 +130,14 @@ class ExploreEnv(gym.Env):
     (``world=``, ``speed_table=``, ``start_index=``, ``max_episode_steps=``, ...) and an
     optional ``SensorConfig`` (or a dict of its fields). ``world`` may also be a prebuilt
     :class:`World`.
+
+    ``reset`` options: ``start_index`` (a named start; default the config's, else a random one)
+    and ``start_jitter`` ``(metres, degrees)``: the start moved by a uniform draw within
+    ±metres in x and y and ±degrees in heading (the env's ``np_random``, so the reset seed fixes
+    it), drawn again while the robot would touch an obstacle (on the map: less than its radius
+    from an occupied cell; in MuJoCo: a contact) or its first image holds a depth below
+    ``collision_distance_m + START_DEPTH_MARGIN_M``; EnvError naming the start after
+    ``START_DRAW_TRIES`` draws.
     """
 
     metadata = {"render_modes": ["depth_array", "rgb_array"], "render_fps": 2}  # fps of the default 0.5 s period
@@ -176,11 +208,14 @@ class ExploreEnv(gym.Env):
         if not (isinstance(index, (int, np.integer)) and 0 <= index < n_starts):
             raise EnvError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
+        jitter = _start_jitter(options.get("start_jitter"))
         pose = None  # a random free pose (it leaves the robot there and its image in self._depth)
         if not fixed and self.env_config.random_start_prob > 0 and \
                 self.np_random.random() < self.env_config.random_start_prob:
             pose = self._random_free_pose()
         self._random_start = pose is not None
+        if pose is None and jitter is not None:
+            pose = self._jittered_start(int(index), *jitter)
         if pose is None:
             pose = (start.x, start.y, start.yaw)
             self.robot.set_pose(*pose)
@@ -196,8 +231,16 @@ class ExploreEnv(gym.Env):
     def step(self, action):
         if not (isinstance(action, (int, np.integer)) and 0 <= int(action) < NUM_ACTIONS):
             raise EnvError(f"action {action!r} is not one of 0..{NUM_ACTIONS - 1} ({', '.join(ACTION_NAMES)})")
+        return self.step_twist(self.linear_mps, self.angular_rps[int(action)])
+
+    def step_twist(self, linear_mps: float, angular_rps: float):
+        """One control period at any (forward m/s, turn rad/s) command, with :meth:`step`'s return
+        and collision rule: what a robot base does with a ROS ``cmd_vel`` Twist (``cogexplore
+        sim-robot``). ``step(a)`` is ``step_twist`` at the speed table's command ``a``."""
+        if not (math.isfinite(linear_mps) and math.isfinite(angular_rps)):
+            raise EnvError(f"twist ({linear_mps!r} m/s, {angular_rps!r} rad/s) must be finite")
         cfg = self.env_config
-        touched = self.robot.drive(self.linear_mps, self.angular_rps[int(action)], cfg.substeps)
+        touched = self.robot.drive(float(linear_mps), float(angular_rps), cfg.substeps)
         self._depth = self.camera.capture(self.data)
         self._steps += 1
         x, y, _ = self.robot.pose()
@@ -295,10 +338,36 @@ class ExploreEnv(gym.Env):
                     float(self.np_random.uniform(-math.pi, math.pi)))
             self.robot.set_pose(*pose)
             depth = self.camera.capture(self.data)
-            if min_valid_depth(depth) >= self.env_config.collision_distance_m + 0.1:
+            if min_valid_depth(depth) >= self.env_config.collision_distance_m + START_DEPTH_MARGIN_M:
                 self._depth = depth
                 return pose
         return None
+
+    def _jittered_start(self, index: int, jitter_m: float, jitter_deg: float) -> tuple[float, float, float]:
+        """Move the robot to a clear pose drawn around start ``index`` (see the class docstring);
+        its first image is left in ``self._depth``."""
+        cfg = self.env_config
+        start = self.world.starts[index]
+        grid, clearance = self._scene.clearance()
+        half_yaw = math.radians(jitter_deg)
+        for _ in range(START_DRAW_TRIES):
+            dx, dy = self.np_random.uniform(-jitter_m, jitter_m, 2)
+            pose = (float(start.x + dx), float(start.y + dy),
+                    float(start.yaw + self.np_random.uniform(-half_yaw, half_yaw)))
+            ix, iy = grid.world_to_cell(pose[0], pose[1])
+            if not grid.contains(ix, iy) or clearance[iy, ix] < cfg.robot_radius_m:
+                continue
+            self.robot.set_pose(*pose)
+            if self.robot.touching_obstacle():
+                continue
+            depth = self.camera.capture(self.data)
+            if min_valid_depth(depth) >= cfg.collision_distance_m + START_DEPTH_MARGIN_M:
+                self._depth = depth
+                return pose
+        raise EnvError(f"start {index + 1} of world {self.world.name!r}: none of {START_DRAW_TRIES} poses drawn "
+                       f"within ±{jitter_m:g} m and ±{jitter_deg:g}° of it keeps {cfg.robot_radius_m:g} m from "
+                       f"obstacles with nothing in view nearer than "
+                       f"{cfg.collision_distance_m + START_DEPTH_MARGIN_M:g} m")
 
     def _info(self, cause: str | None, min_depth: float) -> dict[str, Any]:
         x, y, yaw = self.robot.pose()

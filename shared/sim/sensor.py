@@ -33,6 +33,9 @@ from shared.depth import range_gate
 from shared.sim.robot import CAMERA_NAME, FLOOR_GEOM, ROBOT_BODY
 
 GL_TOLERANCE_M = 0.02
+KINECT_NOISE_OFFSET_M = 0.4
+"""Distance (m) below which the depth noise no longer shrinks (``SensorConfig.noise_quadratic_per_m``):
+the z0 of Nguyen et al. 2012's fit sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m, valid from ~0.5 m."""
 
 
 def intrinsics(cfg: SensorConfig) -> tuple[float, float, float, float]:
@@ -133,11 +136,21 @@ class DepthCamera:
         else:
             depth = self._raycast(data)
         cfg = self.cfg
-        if cfg.noise_std_m > 0:
-            depth = depth + self.rng.normal(0.0, cfg.noise_std_m, depth.shape).astype(np.float32) * (depth > 0)
+        if cfg.noise_std_m > 0 or cfg.noise_quadratic_per_m > 0:
+            depth = depth + (self.rng.standard_normal(depth.shape) * self.noise_std_m(depth)).astype(np.float32) \
+                * (depth > 0)
         if cfg.dropout_prob > 0:
             depth = np.where(self.rng.random(depth.shape) < cfg.dropout_prob, 0.0, depth)
         return range_gate(depth, cfg.min_range_m, cfg.max_range_m)
+
+    def noise_std_m(self, depth_m: np.ndarray) -> np.ndarray | float:
+        """The depth noise's standard deviation (m) at each depth (``SensorConfig.noise_std_m``
+        and ``noise_quadratic_per_m``)."""
+        cfg = self.cfg
+        if cfg.noise_quadratic_per_m == 0:
+            return cfg.noise_std_m
+        beyond = np.maximum(depth_m.astype(np.float64) - KINECT_NOISE_OFFSET_M, 0.0)
+        return cfg.noise_std_m + cfg.noise_quadratic_per_m * beyond ** 2
 
     def _raycast(self, data: mujoco.MjData) -> np.ndarray:
         cfg = self.cfg

@@ -206,3 +206,42 @@ def parse_key(key: object) -> ParsedKey:
         raise KeyExprError(f"key {text!r}: {exc}") from None
     raise KeyExprError(f"key {text!r} is not a cogexplore key (expected transitions/<actor>, "
                        "weights, weights/latest, config, stats/<kind>/<id> or alive/<role>/<id>)")
+
+
+ROBOT_CHUNK = "@robot"
+"""Second chunk of every robot key: a verbatim chunk (``@...``) matches only itself, so no run's
+wildcard (``cogexplore/*/...``) ever reaches a robot's keys, and no run name (which cannot start
+with ``@``) collides with them."""
+
+
+@dataclass(frozen=True)
+class RobotKeys:
+    """cogexplore's own keys beside a ROS 2 robot (``cogexplore drive`` and ``sim-robot``); the ROS 2
+    topics themselves are spelled by ``shared.ros2.formats``::
+
+        cogexplore/@robot/<robot>/diagnostics   DriveDiagnostics of the drive node, one per decision
+        cogexplore/@robot/<robot>/status        SimRobotStatus of the simulated robot, one per control period
+        cogexplore/@robot/<robot>/reset         any put: a new episode (drive forgets its previous
+                                                command; sim-robot goes back to its start pose)
+    """
+
+    robot: str
+
+    def __post_init__(self) -> None:
+        validate_name(self.robot, "robot name")
+
+    @property
+    def prefix(self) -> str:
+        return f"{ROOT}/{ROBOT_CHUNK}/{self.robot}"
+
+    @property
+    def diagnostics(self) -> str:
+        return f"{self.prefix}/diagnostics"
+
+    @property
+    def status(self) -> str:
+        return f"{self.prefix}/status"
+
+    @property
+    def reset(self) -> str:
+        return f"{self.prefix}/reset"

@@ -601,9 +601,13 @@ class WeightsMessage(Message):
 @_register
 @dataclass(frozen=True)
 class EpisodeStats(Message):
-    """One finished episode of an actor."""
+    """One finished episode of an actor. Figures without a field of their own travel in ``extra``
+    (old peers decode them as it is), under the names below."""
 
     TYPE: ClassVar[str] = "episode_stats"
+    HELD_S: ClassVar[str] = "held_s"
+    """``extra`` key: seconds of the episode in which the actor was held by the learner's flow
+    control (out of credit: the learner is behind the replay ratio)."""
 
     actor_id: str
     episode: int
@@ -648,9 +652,14 @@ class EpisodeStats(Message):
 @_register
 @dataclass(frozen=True)
 class LearnerStats(Message):
-    """A periodic report of the learner."""
+    """A periodic report of the learner. Figures without a field of their own travel in ``extra``
+    (old peers decode them as it is), under the names below."""
 
     TYPE: ClassVar[str] = "learner_stats"
+    WAITING_SHARE: ClassVar[str] = "waiting_share"
+    """``extra`` key: the share of the time since the last report in which no update was due, so the
+    learner waited for data (warm-up, or actors slower than the replay ratio allows). Near 0 the
+    learner is the limit and the actors are held by flow control."""
 
     learner_id: str
     updates: int

@@ -27,6 +27,8 @@ from services.bus.session import (
 )
 from services.evaluator.service import EvaluatorService, recording_path
 from shared.config import load_preset
+from shared.evaluation import PROTOCOLS
+from shared.evaluation.results import load_results
 from shared.learning.model import QNetwork
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys
@@ -130,11 +132,13 @@ def test_service_evaluates_due_weights_and_counts_bad_ones(router: str, tmp_path
     assert rows[1]["summary"]["episodes"] == 4 and rows[1]["max_steps"] == 5
     assert rows[1]["rejected_weights"]["fingerprint"] == 1 and rows[1]["rejected_weights"]["garbage"] >= 1
     assert rows[1]["summary"]["mean_steps"] == pytest.approx(second.extra["mean_steps"])
+    assert rows[1]["protocol"] == "robust"  # the default: jittered starts and sensor noise
     for version in (5, 12):
         rrd = recording_path(tmp_path / "svc" / "recordings", version)
         assert rrd.name == f"eval-{version:06d}.rrd"
         verify_rrd(rrd)
-        assert (tmp_path / "svc" / "stats" / "eval" / f"eval-{version:06d}.json").is_file()
+        saved = load_results(tmp_path / "svc" / "stats" / "eval" / f"eval-{version:06d}.json")
+        assert saved.protocol == PROTOCOLS["robust"] and saved.meta["policy_version"] == version
     assert not recording_path(tmp_path / "svc" / "recordings", 7).exists()
 
 
@@ -152,12 +156,13 @@ def test_once_queries_the_latest_weights_and_exits(router: str, tmp_path: Path) 
     with open_session(ZenohSettings(connect=(router,))) as session:
         results = Results(session, keys)
         queryable = serve_latest(session, keys.weights_latest, lambda: payload)  # noqa: F841
-        proc = service_process(router, tmp_path, "--once")
+        proc = service_process(router, tmp_path, "--once", "--protocol", "paper")
         out, _ = proc.communicate(timeout=120)
         assert proc.returncode == 0, out
         assert results.wait(1, 10.0)[0].policy_version == 42
     row = json.loads((tmp_path / "proc" / "stats" / "eval.jsonl").read_text())
-    assert row["policy_version"] == 42 and row["recording"] is None
+    assert row["policy_version"] == 42 and row["recording"] is None and row["protocol"] == "paper"
+    assert load_results(tmp_path / "proc" / "stats" / "eval" / "eval-000042.json").protocol == PROTOCOLS["paper"]
 
 
 def test_sigterm_stops_the_service_cleanly(router: str, tmp_path: Path) -> None:

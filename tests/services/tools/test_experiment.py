@@ -19,6 +19,7 @@ from services.tools.experiment import (
     parse_checkpoints,
 )
 from services.tools.options import add_experiment_arguments
+from shared.evaluation import PROTOCOLS
 
 
 def main(argv: list[str]) -> int:
@@ -74,9 +75,11 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
         assert f"| {label} | " in general and f"{info['mean_steps']:.1f}" in general
     assert (out / "heatmaps-corridor.png").stat().st_size > 1000
     assert "![learning curve](learning_curve.png)" in report and (out / "learning_curve.png").stat().st_size > 1000
+    assert "Table III, paper protocol" in report and PROTOCOLS["paper"].describe() in report
     for label in ("SL", "RL", "DRL-20"):
         results = json.loads((out / "eval" / f"{label}.json").read_text())
         assert results["meta"]["model"] == label and len(results["episodes"]) == 4  # box-room: 4 starts
+        assert results["meta"]["protocol"] == PROTOCOLS["paper"].to_dict()  # the paper's comparison
         assert all(e["steps"] <= 10 for e in results["episodes"])
 
     # RL: conv layers are the SL model's, frozen; fc layers trained. DRL starts from the SL conv.
@@ -113,6 +116,33 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
     with pytest.raises(ExperimentError, match="other options"):
         run(out, "20,40", "--max-steps", "20")
     assert main([*TINY, "--out", str(out), "--checkpoints", "10,20,40"]) == 2  # 10 is behind the run
+
+
+def test_the_protocol_is_fixed_with_the_experiment(tmp_path):
+    from services.tools.experiment import ExperimentState
+
+    def options(*extra: str):
+        parser = argparse.ArgumentParser()
+        add_experiment_arguments(parser)
+        return options_from_args(parser.parse_args([*TINY, "--out", str(tmp_path), "--checkpoints", "20", *extra]))
+
+    path = tmp_path / "state.json"
+    ExperimentState(path, options()).save()
+    state = json.loads(path.read_text())
+    assert state["options"]["protocol"] == PROTOCOLS["paper"].to_dict()
+    # A state file from before the protocol was an option was evaluated under the paper's: it resumes.
+    del state["options"]["protocol"]
+    path.write_text(json.dumps(state))
+    ExperimentState(path, options())
+    with pytest.raises(ExperimentError, match="other options.*'protocol'"):
+        ExperimentState(path, options("--protocol", "robust"))
+    assert options("--protocol", "robust", "--sensor-noise-m", "0").protocol.name == "custom"
+    with pytest.raises(ExperimentError, match="--protocol: .*start_jitter_m"):
+        options("--start-jitter-m", "-1")
+    # Training noise is training's: it never reaches the test episodes, whose noise is the protocol's.
+    noisy = Experiment.__new__(Experiment)
+    noisy.o = options("--set", "sensor.noise_std_m=0.02", "--set", "sensor.width=40", "--set", "dqn.lr=1e-4")
+    assert noisy._eval_overrides() == ["sensor.width=40"]
 
 
 def test_checkpoint_list_and_options_are_validated(tmp_path, capsys):

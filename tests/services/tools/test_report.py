@@ -22,6 +22,7 @@ from services.tools.report import (
     save_eval_curve_png,
 )
 from shared.config import SensorConfig, load_preset, to_toml
+from shared.evaluation import PROTOCOLS
 from shared.evaluation.probes import (
     PROBE_DIR,
     PROBE_SCENES,
@@ -99,21 +100,33 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
         assert f"| {scene} | exp@1000 |" in text
     assert "resized from 40x30 to 64x48" in text
     assert text.count("rendered from their stored poses for the 64x48 sensor") == 1
+    # Table III under both test protocols, the robust one first, each saying what it is.
+    assert list(report.results) == ["robust", "paper"]
+    robust_at, paper_at = text.index("## Table III, robust protocol"), text.index("## Table III, paper protocol")
+    assert robust_at < paper_at and text.count("| Count | exp@1000 |") == 2
+    assert f"_{PROTOCOLS['robust'].describe()}._" in text and "| exp@1000 | robust |" in text
     # Results were evaluated with the requested protocol and saved for next time.
-    for model, path in report.results.items():
-        doc = json.loads(Path(path).read_text())
-        assert doc["meta"]["episodes_per_start"] == 1 and doc["meta"]["max_steps"] == 5
-        assert len(doc["episodes"]) == 4, model
+    for protocol, paths in report.results.items():
+        assert list(paths) == ["exp@1000", "random", "reactive"]
+        for model, path in paths.items():
+            doc = json.loads(Path(path).read_text())
+            assert doc["meta"]["episodes_per_start"] == 1 and doc["meta"]["max_steps"] == 5
+            assert doc["meta"]["protocol"] == PROTOCOLS[protocol].to_dict()
+            assert len(doc["episodes"]) == 4, model
 
     # A second report reuses every result instead of evaluating again.
-    stamps = {m: Path(p).stat().st_mtime_ns for m, p in report.results.items()}
+    def stamps(r):
+        return {(c, m): Path(p).stat().st_mtime_ns for c, paths in r.results.items() for m, p in paths.items()}
+
+    first = stamps(report)
     again = build_report(run_dir, episodes_per_start=1, max_steps=5, device="cpu", progress=False)
-    assert {m: Path(p).stat().st_mtime_ns for m, p in again.results.items()} == stamps
-    assert again.markdown.read_text().count("| reused: ") == 3
-    # Another protocol does not reuse them.
+    assert stamps(again) == first
+    again_text = again.markdown.read_text()
+    assert again_text.count("robust reused: ") == again_text.count("paper reused: ") == 3
+    # Other episodes do not reuse them.
     longer = build_report(run_dir, out_dir=tmp_path / "longer", episodes_per_start=1, max_steps=6,
                           baselines=("reactive",), device="cpu", progress=False)
-    assert "| reused: " not in longer.markdown.read_text()
+    assert "reused: " not in longer.markdown.read_text()
 
 
 def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_path: Path) -> None:
@@ -123,7 +136,8 @@ def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_
                  "--json", str(final), "--device", "cpu", "--quiet"]) == 0
     report = build_report(run_dir, out_dir=tmp_path / "r", episodes_per_start=1, max_steps=4, baselines=(),
                           device="cpu", progress=False)
-    assert report.results == {"exp@1000": final}
+    assert report.results["robust"] == {"exp@1000": final}  # evaluate's protocol; the paper's is evaluated
+    assert report.results["paper"]["exp@1000"].parent == tmp_path / "r" / "results"
     final.unlink()
 
 
@@ -238,7 +252,8 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     run = make_run(tmp_path / "short", policy_version=1000)
     (run / "config.toml").write_text(to_toml(small_config()))
     (run / "stats").mkdir()
-    periodic = {"policy_version": 0, "episodes_per_start": 1, "max_steps": 200, "summary": {"mean_steps": 3.0}}
+    periodic = {"policy_version": 0, "protocol": "robust", "episodes_per_start": 1, "max_steps": 200,
+                "summary": {"mean_steps": 3.0}}
     (run / "stats" / "eval.jsonl").write_text(json.dumps(periodic) + "\n")
     final_json = run / "stats" / "final-eval.json"
     assert main(["evaluate", "--checkpoint", str(run), "--episodes-per-start", "1", "--max-steps", "4",
@@ -248,7 +263,8 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
 
     # The data: version 0 from the evaluator, then the final evaluation at the checkpoint's version.
     points = eval_curve_points(load_eval_log(run / "stats" / "eval.jsonl"), EvalPoint.final_of(final))
-    assert points == [EvalPoint(0, 3.0, 1, 200), EvalPoint(1000, final_steps, 1, 4, final=True)]
+    assert points == [EvalPoint(0, 3.0, 1, 200, protocol="robust"),
+                      EvalPoint(1000, final_steps, 1, 4, final=True, protocol="robust")]
     # A periodic evaluation of the final version is not drawn a second time: the final one stands for it.
     again = eval_curve_points([periodic, {**periodic, "policy_version": 1000, "summary": {"mean_steps": 7.0}}],
                               EvalPoint.final_of(final))
@@ -257,20 +273,28 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     png = save_eval_curve_png(again, tmp_path / "curve.png")
     assert png.read_bytes()[:8] == PNG_MAGIC
 
-    # The report reuses the final evaluation and draws both points.
+    # The report reuses the final evaluation and draws both points, under the evaluator's protocol.
     report = build_report(run, episodes_per_start=1, max_steps=4, baselines=(), device="cpu", progress=False)
-    assert report.results == {"short@1000": final_json}
+    assert report.results["robust"] == {"short@1000": final_json}
     assert report.eval_curve == points
     assert (run / "report" / "eval-curve.png").read_bytes()[:8] == PNG_MAGIC
-    assert f"| 1000 | {final_steps:.1f} | 1 | 4 | **final** (Table III) |" in report.markdown.read_text()
+    assert f"| 1000 | {final_steps:.1f} | robust | 1 | 4 | **final** (Table III) |" in report.markdown.read_text()
+    # An evaluator from before the protocol was recorded ran the paper's: the curve ends in that one.
+    (run / "stats" / "eval.jsonl").write_text(json.dumps({k: v for k, v in periodic.items() if k != "protocol"}) + "\n")
+    older = build_report(run, episodes_per_start=1, max_steps=4, baselines=(), device="cpu", progress=False)
+    paper = load_results(older.results["paper"]["short@1000"])
+    assert older.eval_curve == [EvalPoint(0, 3.0, 1, 200), EvalPoint.final_of(paper)]
+    assert older.eval_curve[1].protocol == "paper"
 
 
 def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
     run = tmp_path / "fresh"
     run.mkdir()
     (run / "config.toml").write_text(to_toml(small_config()))
-    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False)
+    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
+                          protocols=("paper",))
     text = report.markdown.read_text()
+    assert list(report.results) == ["paper"] and "## Table III, paper protocol" in text and "robust" not in text
     assert "no checkpoint yet" in text and "learner.csv does not exist" in text
     assert "No checkpoint to probe" in text
     assert "| reactive |" in text and (run / "report" / "heatmaps.png").is_file()
@@ -291,6 +315,11 @@ def test_report_command_refuses_bad_input(run_dir: Path, tmp_path: Path, capsys)
     assert "NaN" in capsys.readouterr().err
     assert report([str(tmp_path / "no-such-run")]) == 2
     assert "does not exist" in capsys.readouterr().err
+    # --protocol chooses Table III's protocols and their order.
+    assert report([str(run_dir), "--protocol", "paper", "--episodes-per-start", "1", "--max-steps", "2",
+                   "--out", str(tmp_path / "p"), "--quiet", "--device", "cpu"]) == 0
+    text = (tmp_path / "p" / "report.md").read_text()
+    assert "## Table III, paper protocol" in text and "Table III, robust" not in text
 
 
 # -- probes -------------------------------------------------------------------------------------

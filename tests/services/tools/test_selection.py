@@ -3,6 +3,7 @@ run folder (real checkpoints, real env, the exported file and its cache read bac
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from services.tools.selection import (
     windows,
 )
 from shared.config import load_preset
+from shared.evaluation import PROTOCOLS
 from shared.learning.checkpoints import (
     CheckpointManager,
     load_exported_weights,
@@ -119,7 +121,9 @@ def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_
     chosen, rule = choose(scores, 0.0)
     assert summary["chosen"]["end_update"] == chosen.end_update and summary["rule"] == rule
     # the test world is played once, by the chosen window only, after the choice
-    assert len(lines) == 4 and lines[-1].startswith(f"testing the window ending at {chosen.end_update}")
+    assert len(lines) == 5 and lines[-1].startswith(f"testing the window ending at {chosen.end_update}")
+    # every window is scored under the robust protocol by default, and the export says so
+    assert lines[0] == f"protocol {PROTOCOLS['robust'].describe()}" and summary["protocol"] == "robust"
     assert list(summary["test"]["per_world"]) == ["procedural:0"]
     assert 1 <= summary["test"]["mean"] <= 6
 
@@ -129,6 +133,7 @@ def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_
     for name, t in net.state_dict().items():
         assert torch.allclose(t, (sources[0].state_dict()[name] + sources[1].state_dict()[name]) / 2, atol=1e-6)
     assert meta["selection"]["end_update"] == chosen.end_update and meta["policy_version"] == chosen.end_update
+    assert meta["selection"]["protocol"] == PROTOCOLS["robust"].to_dict()
     assert meta["selection"]["test"] == summary["test"]
     assert [a["policy_version"] for a in meta["averaged_from"]] == [chosen.end_update - 100, chosen.end_update]
     assert Path(summary["figure"]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
@@ -140,8 +145,12 @@ def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_
         run / "checkpoints" / "ckpt-000000500.safetensors")
     lines.clear()
     again = select(opts, echo=lines.append)
-    assert [line.endswith("(cached)") for line in lines[:4]] == [True, True, True, False]
+    assert [line.endswith("(cached)") for line in lines[1:5]] == [True, True, True, False]
     assert again["windows"] == 4
+    # another protocol is another score: nothing is taken from the cache
+    lines.clear()
+    select(dataclasses.replace(opts, protocol=PROTOCOLS["paper"], test_worlds=()), echo=lines.append)
+    assert lines[0].startswith("protocol paper") and not any(line.endswith("(cached)") for line in lines)
 
 
 def test_select_falls_back_to_the_best_gate_score_without_playing_validation(tmp_path: Path) -> None:

@@ -4,7 +4,6 @@ configuration from the learner), and one with a preset the run's data cannot use
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -13,40 +12,18 @@ import time
 from pathlib import Path
 
 import pytest
+from service_processes import ENV, REPO, cogexplore, stop, wait_for
 
-from services.bus.session import ZenohSettings, free_tcp_port, open_session, subscribe_messages
+from services.bus.session import (
+    ZenohSettings,
+    free_tcp_port,
+    open_session,
+    subscribe_messages,
+)
 from shared.wire.keys import RunKeys
 from shared.wire.messages import LearnerStats, RejectCounter
 
-REPO = Path(__file__).resolve().parents[3]
 RUN = "join"
-ENV = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-
-
-def cogexplore(argv: list[str], log: Path) -> subprocess.Popen:
-    with open(log, "wb") as fh:
-        return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], cwd=REPO, env=ENV, stdout=fh,
-                                stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def wait_for(predicate, timeout_s: float, what: str, logs: list[Path]) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.2)
-    tails = "\n".join(f"--- {p.name}\n{p.read_text()[-2000:]}" for p in logs if p.exists())
-    pytest.fail(f"timed out waiting for {what}\n{tails}")
-
-
-def stop(proc: subprocess.Popen, sig: int = signal.SIGTERM, timeout_s: float = 60.0) -> None:
-    if proc.poll() is None:
-        proc.send_signal(sig)
-        try:
-            proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
 
 
 @pytest.mark.timeout(240)

@@ -214,3 +214,23 @@ def test_recorder_needs_a_sink(world) -> None:
 
 def test_command_entities_are_named_after_commands() -> None:
     assert [q_entity(a) for a in range(5)] == [f"policy/q/{n}" for n in ACTION_NAMES]
+
+
+def test_the_drive_recorder_logs_each_decision_and_reads_back(tmp_path) -> None:
+    from services.viz.rerun import DriveRecorder
+    from shared.wire.robot import DriveDiagnostics
+
+    path = tmp_path / "drive.rrd"
+    recorder = DriveRecorder(path, robot="bot")
+    depth = np.full((30, 40), 2.0, np.float32)
+    for i in range(1, 6):
+        recorder.log_decision(DriveDiagnostics("bot", i, 2, 0.25, 0.0, None, 1.5, 1.0 + i,
+                                               tuple(float(q) for q in range(5))), depth)
+    recorder.log_decision(DriveDiagnostics("bot", 6, None, 0.0, 0.0, "watchdog", None, None), None)
+    recorder.close()
+    verify(path)
+    rows = read_rows(path)
+    assert len(rows["drive/depth"]) == 5  # the stop has no image
+    assert len(rows["drive/command"]) == 6 and len(rows["drive/latency_ms"]) == 5
+    assert all(len(rows[f"drive/q/{name}"]) == 5 for name in ACTION_NAMES)
+    assert sorted(r["decision"] for r in rows["drive/command"]) == list(range(1, 7))

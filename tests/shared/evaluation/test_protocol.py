@@ -18,6 +18,7 @@ from rerun.chunk import RrdReader
 from services.cli import main
 from services.viz.rerun import evaluate_recorded
 from shared.config import SensorConfig, load_preset
+from shared.evaluation import PROTOCOLS
 from shared.evaluation.policies import (
     PolicyError,
     RandomPolicy,
@@ -61,6 +62,15 @@ def verify_rrd(path: Path) -> None:
     proc = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(path)], capture_output=True, text=True,
                           env=env, timeout=60)
     assert proc.returncode == 0, proc.stderr + proc.stdout
+
+
+def recorded_protocol(path: Path) -> dict:
+    """The recording's ``protocol`` property (what ``EvalRecorder.log_evaluation`` sends)."""
+    for chunk in RrdReader(path).stream().to_chunks():
+        if chunk.entity_path == "/__properties/protocol":
+            row = chunk.to_record_batch().to_pylist()[0]
+            return {k: v[0] for k, v in row.items() if k != "rerun.controls.RowId"}
+    raise AssertionError(f"{path} has no protocol property")
 
 
 def entities(path: Path) -> dict[str, int]:
@@ -254,6 +264,7 @@ def test_evaluate_writes_results_json_and_a_verified_recording(tmp_path: Path, c
     assert meta["policy"] == "greedy" and meta["policy_version"] == 1000 and meta["world"] == "box-room"
     assert meta["weights_sha256"] == load_model(run).weights_sha256
     assert meta["episodes_per_start"] == 1 and meta["max_steps"] == 5 and meta["speed_table"] == "test"
+    assert meta["protocol"] == PROTOCOLS["robust"].to_dict()  # the default of `cogexplore evaluate`
     assert set(doc["summary"]) == {"overall", "per_start"} and len(doc["summary"]["per_start"]) == 4
     overall = doc["summary"]["overall"]
     for key in ("mean_steps", "mean_distance_m", "mean_path_length_m", "mean_coverage_m2", "mean_coverage_pct",
@@ -269,6 +280,7 @@ def test_evaluate_writes_results_json_and_a_verified_recording(tmp_path: Path, c
     assert rows["policy/q/straight"] == total_steps and rows["policy/action"] == total_steps
     assert rows["world/trajectory/start_1/episode_0"] == results.episodes[0].steps + 1
     assert rows["eval/mean_steps"] == 1  # the summary at the policy version
+    assert recorded_protocol(out_rrd) == pytest.approx(PROTOCOLS["robust"].to_dict())
 
 
 def test_evaluate_baseline_out_of_the_box(tmp_path: Path) -> None:

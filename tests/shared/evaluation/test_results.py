@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from shared.config import SensorConfig
+from shared.evaluation import PROTOCOLS, ProtocolConfig
 from shared.evaluation.protocol import episode_seed, run_protocol
 from shared.evaluation.results import (
     SCHEMA_ID,
@@ -34,6 +35,7 @@ def ep(start: int, k: int, steps: int, cause: str | None = None, cap: bool = Fal
                          trajectory_xy=tuple((0.1 * i, 0.0) for i in range(steps + 1)) if traj else ())
 
 
+PAPER = {"protocol": PROTOCOLS["paper"].to_dict()}
 EPISODES = [
     ep(0, 0, 10, "depth", dist=1.0, cov=0.2),
     ep(0, 1, 200, cap=True, dist=3.0, cov=0.6),
@@ -101,20 +103,21 @@ def test_aggregate_refuses_nothing() -> None:
 
 
 def test_json_round_trip(tmp_path) -> None:
-    results = EvalResults(tuple(EPISODES), {"model": "DRL 500", "policy_version": 500})
+    results = EvalResults(tuple(EPISODES), {"model": "DRL 500", "policy_version": 500, **PAPER})
     doc = json.loads(to_json(results))
     assert doc["schema"] == SCHEMA_ID
     assert doc["summary"]["overall"]["reached_cap"] == 1
     back = validate_results_json(to_json(results))
     assert back.episodes == results.episodes
-    assert back.meta == {"model": "DRL 500", "policy_version": 500}
+    assert back.meta == {"model": "DRL 500", "policy_version": 500, **PAPER}
+    assert back.protocol == PROTOCOLS["paper"]
     path = save_results(results, tmp_path / "r" / "results.json")
     assert load_results(path).episodes == results.episodes
     assert not list(path.parent.glob("*.tmp"))
 
 
 def _doc() -> dict:
-    return json.loads(to_json(EvalResults(tuple(EPISODES), {"model": "m"})))
+    return json.loads(to_json(EvalResults(tuple(EPISODES), {"model": "m", **PAPER})))
 
 
 @pytest.mark.parametrize("mutate,match", [
@@ -129,6 +132,11 @@ def _doc() -> dict:
     (lambda d: d["summary"]["overall"].update(mean_steps=99.0), r"summary\.overall\.mean_steps"),
     (lambda d: d["summary"]["per_start"][1]["collisions"].update(depth=5), r"summary\.per_start\[1\]\.collisions\.depth"),
     (lambda d: d.update(meta=[1]), "meta: expected an object"),
+    # The protocol is part of the schema: results without it (or with a broken one) are refused.
+    (lambda d: d["meta"].pop("protocol"), "meta.protocol: missing; results must say which test protocol"),
+    (lambda d: d["meta"]["protocol"].pop("start_jitter_deg"), r"meta\.protocol: .*missing \['start_jitter_deg'\]"),
+    (lambda d: d["meta"]["protocol"].update(start_jitter_m=-1), r"meta\.protocol: .*start_jitter_m = -1"),
+    (lambda d: d.update(schema="cogexplore.eval-results/1"), "written before results recorded their test protocol"),
 ])
 def test_validation_names_the_problem(mutate, match: str) -> None:
     doc = _doc()
@@ -151,6 +159,22 @@ def test_validation_rejects_bad_text(tmp_path) -> None:
 def test_results_refuse_non_json_meta() -> None:
     with pytest.raises(ResultsError, match="meta"):
         EvalResults(tuple(EPISODES), {"x": float("nan")})
+
+
+def test_results_without_a_protocol_are_not_saved_or_loaded(tmp_path) -> None:
+    unlabelled = EvalResults(tuple(EPISODES), {"model": "m"})
+    with pytest.raises(ResultsError, match="meta.protocol: missing"):
+        save_results(unlabelled, tmp_path / "r.json")
+    assert not (tmp_path / "r.json").exists()
+    with pytest.raises(ResultsError, match="meta.protocol: missing"):
+        _ = unlabelled.protocol
+    # A file written before the protocol was recorded (schema 1, no meta.protocol) names itself and the fix.
+    old = _doc()
+    old["schema"] = "cogexplore.eval-results/1"
+    old["meta"].pop("protocol")
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    with pytest.raises(ResultsError, match=r"old\.json: schema 'cogexplore.eval-results/1' .*\(--protocol paper"):
+        load_results(tmp_path / "old.json")
 
 
 # -- Table III ------------------------------------------------------------------------------
@@ -236,9 +260,11 @@ def test_protocol_counts_cap_and_collisions() -> None:
 
 def test_protocol_is_deterministic_under_a_seed() -> None:
     # Sensor noise makes episodes differ; the seed makes them repeat.
+    noisy = ProtocolConfig("custom", sensor_noise_std_m=0.05)
+
     def run(seed):
         return run_protocol(roomiest_side, make_env(noise=0.05), starts=[0, 1], episodes_per_start=2,
-                            max_steps=40, seed=seed, progress=False).episodes
+                            max_steps=40, seed=seed, progress=False, protocol=noisy).episodes
 
     first = run(0)
     assert run(0) == first
@@ -256,4 +282,8 @@ def test_protocol_rejects_bad_setup() -> None:
                      progress=False)
     with pytest.raises(ResultsError, match="episodes_per_start"):
         run_protocol(roomiest_side, make_env(), episodes_per_start=0, progress=False)
+    # The results would name a protocol whose noise the env's sensor does not have.
+    with pytest.raises(ResultsError, match=r"noise_std_m=0.05, not the paper protocol's"):
+        run_protocol(roomiest_side, make_env(noise=0.05), starts=[0], episodes_per_start=1, max_steps=5,
+                     progress=False)
     assert math.isfinite(episode_seed(0, 0, 0))

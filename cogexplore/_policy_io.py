@@ -1,0 +1,74 @@
+"""The torch-free half of a policy, shared by :class:`cogexplore.Policy` (torch) and
+:class:`cogexplore.onnx_runner.OnnxPolicy` (onnxruntime): a user's depth image seen as the network's
+camera would have seen it, and a command as the robot drives it. numpy and ``shared.depth`` only."""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from shared.config import ACTION_NAMES, SPEED_TABLES, SensorConfig
+from shared.depth import depth_from_mm, range_gate, resize_depth
+from shared.errors import PolicyError
+
+COMMAND_NAMES: tuple[str, ...] = ACTION_NAMES
+"""The five moving commands by index: left, half-left, straight, half-right, right."""
+ASPECT_TOLERANCE = 0.05
+"""How far (relative) an image's width / height may be from the network's before it is refused:
+another aspect ratio is another field of view, which resizing cannot make up."""
+
+
+class Command(NamedTuple):
+    """A moving command as the robot drives it, for one control period."""
+
+    linear_mps: float
+    """Forward speed, m/s."""
+    angular_rps: float
+    """Turn rate, rad/s; positive turns left."""
+
+
+def metres(depth_m: Any) -> np.ndarray:
+    """A user's depth image as (H, W) float metres (NaN and infinity kept: resizing reads them as
+    no return); PolicyError for anything that is not one image of depths."""
+    try:
+        depth = np.asarray(depth_m)
+    except (TypeError, ValueError) as exc:
+        raise PolicyError(f"depth_m must be an (H, W) array of depths in metres: {exc}") from None
+    if depth.ndim == 3 and depth.shape[-1] == 1:  # (H, W, 1), as many camera drivers give it
+        depth = depth[..., 0]
+    if depth.ndim != 2:
+        raise PolicyError(f"depth_m must be one (H, W) depth image, got shape {depth.shape}")
+    if depth.size == 0:
+        raise PolicyError(f"depth_m is empty (shape {depth.shape})")
+    if depth.dtype == np.uint16:
+        return depth_from_mm(depth)
+    if not np.issubdtype(depth.dtype, np.floating):
+        raise PolicyError(f"depth_m must be float metres (or uint16 millimetres), got {depth.dtype}")
+    if (depth < 0).any():
+        raise PolicyError("depth_m has negative depths; expected metres >= 0 (0, NaN or inf: no return)")
+    return depth
+
+
+def camera_observation(depth_m: Any, sensor: SensorConfig) -> np.ndarray:
+    """``depth_m`` as the network's camera (``sensor``) sees it: float32 (H, W) metres at the
+    network's size, 0 = no return (``Policy.observation``, which documents the input)."""
+    depth = metres(depth_m)
+    h, w = depth.shape
+    if abs((w / h) / (sensor.width / sensor.height) - 1.0) > ASPECT_TOLERANCE:
+        raise PolicyError(f"depth_m is {w} x {h} pixels; the network's camera is {sensor.width} x {sensor.height} "
+                          f"({sensor.hfov_deg:g} x {sensor.vfov_deg:g} degrees): crop the image to that field of "
+                          "view first")
+    return range_gate(resize_depth(depth, sensor.height, sensor.width), sensor.min_range_m, sensor.max_range_m)
+
+
+def twist(command: int, speed_table: str = "test") -> Command:
+    """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
+    protocol's) or its ``train`` speeds."""
+    if speed_table not in SPEED_TABLES:
+        raise PolicyError(f"unknown speed table {speed_table!r}; choose {' or '.join(SPEED_TABLES)}")
+    if not (isinstance(command, (int, np.integer)) and not isinstance(command, bool)
+            and 0 <= command < len(COMMAND_NAMES)):
+        raise PolicyError(f"command must be an index in 0..{len(COMMAND_NAMES) - 1}, got {command!r}")
+    angular, linear = SPEED_TABLES[speed_table]
+    return Command(float(linear), float(angular[int(command)]))

@@ -1,0 +1,151 @@
+"""A trained policy without torch: an ONNX export (``cogexplore model export --onnx F.onnx``) run by
+onnxruntime, with the same surface as :class:`cogexplore.Policy`.
+
+    from cogexplore.onnx_runner import load_onnx_policy
+
+    policy = load_onnx_policy("drl.onnx")
+    command = policy.act(depth_m)                       # an (H, W) image in metres, any resolution -> 0..4
+    linear_mps, angular_rps = policy.twist(command)     # hold it for policy.control_period_s
+
+Imports numpy, onnxruntime and the torch-free parts of cogexplore only, so a robot computer needs
+neither torch nor MuJoCo. The image is seen exactly as ``Policy`` sees it (``cogexplore._policy_io``)
+and the command is the same greedy argmax (ties to the lowest index) of the same network, whose
+export was checked against torch to ``MATCH_TOLERANCE``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnxruntime
+
+from cogexplore._policy_io import COMMAND_NAMES, Command, camera_observation, twist
+from shared.config import NUM_ACTIONS, SensorConfig
+from shared.errors import PolicyError
+from shared.learning.onnx_format import (
+    DEPTH_INPUT,
+    METADATA_KEY,
+    NO_PREVIOUS_ACTION,
+    PREVIOUS_ACTION_INPUT,
+    Q_OUTPUT,
+    OnnxModelError,
+    OnnxPolicyInfo,
+)
+
+__all__ = ["OnnxModelError", "OnnxPolicy", "load_onnx_policy"]
+
+
+class OnnxPolicy:
+    """The greedy policy of an exported Q-network, fed depth images from any resolution.
+
+    Made by :func:`load_onnx_policy`; ``observation``, ``q_values``, ``act``, ``decide``, ``reset``,
+    ``previous_command``, ``twist``, ``label``, ``sensor`` and ``control_period_s`` behave as
+    :class:`cogexplore.Policy`'s. Not thread-safe: it remembers the previous command."""
+
+    command_names: tuple[str, ...] = COMMAND_NAMES
+
+    def __init__(self, session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path):
+        self.info: OnnxPolicyInfo = info
+        """The file's metadata: camera, architecture, control period, provenance."""
+        self.path: Path = path
+        """The file loaded."""
+        self.sensor: SensorConfig = info.sensor
+        """The camera the network was trained with: its image size, field of view and range."""
+        self.control_period_s: float = info.control_period_s
+        """How long each command is held before the next image is taken."""
+        self._session = session
+        self._previous: int | None = None
+
+    @property
+    def label(self) -> str:
+        """A short name: ``<run or file>@<policy version>``, as the torch policy's."""
+        return self.info.label
+
+    @property
+    def previous_command(self) -> int | None:
+        """The command the last :meth:`act` chose (None after :meth:`reset`)."""
+        return self._previous
+
+    def observation(self, depth_m: Any) -> np.ndarray:
+        """The network's camera image of ``depth_m``: float32 (H, W) metres at the network's size,
+        0 = no return (see ``cogexplore.Policy.observation``). Raises PolicyError for a wrong shape,
+        an empty array or another aspect ratio."""
+        return camera_observation(depth_m, self.sensor)
+
+    def q_values(self, depth_m: Any) -> np.ndarray:
+        """(5,) float32 Q-values of the commands for this image and the previous command;
+        changes nothing (the next :meth:`act` still sees the same previous command)."""
+        previous = NO_PREVIOUS_ACTION if self._previous is None else self._previous
+        feed = {DEPTH_INPUT: self.observation(depth_m)[None, None],
+                PREVIOUS_ACTION_INPUT: np.array([previous], dtype=np.int64)}
+        return self._session.run([Q_OUTPUT], feed)[0][0]
+
+    def act(self, depth_m: Any) -> int:
+        """The greedy command (0..4) for one depth image; it becomes the previous command."""
+        return self.decide(depth_m)[0]
+
+    def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
+        """:meth:`act` with the (5,) float32 Q-values the command was chosen from (one network pass)."""
+        q = self.q_values(depth_m)
+        # np.argmax takes the first maximum: ties go to the lowest index, as GreedyPolicy's
+        self._previous = int(np.argmax(q))
+        return self._previous, q
+
+    __call__ = act
+
+    def reset(self) -> None:
+        """A new episode: no previous command."""
+        self._previous = None
+
+    def twist(self, command: int, speed_table: str = "test") -> Command:
+        """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
+        protocol's) or its ``train`` speeds."""
+        return twist(command, speed_table)
+
+    def __repr__(self) -> str:
+        return (f"OnnxPolicy({self.label!r}, {self.sensor.width}x{self.sensor.height} px, "
+                f"{self.info.model.depth_encoding} depth, {self.path})")
+
+
+def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxPolicy:
+    """An :class:`OnnxPolicy` from a cogexplore ONNX export. ``threads``: onnxruntime's intra-op
+    threads (1: the small network is fastest on one core and leaves the others to the robot).
+    Raises OnnxModelError (one line) for a missing, corrupt or foreign file."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise PolicyError(f"path must be an .onnx file path, got {type(path).__name__}")
+    if not (isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1):
+        raise PolicyError(f"threads must be an integer >= 1, got {threads!r}")
+    path = Path(path)
+    if not path.is_file():
+        raise OnnxModelError(f"{path}: no such ONNX file (write one with `cogexplore model export CKPT --onnx FILE`)")
+    options = onnxruntime.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3  # errors only: onnxruntime's warnings would go to the robot's console
+    try:
+        session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+    except Exception as exc:  # noqa: BLE001  onnxruntime's load errors (InvalidProtobuf, Fail...) share no other base
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise OnnxModelError(f"{path}: not a readable ONNX model: {reason}") from None
+    metadata = session.get_modelmeta().custom_metadata_map
+    if METADATA_KEY not in metadata:
+        raise OnnxModelError(f"{path}: not a cogexplore ONNX export (no {METADATA_KEY!r} metadata; write one with "
+                             "`cogexplore model export CKPT --onnx FILE`)")
+    info = OnnxPolicyInfo.from_json(metadata[METADATA_KEY], str(path))
+    _check_signature(session, info, path)
+    return OnnxPolicy(session, info, path)
+
+
+def _check_signature(session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path) -> None:
+    """The graph takes and gives what the metadata's camera says (a batch axis of any name or size)."""
+    s = info.sensor
+    want_in = {DEPTH_INPUT: ("tensor(float)", [1, s.height, s.width]),
+               PREVIOUS_ACTION_INPUT: ("tensor(int64)", [])}
+    got_in = {i.name: (i.type, list(i.shape[1:])) for i in session.get_inputs()}
+    got_out = {o.name: (o.type, list(o.shape[1:])) for o in session.get_outputs()}
+    if got_in != want_in or got_out != {Q_OUTPUT: ("tensor(float)", [NUM_ACTIONS])}:
+        raise OnnxModelError(f"{path}: the graph's inputs {got_in} and outputs {got_out} are not the "
+                             f"{s.width} x {s.height} policy its metadata describes")

@@ -1,0 +1,138 @@
+"""``cogexplore bench drive``: how long ``cogexplore drive`` takes from a depth image to its command.
+
+A loopback router in this process, ``drive --lockstep`` as a real process, and this process as the
+robot: it publishes a depth image (``sensor_msgs/msg/Image`` CDR, taken in ``paper-indoor`` at
+poses where the nearest obstacle is beyond the collision distance, so every image runs the
+network) and waits for the ``cmd_vel`` Twist, one at a time. Two figures, median and p99:
+
+- ``round_trip_ms``: image published -> Twist received here (both Zenoh hops, CDR, resizing,
+  inference): what a robot sees;
+- ``drive_ms``: the drive node's own latency, image arrival -> command (its diagnostics).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+import threading
+import time
+from typing import Any
+
+import numpy as np
+
+from services.bus.ros2 import Ros2Node
+from services.bus.session import ZenohSettings, free_tcp_port, open_router, open_session
+from shared.config import DEFAULT_PRESET, EnvConfig, load_preset
+from shared.depth import resize_depth
+from shared.errors import CogexploreError
+from shared.ros2.formats import make_format, qualify
+from shared.ros2.messages import IMAGE, TWIST, encode_depth_image
+from shared.wire.keys import RobotKeys
+from shared.wire.messages import MessageError
+from shared.wire.robot import DriveDiagnostics
+
+TARGET_P99_MS = 20.0
+"""The goal (issue 21): well inside the 0.5 s control period."""
+
+
+def sample_images(count: int, width: int | None, height: int | None, seed: int = 0) -> list[np.ndarray]:
+    """Depth images of paper-indoor from random free poses, nearest return beyond the collision
+    distance, at the network's size or resized to ``width`` x ``height`` as a bigger camera would see."""
+    from shared.sim.env import ExploreEnv
+
+    cfg = load_preset(DEFAULT_PRESET)
+    env = ExploreEnv(dataclasses.replace(cfg.env, world="paper-indoor", random_start_prob=1.0), cfg.sensor)
+    rng = np.random.default_rng(seed)
+    images: list[np.ndarray] = []
+    limit = EnvConfig().collision_distance_m + 0.1
+    try:
+        while len(images) < min(count, 64):  # 64 distinct poses, cycled
+            depth, info = env.reset(seed=int(rng.integers(2**31)))
+            if info["min_depth_m"] >= limit:
+                images.append(depth if width is None else resize_depth(depth, height or depth.shape[0], width))
+    finally:
+        env.close()
+    return [images[i % len(images)] for i in range(count)]
+
+
+def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int = 300, width: int | None = None,
+        height: int | None = None, encoding: str = "16UC1", ros2_format: str = "rmw_zenoh") -> dict[str, Any]:
+    if images < 10:
+        raise CogexploreError(f"--images must be >= 10, got {images}")
+    if (width is None) != (height is None):
+        raise CogexploreError("give both --width and --height, or neither")
+    frames = sample_images(images, width, height)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    robot = "bench"
+    keys = RobotKeys(robot)
+    twists: list[float] = []
+    drive_ms: list[float] = []
+    got = threading.Event()
+    with open_router([endpoint]):
+        argv = [sys.executable, "-m", "services.cli", "drive", "--lockstep", "--connect", endpoint, "--robot", robot,
+                "--ros2-format", ros2_format, "--watchdog", "30", "--log-level", "WARNING",
+                *(["--onnx", onnx] if onnx else ["--checkpoint", checkpoint, "--device", "cpu"])]
+        drive = subprocess.Popen(argv, stdin=subprocess.DEVNULL)
+        try:
+            with open_session(ZenohSettings(mode="client", connect=(endpoint,))) as session:
+                node = Ros2Node(session, make_format(ros2_format), "cogexplore_bench_robot")
+
+                def on_twist(_payload: bytes) -> None:
+                    twists.append(time.perf_counter())
+                    got.set()
+
+                def on_diag(sample: Any) -> None:
+                    try:
+                        message = DriveDiagnostics.decode(bytes(sample.payload))
+                    except MessageError:
+                        return
+                    if message.latency_ms is not None and message.command is not None:
+                        drive_ms.append(message.latency_ms)
+
+                image_pub = node.publisher(qualify("/", "camera/depth/image_raw"), IMAGE, qos="default")
+                node.subscriber(qualify("/", "cmd_vel"), TWIST, on_twist, qos="default")
+                diag = session.declare_subscriber(keys.diagnostics, on_diag)
+                payloads = [encode_depth_image(f, encoding=encoding, stamp_ns=time.time_ns()) for f in frames]
+                # Wait for the drive node (its torch import and model load) to answer an image.
+                deadline = time.monotonic() + 120
+                while not got.wait(0.5):
+                    if drive.poll() is not None or time.monotonic() > deadline:
+                        raise CogexploreError(f"drive did not answer (exit {drive.poll()})")
+                    image_pub.put(payloads[0])
+                time.sleep(0.5)
+                twists.clear()
+                drive_ms.clear()
+                round_trip: list[float] = []
+                for payload in payloads:
+                    got.clear()
+                    sent = time.perf_counter()
+                    image_pub.put(payload)
+                    if not got.wait(10.0):
+                        raise CogexploreError("drive stopped answering")
+                    round_trip.append((twists[-1] - sent) * 1e3)
+                time.sleep(0.3)
+                diag.undeclare()
+                node.close()
+        finally:
+            drive.terminate()
+            drive.wait(30)
+    shape = frames[0].shape
+    rt, dm = np.asarray(round_trip), np.asarray(drive_ms)
+    return {
+        "policy": onnx or checkpoint, "runtime": "onnxruntime" if onnx else "torch",
+        "image": f"{shape[1]}x{shape[0]} {encoding}", "ros2_format": ros2_format, "images": len(rt),
+        "round_trip_ms": {"median": float(np.median(rt)), "p99": float(np.percentile(rt, 99)), "max": float(rt.max())},
+        "drive_ms": ({"median": float(np.median(dm)), "p99": float(np.percentile(dm, 99))} if dm.size else None),
+        "target_p99_ms": TARGET_P99_MS,
+        "meets_target": bool(np.percentile(rt, 99) < TARGET_P99_MS),
+    }
+
+
+def run_command(args: argparse.Namespace) -> int:
+    result = run(checkpoint=args.checkpoint, onnx=args.onnx, images=args.images, width=args.width,
+                 height=args.height, encoding=args.encoding, ros2_format=args.ros2_format)
+    print(json.dumps(result, indent=2) if args.json else result)
+    return 0

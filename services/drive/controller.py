@@ -1,0 +1,209 @@
+"""The drive node's decisions, without Zenoh: each depth image (ROS 2 CDR bytes) becomes a move
+command or a stop, and the clock alone (the watchdog) can stop the robot.
+
+The safety rules, in the order they are checked:
+
+1. An image that cannot be read (garbage, truncated, another encoding, an absurd or wrong size,
+   no valid pixel at all) is refused, counted by cause, and stops the robot.
+2. An image whose nearest valid depth is below the collision distance stops the robot (the task's
+   collision rule, ``EnvConfig.collision_distance_m``: the policy was never taught to act there).
+3. Otherwise the policy chooses a command from the image, at most one per control period (in lock
+   step, one per image): a command always comes from the image that just arrived, never a stale one.
+4. No valid image for ``watchdog_s`` stops the robot, and the stop is repeated each control period
+   until images return.
+
+A stop is sent at once when the robot was moving; while it stands, at most once per control period,
+so a flood of garbage cannot flood ``cmd_vel``. The process shell (``services.drive.service``) adds
+the signals and the stop at exit.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from shared.config import SPEED_TABLES, EnvConfig
+from shared.errors import CogexploreError
+from shared.ros2.messages import Ros2MessageError, decode_depth_image
+
+DEFAULT_WATCHDOG_S = 0.5
+MAX_IMAGE_BYTES = 64 * 2**20
+"""Larger payloads are refused unread (a 1920 x 1080 32FC1 image is 8 MB)."""
+NO_VALID_DEPTH = "no_valid_depth"
+"""Reject cause of an image without a single valid pixel (all NaN, all zero): a blinded sensor."""
+TOO_SMALL = "too_small"
+"""Reject cause of an image smaller than the network's input: resizing up would invent detail."""
+
+
+class DriveConfigError(CogexploreError):
+    """A drive setting is invalid."""
+
+
+class DrivePolicy(Protocol):
+    """What the controller needs of a policy: ``cogexplore.Policy`` and ``cogexplore.onnx_runner.OnnxPolicy``."""
+
+    sensor: Any
+    control_period_s: float
+    label: str
+
+    def observation(self, depth_m: Any) -> np.ndarray: ...
+    def decide(self, depth_m: Any) -> tuple[int, np.ndarray]: ...
+    def reset(self) -> None: ...
+    def twist(self, command: int, speed_table: str = "test") -> Any: ...
+
+
+@dataclass(frozen=True)
+class DriveConfig:
+    """How the drive node turns images into commands."""
+
+    speed_table: str = "test"
+    """The speeds of the five commands: the paper's ``test`` table (the protocol's) or ``train``."""
+    collision_distance_m: float = EnvConfig().collision_distance_m
+    """Stop when the nearest valid depth is below this (the task's collision rule)."""
+    watchdog_s: float = DEFAULT_WATCHDOG_S
+    """Stop when no valid image has arrived for this long."""
+    control_period_s: float | None = None
+    """At most one command per period (None: the policy's own, 0.5 s for the shipped model)."""
+    lockstep: bool = False
+    """One command per image, however fast images come (a simulator that waits for each command)."""
+    max_image_bytes: int = MAX_IMAGE_BYTES
+    """Payloads above this are refused before they are decoded."""
+
+    def __post_init__(self) -> None:
+        if self.speed_table not in SPEED_TABLES:
+            raise DriveConfigError(f"speed table {self.speed_table!r}: choose {' or '.join(SPEED_TABLES)}")
+        for name in ("collision_distance_m", "watchdog_s"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
+                raise DriveConfigError(f"{name} must be a positive number, got {value!r}")
+        if self.control_period_s is not None and not (np.isfinite(self.control_period_s) and self.control_period_s > 0):
+            raise DriveConfigError(f"control_period_s must be positive, got {self.control_period_s!r}")
+
+
+@dataclass(frozen=True)
+class Decision:
+    """A twist to publish now, and why."""
+
+    linear_mps: float
+    angular_rps: float
+    command: int | None
+    """The policy's command, None for a stop."""
+    stop_reason: str | None
+    """``shared.wire.robot.STOP_REASONS`` for a stop, else None."""
+    nearest_depth_m: float | None = None
+    latency_ms: float | None = None
+    """From the image's arrival until this decision was made."""
+    q_values: tuple[float, ...] = ()
+    reject_cause: str | None = None
+    """Set when a refused image caused this stop."""
+
+    @property
+    def is_stop(self) -> bool:
+        return self.command is None
+
+
+def nearest_valid_depth(depth_m: np.ndarray) -> float | None:
+    """The smallest finite depth above 0 (None when the image has no return at all)."""
+    valid = depth_m[np.isfinite(depth_m) & (depth_m > 0)]
+    return float(valid.min()) if valid.size else None
+
+
+@dataclass
+class DriveController:
+    """Images and clock ticks in, :class:`Decision` out (None: nothing to send). Not thread-safe:
+    the shell holds one lock around it."""
+
+    policy: DrivePolicy
+    config: DriveConfig = field(default_factory=DriveConfig)
+    clock: Any = time.monotonic
+
+    def __post_init__(self) -> None:
+        self.period_s = self.config.control_period_s or float(self.policy.control_period_s)
+        self.started_s = self.clock()
+        self.last_image_s: float | None = None  # arrival of the last valid image
+        self.last_command_s: float | None = None  # the last move command
+        self.last_stop_s: float | None = None
+        self.moving = False
+        self.decisions = 0
+        self.rejects: dict[str, int] = {}
+        self.last_depth_m: np.ndarray | None = None
+        """The last image read (for recordings)."""
+
+    # -- inputs ---------------------------------------------------------------------------
+    def on_image(self, payload: bytes | bytearray | memoryview, received_s: float | None = None) -> Decision | None:
+        """One image message as it arrived; the decision to publish, if any."""
+        received_s = self.clock() if received_s is None else received_s
+        try:
+            depth = self._read(payload)
+        except Ros2MessageError as exc:
+            return self._reject(exc.cause, received_s)
+        except CogexploreError:  # the policy's camera refused it: another aspect ratio
+            return self._reject("shape", received_s)
+        nearest = nearest_valid_depth(depth)
+        if nearest is None:
+            return self._reject(NO_VALID_DEPTH, received_s)
+        self.last_image_s = received_s
+        if nearest < self.config.collision_distance_m:
+            return self._stop("too_close", received_s, nearest, received_s)
+        due = (self.config.lockstep or self.last_command_s is None
+               or received_s - self.last_command_s >= 0.9 * self.period_s)  # 0.9: a camera's jitter
+        if not due:
+            return None
+        command, q_values = self.policy.decide(depth)
+        twist = self.policy.twist(int(command), self.config.speed_table)
+        now = self.clock()
+        self.last_command_s = received_s
+        self.moving = twist.linear_mps != 0 or twist.angular_rps != 0
+        return self._decided(Decision(twist.linear_mps, twist.angular_rps, int(command), None, nearest,
+                                      (now - received_s) * 1e3, tuple(float(q) for q in np.asarray(q_values))))
+
+    def on_tick(self, now_s: float | None = None) -> Decision | None:
+        """The watchdog, called often (every few tens of ms): a stop when images have stopped."""
+        now_s = self.clock() if now_s is None else now_s
+        since = self.last_image_s if self.last_image_s is not None else self.started_s
+        if now_s - since < self.config.watchdog_s:
+            return None
+        return self._stop("watchdog" if self.last_image_s is not None else "no_image", now_s)
+
+    def exit_stop(self) -> Decision:
+        """The stop sent when the process ends (always sent)."""
+        self.moving = False
+        return self._decided(Decision(0.0, 0.0, None, "exit"))
+
+    def reset(self) -> None:
+        """A new episode: the policy forgets its previous command."""
+        self.policy.reset()
+
+    # -- internals ------------------------------------------------------------------------
+    def _read(self, payload: bytes | bytearray | memoryview) -> np.ndarray:
+        image = decode_depth_image(bytes(payload), max_bytes=self.config.max_image_bytes)
+        sensor = self.policy.sensor
+        if image.width < sensor.width or image.height < sensor.height:
+            raise Ros2MessageError(TOO_SMALL, f"{image.width} x {image.height} image; the network sees "
+                                              f"{sensor.width} x {sensor.height}")
+        depth = image.depth_m
+        self.policy.observation(depth)  # the aspect-ratio check, before any decision
+        self.last_depth_m = depth
+        return depth
+
+    def _reject(self, cause: str, now_s: float) -> Decision | None:
+        self.rejects[cause] = self.rejects.get(cause, 0) + 1
+        decision = self._stop("reject", now_s)
+        return None if decision is None else dataclasses.replace(decision, reject_cause=cause)
+
+    def _stop(self, reason: str, now_s: float, nearest: float | None = None,
+              received_s: float | None = None) -> Decision | None:
+        if not self.moving and self.last_stop_s is not None and now_s - self.last_stop_s < self.period_s:
+            return None  # standing still already: a reminder once per period is enough
+        self.moving = False
+        self.last_stop_s = now_s
+        latency = None if received_s is None else (self.clock() - received_s) * 1e3
+        return self._decided(Decision(0.0, 0.0, None, reason, nearest, latency))
+
+    def _decided(self, decision: Decision) -> Decision:
+        self.decisions += 1
+        return decision

@@ -1,0 +1,193 @@
+"""A Q-network as an ONNX file that a robot computer runs without torch (``cogexplore model export
+--onnx``; the runner is ``cogexplore.onnx_runner``, the file's contract ``shared.learning.onnx_format``).
+
+The graph is traced from :class:`_ExportGraph`, which has fixed tensor inputs and no Python branch
+on their values, so the trace is the whole computation for every input. Every export is checked
+before it lands on disk: onnxruntime runs the serialised file on random range-gated images with
+every previous command, at batch sizes 1 and 12, against ``QNetwork.forward``; a mismatch raises
+:class:`OnnxModelError` and leaves no file behind.
+"""
+
+from __future__ import annotations
+
+import copy
+import io
+import os
+import warnings
+from collections.abc import Mapping
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import onnx
+import onnxruntime
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from shared.config import NUM_ACTIONS, load_preset
+from shared.depth import range_gate
+from shared.evaluation.setup import setup_evaluation
+from shared.learning.checkpoints import LoadedModel, weights_sha256
+from shared.learning.model import QNetwork, preprocess_depth
+from shared.learning.onnx_format import (
+    DEPTH_INPUT,
+    MATCH_TOLERANCE,
+    METADATA_KEY,
+    NO_PREVIOUS_ACTION,
+    PREVIOUS_ACTION_INPUT,
+    Q_OUTPUT,
+    OnnxModelError,
+    OnnxPolicyInfo,
+)
+
+OPSET = 17
+"""ONNX opset of the graph (onnxruntime has run it since 1.11)."""
+CHECK_IMAGES_PER_COMMAND = 2
+"""Random images per previous command (-1..4) in the check of an export."""
+
+
+class _ExportGraph(nn.Module):
+    """``QNetwork.forward`` on explicit tensors: metres in (``preprocess_depth``, the one place depth
+    becomes network input), and the previous command as an int64 index with -1 for none.
+
+    Its head repeats ``QNetwork.head`` with the one-hot built by comparison with ``arange``, which
+    traces to plain ops (``previous_action_input`` branches on values to validate them); the check
+    of every export against ``QNetwork.forward`` is what keeps the two the same."""
+
+    def __init__(self, net: QNetwork):
+        super().__init__()
+        self.net = net
+        self.register_buffer("commands", torch.arange(NUM_ACTIONS, dtype=torch.int64), persistent=False)
+
+    def forward(self, depth_m: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
+        net = self.net
+        # the trunk, not features(): its shape check is the graph's fixed input shape here
+        pool3 = net.trunk(preprocess_depth(depth_m[:, 0]))
+        h = net.fc1(torch.flatten(pool3.contiguous(), 1))
+        if net.previous_action_fc is not None:
+            # -1 (none) equals no command: a zero row, as previous_action_input gives it
+            one_hot = (previous_action[:, None] == self.commands[None, :]).to(h.dtype)
+            h = h + net.previous_action_fc(one_hot)
+        h = F.relu(h)
+        h = F.relu(net.fc2(h))  # dropout: off in eval mode, so not in the graph
+        if net.model_cfg.dueling:
+            advantage = net.advantage(h)
+            return net.value(h) + advantage - advantage.mean(dim=1, keepdim=True)
+        return net.fc3(h)
+
+
+def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, label: str | None = None,
+                extra: Mapping[str, Any] | None = None) -> Path:
+    """Write ``model`` (a loaded model, or a bare network) as an ONNX policy file at ``path``.
+
+    ``label`` names it (default: the loaded model's label, else ``network``); ``extra`` is JSON-able
+    metadata kept in the file (a model card, the checkpoints averaged). The control period is the
+    model's run's (the paper preset's for a bare network or a weights export), as
+    ``cogexplore.load_policy`` has it. Raises OnnxModelError, writing nothing, when onnxruntime's
+    Q-values differ from torch's by more than ``MATCH_TOLERANCE``. Returns the path."""
+    path = Path(path)
+    if isinstance(model, LoadedModel):
+        net, source, version = model.net, str(model.path), model.policy_version
+        label = label or model.label
+        extra = {**({"averaged_from": list(model.averaged_from)} if model.averaged_from else {}), **dict(extra or {})}
+    elif isinstance(model, QNetwork):
+        net, source, version = model, label or "network", 0
+        label = label or "network"
+    else:
+        raise OnnxModelError(f"export_onnx takes a LoadedModel or a QNetwork, got {type(model).__name__}")
+    if not isinstance(net, QNetwork):
+        raise OnnxModelError(f"only a Q-network exports to ONNX; {source} holds a {type(net).__name__}")
+    # a CPU float32 copy in eval mode: the caller's network (maybe on CUDA, maybe training) is left as it is
+    net = copy.deepcopy(net).to("cpu", torch.float32).eval()
+    info = OnnxPolicyInfo(sensor=net.sensor_cfg, model=net.model_cfg, control_period_s=_control_period_s(model),
+                          label=label, source=source, policy_version=int(version), weights_sha256=weights_sha256(net),
+                          cogexplore_version=_cogexplore_version(), extra=dict(extra or {}))
+    data = _serialise(net, info)
+    _check_against_torch(net, data, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _control_period_s(model: LoadedModel | QNetwork) -> float:
+    if isinstance(model, LoadedModel):  # the rule Policy.control_period_s follows
+        return float(setup_evaluation(None, model=model).env_cfg.control_period_s)
+    return float(load_preset("paper").env.control_period_s)  # setup_evaluation's default without a run
+
+
+def _cogexplore_version() -> str:
+    # importlib.metadata, not cogexplore.version: shared/ does not import the API above it
+    try:
+        return metadata.version("cogexplore")
+    except metadata.PackageNotFoundError:
+        return "0+unknown"
+
+
+def _serialise(net: QNetwork, info: OnnxPolicyInfo) -> bytes:
+    s = net.sensor_cfg
+    example = (torch.zeros(2, 1, s.height, s.width), torch.full((2,), NO_PREVIOUS_ACTION, dtype=torch.int64))
+    buffer = io.BytesIO()
+    batch = {0: "batch"}
+    with warnings.catch_warnings():
+        # torch 2.9+ calls the TorchScript exporter legacy; it is the one that traces this small graph in
+        # about a second without onnxscript's torch.export path
+        warnings.simplefilter("ignore", DeprecationWarning)
+        with torch.no_grad():
+            torch.onnx.export(_ExportGraph(net).eval(), example, buffer, input_names=[DEPTH_INPUT, PREVIOUS_ACTION_INPUT],
+                              output_names=[Q_OUTPUT], opset_version=OPSET, dynamo=False,
+                              dynamic_axes={DEPTH_INPUT: batch, PREVIOUS_ACTION_INPUT: batch, Q_OUTPUT: batch})
+    proto = onnx.load_from_string(buffer.getvalue())
+    if PREVIOUS_ACTION_INPUT not in {i.name for i in proto.graph.input}:
+        # the trace drops an input no op reads (a net without model.previous_action): put it back, so every
+        # export takes the same two inputs and a runner needs no case for it
+        proto.graph.input.append(onnx.helper.make_tensor_value_info(PREVIOUS_ACTION_INPUT, onnx.TensorProto.INT64,
+                                                                    ["batch"]))
+    proto.producer_name, proto.producer_version = "cogexplore", info.cogexplore_version
+    proto.doc_string = (f"cogexplore Q-network {info.label}: {DEPTH_INPUT} float32 (B, 1, {s.height}, {s.width}) "
+                        f"metres, range-gated, 0 = no return; {PREVIOUS_ACTION_INPUT} int64 (B,), -1 = none -> "
+                        f"{Q_OUTPUT} float32 (B, {NUM_ACTIONS}); greedy command = argmax")
+    onnx.helper.set_model_props(proto, {METADATA_KEY: info.to_json()})
+    onnx.checker.check_model(proto, full_check=True)
+    return proto.SerializeToString()
+
+
+def check_inputs(net: QNetwork, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Random range-gated depth images (B, 1, H, W) with no-return holes and one empty image, and
+    every previous command (-1..4) ``CHECK_IMAGES_PER_COMMAND`` times (B,): what an export is checked on."""
+    s = net.sensor_cfg
+    rng = np.random.default_rng(seed)
+    commands = np.tile(np.arange(NO_PREVIOUS_ACTION, NUM_ACTIONS, dtype=np.int64), CHECK_IMAGES_PER_COMMAND)
+    depth = rng.uniform(0.0, 1.1 * s.max_range_m, (len(commands), 1, s.height, s.width))
+    depth[rng.random(depth.shape) < 0.2] = 0.0
+    depth[0] = 0.0  # nothing in range at all
+    return range_gate(depth, s.min_range_m, s.max_range_m), commands
+
+
+def q_difference(q: np.ndarray, reference: np.ndarray) -> float:
+    """max |q - reference| relative to the largest |reference| (at least 1): what ``MATCH_TOLERANCE`` bounds."""
+    return float(np.abs(q - reference).max() / max(1.0, float(np.abs(reference).max())))
+
+
+def _check_against_torch(net: QNetwork, data: bytes, path: Path) -> None:
+    depth, previous = check_inputs(net)
+    with torch.inference_mode():
+        reference = net(preprocess_depth(depth[:, 0]), previous).numpy()
+    if not np.isfinite(reference).all():
+        raise OnnxModelError(f"{path}: not written: the network's Q-values are not finite (diverged weights?)")
+    session = onnxruntime.InferenceSession(data, providers=["CPUExecutionProvider"])
+    for rows in (slice(None), slice(1, 2)):  # the whole batch, and the runner's batch of one
+        q = session.run([Q_OUTPUT], {DEPTH_INPUT: depth[rows], PREVIOUS_ACTION_INPUT: previous[rows]})[0]
+        error = q_difference(q, reference[rows])
+        if not error <= MATCH_TOLERANCE:  # NaN fails too
+            raise OnnxModelError(f"{path}: not written: onnxruntime's Q-values differ from torch's by {error:.2g} "
+                                 f"(relative), more than {MATCH_TOLERANCE:g}")

@@ -1,0 +1,98 @@
+"""The ONNX policy file, in one place: its inputs, its output and its metadata, read by the exporter
+(``shared.learning.onnx_export``, torch) and the runner (``cogexplore.onnx_runner``, no torch).
+
+This module imports neither torch nor onnx: a robot computer reads it with numpy and onnxruntime.
+
+The graph (opset 17, any batch size B)::
+
+    depth_m          float32 (B, 1, H, W)  metres at the network's size, range-gated, 0 = no return
+    previous_action  int64   (B,)          the previous command 0..4, -1 = none (an episode's start)
+    q_values         float32 (B, 5)        one Q-value per command (left ... right); greedy = argmax
+
+and one metadata entry, ``cogexplore``, a JSON object (:class:`OnnxPolicyInfo`): the camera the
+network was trained with, its architecture, the control period, where it came from.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from shared.config import ConfigError, ModelConfig, SensorConfig, from_dict
+from shared.errors import CogexploreError
+
+ONNX_FORMAT = "cogexplore-onnx"
+ONNX_FORMAT_VERSION = 1
+METADATA_KEY = "cogexplore"
+"""The ``metadata_props`` key that holds :class:`OnnxPolicyInfo` as JSON."""
+DEPTH_INPUT = "depth_m"
+PREVIOUS_ACTION_INPUT = "previous_action"
+Q_OUTPUT = "q_values"
+NO_PREVIOUS_ACTION = -1
+"""``previous_action`` of an episode's first image: the network reads a zero one-hot."""
+MATCH_TOLERANCE = 1e-5
+"""Largest difference between the ONNX and the torch Q-values an export may show, relative to the
+largest |Q| of the batch (at least 1). Relative, because float32 itself is not closer: the shipped
+model's Q-values reach ~85, where one float32 step is 7.6e-6 and torch's own float32 result is
+already ~1.3e-5 from the float64 one; another summation order (onnxruntime's kernels) is as far."""
+
+
+class OnnxModelError(CogexploreError):
+    """An ONNX policy file that is missing, corrupt, not cogexplore's, or not what its metadata
+    says; or an export whose Q-values do not match the torch network's."""
+
+
+@dataclass(frozen=True)
+class OnnxPolicyInfo:
+    """What an ONNX policy file says about its network (its ``cogexplore`` metadata entry)."""
+
+    sensor: SensorConfig
+    """The camera the network was trained with: image size, field of view, range gate."""
+    model: ModelConfig
+    """The architecture: depth encoding, whether it reads the previous command, head, fc sizes."""
+    control_period_s: float
+    """How long each command is held before the next image is taken."""
+    label: str
+    """A short name, ``<run or file>@<policy version>`` (``LoadedModel.label``)."""
+    source: str
+    """The file the network was loaded from (or what the caller named it)."""
+    policy_version: int
+    """The learner update the weights are from (0 when unknown)."""
+    weights_sha256: str
+    """Digest of the torch weights exported (``checkpoints.weights_sha256``)."""
+    cogexplore_version: str
+    """The cogexplore version that wrote the file."""
+    extra: Mapping[str, Any] = field(default_factory=dict)
+    """Anything else the exporter was given: a model card, the checkpoints averaged."""
+
+    def to_json(self) -> str:
+        body = {"format": ONNX_FORMAT, "version": ONNX_FORMAT_VERSION, **asdict(self)}
+        return json.dumps(body, sort_keys=True, default=str)
+
+    @classmethod
+    def from_json(cls, text: str, where: str = "ONNX file") -> OnnxPolicyInfo:
+        """Parse and check a ``cogexplore`` metadata entry; OnnxModelError (one line) if malformed."""
+        try:
+            data = json.loads(text)
+        except (TypeError, json.JSONDecodeError) as exc:
+            raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not JSON: {exc}") from None
+        if not isinstance(data, dict) or data.get("format") != ONNX_FORMAT:
+            raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not a {ONNX_FORMAT} entry")
+        if data.get("version") != ONNX_FORMAT_VERSION:
+            raise OnnxModelError(f"{where}: {ONNX_FORMAT} version {data.get('version')!r}, this cogexplore reads "
+                                 f"version {ONNX_FORMAT_VERSION}")
+        try:
+            configs = from_dict({"sensor": data["sensor"], "model": data["model"]})
+            info = cls(sensor=configs.sensor, model=configs.model, control_period_s=float(data["control_period_s"]),
+                       label=str(data["label"]), source=str(data["source"]),
+                       policy_version=int(data["policy_version"]), weights_sha256=str(data["weights_sha256"]),
+                       cogexplore_version=str(data["cogexplore_version"]), extra=dict(data.get("extra") or {}))
+        except (ConfigError, KeyError, TypeError, ValueError) as exc:
+            detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is invalid: {detail}") from None
+        if not (math.isfinite(info.control_period_s) and info.control_period_s > 0):
+            raise OnnxModelError(f"{where}: control_period_s must be > 0 s, got {info.control_period_s}")
+        return info

@@ -1,0 +1,165 @@
+"""The drive node's decisions and safety rules (services.drive.controller), on the shipped model
+and real ROS 2 CDR images, without Zenoh: a clock is passed in, so the watchdog is exact."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from shared.ros2.messages import IMAGE, TYPESTORE, encode_depth_image
+
+from cogexplore.policy import load_policy
+from services.drive.controller import (
+    NO_VALID_DEPTH,
+    TOO_SMALL,
+    DriveConfig,
+    DriveConfigError,
+    DriveController,
+)
+from shared.config import SPEED_TABLES
+from shared.sim.env import ExploreEnv
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return load_policy("pretrained", device="cpu")
+
+
+@pytest.fixture(scope="module")
+def start_image(policy):
+    """The network's own camera image from paper-indoor's first start (nearest obstacle > 0.55 m)."""
+    env = ExploreEnv(world="paper-indoor", speed_table="test", start_index=0, sensor=policy.sensor)
+    depth, info = env.reset(seed=0)
+    env.close()
+    assert info["min_depth_m"] > 0.6
+    return depth
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def controller(policy, **cfg) -> tuple[DriveController, Clock]:
+    clock = Clock()
+    policy.reset()
+    return DriveController(policy, DriveConfig(**cfg), clock=clock), clock
+
+
+def image(depth: np.ndarray, encoding: str = "32FC1", **kw) -> bytes:
+    return encode_depth_image(depth, encoding=encoding, stamp_ns=1, **kw)
+
+
+def other_image(encoding: str, height: int, width: int, step: int, data: bytes) -> bytes:
+    """An Image the encoder would not write (another encoding, a short buffer), made with the library."""
+    Image = TYPESTORE.types[IMAGE]
+    Header = TYPESTORE.types["std_msgs/msg/Header"]
+    Time = TYPESTORE.types["builtin_interfaces/msg/Time"]
+    msg = Image(header=Header(stamp=Time(sec=0, nanosec=0), frame_id="cam"), height=height, width=width,
+                encoding=encoding, is_bigendian=0, step=step, data=np.frombuffer(data, np.uint8))
+    return bytes(TYPESTORE.serialize_cdr(msg, IMAGE))
+
+
+def test_an_image_gives_the_policys_command_at_the_test_speeds(policy, start_image):
+    drive, clock = controller(policy)
+    decision = drive.on_image(image(start_image), clock.t)
+    policy.reset()
+    expected = policy.act(start_image)
+    assert decision is not None and decision.command == expected and decision.stop_reason is None
+    angular, linear = SPEED_TABLES["test"]
+    assert (decision.linear_mps, decision.angular_rps) == (linear, angular[expected])
+    assert len(decision.q_values) == 5 and int(np.argmax(decision.q_values)) == expected
+    assert decision.nearest_depth_m == pytest.approx(float(start_image[start_image > 0].min()))
+    assert decision.latency_ms is not None and decision.latency_ms >= 0
+
+
+def test_the_same_image_at_another_resolution_and_in_millimetres_gives_the_same_command(policy, start_image):
+    from shared.depth import resize_depth
+
+    drive, clock = controller(policy, lockstep=True)
+    a = drive.on_image(image(start_image), clock.t).command
+    drive.reset()
+    big = resize_depth(start_image, 120, 160)
+    b = drive.on_image(image(big, "16UC1", row_padding_bytes=6), clock.t).command
+    assert a == b
+
+
+def test_one_command_per_control_period_and_every_image_in_lock_step(policy, start_image):
+    drive, clock = controller(policy)
+    assert drive.on_image(image(start_image), clock.t) is not None
+    clock.t += 0.1
+    assert drive.on_image(image(start_image), clock.t) is None  # not due: 0.1 s of 0.5
+    clock.t += 0.4
+    assert drive.on_image(image(start_image), clock.t) is not None
+    fast, clock = controller(policy, lockstep=True)
+    assert all(fast.on_image(image(start_image), clock.t) is not None for _ in range(5))
+
+
+def test_an_obstacle_nearer_than_the_collision_distance_stops_the_robot_at_once(policy, start_image):
+    drive, clock = controller(policy)
+    assert drive.on_image(image(start_image), clock.t).command is not None
+    near = start_image.copy()
+    near[10:14, 18:22] = 0.5  # a post 0.5 m ahead (the task stops at 0.55 m)
+    clock.t += 0.05  # even between two control periods
+    decision = drive.on_image(image(near), clock.t)
+    assert decision.is_stop and decision.stop_reason == "too_close"
+    assert (decision.linear_mps, decision.angular_rps) == (0.0, 0.0)
+    assert decision.nearest_depth_m == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("name, payload, cause", [
+    ("garbage", b"\x00\x01\x00\x00 this is not an image", "garbage"),
+    ("empty", b"", "garbage"),
+    ("wrong encoding", other_image("rgb8", 30, 40, 120, bytes(3600)), "encoding"),
+    ("truncated", other_image("32FC1", 30, 40, 160, bytes(1000)), "truncated"),
+    ("another aspect ratio", None, "shape"),
+    ("smaller than the network", None, TOO_SMALL),
+    ("NaN-filled", None, NO_VALID_DEPTH),
+])
+def test_a_bad_image_stops_the_robot_and_is_counted(policy, start_image, name, payload, cause):
+    if payload is None:
+        depth = {"another aspect ratio": np.full((40, 40), 2.0, np.float32),
+                 "smaller than the network": np.full((15, 20), 2.0, np.float32),
+                 "NaN-filled": np.full(start_image.shape, np.nan, np.float32)}[name]
+        payload = image(depth)
+    drive, clock = controller(policy)
+    assert drive.on_image(image(start_image), clock.t).command is not None  # moving
+    decision = drive.on_image(payload, clock.t + 0.01)
+    assert decision is not None and decision.is_stop and decision.stop_reason == "reject"
+    assert decision.reject_cause == cause and drive.rejects == {cause: 1}
+    # standing still, a flood of them is counted but sends at most one stop per period
+    assert drive.on_image(payload, clock.t + 0.02) is None and drive.rejects == {cause: 2}
+    # and a good image afterwards drives again
+    assert drive.on_image(image(start_image), clock.t + 0.6).command is not None
+
+
+def test_the_watchdog_stops_the_robot_when_images_stop_and_repeats_each_period(policy, start_image):
+    drive, clock = controller(policy, watchdog_s=0.5)
+    assert drive.on_tick(clock.t + 0.49) is None
+    first = drive.on_tick(clock.t + 0.5)
+    assert first.is_stop and first.stop_reason == "no_image"  # nothing seen yet
+    drive.on_image(image(start_image), clock.t + 1.0)
+    assert drive.on_tick(clock.t + 1.49) is None
+    stop = drive.on_tick(clock.t + 1.5)
+    assert stop.stop_reason == "watchdog" and (stop.linear_mps, stop.angular_rps) == (0.0, 0.0)
+    assert drive.on_tick(clock.t + 1.7) is None  # standing: reminded once per control period
+    assert drive.on_tick(clock.t + 2.0).stop_reason == "watchdog"
+
+
+def test_reset_forgets_the_previous_command_and_exit_always_stops(policy, start_image):
+    drive, clock = controller(policy, lockstep=True)
+    drive.on_image(image(start_image), clock.t)
+    assert policy.previous_command is not None
+    drive.reset()
+    assert policy.previous_command is None
+    stop = drive.exit_stop()
+    assert stop.stop_reason == "exit" and (stop.linear_mps, stop.angular_rps) == (0.0, 0.0)
+
+
+@pytest.mark.parametrize("field, value", [("speed_table", "fast"), ("watchdog_s", 0), ("watchdog_s", float("nan")),
+                                          ("collision_distance_m", -1), ("control_period_s", 0)])
+def test_bad_settings_are_refused(field, value):
+    with pytest.raises(DriveConfigError, match=field.split("_")[0]):
+        DriveConfig(**{field: value})

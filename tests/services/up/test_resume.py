@@ -1,0 +1,100 @@
+"""``cogexplore up`` on a run that exists: an unfinished one resumes and says from which update, a
+finished one is refused in one line naming --resume and --fresh (never silently reused), --resume
+redoes its report, --fresh keeps the old folder aside. The run folders are written by the real
+checkpoint writer; one real run of ten updates (smoke preset) finishes in between."""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from service_processes import ENV, REPO
+
+from services.bus.security import SecurityError
+from services.cli import main
+from services.runs import RunPaths, save_config
+from services.up.launcher import Launcher, checkpoint_updates, resume_line
+from services.up.options import add_up_arguments
+from shared.config import load_preset
+from shared.learning.checkpoints import CheckpointManager
+from shared.learning.learner import LearnerCore
+
+RUN = "again"
+UP = ["up", "--run", RUN, "--actors", "1", "--no-evaluator", "--no-report", "--quiet", "--no-tensorboard"]
+
+
+def run_at(runs_dir: Path, updates: int, total_updates: int) -> RunPaths:
+    """A run folder whose learner stopped at ``updates`` of ``total_updates`` (smoke preset)."""
+    cfg = load_preset("smoke").with_overrides({"train.total_updates": total_updates})
+    paths = RunPaths(runs_dir / RUN).make()
+    save_config(cfg, paths)
+    core = LearnerCore(cfg, device="cpu")
+    core.agent.update_count = updates
+    CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints).save(
+        core.agent, config=cfg.to_dict(), extra={"transitions_received": 0})
+    return paths
+
+
+def up(runs_dir: Path, *flags: str, timeout_s: float = 150.0) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "services.cli", *UP, "--runs-dir", str(runs_dir), *flags],
+                          cwd=REPO, env=ENV, capture_output=True, text=True, timeout=timeout_s, check=False)
+
+
+@pytest.mark.timeout(240)
+def test_an_unfinished_run_resumes_and_a_finished_one_is_refused_until_resume(tmp_path: Path) -> None:
+    paths = run_at(tmp_path, updates=10, total_updates=20)
+    resumed = up(tmp_path)
+    assert resumed.returncode == 0, resumed.stderr[-3000:]
+    assert f"run {RUN!r}: resuming from update 10/20" in resumed.stderr
+    assert checkpoint_updates(paths) == 20
+
+    router_log = (paths.logs / "router.log").read_bytes()
+    refused = up(tmp_path, timeout_s=60)
+    assert refused.returncode == 2, refused.stderr
+    message = refused.stderr.strip()
+    assert "\n" not in message and "has finished" in message and "20/20 updates" in message, message
+    assert "--resume" in message and "--fresh" in message
+    assert (paths.logs / "router.log").read_bytes() == router_log  # nothing was started
+
+    again = up(tmp_path, "--resume", timeout_s=60)
+    assert again.returncode == 0, again.stderr
+    assert f"run {RUN!r} has finished training (20/20 updates)" in again.stderr
+    assert checkpoint_updates(paths) == 20
+
+
+def launcher_args(runs_dir: Path, *flags: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_up_arguments(parser)
+    return parser.parse_args(["--run", RUN, "--runs-dir", str(runs_dir), "--quiet", *flags])
+
+
+def test_fresh_keeps_the_old_run_aside_and_starts_an_empty_one(tmp_path: Path, capsys) -> None:
+    run_at(tmp_path, updates=20, total_updates=20)
+    with pytest.raises(SecurityError):  # a refused start: the old run stays where it was
+        Launcher(launcher_args(tmp_path, "--fresh", "--listen", "tls/0.0.0.0:0"))
+    assert checkpoint_updates(RunPaths(tmp_path / RUN)) == 20 and not list(tmp_path.glob(f"{RUN}.old-*"))
+    launcher = Launcher(launcher_args(tmp_path, "--fresh"))
+    (old,) = tmp_path.glob(f"{RUN}.old-*")
+    assert checkpoint_updates(RunPaths(old)) == 20  # kept, whole
+    assert checkpoint_updates(launcher.paths) is None and launcher.paths.secure.is_dir()
+    assert f"is now {old}" in capsys.readouterr().err
+
+
+def test_resume_names_a_run_that_exists(tmp_path: Path, capsys) -> None:
+    assert main(["up", "--run", "nothing-here", "--runs-dir", str(tmp_path), "--resume", "--quiet"]) == 2
+    assert "there is no run 'nothing-here'" in capsys.readouterr().err
+    assert not (tmp_path / "nothing-here").exists()
+
+
+def test_a_resumed_run_expects_its_own_learners_rate(tmp_path: Path) -> None:
+    paths = run_at(tmp_path, updates=100, total_updates=400)
+    assert resume_line(RUN, paths, 100, 400) == f"run {RUN!r}: resuming from update 100/400"  # nothing on record
+    rows = ["time_s,update,updates_per_s"] + [f"{t},{0 if t < 30 else 2 * (t - 30)},{0 if t < 30 else 2.0}"
+                                              for t in range(30 + 60)]
+    (paths.stats / "learner.csv").write_text("\n".join(rows) + "\n")
+    assert resume_line(RUN, paths, 100, 400) == (f"run {RUN!r}: resuming from update 100/400; its learner made "
+                                                 "2.0 updates/s so far: the 300 left should take ~2m30s, then "
+                                                 "the final evaluation")

@@ -1,0 +1,150 @@
+"""``export_onnx`` and ``cogexplore model export --onnx``: the exported graph gives the torch network's
+Q-values (to ``MATCH_TOLERANCE``) for every previous command and batch size, carries its camera and
+provenance, and a broken export never lands on disk."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import onnxruntime
+import pytest
+import torch
+
+from services.cli import main
+from shared.config import NUM_ACTIONS, load_preset
+from shared.learning import onnx_export
+from shared.learning.checkpoints import LoadedModel, load_model, load_supervised_model
+from shared.learning.model import QNetwork, preprocess_depth
+from shared.learning.onnx_export import check_inputs, export_onnx, q_difference
+from shared.learning.onnx_format import (
+    MATCH_TOLERANCE,
+    METADATA_KEY,
+    NO_PREVIOUS_ACTION,
+    OnnxModelError,
+    OnnxPolicyInfo,
+)
+
+REPO = Path(__file__).resolve().parents[3]
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _smoke_net() -> QNetwork:
+    """A random network of another shape: the smoke preset's dueling head, metric depth, no previous command."""
+    cfg = load_preset("smoke")
+    assert cfg.model.dueling and not cfg.model.previous_action and cfg.model.depth_encoding == "metric"
+    torch.manual_seed(3)
+    return QNetwork(cfg.model, cfg.sensor).eval()
+
+
+@pytest.fixture(scope="module")
+def shipped() -> LoadedModel:
+    return load_model("pretrained")
+
+
+def _torch_q(net: QNetwork, depth: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    with torch.inference_mode():
+        return net(preprocess_depth(depth[:, 0]), previous).numpy()
+
+
+def _onnx_q(path: Path, depth: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return session.run(["q_values"], {"depth_m": depth, "previous_action": previous})[0]
+
+
+@pytest.mark.parametrize("which", ["pretrained", "smoke"])
+def test_the_export_gives_torchs_q_values_for_every_previous_command_and_batch(
+        which: str, shipped: LoadedModel, tmp_path: Path) -> None:
+    model = shipped if which == "pretrained" else _smoke_net()
+    net = model.net if isinstance(model, LoadedModel) else model
+    path = export_onnx(model, tmp_path / f"{which}.onnx")
+    depth, _ = check_inputs(net, seed=11)  # other images than the export's own check
+    for previous in range(NO_PREVIOUS_ACTION, NUM_ACTIONS):
+        commands = np.full(len(depth), previous, dtype=np.int64)
+        want, got = _torch_q(net, depth, commands), _onnx_q(path, depth, commands)
+        assert got.shape == (len(depth), NUM_ACTIONS) and got.dtype == np.float32
+        assert q_difference(got, want) <= MATCH_TOLERANCE, (which, previous, q_difference(got, want))
+        np.testing.assert_array_equal(got.argmax(1), want.argmax(1))
+    mixed = np.arange(len(depth), dtype=np.int64) % (NUM_ACTIONS + 1) - 1  # -1..4 within one batch
+    for rows in (slice(None), slice(3, 4), slice(0, 7)):  # batch sizes 12, 1, 7
+        assert q_difference(_onnx_q(path, depth[rows], mixed[rows]), _torch_q(net, depth[rows], mixed[rows])) \
+            <= MATCH_TOLERANCE
+    if which == "pretrained":
+        # the shipped model's Q-values are large: the relative tolerance is ~1e-3 absolute, not looser than float32
+        assert 10 < np.abs(_torch_q(net, depth, mixed)).max() < 200
+    # the shipped model reads the previous command (the one-hot reaches the graph); the smoke net has the same
+    # input and ignores it
+    first = [_onnx_q(path, depth[:1], np.array([c])) for c in (0, 4)]
+    assert np.allclose(*first) == (which == "smoke")
+
+
+def test_the_file_describes_its_network(shipped: LoadedModel, tmp_path: Path) -> None:
+    import onnx
+
+    import cogexplore
+
+    path = export_onnx(shipped, tmp_path / "drl.onnx", extra={"card": {"robot": "turtlebot"}})
+    proto = onnx.load(str(path))
+    assert proto.opset_import[0].version >= 17 and proto.producer_name == "cogexplore"
+    props = {p.key: p.value for p in proto.metadata_props}
+    info = OnnxPolicyInfo.from_json(props[METADATA_KEY])
+    policy = cogexplore.load_policy("pretrained", device="cpu")
+    assert info.sensor == policy.sensor == shipped.net.sensor_cfg and info.model == shipped.net.model_cfg
+    assert info.control_period_s == policy.control_period_s == 0.5
+    assert (info.label, info.policy_version, info.weights_sha256) == (
+        shipped.label, shipped.policy_version, shipped.weights_sha256)
+    assert info.source == str(shipped.path) and info.cogexplore_version == cogexplore.__version__
+    assert info.extra == {"card": {"robot": "turtlebot"}}
+    body = json.loads(props[METADATA_KEY])
+    assert body["sensor"]["hfov_deg"] == 57.0 and body["model"]["depth_encoding"] == "inverse"
+    assert body["model"]["previous_action"] is True and body["format"] == "cogexplore-onnx"
+
+
+def test_a_mismatching_or_diverged_export_never_lands_on_disk(tmp_path: Path, monkeypatch) -> None:
+    net = _smoke_net()
+    path = tmp_path / "model.onnx"
+    path.write_bytes(b"the previous export")
+    forward = onnx_export._ExportGraph.forward
+    # the graph drifting from QNetwork.forward (what the check is for): Q-values 0.1% off
+    monkeypatch.setattr(onnx_export._ExportGraph, "forward", lambda self, d, p: forward(self, d, p) * 1.001)
+    with pytest.raises(OnnxModelError, match="not written: onnxruntime's Q-values differ from torch's by"):
+        export_onnx(net, path)
+    monkeypatch.undo()
+    with torch.no_grad():
+        net.fc2.weight[0, 0] = float("nan")
+    with pytest.raises(OnnxModelError, match="not finite"):
+        export_onnx(net, path)
+    assert path.read_bytes() == b"the previous export" and sorted(p.name for p in tmp_path.iterdir()) == ["model.onnx"]
+    with pytest.raises(OnnxModelError, match="takes a LoadedModel or a QNetwork"):
+        export_onnx("pretrained", path)  # type: ignore[arg-type]
+    with pytest.raises(OnnxModelError, match="only a Q-network exports to ONNX; .*sl.safetensors holds a SupervisedNet"):
+        export_onnx(load_supervised_model("pretrained"), path)
+
+
+def test_model_export_writes_the_onnx_file_beside_or_instead_of_the_weights(tmp_path: Path) -> None:
+    onnx_path, weights = tmp_path / "robot" / "drl.onnx", tmp_path / "drl.safetensors"
+    proc = subprocess.run([sys.executable, "-m", "services.cli", "model", "export", "pretrained", "--onnx",
+                           str(onnx_path), "--out", str(weights)], cwd=REPO, capture_output=True, text=True, timeout=300,
+                          check=False)
+    assert proc.returncode == 0, proc.stderr
+    report = json.loads(proc.stdout)
+    assert report["onnx"] == {"out": str(onnx_path), "bytes": onnx_path.stat().st_size}
+    assert report["out"] == str(weights) and weights.is_file() and report["policy_version"] == 16000
+    from cogexplore.onnx_runner import load_onnx_policy
+
+    assert load_onnx_policy(onnx_path).label == "drl@16000"
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["pretrained"], "give --out FILE.safetensors"),
+    (["pretrained", "--onnx", "x.onnx", "--half"], "--half stores the --out weights"),
+])
+def test_model_export_option_errors_are_one_line(argv: list[str], message: str, tmp_path: Path, capsys,
+                                                  monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert main(["model", "export", *argv]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1 and not list(tmp_path.iterdir())
