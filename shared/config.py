@@ -194,6 +194,16 @@ class EnvConfig:
     the list."""
     extra_world_prob: float = 0.0
     """Share of episodes played in one of ``extra_worlds`` (0: always ``world``)."""
+    start_jitter_m: float = 0.0
+    """Training episodes that start at a named start pose (the config's ``start_index`` or a drawn
+    one; not a random free pose, not a start the caller fixes with ``reset(options={"start_index":
+    ...})``) start moved by a uniform draw within ±this (m) in x and in y, redrawn while the robot
+    would touch or face an obstacle (``shared.sim.env.ExploreEnv``): a real robot is never placed
+    to the millimetre, and the robust test protocol does not place it so either. A start with no
+    clear draw is played from its exact pose, with a warning. At most 1 m; 0: the exact pose. The
+    test protocol never inherits it (it sets its own jitter)."""
+    start_jitter_deg: float = 0.0
+    """Half-width (degrees, at most 45) of the uniform draw added to such a start's heading."""
 
     def __post_init__(self) -> None:
         s = "env"
@@ -234,6 +244,10 @@ class EnvConfig:
                self.extra_world_prob, "a probability in [0, 1]")
         _check(self.extra_world_prob == 0 or names, s, "extra_world_prob", self.extra_world_prob,
                "0 while env.extra_worlds is empty")
+        _check(_finite(self.start_jitter_m) and 0 <= self.start_jitter_m <= 1, s, "start_jitter_m",
+               self.start_jitter_m, "metres in [0, 1]")
+        _check(_finite(self.start_jitter_deg) and 0 <= self.start_jitter_deg <= 45, s, "start_jitter_deg",
+               self.start_jitter_deg, "degrees in [0, 45]")
 
     @property
     def extra_world_names(self) -> tuple[str, ...]:
@@ -651,8 +665,9 @@ MUST_MATCH_FIELDS: tuple[str, ...] = (
 depth image is (the sensor; its backend agrees to 2 cm, and noise is an actor's to add), the network
 that reads it (the architecture; dropout acts in training only) and what a transition means (the
 robot's motion, the reward and the collision rule). The rest is a process's own (its worlds and
-starts, step cap, exploration, seed, device) or the learner's alone (replay and the update rule:
-n-step returns and the discount are applied by the learner to the raw rewards it receives)."""
+starts and the starts' jitter, step cap, exploration, seed, device) or the learner's alone (replay
+and the update rule: n-step returns and the discount are applied by the learner to the raw rewards
+it receives)."""
 
 
 class ConfigMismatchError(ConfigError):

@@ -88,6 +88,8 @@ from shared.sim.world import load_world
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EvalResult, RejectCounter, WeightsMessage
 
+EVALUATOR_NICENESS = 10
+"""Scheduling niceness of a long-running evaluator (0 = as the learner; 19 = the lowest)."""
 log = logging.getLogger("cogexplore.evaluator")
 
 EVAL_LOG = "eval.jsonl"
@@ -284,8 +286,13 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
     except CogexploreError as exc:  # config, world, run name, device: the message says which
         print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
         return 2
-    if torch.get_num_threads() > 2:
-        torch.set_num_threads(2)  # share the machine with the learner and the actors
+    # One image at a time gains nothing from intra-op threads, and threads that spin-wait on a shared
+    # core take it from the learner (py-spy on a 2-core `up`: inference was 63% of its time).
+    torch.set_num_threads(1)
+    if not args.once:
+        # A watcher, not a worker: where it shares cores with the learner (`up` on one machine), it
+        # takes the time the learner leaves, and its evaluations come a little later instead.
+        os.nice(EVALUATOR_NICENESS)
     stop = stop if stop is not None else stop_event_on_signals()
     if check is not None:
         check.start(settings, stop)  # a preset the run's weights do not fit stops the evaluator

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from shared.config import DEFAULT_PRESET
 from shared.errors import CogexploreError
 
 # Defaults that keep the learner running for the whole measurement and keep periodic
@@ -332,10 +333,18 @@ def run_command(args: argparse.Namespace) -> int:
     # the normal clean-up (stop the processes, learner first).
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, _interrupt)
-    if args.actors < 1:
-        raise ConfigError(f"--actors must be >= 1, got {args.actors}")
+    actors = args.actors if args.actors is not None else (2 if args.compare_single_process else 1)
+    if actors < 1:
+        raise ConfigError(f"--actors must be >= 1, got {actors}")
+    if args.compare_single_process:
+        from services.up.compare import compare
+
+        result = compare(args.minutes, actors=actors, preset=args.preset or DEFAULT_PRESET,
+                         overrides=args.overrides, episodes_per_start=args.episodes_per_start, runs_dir=args.runs_dir)
+        print(json.dumps(result, indent=2))
+        return 0
     try:
-        result = run(args.actors, args.seconds, preset=args.preset, overrides=args.overrides,
+        result = run(actors, args.seconds, preset=args.preset or "fast", overrides=args.overrides,
                      warmup_s=args.warmup_s, startup_timeout_s=args.startup_timeout_s,
                      runs_dir=args.runs_dir, device=args.device, learner_threads=args.learner_threads)
     except (BenchError, ValueError) as exc:

@@ -22,6 +22,7 @@ checkpoint and says so; one whose learner already reached ``train.total_updates`
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import collections
 import csv
 import logging
@@ -125,6 +126,8 @@ class ProgressFigures:
     actors_alive: int
     clock_s: float
     """The wall clock now (``time.time()``): the end time is shown in local time."""
+    time_left_s: float | None = None
+    """Seconds until ``--minutes`` stops the run (None: no time limit)."""
 
 
 def limiter(f: ProgressFigures) -> str:
@@ -162,9 +165,12 @@ def eta(f: ProgressFigures) -> str:
     once there are :data:`ETA_AFTER_S` seconds or :data:`ETA_AFTER_SHARE` of the updates to go by."""
     enough = f.learning_s is not None and f.learning_updates > 0 and (
         f.learning_s >= ETA_AFTER_S or f.learning_updates >= ETA_AFTER_SHARE * max(1, f.learning_goal))
-    if not enough:
+    left_s = (max(0, f.total_updates - f.updates) * f.learning_s / f.learning_updates) if enough else None
+    if f.time_left_s is not None and (left_s is None or f.time_left_s < left_s):  # --minutes ends it first
+        left_s = max(0.0, f.time_left_s)
+        return f"ends ~{time.strftime('%H:%M', time.localtime(f.clock_s + left_s))} ({_duration(left_s)} left, --minutes)"
+    if left_s is None:
         return "ETA after the first minute"
-    left_s = max(0, f.total_updates - f.updates) * f.learning_s / f.learning_updates
     return f"ends ~{time.strftime('%H:%M', time.localtime(f.clock_s + left_s))} ({_duration(left_s)} left)"
 
 
@@ -369,6 +375,8 @@ class Launcher:
                         break
                     stop.wait(1.0)
                     figures = progress.figures(len(actors.alive))
+                    if deadline is not None:
+                        figures = dataclasses.replace(figures, time_left_s=deadline - time.monotonic())
                     bar.n = min(figures.updates, cfg_updates)
                     bar.set_postfix_str(progress_line(figures), refresh=True)
             finally:

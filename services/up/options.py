@@ -51,14 +51,26 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--actors", type=int, default=1, help="actor processes (default: 1)")
+    parser.add_argument("--actors", type=int, default=None,
+                        help="actor processes (default: 1; with --compare-single-process 2, as `up`)")
     parser.add_argument("--seconds", type=float, default=60.0, help="measurement window (default: 60)")
     parser.add_argument("--warmup-s", type=float, default=5.0,
                         help="seconds to wait once the system is in its steady state (default: 5)")
-    parser.add_argument("--preset", default="fast", help="preset name or TOML path (default: fast)")
+    parser.add_argument("--preset", default=None,
+                        help=f"preset name or TOML path (default: fast; with --compare-single-process {DEFAULT_PRESET}, "
+                             "the shipped recipe)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                         help="override one config field, e.g. --set train.replay_ratio=0.02 to lift the "
                              "learner's flow control and measure raw actor throughput (repeatable)")
+    compare = parser.add_argument_group("against the single-process trainer")
+    compare.add_argument("--compare-single-process", action="store_true",
+                         help="run `cogexplore up` (with --actors) and then `cogexplore train`, each for --minutes, and "
+                              "print both runs' updates/s, env steps/s and scores under both protocols, and their "
+                              "ratios (services/up/compare.py)")
+    compare.add_argument("--minutes", type=float, default=5.0,
+                         help="with --compare-single-process: wall time of each run (default 5)")
+    compare.add_argument("--episodes-per-start", type=int, default=2,
+                         help="with --compare-single-process: test episodes per start for each score (default 2)")
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
     parser.add_argument("--learner-threads", type=int, default=None,
                         help="OMP_NUM_THREADS for the started processes (default: inherited)")

@@ -50,9 +50,11 @@ def episode_seed(seed: int, start_index: int, episode: int) -> int:
 
 def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> EnvConfig:
     """The protocol's environment: ``base``'s robot and task, the given world, the TEST speed
-    table, every start (none fixed) and a step cap no shorter than the protocol's."""
+    table, every start (none fixed), no training start jitter (the protocol's own is a reset
+    option) and a step cap no shorter than the protocol's."""
     return dataclasses.replace(base or EnvConfig(), world=world, speed_table="test",
-                               max_episode_steps=max_steps, start_index=None)
+                               max_episode_steps=max_steps, start_index=None,
+                               start_jitter_m=0.0, start_jitter_deg=0.0)
 
 
 def _check_action(action: Any) -> int:
@@ -122,7 +124,8 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
     paper's protocol); ``make_env()`` returns an ``ExploreEnv`` (test speeds for the paper) whose
     sensor has ``protocol``'s noise (``protocol.sensor(cfg)``; ResultsError otherwise), built once
     and reset per episode with ``episode_seed(seed, start, episode)`` and, under a jittered
-    ``protocol``, its start drawn around the named one by the env. ``starts``
+    ``protocol``, its start drawn around the named one by the env (never the env config's own
+    training jitter). ``starts``
     are start indices (None: all of the world's). Each episode stops at a collision or after
     ``max_steps`` steps, whichever comes first; a ``policy_fn`` with a ``reset()`` method (one that
     remembers its last command) is reset before each episode. ``recorder`` (an ``EvalRecorder``) gets
@@ -149,9 +152,10 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
         if differ:
             raise ResultsError(f"the env's sensor has {', '.join(f'{f}={getattr(env.sensor_config, f)!r}' for f in differ)}"
                                f", not the {protocol.name} protocol's: build it with protocol.sensor(sensor_cfg)")
-        reset_options: dict[str, Any] = {}
-        if protocol.jittered:
-            reset_options["start_jitter"] = (protocol.start_jitter_m, protocol.start_jitter_deg)
+        # Always explicit, None included: an env built with a training jitter must not move the
+        # starts of an exact protocol.
+        reset_options: dict[str, Any] = {
+            "start_jitter": (protocol.start_jitter_m, protocol.start_jitter_deg) if protocol.jittered else None}
         trace = _Trace(env)
         loop = Rollout(env, _ProtocolPolicy(policy_fn, stop),
                        [trace] + ([_RecorderSteps(recorder)] if recorder is not None else []),

@@ -1,5 +1,7 @@
 """Presets: every preset file loads and builds; bad values are rejected with clear errors."""
 
+import dataclasses
+
 import pytest
 
 from shared.config import (
@@ -47,6 +49,20 @@ def test_fast_smoke_and_tiny_presets():
     assert (tiny.sensor.width, tiny.sensor.height) == (40, 30) and tiny.model.fc1 <= 128
 
 
+def test_robust_preset_is_fast_40x30_trained_under_the_robust_protocols_conditions_and_beyond():
+    from shared.evaluation import PROTOCOLS
+
+    robust, fast, test = load_preset("robust-40x30"), load_preset("fast-40x30"), PROTOCOLS["robust"]
+    assert (robust.env.start_jitter_m, robust.env.start_jitter_deg) == (0.10, 6.0)
+    assert (robust.env.start_jitter_m, robust.env.start_jitter_deg) == (2 * test.start_jitter_m,
+                                                                        2 * test.start_jitter_deg)
+    assert robust.sensor == test.sensor(fast.sensor) and robust.sensor.noise_std_m > 0
+    assert (fast.env.start_jitter_m, fast.env.start_jitter_deg, fast.sensor.noise_std_m) == (0.0, 0.0, 0.0)
+    same = dataclasses.replace(robust, sensor=fast.sensor,
+                               env=dataclasses.replace(robust.env, start_jitter_m=0.0, start_jitter_deg=0.0))
+    assert same == fast  # everything else is the shipped recipe
+
+
 @pytest.mark.parametrize("section,field,value,match", [
     ("dqn", "gamma", 1.5, "gamma"), ("dqn", "n_step", 0, "n_step"), ("dqn", "optimizer", "rmsprop", "optimizer"),
     ("dqn", "lr", 0.0, "lr"), ("dqn", "loss", "l1", "loss"), ("dqn", "momentum", 1.0, "momentum"),
@@ -57,6 +73,7 @@ def test_fast_smoke_and_tiny_presets():
     ("train", "device", "tpu", "device"), ("train", "keep_checkpoints", 0, "keep_checkpoints"),
     ("train", "replay_ratio", 0.0, "replay_ratio"),
     ("sensor", "width", 4, "width"),
+    ("env", "start_jitter_m", 2.0, "start_jitter_m"), ("env", "start_jitter_deg", 90, "start_jitter_deg"),
 ])
 def test_bad_values_in_a_preset_file_are_rejected(tmp_path, section, field, value, match):
     path = tmp_path / "bad.toml"

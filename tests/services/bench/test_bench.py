@@ -68,3 +68,20 @@ def test_bench_system_json(tmp_path: Path) -> None:
     assert run_dir.parent == tmp_path
     assert (run_dir / "checkpoints" / "latest").exists()
     assert (run_dir / "stats" / "learner.csv").exists()
+
+
+@pytest.mark.timeout(400)
+def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path) -> None:
+    out = _bench("system", "--compare-single-process", "--preset", "smoke", "--minutes", "0.4",
+                 "--episodes-per-start", "1", "--runs-dir", str(tmp_path), timeout_s=380)
+    for name in ("up", "single_process"):
+        run = out[name]
+        assert run["updates"] > 0 and run["transitions"] > 0
+        assert 0.4 * 60 <= run["wall_s"] < 0.4 * 60 + 120  # the time limit, then its stop and checkpoint
+        assert run["updates_per_s"] == pytest.approx(run["updates"] / run["wall_s"])
+        for protocol in ("robust", "paper"):
+            assert 0 <= run[protocol]["worst_start_steps"] <= run[protocol]["mean_steps"] <= 200
+    ratios = out["ratios_up_over_single"]
+    assert ratios["updates_per_s"] == pytest.approx(out["up"]["updates_per_s"] / out["single_process"]["updates_per_s"])
+    assert set(ratios) == {"updates_per_s", "env_steps_per_s", "robust_mean_steps", "paper_mean_steps"}
+    assert (tmp_path / "up" / "checkpoints").is_dir() and (tmp_path / "single" / "checkpoints").is_dir()

@@ -72,6 +72,14 @@ def test_the_end_time_waits_for_a_minute_or_five_percent_of_the_updates() -> Non
     assert "ETA after the first minute" in progress_line(figures(learning_s=120.0, learning_updates=0))
 
 
+def test_a_time_limit_that_comes_first_is_the_end_time() -> None:
+    # 400 updates left take 360 s; --minutes stops the run in 120 s, even before the first minute
+    assert progress_line(figures(time_left_s=120.0)).endswith("ends ~12:02 (2m00s left, --minutes)")
+    assert progress_line(figures(time_left_s=90.0, learning_s=None, learning_updates=0)).endswith(
+        "ends ~12:01 (1m30s left, --minutes)")
+    assert progress_line(figures(time_left_s=900.0)).endswith("ends ~12:06 (6m00s left)")  # the updates end first
+
+
 def test_progress_averages_over_the_run_and_leaves_the_warm_up_out_of_the_rate() -> None:
     progress = Progress(total_updates=500, warmup_transitions=1000)
     progress.on_learner(learner_stats(0, 200, waiting_share=1.0), now=0.0)

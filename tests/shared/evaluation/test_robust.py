@@ -7,9 +7,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import mujoco
 import numpy as np
 import pytest
+from sim_checks import robot_gap_m
 
 from services.cli import main
 from shared.config import ConfigError, SensorConfig
@@ -19,7 +19,6 @@ from shared.evaluation.policies import ReactivePolicy
 from shared.evaluation.protocol import episode_seed, evaluate_policy
 from shared.evaluation.results import load_results
 from shared.sim.env import START_DEPTH_MARGIN_M, EnvError, ExploreEnv, min_valid_depth
-from shared.sim.robot import FLOOR_GEOM, ROBOT_GEOM
 from shared.sim.sensor import DepthCamera
 
 SENSOR = SensorConfig(width=40, height=30)
@@ -42,15 +41,6 @@ class Recorder:
             self.firsts.append(depth_m.copy())
             self._new = False
         return self.inner(depth_m)
-
-
-def robot_gap_m(env: ExploreEnv) -> float:
-    """The exact distance from the robot's body to the nearest obstacle (MuJoCo's geom distance)."""
-    model, data = env.model, env.data
-    robot = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, ROBOT_GEOM)
-    floor = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM)
-    return min(mujoco.mj_geomDistance(model, data, robot, g, 10.0, None)
-               for g in range(model.ngeom) if g not in (robot, floor))
 
 
 def test_the_named_sets_and_their_overrides() -> None:
