@@ -72,3 +72,43 @@ def twist(command: int, speed_table: str = "test") -> Command:
         raise PolicyError(f"command must be an index in 0..{len(COMMAND_NAMES) - 1}, got {command!r}")
     angular, linear = SPEED_TABLES[speed_table]
     return Command(float(linear), float(angular[int(command)]))
+
+
+class CameraPolicy:
+    """What :class:`cogexplore.Policy` and :class:`cogexplore.onnx_runner.OnnxPolicy` share: a user's
+    image seen through the network's camera (``sensor``), the greedy command that becomes the
+    previous command, and its twist. A subclass runs the network: ``decide``, ``q_values``,
+    ``reset``, ``previous_command`` and ``label``."""
+
+    command_names: tuple[str, ...] = COMMAND_NAMES
+    sensor: SensorConfig
+    """The camera the network was trained with: its image size, field of view and range."""
+    control_period_s: float
+    """How long each command is held before the next image is taken."""
+
+    def observation(self, depth_m: Any) -> np.ndarray:
+        """The network's camera image of ``depth_m``: float32 (H, W) metres at the network's size,
+        0 = no return, as the simulated camera would have taken it.
+
+        ``depth_m``: (H, W) (or (H, W, 1)) float metres at any size with the network's aspect
+        ratio, i.e. its field of view; NaN, infinity and 0 are no return; uint16 is millimetres.
+        Raises PolicyError for a wrong shape, an empty array or another aspect ratio.
+        """
+        return camera_observation(depth_m, self.sensor)
+
+    def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
+        """The greedy command (0..4) for one depth image with the (5,) float32 Q-values it was chosen
+        from (one network pass); it becomes the previous command."""
+        raise NotImplementedError
+
+    def act(self, depth_m: Any) -> int:
+        """The greedy command (0..4) for one depth image; it becomes the previous command."""
+        return self.decide(depth_m)[0]
+
+    def __call__(self, depth_m: Any) -> int:
+        return self.act(depth_m)
+
+    def twist(self, command: int, speed_table: str = "test") -> Command:
+        """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
+        protocol's) or its ``train`` speeds."""
+        return twist(command, speed_table)

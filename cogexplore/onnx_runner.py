@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import onnxruntime
 
-from cogexplore._policy_io import COMMAND_NAMES, Command, camera_observation, twist
+from cogexplore._policy_io import CameraPolicy
 from shared.config import NUM_ACTIONS, SensorConfig
 from shared.errors import PolicyError
 from shared.learning.onnx_format import (
@@ -38,14 +38,12 @@ from shared.learning.onnx_format import (
 __all__ = ["OnnxModelError", "OnnxPolicy", "load_onnx_policy"]
 
 
-class OnnxPolicy:
+class OnnxPolicy(CameraPolicy):
     """The greedy policy of an exported Q-network, fed depth images from any resolution.
 
     Made by :func:`load_onnx_policy`; ``observation``, ``q_values``, ``act``, ``decide``, ``reset``,
     ``previous_command``, ``twist``, ``label``, ``sensor`` and ``control_period_s`` behave as
     :class:`cogexplore.Policy`'s. Not thread-safe: it remembers the previous command."""
-
-    command_names: tuple[str, ...] = COMMAND_NAMES
 
     def __init__(self, session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path):
         self.info: OnnxPolicyInfo = info
@@ -53,9 +51,7 @@ class OnnxPolicy:
         self.path: Path = path
         """The file loaded."""
         self.sensor: SensorConfig = info.sensor
-        """The camera the network was trained with: its image size, field of view and range."""
         self.control_period_s: float = info.control_period_s
-        """How long each command is held before the next image is taken."""
         self._session = session
         self._previous: int | None = None
 
@@ -69,12 +65,6 @@ class OnnxPolicy:
         """The command the last :meth:`act` chose (None after :meth:`reset`)."""
         return self._previous
 
-    def observation(self, depth_m: Any) -> np.ndarray:
-        """The network's camera image of ``depth_m``: float32 (H, W) metres at the network's size,
-        0 = no return (see ``cogexplore.Policy.observation``). Raises PolicyError for a wrong shape,
-        an empty array or another aspect ratio."""
-        return camera_observation(depth_m, self.sensor)
-
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;
         changes nothing (the next :meth:`act` still sees the same previous command)."""
@@ -83,27 +73,15 @@ class OnnxPolicy:
                 PREVIOUS_ACTION_INPUT: np.array([previous], dtype=np.int64)}
         return self._session.run([Q_OUTPUT], feed)[0][0]
 
-    def act(self, depth_m: Any) -> int:
-        """The greedy command (0..4) for one depth image; it becomes the previous command."""
-        return self.decide(depth_m)[0]
-
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
-        """:meth:`act` with the (5,) float32 Q-values the command was chosen from (one network pass)."""
         q = self.q_values(depth_m)
         # np.argmax takes the first maximum: ties go to the lowest index, as GreedyPolicy's
         self._previous = int(np.argmax(q))
         return self._previous, q
 
-    __call__ = act
-
     def reset(self) -> None:
         """A new episode: no previous command."""
         self._previous = None
-
-    def twist(self, command: int, speed_table: str = "test") -> Command:
-        """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
-        protocol's) or its ``train`` speeds."""
-        return twist(command, speed_table)
 
     def __repr__(self) -> str:
         return (f"OnnxPolicy({self.label!r}, {self.sensor.width}x{self.sensor.height} px, "

@@ -13,13 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cogexplore._policy_io import (
-    ASPECT_TOLERANCE,
-    COMMAND_NAMES,
-    Command,
-    camera_observation,
-    twist,
-)
+from cogexplore._policy_io import ASPECT_TOLERANCE, COMMAND_NAMES, CameraPolicy, Command
 from shared.config import SensorConfig
 from shared.errors import PolicyError
 from shared.evaluation.setup import EvalSetup, setup_evaluation
@@ -29,7 +23,7 @@ from shared.learning.model import InferenceRunner
 __all__ = ["ASPECT_TOLERANCE", "COMMAND_NAMES", "Command", "Policy", "load_policy"]
 
 
-class Policy:
+class Policy(CameraPolicy):
     """The greedy policy of a Q-network (dropout off), fed depth images from any resolution.
 
     Made by :func:`load_policy`. ``act(depth_m)`` returns the command index (see
@@ -38,17 +32,13 @@ class Policy:
     itself a callable ``depth_m -> command`` with ``reset()``, as :func:`cogexplore.evaluate` takes.
     """
 
-    command_names: tuple[str, ...] = COMMAND_NAMES
-
     def __init__(self, setup: EvalSetup):
         if setup.model is None or setup.policy != "greedy":
             raise PolicyError("a Policy needs a Q-network setup (use cogexplore.load_policy)")
         self.model: LoadedModel = setup.model
         """The loaded network and where it came from (``shared.learning.checkpoints``)."""
         self.sensor: SensorConfig = setup.sensor_cfg
-        """The camera the network was trained with: its image size, field of view and range."""
         self.control_period_s: float = setup.env_cfg.control_period_s
-        """How long each command is held before the next image is taken."""
         self._greedy = setup.policy_fn  # shared.evaluation.policies.GreedyPolicy: argmax and the memory
         self._runner = InferenceRunner(self.model.net)
 
@@ -62,40 +52,17 @@ class Policy:
         """The command the last :meth:`act` chose (None after :meth:`reset`)."""
         return self._greedy.policy.previous_action
 
-    def observation(self, depth_m: Any) -> np.ndarray:
-        """The network's camera image of ``depth_m``: float32 (H, W) metres at the network's size,
-        0 = no return, as the simulated camera would have taken it.
-
-        ``depth_m``: (H, W) (or (H, W, 1)) float metres at any size with the network's aspect
-        ratio, i.e. its field of view; NaN, infinity and 0 are no return; uint16 is millimetres.
-        Raises PolicyError for a wrong shape, an empty array or another aspect ratio.
-        """
-        return camera_observation(depth_m, self.sensor)
-
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;
         changes nothing (the next :meth:`act` still sees the same previous command)."""
         return self._runner.q_values(self.observation(depth_m), self.previous_command)
 
-    def act(self, depth_m: Any) -> int:
-        """The greedy command (0..4) for one depth image; it becomes the previous command."""
-        return self.decide(depth_m)[0]
-
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
-        """:meth:`act` with the (5,) float32 Q-values the command was chosen from (one network pass)."""
-        action, q = self._greedy(self.observation(depth_m))
-        return action, q
-
-    __call__ = act
+        return self._greedy(self.observation(depth_m))
 
     def reset(self) -> None:
         """A new episode: no previous command."""
         self._greedy.reset()
-
-    def twist(self, command: int, speed_table: str = "test") -> Command:
-        """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
-        protocol's) or its ``train`` speeds."""
-        return twist(command, speed_table)
 
     def __repr__(self) -> str:
         return (f"Policy({self.label!r}, {self.sensor.width}x{self.sensor.height} px, "

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -11,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from service_processes import cogexplore
 
 from services.bus.session import (
     ZenohSettings,
@@ -28,15 +28,7 @@ from shared.wire.messages import (
     WeightsMessage,
 )
 
-REPO = Path(__file__).resolve().parents[1]
 RUN = "e2e"
-
-
-def _spawn(argv: list[str], log: Path) -> subprocess.Popen:
-    env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-    with open(log, "wb") as fh:
-        return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], cwd=REPO, env=env,
-                                stdout=fh, stderr=subprocess.STDOUT)
 
 
 class Watch:
@@ -81,10 +73,10 @@ def test_router_learner_two_actors_churn_and_bad_input(tmp_path: Path):
               "--preset", "smoke", "--set", "train.total_updates=100000", "--set", "train.checkpoint_every=100000"]
     procs: dict[str, subprocess.Popen] = {}
     try:
-        procs["router"] = _spawn(["router", "--listen", endpoint], tmp_path / "router.log")
-        procs["learner"] = _spawn(["learner", *common, "--weights-every", "5"], tmp_path / "learner.log")
+        procs["router"] = cogexplore(["router", "--listen", endpoint], tmp_path / "router.log")
+        procs["learner"] = cogexplore(["learner", *common, "--weights-every", "5"], tmp_path / "learner.log")
         for i in (0, 1):
-            procs[f"actor-{i}"] = _spawn(["actor", *common, "--actor-id", f"actor-{i}", "--actor-index", str(i),
+            procs[f"actor-{i}"] = cogexplore(["actor", *common, "--actor-id", f"actor-{i}", "--actor-index", str(i),
                                           "--num-actors", "2"], tmp_path / f"actor-{i}.log")
         keys = RunKeys(RUN)
         with open_session(ZenohSettings(mode="client", connect=(endpoint,)), wait_s=30) as session:
@@ -102,7 +94,7 @@ def test_router_learner_two_actors_churn_and_bad_input(tmp_path: Path):
             assert latest.policy_version >= 5
 
             # A late-joining actor gets the latest weights: its transitions carry a version > 0.
-            procs["actor-late"] = _spawn(["actor", *common, "--actor-id", "actor-late"], tmp_path / "late.log")
+            procs["actor-late"] = cogexplore(["actor", *common, "--actor-id", "actor-late"], tmp_path / "late.log")
             watch.wait(lambda w: any(b.actor_id == "actor-late" and b.policy_version.min() > 0 for b in w.batches),
                        120, "the late actor's transitions with fetched weights")
 

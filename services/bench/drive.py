@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bus.options import DEFAULT_CMD_VEL_TOPIC, DEFAULT_IMAGE_TOPIC
 from services.bus.ros2 import Ros2Node
 from services.bus.session import ZenohSettings, free_tcp_port, open_router, open_session
 from shared.config import DEFAULT_PRESET, EnvConfig, load_preset
@@ -92,8 +93,8 @@ def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int 
                     if message.latency_ms is not None and message.command is not None:
                         drive_ms.append(message.latency_ms)
 
-                image_pub = node.publisher(qualify("/", "camera/depth/image_raw"), IMAGE, qos="default")
-                node.subscriber(qualify("/", "cmd_vel"), TWIST, on_twist, qos="default")
+                image_pub = node.publisher(qualify("/", DEFAULT_IMAGE_TOPIC), IMAGE, qos="default")
+                node.subscriber(qualify("/", DEFAULT_CMD_VEL_TOPIC), TWIST, on_twist, qos="default")
                 diag = session.declare_subscriber(keys.diagnostics, on_diag)
                 payloads = [encode_depth_image(f, encoding=encoding, stamp_ns=time.time_ns()) for f in frames]
                 # Wait for the drive node (its torch import and model load) to answer an image.

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from services.bus.options import ROS2_FORMATS
+
 
 def add_env_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", default="paper-indoor", help="the world stepped (default paper-indoor)")
@@ -43,5 +45,5 @@ def add_drive_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int, default=None, help="image height sent (default: the network's)")
     p.add_argument("--encoding", choices=("32FC1", "16UC1"), default="16UC1",
                    help="image encoding sent (default 16UC1, what depth drivers publish)")
-    p.add_argument("--ros2-format", choices=("rmw_zenoh", "ros2dds"), default="rmw_zenoh", help="wire format")
+    p.add_argument("--ros2-format", choices=ROS2_FORMATS, default="rmw_zenoh", help="wire format")
     p.add_argument("--json", action="store_true", help="print JSON")

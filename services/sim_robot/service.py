@@ -44,6 +44,7 @@ from shared.ros2.messages import (
 )
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import RobotKeys
+from shared.wire.messages import RejectCounter
 from shared.wire.robot import SimRobotStatus
 
 log = logging.getLogger("cogexplore.sim_robot")
@@ -79,7 +80,7 @@ class SimRobot:
         self.reset_requested = threading.Event()
         self.reset_sub = session.declare_subscriber(self.keys.reset, lambda _s: self.reset_requested.set())
         self.commands_taken = 0
-        self.rejects: dict[str, int] = {}
+        self.rejects = RejectCounter("cmd_vel message", log)
         self.episode = -1
         self.periods = 0
 
@@ -91,13 +92,12 @@ class SimRobot:
                 raise Ros2MessageError("range", f"twist ({linear} m/s, {angular} rad/s) beyond this robot's "
                                                 f"{MAX_TWIST_MPS} m/s, {MAX_TWIST_RPS} rad/s")
         except Ros2MessageError as exc:
-            self.rejects[exc.cause] = self.rejects.get(exc.cause, 0) + 1
-            log.warning("cmd_vel refused: %s", exc)
+            self.rejects.reject(exc)
             return
         try:
             self.commands.put_nowait((linear, angular, time.monotonic()))
         except queue.Full:
-            self.rejects["overflow"] = self.rejects.get("overflow", 0) + 1
+            self.rejects.reject(Ros2MessageError("overflow", "the command queue is full"))
 
     # -- the episode ----------------------------------------------------------------------
     def reset(self) -> None:
@@ -130,7 +130,7 @@ class SimRobot:
         self.status_pub.put(SimRobotStatus(
             robot=self.args.robot, world=self.env.world.name, episode=self.episode, step=self.step, x=x, y=y,
             yaw=yaw, linear_mps=linear, angular_rps=angular, collided=self.collision_cause is not None,
-            collision_cause=self.collision_cause, commands=self.commands_taken, rejects=dict(self.rejects)).encode())
+            collision_cause=self.collision_cause, commands=self.commands_taken, rejects=self.rejects.counts).encode())
 
     def run(self, stop: threading.Event) -> None:
         self.reset()

@@ -7,27 +7,18 @@ from __future__ import annotations
 import argparse
 import csv
 import json
-import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import pytest
+from service_processes import cogexplore
 
 from services.bus.session import free_tcp_port, open_router
 from shared.learning.stats import EpisodeRow, LearnerRow
 
-REPO = Path(__file__).resolve().parents[2]
 RUN = "tb"
-
-
-def _spawn(argv: list[str], log: Path) -> subprocess.Popen:
-    env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1", OMP_NUM_THREADS="1")
-    with open(log, "wb") as fh:
-        return subprocess.Popen([sys.executable, "-m", "services.cli", *argv], cwd=REPO, env=env,
-                                stdout=fh, stderr=subprocess.STDOUT)
 
 
 def _learner_updates(path: Path) -> list[int]:
@@ -53,11 +44,11 @@ def test_services_write_scalars_that_survive_sigterm(tmp_path: Path, tensorboard
     procs: dict[str, subprocess.Popen] = {}
     with open_router([endpoint]):
         try:
-            procs["learner"] = _spawn(["learner", *common, "--weights-every", "5"], tmp_path / "learner.log")
+            procs["learner"] = cogexplore(["learner", *common, "--weights-every", "5"], tmp_path / "learner.log")
             for i in (0, 1):
-                procs[f"actor-{i}"] = _spawn(["actor", *common, "--actor-id", f"actor-{i}", "--actor-index", str(i),
+                procs[f"actor-{i}"] = cogexplore(["actor", *common, "--actor-id", f"actor-{i}", "--actor-index", str(i),
                                               "--num-actors", "2"], tmp_path / f"actor-{i}.log")
-            procs["evaluator"] = _spawn(["evaluator", *common, "--id", "evaluator", "--every-updates", "20",
+            procs["evaluator"] = cogexplore(["evaluator", *common, "--id", "evaluator", "--every-updates", "20",
                                          "--max-steps", "10", "--no-record"], tmp_path / "evaluator.log")
             deadline = time.monotonic() + 240
             while not (len(_eval_rows(run / "stats" / "eval.jsonl")) >= 2
