@@ -253,6 +253,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     torch.set_num_threads(1)  # several actors share the machine's cores with the learner
     seed = cfg.train.seed * 1000 + actor_index + 1 if seed is None else seed
     env = ExploreEnv(cfg.env, cfg.sensor)
+    env.share_extra_worlds(actor_index % num_actors, num_actors)  # a world costs ~0.2 s of CPU to build
     net = QNetwork(cfg.model, cfg.sensor).to(device)
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=seed + 7_919)
     policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed,

@@ -36,6 +36,7 @@ from services.runs import RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore, RateMeter, resume_from
+from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys, parse_key
@@ -93,12 +94,13 @@ class LatestSender:
 def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threading.Event, *,
                 learner_id: str = "learner", weights_every: int = 25, stats_every_s: float = 1.0,
                 flow_slack: int | None = None, device: str | None = None, save_replay: bool = True,
-                tensorboard: Path | None = None) -> dict:
-    """The learner loop. Returns final counters. ``tensorboard``: a folder for its rows as TensorBoard events."""
+                tensorboard: Path | None = None, pipeline: bool = False) -> dict:
+    """The learner loop. Returns final counters. ``tensorboard``: a folder for its rows as TensorBoard events;
+    ``pipeline``: TD targets one update ahead on a second thread (LearnerCore)."""
     keys = RunKeys(run)
     paths.make()
     epoch = new_epoch()  # this process: its weights outrank every earlier learner's, whatever their update
-    core = LearnerCore(cfg, device=device or cfg.train.device)
+    core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     if resume_from(checkpoints, core):
         rewind(paths.stats, LearnerRow, core.updates)  # its updates after the checkpoint come again
@@ -218,6 +220,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         time.sleep(0.2)  # let the sender thread hand the final weights to Zenoh
         sender.close()
         actors.close()
+        core.close()
     return {"updates": core.updates, "transitions": core.received, "rejected": rejects.total,
             "rejects": rejects.counts, "replay_size": len(core.replay)}
 
@@ -230,12 +233,15 @@ def run_learner_command(args: argparse.Namespace) -> int:
         cfg = cfg.with_overrides({"train.total_updates": args.updates})
     if not paths.config.exists():
         save_config(cfg, paths)
-    torch.set_num_threads(max(1, torch.get_num_threads()))
+    pipeline = args.pipeline == "on" or (args.pipeline == "auto"
+                                         and resolve_device(cfg.train.device).type == "cpu")
+    # pipelined, the two stages run side by side: each takes half the cores torch would use
+    torch.set_num_threads(max(1, torch.get_num_threads() // (2 if pipeline else 1)))
     stop = stop_event_on_signals()
     settings = zenoh_settings(args, "learner")
     log.info("learner %s for run %r via %s", args.learner_id, args.run, settings.describe())
     result = run_learner(cfg, args.run, paths, settings, stop, learner_id=args.learner_id,
-                         weights_every=args.weights_every,
+                         weights_every=args.weights_every, pipeline=pipeline,
                          tensorboard=paths.tensorboard_folder(args.learner_id) if args.tensorboard else None)
     log.info("learner done: %s", json.dumps(result))  # one JSON line: scripts read it
     return 0

@@ -163,6 +163,14 @@ def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
                                next_previous_action=mirror(tb.next_previous_action))
 
 
+@dataclass
+class PreparedBatch:
+    """A TensorBatch, mirrored, and its TD targets: all an update needs but the gradient step."""
+
+    tb: TensorBatch
+    y: torch.Tensor
+
+
 class DQNAgent:
     """Online and target Q-networks, optimiser and counters: the core of every learner.
 
@@ -237,19 +245,47 @@ class DQNAgent:
 
     # ------------------------------------------------------------------ update
     @torch.no_grad()
-    def compute_targets(self, tb: TensorBatch) -> torch.Tensor:
-        """TD targets y (B,) with theta^- (and theta, eval mode, for Double DQN)."""
-        next_q_target = self.target(tb.next_obs, tb.next_previous_action)
+    def compute_targets(self, tb: TensorBatch, online: QNetwork | None = None,
+                        target: QNetwork | None = None) -> torch.Tensor:
+        """TD targets y (B,) with theta^- (and theta, eval mode, for Double DQN). ``online`` and
+        ``target`` replace the agent's own two nets (a :class:`shared.learning.pipeline.TargetPipeline`
+        passes its copies, which no update writes to while it reads them)."""
+        online = self.online if online is None else online
+        target = self.target if target is None else target
+        next_q_target = target(tb.next_obs, tb.next_previous_action)
         next_q_online = None
         if self.cfg.double_dqn:
-            was_training = self.online.training
-            self.online.eval()
+            was_training = online.training
+            online.eval()
             try:
-                next_q_online = self.online(tb.next_obs, tb.next_previous_action)
+                next_q_online = online(tb.next_obs, tb.next_previous_action)
             finally:
-                self.online.train(was_training)
+                online.train(was_training)
         return td_targets(tb.rewards, tb.n_steps, tb.terminated, next_q_target, self.cfg.gamma,
                           next_q_online)
+
+    def draw_flips(self, batch: Batch | TensorBatch) -> torch.Tensor | None:
+        """Which samples of ``batch`` an update mirrors (None without ``mirror_augment``): drawn from
+        torch's global generator, the one a checkpoint restores, so it is always drawn here, on the
+        thread that trains, in the same order as the dropout masks."""
+        if not self.cfg.mirror_augment:
+            return None
+        flip = torch.rand(len(batch.action), device=self.device) < 0.5
+        if batch.demo is not None:
+            # A demonstration commits to one of two mirror-image manoeuvres; in a symmetric
+            # scene (paper-indoor's start 6 sees an exactly symmetric dead end) its mirror
+            # would teach the other turn on the same image, and the two would tie.
+            flip &= ~torch.as_tensor(batch.demo, dtype=torch.bool, device=self.device)
+        return flip
+
+    def prepare(self, batch: Batch | TensorBatch, flips: torch.Tensor | None, online: QNetwork | None = None,
+                target: QNetwork | None = None) -> PreparedBatch:
+        """The part of an update that needs no gradient: tensors, mirroring by ``flips`` (from
+        :meth:`draw_flips`) and TD targets (see :meth:`compute_targets` for ``online``/``target``)."""
+        tb = batch if isinstance(batch, TensorBatch) else self.to_tensors(batch)
+        if flips is not None:
+            tb = mirror_batch(tb, flips)
+        return PreparedBatch(tb, self.compute_targets(tb, online, target))
 
     def update(self, batch: Batch | TensorBatch) -> dict[str, Any]:
         """One gradient step on ``batch``; syncs theta^- every C updates. Returns metrics.
@@ -258,16 +294,11 @@ class DQNAgent:
         target_mean, td_abs_mean, grad_norm, synced_target, and td_errors (numpy (B,), y - Q)
         for prioritised replay.
         """
-        tb = batch if isinstance(batch, TensorBatch) else self.to_tensors(batch)
-        if self.cfg.mirror_augment:
-            flip = torch.rand(len(tb.action), device=tb.action.device) < 0.5
-            if tb.demo is not None:
-                # A demonstration commits to one of two mirror-image manoeuvres; in a symmetric
-                # scene (paper-indoor's start 6 sees an exactly symmetric dead end) its mirror
-                # would teach the other turn on the same image, and the two would tie.
-                flip &= ~tb.demo
-            tb = mirror_batch(tb, flip)
-        y = self.compute_targets(tb)
+        return self.apply(self.prepare(batch, self.draw_flips(batch)))
+
+    def apply(self, prepared: PreparedBatch) -> dict[str, Any]:
+        """The gradient step of :meth:`update` on a prepared batch (its targets already computed)."""
+        tb, y = prepared.tb, prepared.y
         self.online.train()
         q_all = self.online(tb.obs, tb.previous_action)
         q = q_all.gather(1, tb.action[:, None]).squeeze(1)

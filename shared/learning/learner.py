@@ -35,7 +35,8 @@ from shared.learning.checkpoints import (
 )
 from shared.learning.demos import demo_replay, load_demonstrations
 from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
-from shared.learning.replay import ReplayError, ReplayMemory, concat_batches
+from shared.learning.pipeline import TargetPipeline
+from shared.learning.replay import Batch, ReplayError, ReplayMemory, concat_batches
 from shared.wire.messages import TransitionBatch
 
 log = logging.getLogger("cogexplore.learner")
@@ -59,9 +60,15 @@ class ActorRecord:
 
 
 class LearnerCore:
-    def __init__(self, cfg: RunConfig, device: str = "auto"):
+    """Replay memory, agent and the replay-ratio rule. ``pipeline``: compute each update's TD targets
+    on a second thread during the update before it (:class:`shared.learning.pipeline.TargetPipeline`;
+    call :meth:`close` at the end)."""
+
+    def __init__(self, cfg: RunConfig, device: str = "auto", *, pipeline: bool = False):
         self.cfg = cfg
         self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
+        self._pipeline_wanted = pipeline
+        self._pipeline: TargetPipeline | None = None  # made at the first update: after any resume
         # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
         if cfg.train.init_from:  # fine-tuning: the whole network, conv layers included
             init_agent_weights(self.agent, cfg.train.init_from)
@@ -173,29 +180,58 @@ class LearnerCore:
         When some samples make the loss non-finite, nothing is applied, those samples' transitions
         leave the replay memory (counted in ``dropped_nonfinite``) and None is returned; when every
         sample does, the network itself has diverged: DQNError."""
-        dqn = self.cfg.dqn
-        batch = self.replay.sample(dqn.batch_size, dqn.n_step)
-        full = batch if self.demo_replay is None else concat_batches(
-            batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step))
+        if not self._pipeline_wanted:
+            batch = self._sample()
+            run = lambda: self.agent.update(batch)  # noqa: E731
+        else:
+            if self._pipeline is None:
+                self._pipeline = TargetPipeline(self.agent)
+            if not self._pipeline.pending:
+                self._pipeline.submit(self._sample())
+            batch, prepared = self._pipeline.take()
+            self._pipeline.submit(self._sample())  # the next targets, while this update trains
+            run = lambda: self.agent.apply(prepared)  # noqa: E731
         try:
-            metrics = self.agent.update(full)
+            metrics = run()
         except NonFiniteLoss as exc:
-            bad = exc.non_finite[:len(batch)]
+            n_replay = self._replay_rows(batch)
+            bad = exc.non_finite[:n_replay]
             if not bad.any() or exc.non_finite.all():
                 raise DQNError(f"{exc}: every sample's loss is non-finite, the network has diverged "
                                "(the learning rate is probably too high)") from None
-            removed = self.replay.remove(batch.indices[bad])
+            removed = self.replay.remove(batch.indices[:n_replay][bad])
             self.dropped_nonfinite += removed
             log.warning("update %d skipped: %d sampled transition(s) gave a non-finite loss and were removed "
                         "from the replay memory", self.updates + 1, removed)
             return None
         if self.cfg.replay.prioritized:  # the replay memory's own samples come first
-            self.replay.update_priorities(batch.indices, metrics["td_errors"][:len(batch)])
+            n_replay = self._replay_rows(batch)
+            self.replay.update_priorities(batch.indices[:n_replay], metrics["td_errors"][:n_replay])
         self._window.append((metrics["loss"], metrics["q_mean"]))
         if "demo_agreement" in metrics:
             self._demo_window.append(metrics["demo_agreement"])
         self._last_metrics = metrics
         return metrics
+
+    def _sample(self) -> Batch:
+        """An update's batch: the replay memory's samples, then the demonstrations' (if any)."""
+        dqn = self.cfg.dqn
+        batch = self.replay.sample(dqn.batch_size, dqn.n_step)
+        if self.demo_replay is None:
+            return batch
+        return concat_batches(batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step))
+
+    @staticmethod
+    def _replay_rows(batch: Batch) -> int:
+        """How many of ``batch``'s samples (the first ones) come from the replay memory."""
+        return len(batch) - (0 if batch.demo is None else int(batch.demo.sum()))
+
+    def close(self) -> None:
+        """Stop the target pipeline's thread (if any); the core can still train, unpipelined."""
+        if self._pipeline is not None:
+            self._pipeline.close()
+            self._pipeline = None
+        self._pipeline_wanted = False
 
     def recent(self, n: int = 100) -> tuple[float | None, float | None]:
         """Mean loss and mean Q over the last ``n`` updates."""

@@ -192,6 +192,15 @@ class ExploreEnv(gym.Env):
         self._noise_seed: int | None = None  # drawn at each seeded reset
         self._unjitterable: set[tuple[str, int]] = set()  # (world, start) warned of: no clear jittered draw
 
+    def share_extra_worlds(self, index: int, count: int) -> None:
+        """Play only this env's share of ``env.extra_worlds``: every ``count``-th one from ``index``
+        (actor ``index`` of a fleet of ``count``; the fleet together plays them all, each world built
+        in one process instead of in every one). With fewer worlds than ``count``, all of them."""
+        if not (isinstance(count, int) and count >= 1 and isinstance(index, int) and 0 <= index < count):
+            raise EnvError(f"share_extra_worlds: index {index!r} of count {count!r}")
+        if len(self._extra_world_names) >= count:
+            self._extra_world_names = self._extra_world_names[index::count]
+
     # -- Gymnasium API ------------------------------------------------------------------
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):

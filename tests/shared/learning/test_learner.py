@@ -88,10 +88,11 @@ def test_a_restarted_actor_process_starts_a_fresh_count():
     assert core.received_by_actor == {"a": 1} and core.actor_epochs() == {"a": 2} and core.received == 4
 
 
-def test_transitions_with_a_non_finite_loss_leave_replay_and_the_learner_goes_on():
+@pytest.mark.parametrize("pipeline", [False, True])
+def test_transitions_with_a_non_finite_loss_leave_replay_and_the_learner_goes_on(pipeline: bool):
     cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 8, "dqn.batch_size": 8, "dqn.n_step": 1,
                                                "dqn.loss": "mse", "replay.capacity": 64})
-    core = LearnerCore(cfg, device="cpu")
+    core = LearnerCore(cfg, device="cpu", pipeline=pipeline)
     with pytest.raises(ReplayError, match="not one this task pays"):
         core.add_transition("s", _frame(1.0), 0, 3.4e38, _frame(1.1), False, False)
     for i in range(32):  # a replay memory saved before the bounds existed: every other reward poisoned
@@ -105,6 +106,7 @@ def test_transitions_with_a_non_finite_loss_leave_replay_and_the_learner_goes_on
     assert core.train_step() is not None
     assert all(bool(t.isfinite().all()) for t in core.agent.online.state_dict().values())
     assert any(not torch.equal(before[n], t) for n, t in core.agent.online.state_dict().items())
+    core.close()
 
 
 def test_a_resumed_replay_memory_keeps_nothing_the_task_cannot_produce(tmp_path):

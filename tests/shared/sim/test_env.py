@@ -237,6 +237,27 @@ def test_extra_worlds_share_the_episodes_and_fixed_starts_stay_in_the_main_world
     env.close()
 
 
+def test_a_fleet_of_actors_shares_the_extra_worlds_between_them():
+    from shared.config import SensorConfig
+    from shared.sim.env import EnvError
+
+    cfg = EnvConfig(world="box-room", extra_worlds="corridor, procedural:7-8", extra_world_prob=1.0,
+                    max_episode_steps=2)
+    played: list[set[str]] = []
+    for index in range(2):
+        env = ExploreEnv(cfg, sensor=SensorConfig(width=40, height=30))
+        env.share_extra_worlds(index, 2)
+        played.append({env.reset(seed=k)[1]["world"] for k in range(12)})
+        env.close()
+    assert played == [{"corridor", "procedural:8"}, {"procedural:7"}]  # every 2nd from the actor's index
+    few = ExploreEnv(cfg, sensor=SensorConfig(width=40, height=30))
+    few.share_extra_worlds(4, 5)  # more actors than worlds: each plays them all
+    assert {few.reset(seed=k)[1]["world"] for k in range(20)} == {"corridor", "procedural:7", "procedural:8"}
+    with pytest.raises(EnvError, match="index 2 of count 2"):
+        few.share_extra_worlds(2, 2)
+    few.close()
+
+
 def test_extra_world_lists_parse_and_bad_ones_are_config_errors():
     from shared.config import ConfigError, parse_world_list
 
