@@ -59,7 +59,13 @@ from shared.config import (
     parse_world_list,
 )
 from shared.errors import CogexploreError
-from shared.evaluation import PROTOCOL_SENSOR_FIELDS, PROTOCOLS, ProtocolConfig
+from shared.evaluation import (
+    PAPER_BASELINE_STEPS,
+    PAPER_DRL_STEPS,
+    PROTOCOL_SENSOR_FIELDS,
+    PROTOCOLS,
+    ProtocolConfig,
+)
 
 log = logging.getLogger("cogexplore.experiment")
 
@@ -68,9 +74,6 @@ STATE_FORMAT = "cogexplore-experiment"
 STATE_VERSION = 1
 DRL_RUN = "drl"
 RL_RUN = "rl"
-# The paper's Table III, mean moving steps of 200 over its 12 starts: the baselines and DRL per update count.
-PAPER_BASELINE_STEPS = {"SL": 14.6, "RL": 20.9}
-PAPER_DRL_STEPS = {500: 9.3, 4000: 21.6, 7500: 27.3, 40000: 92.6}
 # Options that fix what the finished stages computed: a resumed experiment must not change them.
 FIXED_OPTIONS = ("experiment", "world", "preset", "overrides", "sl_model", "sl_worlds", "sl_frames", "sl_epochs",
                  "rl_updates", "episodes_per_start", "max_steps", "seed", "protocol")

@@ -48,6 +48,8 @@ from services.tools.document import (
 from services.tools.options import REPORT_PROTOCOLS
 from shared.errors import CogexploreError
 from shared.evaluation import (
+    PAPER_BASELINE_STEPS,
+    PAPER_DRL_STEPS,
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
     ProtocolConfig,
@@ -444,6 +446,19 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
         doc += [Heading(2, f"Table III, {c.name} protocol: moving steps and distance per start point"),
                 Paragraph(f"_{c.describe()}._"),
                 Table.from_markdown(table_markdown({m.name: m.results[c.name] for m in models}))]
+    # Beside the paper's own figures (its protocol: exact starts, no noise; Gazebo, 160 x 120 depth)
+    means = {(m.name, c.name): aggregate(m.results[c.name].episodes)["overall"]["mean_steps"]
+             for m in models for c in conditions}
+    paper_rows = [(m.name, "this report", *(f"{means[m.name, c.name]:.1f}" for c in conditions), "")
+                  for m in models]
+    paper_rows += [(f"paper: {name}", "Tai & Liu 2016, Table III", *("" for _ in conditions), f"{v:.1f}")
+                   for name, v in [*PAPER_BASELINE_STEPS.items(),
+                                   *((f"DRL-{k}", v) for k, v in PAPER_DRL_STEPS.items())]]
+    doc += [Heading(2, "Beside the paper's Table III: mean moving steps of 200"),
+            Paragraph("The paper's figures come from its own protocol (exact starts, no sensor noise) in Gazebo; "
+                      f"its best, DRL-40000, is {PAPER_DRL_STEPS[40000]}."),
+            Table(("Model", "Source", *(f"{c.name} protocol" for c in conditions), "paper's figure"),
+                  (False, False) + (True,) * (len(conditions) + 1), tuple(paper_rows))]
     outcome_rows = []
     for c in conditions:
         for m in models:

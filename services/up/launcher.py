@@ -22,9 +22,9 @@ checkpoint and says so; one whose learner already reached ``train.total_updates`
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import collections
 import csv
+import dataclasses
 import logging
 import os
 import signal
@@ -443,7 +443,9 @@ class Launcher:
                           "--episodes-per-start", str(a.final_episodes),
                           "--json", str(self.paths.stats / "final-eval.json"),
                           "--rrd", str(self.paths.recordings / "final-eval.rrd")]
-        report = cmd + ["report", str(self.paths.root), "--episodes-per-start", str(a.final_episodes)]
+        # the new model beside the shipped one (and the baselines, and the paper's figures)
+        report = cmd + ["report", str(self.paths.root), "--episodes-per-start", str(a.final_episodes),
+                        "--compare", "pretrained"]
         for argv in (evaluate, report):
             result = subprocess.run(argv, check=False, env=dict(os.environ, RERUN_ANALYTICS="0"))
             if result.returncode != 0:

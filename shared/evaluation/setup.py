@@ -90,6 +90,10 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     if owned:
         raise EvaluateError(f"{', '.join(owned)}: the test protocol sets the sensor's noise; use --protocol or "
                             "--sensor-noise-m")
+    jitter = sorted(k for k in parsed if k in ("env.start_jitter_m", "env.start_jitter_deg"))
+    if jitter:  # training's jitter: the protocol never reads it, so the override would silently do nothing
+        raise EvaluateError(f"{', '.join(jitter)}: the test protocol sets the start jitter; use --protocol or "
+                            "--start-jitter-m / --start-jitter-deg")
     cfg = base.with_overrides(parsed) if parsed else base
     if model is not None and (cfg.sensor.width, cfg.sensor.height) != (model.net.sensor_cfg.width,
                                                                         model.net.sensor_cfg.height):

@@ -105,6 +105,11 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
     robust_at, paper_at = text.index("## Table III, robust protocol"), text.index("## Table III, paper protocol")
     assert robust_at < paper_at and text.count("| Count | exp@1000 |") == 2
     assert f"_{PROTOCOLS['robust'].describe()}._" in text and "| exp@1000 | robust |" in text
+    # Every model's mean under both protocols beside the paper's own Table III figures.
+    beside = text[text.index("## Beside the paper's Table III"):]
+    assert re.search(r"\| exp@1000 \| this report \| \d+\.\d \| \d+\.\d \|  \|", beside)
+    assert "| paper: DRL-40000 | Tai & Liu 2016, Table III |  |  | 92.6 |" in beside
+    assert "| paper: SL |" in beside and "| reactive | this report |" in beside
     # Results were evaluated with the requested protocol and saved for next time.
     for protocol, paths in report.results.items():
         assert list(paths) == ["exp@1000", "random", "reactive"]

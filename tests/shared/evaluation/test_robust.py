@@ -202,6 +202,8 @@ def test_evaluate_records_the_protocol_and_refuses_its_noise_as_an_override(tmp_
         assert json.loads(printed.strip().splitlines()[-2])["protocol"] == want.name
     assert main(["evaluate", *common, "--set", "sensor.noise_std_m=0.02"]) == 2
     assert "the test protocol sets the sensor's noise" in capsys.readouterr().err
+    assert main(["evaluate", *common, "--set", "env.start_jitter_m=0.1"]) == 2  # training's jitter, not the test's
+    assert "the test protocol sets the start jitter" in capsys.readouterr().err
     assert main(["evaluate", *common, "--start-jitter-m", "-1"]) == 2
     assert "start_jitter_m = -1" in capsys.readouterr().err
     with pytest.raises(SystemExit):
