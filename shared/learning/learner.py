@@ -67,8 +67,8 @@ class LearnerCore:
     def __init__(self, cfg: RunConfig, device: str = "auto", *, pipeline: bool = False):
         self.cfg = cfg
         self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
-        self._pipeline_wanted = pipeline
-        self._pipeline: TargetPipeline | None = None  # made at the first update: after any resume
+        # its copies of the nets are refreshed at every batch, so a later resume or transfer reaches them
+        self._pipeline = TargetPipeline(self.agent) if pipeline else None
         # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
         if cfg.train.init_from:  # fine-tuning: the whole network, conv layers included
             init_agent_weights(self.agent, cfg.train.init_from)
@@ -180,19 +180,16 @@ class LearnerCore:
         When some samples make the loss non-finite, nothing is applied, those samples' transitions
         leave the replay memory (counted in ``dropped_nonfinite``) and None is returned; when every
         sample does, the network itself has diverged: DQNError."""
-        if not self._pipeline_wanted:
+        if self._pipeline is None:
             batch = self._sample()
-            run = lambda: self.agent.update(batch)  # noqa: E731
+            prepared = self.agent.prepare(batch, self.agent.draw_flips(batch))
         else:
-            if self._pipeline is None:
-                self._pipeline = TargetPipeline(self.agent)
             if not self._pipeline.pending:
                 self._pipeline.submit(self._sample())
             batch, prepared = self._pipeline.take()
             self._pipeline.submit(self._sample())  # the next targets, while this update trains
-            run = lambda: self.agent.apply(prepared)  # noqa: E731
         try:
-            metrics = run()
+            metrics = self.agent.apply(prepared)
         except NonFiniteLoss as exc:
             n_replay = self._replay_rows(batch)
             bad = exc.non_finite[:n_replay]
@@ -231,7 +228,6 @@ class LearnerCore:
         if self._pipeline is not None:
             self._pipeline.close()
             self._pipeline = None
-        self._pipeline_wanted = False
 
     def recent(self, n: int = 100) -> tuple[float | None, float | None]:
         """Mean loss and mean Q over the last ``n`` updates."""

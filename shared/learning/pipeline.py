@@ -13,8 +13,8 @@ older than in :meth:`DQNAgent.update`), a delay of the kind distributed DQN lear
 (Ape-X, R2D2); theta^- is the same target network either way. The worker reads its own copies of
 theta and theta^-, refreshed from the agent while it is idle, so no optimiser step ever writes
 under a forward pass. Every random draw (mirror flips, dropout) stays on the calling thread, so a
-pipelined run repeats exactly whatever the threads' timing. The single-process trainer does not pipeline: there the
-environment already fills the second core between updates.
+pipelined run repeats exactly whatever the threads' timing. The single-process trainer does not
+pipeline: there the environment already fills the second core between updates.
 """
 
 from __future__ import annotations
