@@ -85,6 +85,9 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
 def add_report_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of ``cogexplore report``."""
     parser.add_argument("run_dir", metavar="RUN_DIR", help="the run folder (runs/<run>)")
+    parser.add_argument("--model", default=None, metavar="CKPT",
+                        help="the model that stands for the run (default: its latest checkpoint; `cogexplore up` "
+                             "gives the mean of its last checkpoints, see its --final-average)")
     parser.add_argument("--compare", nargs="+", action="extend", default=[], metavar="CKPT",
                         help="more checkpoints (files, directories, run folders or weights exports) to compare")
     parser.add_argument("--out", default=None, metavar="DIR", help="output folder (default RUN_DIR/report)")
@@ -216,6 +219,15 @@ def add_worlds_demo_arguments(p: argparse.ArgumentParser) -> None:
                    help="speed table (default test: the protocol's; some escapes exist only there)")
     p.add_argument("--horizon", type=int, default=80, help="steps to plan (default 80)")
     p.add_argument("--beam", type=int, default=2000, help="command sequences kept per step (default 2000)")
+    p.add_argument("--protocol", choices=tuple(PROTOCOLS), default="paper",
+                   help="where the plans begin: paper (default), each start's exact pose; robust, --episodes "
+                        "draws around each start with the robust protocol's jitter and sensor noise")
+    p.add_argument("--episodes", type=int, default=1, metavar="N",
+                   help="with --protocol robust: draws per start, episode k's draw that of an evaluation with "
+                        "--seed (default 1)")
+    p.add_argument("--seed", type=int, default=0,
+                   help="with --protocol robust: the draws' seed (default 0: the very draws `cogexplore evaluate` "
+                        "meets, a check that they can be survived; give another for training demonstrations)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 

@@ -1,12 +1,13 @@
 """``cogexplore report RUN_DIR``: the paper's tables and figures for a run, as PNG + Markdown + HTML.
 
-    cogexplore report runs/exp1 [--compare CKPT ...] [--out DIR] [--episodes-per-start N] [--world W]
-                                [--probe depth.png ...] [--protocol robust paper]
+    cogexplore report runs/exp1 [--model CKPT] [--compare CKPT ...] [--out DIR] [--episodes-per-start N]
+                                [--world W] [--probe depth.png ...] [--protocol robust paper]
 
 Into ``RUN_DIR/report/`` (or ``--out``), shown by ``report.html`` (for a browser, the figures
 inlined while they stay small) and linked from ``report.md`` (the same sections, for terminals and GitHub):
 
-- Table III (Count / Distance per start, plus coverage) for the run's latest checkpoint, each
+- Table III (Count / Distance per start, plus coverage) for the run's latest checkpoint (or
+  ``--model``: ``cogexplore up`` gives the mean of the run's last checkpoints' weights), each
   ``--compare`` checkpoint and the ``random`` and ``reactive`` baselines, once per test protocol
   (``--protocol``, default the robust one first, then the paper's: ``shared.evaluation.PROTOCOLS``),
   with collisions by cause and capped episodes per model and protocol. Results JSON already in the
@@ -245,14 +246,16 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
 # ---------------------------------------------------------------------------------------------
 
 
-def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out_dir: str | Path | None = None,
+def build_report(run_dir: str | Path, *, model: str | Path | None = None, compare: Sequence[str | Path] = (),
+                 out_dir: str | Path | None = None,
                  episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
                  world: str | None = None, probe_files: Sequence[str | Path] = (), seed: int = 0,
                  device: str = "cpu", progress: bool = True,
                  baselines: Sequence[str] = BASELINES,
                  protocols: Sequence[str | ProtocolConfig] = REPORT_PROTOCOLS) -> Report:
     """Evaluate (or reuse results for) every model under every protocol (names or configs, in
-    Table III's order) and write the report; see the module docstring."""
+    Table III's order) and write the report; see the module docstring. ``model`` stands for the run
+    in place of its latest checkpoint (``cogexplore up``: the mean of its last checkpoints)."""
     from services.tools.receptive import (
         ReceptiveFieldError,
         receptive_field,
@@ -293,11 +296,11 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     taken: set[str] = set()
     models: list[ReportModel] = []
     loaded: list[LoadedModel] = []
-    run_has_checkpoint = resolve_checkpoint(run) is not None
+    run_has_checkpoint = model is not None or resolve_checkpoint(run) is not None
     if not run_has_checkpoint:
         notes.append(f"The run has no checkpoint yet ({run / 'checkpoints'}): only the baselines are evaluated.")
     else:
-        loaded.append(load_model(run, device))
+        loaded.append(load_model(run if model is None else model, device))
     for c in compare:
         loaded.append(load_model(c, device))
     first_cfg = loaded[0].run_config if loaded else None
@@ -434,7 +437,7 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
          "from the start to the end pose (m); Coverage = mean % of the free area the camera saw.")))]
     model_rows = []
     for m in models:
-        src = f"`{m.model.path}` (version {m.model.policy_version})" if m.model is not None else "baseline"
+        src = f"`{m.model.path}` ({_versions(m.model)})" if m.model is not None else "baseline"
         links_ = []
         for c in conditions:
             res = report.results[c.name][m.name]
@@ -504,6 +507,14 @@ def build_report(run_dir: str | Path, *, compare: Sequence[str | Path] = (), out
     return report
 
 
+def _versions(model: LoadedModel) -> str:
+    """'version N', or for a mean of checkpoints' weights which versions it averages."""
+    versions = [s["policy_version"] for s in model.averaged_from]
+    if len(versions) < 2:
+        return f"version {model.policy_version}"
+    return f"the mean of {len(versions)} checkpoints' weights, versions {', '.join(map(str, versions))}"
+
+
 def _baseline_setup(name: str, run_cfg: Any, model: LoadedModel | None, world: str, seed: int) -> EvalSetup:
     """A baseline that sees the run's own sensor and robot: the run's config, else its
     checkpoint's, else the paper preset's."""
@@ -528,7 +539,7 @@ def _baseline_setup(name: str, run_cfg: Any, model: LoadedModel | None, world: s
 
 def run_report(args: argparse.Namespace) -> int:
     """``cogexplore report``: returns a process exit status."""
-    report = build_report(args.run_dir, compare=args.compare, out_dir=args.out,
+    report = build_report(args.run_dir, model=args.model, compare=args.compare, out_dir=args.out,
                           episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
                           world=args.world, probe_files=args.probe, seed=args.seed, device=args.device,
                           progress=not args.quiet, protocols=args.protocol)

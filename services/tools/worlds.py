@@ -69,10 +69,12 @@ def run_demo(args: argparse.Namespace) -> int:
     import dataclasses
     import time
 
-    from shared.config import load_preset
-    from shared.evaluation.protocol import protocol_env_config
+    from shared.config import ConfigError, load_preset
+    from shared.evaluation import PROTOCOLS
+    from shared.evaluation.protocol import episode_seed, protocol_env_config
     from shared.learning.demos import (
         DemoError,
+        StartDraw,
         plan_commands,
         plan_summary,
         record_demonstration,
@@ -80,11 +82,15 @@ def run_demo(args: argparse.Namespace) -> int:
     )
     from shared.sim.env import ExploreEnv
 
+    protocol = PROTOCOLS[args.protocol]
+    if args.episodes < 1 or (args.episodes > 1 and not protocol.jittered):
+        raise ConfigError(f"--episodes {args.episodes}: give 1, or more with --protocol robust (the {protocol.name} "
+                          "protocol's starts are exact: every episode would be the same)")
     rc = load_preset(args.preset)
-    # The protocol's env (fixed starts: no random poses or extra worlds), at --speed, with a step
-    # cap the horizon cannot reach.
+    # The protocol's env (fixed starts: no random poses or extra worlds) and sensor noise, at
+    # --speed, with a step cap the horizon cannot reach.
     env_cfg = dataclasses.replace(protocol_env_config(rc.env, args.world, args.horizon + 1), speed_table=args.speed)
-    env = ExploreEnv(env_cfg, rc.sensor)
+    env = ExploreEnv(env_cfg, protocol.sensor(rc.sensor))
     demos, plans = [], []
     try:
         n_starts = len(env.main_world.starts)
@@ -92,23 +98,29 @@ def run_demo(args: argparse.Namespace) -> int:
         if bad:
             raise DemoError(f"--start {bad[0]}: {args.world} has starts 1-{n_starts}")
         for start in args.start:
-            began = time.monotonic()
+            for k in range(args.episodes):
+                draw = StartDraw(episode_seed(args.seed, start - 1, k), protocol.start_jitter_m,
+                                 protocol.start_jitter_deg) if protocol.jittered else None
+                began = time.monotonic()
+                where = f"start {start}" + ("" if draw is None else f", draw {k}")
 
-            def progress(depth: int, kept: int) -> None:
-                if not args.quiet and (depth % 10 == 0 or depth == args.horizon):
-                    print(f"  start {start}: depth {depth}/{args.horizon}, {kept} sequences kept, "
-                          f"{time.monotonic() - began:.0f} s", file=sys.stderr, flush=True)
+                def progress(depth: int, kept: int) -> None:
+                    if not args.quiet and (depth % 10 == 0 or depth == args.horizon):
+                        print(f"  {where}: depth {depth}/{args.horizon}, {kept} sequences kept, "
+                              f"{time.monotonic() - began:.0f} s", file=sys.stderr, flush=True)
 
-            plan = plan_commands(env, start - 1, horizon=args.horizon, beam=args.beam, progress=progress)
-            if plan.survived_steps < args.horizon:
-                print(f"cogexplore worlds demo: warning: from start {start} no sequence the beam kept survives "
-                      f"{args.horizon} steps; the demonstration ends after {plan.survived_steps}, before a "
-                      "collision no command avoids (a trap: see `cogexplore worlds starts`)",
-                      file=sys.stderr)
-            demos.append(record_demonstration(env, plan.start_index, plan.actions))
-            plans.append(dict(plan_summary(plan), start=start, seconds=round(time.monotonic() - began, 1)))
-            print(json.dumps(plans[-1]), flush=True)
+                plan = plan_commands(env, start - 1, horizon=args.horizon, beam=args.beam, draw=draw,
+                                     progress=progress)
+                if plan.survived_steps < args.horizon:
+                    print(f"cogexplore worlds demo: warning: from {where} no sequence the beam kept survives "
+                          f"{args.horizon} steps; the demonstration ends after {plan.survived_steps}, before a "
+                          "collision no command avoids (a trap: see `cogexplore worlds starts`)",
+                          file=sys.stderr)
+                demos.append(record_demonstration(env, plan.start_index, plan.actions, draw))
+                plans.append(dict(plan_summary(plan), start=start, episode=k,
+                                  seconds=round(time.monotonic() - began, 1)))
+                print(json.dumps(plans[-1]), flush=True)
     finally:
         env.close()
-    print(save_demonstrations(args.out, demos, {"plans": plans, "preset": args.preset}))
+    print(save_demonstrations(args.out, demos, {"plans": plans, "preset": args.preset, "protocol": protocol.name}))
     return 0

@@ -394,6 +394,8 @@ class Launcher:
         a = self.args
         overrides = {"train.total_updates": a.updates} if a.updates else {}
         self.config = resolve_config(a, self.paths)
+        if self.config.train.keep_checkpoints < a.final_average:  # the final model averages them
+            overrides["train.keep_checkpoints"] = a.final_average
         if overrides:
             self.config = self.config.with_overrides(overrides)
         done = checkpoint_updates(self.paths)
@@ -435,16 +437,35 @@ class Launcher:
             return self.final_report()
         return 0
 
+    def final_model(self) -> Path:
+        """What the final evaluation and report play: the mean of the run's last ``--final-average``
+        checkpoints' weights (a DQN's greedy policy swings from one checkpoint to the next, their
+        mean much less: MODEL_CARD.md), exported as ``<run>/<run>-mean<K>.safetensors`` by ``model
+        export``; the run folder itself (its latest checkpoint) when there is one checkpoint only."""
+        from shared.learning.checkpoints import CheckpointManager
+
+        last = CheckpointManager(self.paths.checkpoints).checkpoints()[-self.args.final_average:]
+        if len(last) < 2:  # none (the report says so) or one
+            return self.paths.root
+        out = self.paths.root / f"{self.run}-mean{len(last)}.safetensors"
+        argv = [sys.executable, "-m", "services.cli", "model", "export", *map(str, last), "--out", str(out)]
+        result = subprocess.run(argv, check=False, stdout=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"))
+        if result.returncode != 0:
+            raise RunStateError(f"`model export` of the last {len(last)} checkpoints failed (exit {result.returncode})")
+        print(f"final model: the mean of {', '.join(p.name for p in last)} ({out})", file=sys.stderr)
+        return out
+
     def final_report(self) -> int:
-        """Evaluate the final checkpoint with the test protocol and write the report."""
+        """Evaluate the final model (:meth:`final_model`) with the test protocol and write the report."""
         a = self.args
+        model = str(self.final_model())
         cmd = [sys.executable, "-m", "services.cli"]
-        evaluate = cmd + ["evaluate", "--checkpoint", str(self.paths.root),
+        evaluate = cmd + ["evaluate", "--checkpoint", model,
                           "--episodes-per-start", str(a.final_episodes),
                           "--json", str(self.paths.stats / "final-eval.json"),
                           "--rrd", str(self.paths.recordings / "final-eval.rrd")]
         # the new model beside the shipped one (and the baselines, and the paper's figures)
-        report = cmd + ["report", str(self.paths.root), "--episodes-per-start", str(a.final_episodes),
+        report = cmd + ["report", str(self.paths.root), "--model", model, "--episodes-per-start", str(a.final_episodes),
                         "--compare", "pretrained"]
         for argv in (evaluate, report):
             result = subprocess.run(argv, check=False, env=dict(os.environ, RERUN_ANALYTICS="0"))
@@ -547,4 +568,6 @@ def run_up_command(args: argparse.Namespace) -> int:
     setup_logging("WARNING")
     if args.actors < 1:
         raise ConfigError(f"--actors must be >= 1, got {args.actors}")
+    if args.final_average < 1:
+        raise ConfigError(f"--final-average must be >= 1 (1: the last checkpoint alone), got {args.final_average}")
     return Launcher(args).execute()

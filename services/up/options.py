@@ -43,6 +43,11 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
     parser.add_argument("--final-episodes", type=int, default=10,
                         help="episodes per start in the final evaluation (paper: 10)")
+    parser.add_argument("--final-average", type=int, default=4, metavar="K",
+                        help="the final evaluation and report play the mean of the last K checkpoints' weights, "
+                             "exported as RUN/<run>-meanK.safetensors (default 4: a DQN's greedy policy swings "
+                             "from one checkpoint to the next; 1: the last checkpoint alone); the run keeps at "
+                             "least K checkpoints")
     parser.add_argument("--no-report", action="store_true", help="skip the final evaluation and report")
     parser.add_argument("--rerun-connect", default=None, metavar="URL",
                         help="stream evaluations and every 20th actor episode live to a Rerun viewer, "

@@ -636,7 +636,7 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
         errors.append(str(exc))
         raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
     return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
-                       weights_sha256(net), None)
+                       weights_sha256(net), None, averaged_from=_averaged_from(meta))
 
 
 def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
@@ -666,6 +666,17 @@ def load_supervised_model(source: str | Path, device: str | torch.device = "cpu"
     net, _meta = load_supervised(path, resolve_device(device))
     return LoadedModel(net, path, "supervised", 0, architecture_fingerprint(net), weights_sha256(net), None,
                        name="SL")
+
+
+def _averaged_from(meta: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
+    """The sources an export says it averages (``model export`` of several checkpoints); a
+    malformed list is ignored, not trusted: it only labels the model."""
+    sources = meta.get("averaged_from")
+    if not isinstance(sources, list) or not all(
+            isinstance(s, dict) and isinstance(s.get("source"), str) and isinstance(s.get("policy_version"), int)
+            for s in sources):
+        return ()
+    return tuple({"source": s["source"], "policy_version": s["policy_version"]} for s in sources)
 
 
 def _stored_config(data: Mapping[str, Any], section: str) -> Any:

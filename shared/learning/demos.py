@@ -62,6 +62,20 @@ class DemoError(CogexploreError):
 
 
 @dataclass(frozen=True)
+class StartDraw:
+    """A start drawn around a named pose as a jittered protocol draws its episodes' starts
+    (``ExploreEnv.reset``'s ``start_jitter``; ``shared.evaluation.protocol.episode_seed``), so a
+    plan can begin where a robust test episode, or a training episode, begins."""
+
+    seed: int
+    """The env's reset seed (for a test episode's draw: ``episode_seed(seed, start, episode)``)."""
+    jitter_m: float
+    """Up to this many metres in x and y."""
+    jitter_deg: float
+    """Up to this many degrees of heading."""
+
+
+@dataclass(frozen=True)
 class Plan:
     """The planner's command sequence from one start and what it achieves in the env."""
 
@@ -79,6 +93,10 @@ class Plan:
     """Smallest (minimum image depth - collision distance) along the sequence."""
     distance_m: float
     """Distance from the start at the end."""
+    start_pose: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The pose it started from (x m, y m, yaw rad): the start's own, or a draw around it."""
+    draw: StartDraw | None = None
+    """The draw around the start it began from (None: the exact start pose)."""
 
 
 @dataclass(frozen=True)
@@ -104,12 +122,22 @@ class Demonstration:
                 "frame_shape": list(self.depth_mm.shape[1:])}
 
 
+def _reset_kwargs(start_index: int, draw: StartDraw | None) -> dict[str, Any]:
+    """``env.reset``'s arguments for start ``start_index``, exact or at ``draw`` (the jitter is
+    always explicit: an env built with a training jitter must not move an exact start)."""
+    if draw is None:
+        return {"options": {"start_index": start_index, "start_jitter": None}}
+    return {"seed": draw.seed, "options": {"start_index": start_index,
+                                           "start_jitter": (draw.jitter_m, draw.jitter_deg)}}
+
+
 def plan_commands(env: ExploreEnv, start_index: int, *, horizon: int = 80, beam: int = 2000,
-                  cell_m: float = 0.05, heading_deg: float = 10.0,
+                  cell_m: float = 0.05, heading_deg: float = 10.0, draw: StartDraw | None = None,
                   progress: Callable[[int, int], None] | None = None) -> Plan:
     """Beam search in ``env`` (its world, speed table and sensor) for the demonstration from
-    start ``start_index`` (0-based): see the module docstring. ``progress(depth, kept)`` is called
-    after each depth. The env is left at the end of some explored sequence: reset it before use."""
+    start ``start_index`` (0-based), or from ``draw`` around it: see the module docstring.
+    ``progress(depth, kept)`` is called after each depth. The env is left at the end of some
+    explored sequence: reset it before use."""
     if not (isinstance(horizon, int) and 1 <= horizon <= 1000):
         raise DemoError(f"horizon must be an integer in [1, 1000], got {horizon!r}")
     if not (isinstance(beam, int) and 1 <= beam <= 100_000):
@@ -121,7 +149,8 @@ def plan_commands(env: ExploreEnv, start_index: int, *, horizon: int = 80, beam:
                         f"{len(env.main_world.starts)} starts")
     threshold = env.env_config.collision_distance_m
     heading_bins = max(1, round(360.0 / heading_deg))
-    env.reset(options={"start_index": start_index})
+    _, first_info = env.reset(**_reset_kwargs(start_index, draw))
+    start_pose = tuple(float(v) for v in first_info["pose"])
     # node: (snapshot, actions, switches, min margin, distance from start)
     frontier: list[tuple[Any, list[int], int, float, float]] = [(env.snapshot(), [], 0, math.inf, 0.0)]
     for depth in range(1, horizon + 1):
@@ -149,12 +178,13 @@ def plan_commands(env: ExploreEnv, start_index: int, *, horizon: int = 80, beam:
     best = min(frontier, key=lambda n: (-math.floor(n[4] / 0.5), n[2], -n[3]))
     _, actions, switches, margin, distance = best
     return Plan(env.main_world.name, start_index, env.env_config.speed_table, tuple(actions), len(actions),
-                horizon, switches, float(margin) if actions else 0.0, float(distance))
+                horizon, switches, float(margin) if actions else 0.0, float(distance), start_pose, draw)
 
 
-def record_demonstration(env: ExploreEnv, start_index: int, actions: Sequence[int]) -> Demonstration:
-    """Play ``actions`` in ``env`` from start ``start_index`` and keep its images, commands and
-    rewards (it stops at a collision)."""
+def record_demonstration(env: ExploreEnv, start_index: int, actions: Sequence[int],
+                         draw: StartDraw | None = None) -> Demonstration:
+    """Play ``actions`` in ``env`` from start ``start_index`` (or from ``draw`` around it) and keep
+    its images, commands and rewards (it stops at a collision)."""
     if len(actions) == 0:
         raise DemoError("a demonstration needs at least one command")
     if not all(isinstance(a, (int, np.integer)) and 0 <= int(a) < NUM_ACTIONS for a in actions):
@@ -162,7 +192,7 @@ def record_demonstration(env: ExploreEnv, start_index: int, actions: Sequence[in
     steps: list[Step] = []
     loop = Rollout(env, lambda _obs, _info, n: int(actions[n]), [SimpleNamespace(on_step=steps.append)],
                    max_steps=len(actions))
-    episode = loop.run_episode(options={"start_index": start_index})
+    episode = loop.run_episode(**_reset_kwargs(start_index, draw))
     frames = [depth_to_mm(episode.first_obs)] + [depth_to_mm(s.next_obs) for s in steps]
     return Demonstration(env.main_world.name, int(start_index), env.env_config.speed_table,
                          np.stack(frames), np.asarray([s.action for s in steps], np.int64),

@@ -146,6 +146,27 @@ def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_
     final.unlink()
 
 
+def test_report_plays_the_model_it_is_given_for_the_run(tmp_path: Path) -> None:
+    # `cogexplore up` gives the mean of the run's last checkpoints (`--model`), not its latest one.
+    from shared.learning.checkpoints import CheckpointManager, load_model
+    from shared.learning.dqn import DQNAgent
+
+    run = make_run(tmp_path / "avg", policy_version=1000)
+    cfg = small_config()
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=1)
+    agent.update_count = agent.policy_version = 2000
+    CheckpointManager(run / "checkpoints").save(agent, config=cfg.to_dict())
+    mean = run / "avg-mean2.safetensors"
+    assert main(["model", "export", *(str(run / "checkpoints" / f"ckpt-{u:09d}.safetensors") for u in (1000, 2000)),
+                 "--out", str(mean)]) == 0
+    report = build_report(run, model=mean, episodes_per_start=1, max_steps=3, baselines=(), device="cpu",
+                          progress=False, protocols=("paper",))
+    text = report.markdown.read_text()
+    assert "| avg-mean2@2000 | greedy |" in text and "the mean of 2 checkpoints' weights, versions 1000, 2000" in text
+    played = load_results(report.results["paper"]["avg-mean2@2000"])
+    assert played.meta["weights_sha256"] == load_model(mean).weights_sha256 != load_model(run).weights_sha256
+
+
 class PageParts(HTMLParser):
     """What a browser would show of a report page: headings, tables (rows of cell texts), images, links."""
 

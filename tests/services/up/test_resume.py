@@ -98,3 +98,38 @@ def test_a_resumed_run_expects_its_own_learners_rate(tmp_path: Path) -> None:
     assert resume_line(RUN, paths, 100, 400) == (f"run {RUN!r}: resuming from update 100/400; its learner made "
                                                  "2.0 updates/s so far: the 300 left should take ~2m30s, then "
                                                  "the final evaluation")
+
+
+def test_the_final_model_is_the_mean_of_the_last_checkpoints(tmp_path: Path) -> None:
+    import torch
+
+    from shared.learning.checkpoints import load_model
+    from shared.learning.model import weights_to_tensors
+
+    cfg = load_preset("smoke").with_overrides({"train.total_updates": 30, "train.keep_checkpoints": 5})
+    paths = RunPaths(tmp_path / RUN).make()
+    save_config(cfg, paths)
+    manager = CheckpointManager(paths.checkpoints, keep=5)
+    for seed, updates in enumerate((10, 20, 30)):  # three different networks
+        core = LearnerCore(cfg.with_overrides({"train.seed": seed}), device="cpu")
+        core.agent.update_count = core.agent.policy_version = updates
+        manager.save(core.agent, config=cfg.to_dict())
+
+    # A run keeps at least K checkpoints: its saved config is raised to K.
+    assert main(UP + ["--runs-dir", str(tmp_path), "--resume", "--final-average", "6"]) == 0
+    assert load_preset(str(paths.config)).train.keep_checkpoints == 6
+
+    out = Launcher(launcher_args(tmp_path, "--resume", "--final-average", "2")).final_model()
+    assert out == paths.root / f"{RUN}-mean2.safetensors"
+    mean = load_model(out)
+    assert [s["policy_version"] for s in mean.averaged_from] == [20, 30] and mean.policy_version == 30
+    last_two = [weights_to_tensors(load_model(paths.checkpoints / f"ckpt-{u:09d}.safetensors").net) for u in (20, 30)]
+    for name, tensor in weights_to_tensors(mean.net).items():
+        torch.testing.assert_close(tensor, (last_two[0][name] + last_two[1][name]) / 2)
+    assert mean.weights_sha256 != load_model(paths.root).weights_sha256
+
+    # More than there are: all three. One: the run folder (its latest checkpoint) as it is.
+    three = Launcher(launcher_args(tmp_path, "--resume", "--final-average", "4")).final_model()
+    assert three.name == f"{RUN}-mean3.safetensors" and len(load_model(three).averaged_from) == 3
+    assert Launcher(launcher_args(tmp_path, "--resume", "--final-average", "1")).final_model() == paths.root
+    assert main(UP + ["--runs-dir", str(tmp_path), "--final-average", "0"]) == 2

@@ -7,9 +7,11 @@ import pytest
 import torch
 
 from shared.config import ConfigError, DQNConfig, ModelConfig, SensorConfig, load_preset
+from shared.evaluation import PROTOCOLS
 from shared.learning.demos import (
     DemoError,
     Demonstration,
+    StartDraw,
     demo_replay,
     load_demonstrations,
     plan_commands,
@@ -75,6 +77,23 @@ def test_the_planner_turns_about_where_straight_collides_and_the_recording_repla
     # deterministic: the same commands from the same start give the same images
     again = record_demonstration(env, 0, plan.actions)
     np.testing.assert_array_equal(demo.depth_mm, again.depth_mm)
+
+
+def test_a_plan_from_a_start_draw_begins_where_that_draw_puts_the_robot_and_replays_from_it(env):
+    exact = plan_commands(env, 0, horizon=5, beam=20)
+    assert exact.draw is None and exact.start_pose == (0.0, 0.0, 0.0)
+    draw = StartDraw(seed=7, jitter_m=0.05, jitter_deg=3.0)
+    plan = plan_commands(env, 0, horizon=30, beam=60, draw=draw)
+    x, y, yaw = plan.start_pose
+    assert plan.draw == draw and (x, y) != (0.0, 0.0)
+    assert abs(x) <= 0.05 and abs(y) <= 0.05 and abs(yaw) <= np.radians(3.0) + 1e-9
+    _, info = env.reset(seed=7, options={"start_index": 0, "start_jitter": (0.05, 3.0)})
+    assert info["pose"] == plan.start_pose  # the protocol's own draw for that seed
+    assert plan.survived_steps == 30 and plan.min_margin_m > 0
+    demo = record_demonstration(env, 0, plan.actions, draw)
+    assert len(demo) == 30 and not demo.terminated  # the plan survives from its draw, not only in the search
+    from_exact = record_demonstration(env, 0, plan.actions[:1])
+    assert not np.array_equal(demo.depth_mm[0], from_exact.depth_mm[0])
 
 
 def _demo(steps=5, shape=(30, 40), seed=0):
@@ -214,6 +233,16 @@ def test_worlds_demo_command_writes_a_loadable_file_and_refuses_bad_input(tmp_pa
     assert demo.world == "corridor" and demo.speed_table == "test" and len(demo) == 6
     assert main(["worlds", "demo", "corridor", "--start", "99", "--out", str(out)]) == 2
     assert "corridor has starts 1-" in capsys.readouterr().err
+
+    # From the robust protocol's draws: one plan per draw, each from its own pose.
+    assert main(["worlds", "demo", "corridor", "--start", "1", "--horizon", "6", "--beam", "20", "--protocol",
+                 "robust", "--episodes", "2", "--out", str(out), "--quiet"]) == 0
+    plans = [json.loads(line) for line in capsys.readouterr().out.splitlines()[:2]]
+    assert [p["episode"] for p in plans] == [0, 1] and plans[0]["start_pose"] != plans[1]["start_pose"]
+    assert all(p["draw"]["jitter_m"] == PROTOCOLS["robust"].start_jitter_m for p in plans)
+    assert len(load_demonstrations(out, (30, 40))) == 2
+    assert main(["worlds", "demo", "corridor", "--start", "1", "--episodes", "2", "--out", str(out)]) == 2
+    assert "every episode would be the same" in capsys.readouterr().err
 
 
 def test_demonstrations_are_not_mirrored_so_a_symmetric_scene_keeps_its_demonstrated_turn(one_torch_thread):

@@ -97,7 +97,9 @@ def test_the_file_describes_its_network(shipped: LoadedModel, tmp_path: Path) ->
     assert (info.label, info.policy_version, info.weights_sha256) == (
         shipped.label, shipped.policy_version, shipped.weights_sha256)
     assert info.source == str(shipped.path) and info.cogexplore_version == cogexplore.__version__
-    assert info.extra == {"card": {"robot": "turtlebot"}}
+    # the shipped model is a mean of four checkpoints: the file says which
+    assert len(shipped.averaged_from) == 4
+    assert info.extra == {"averaged_from": list(shipped.averaged_from), "card": {"robot": "turtlebot"}}
     body = json.loads(props[METADATA_KEY])
     assert body["sensor"]["hfov_deg"] == 57.0 and body["model"]["depth_encoding"] == "inverse"
     assert body["model"]["previous_action"] is True and body["format"] == "cogexplore-onnx"
