@@ -448,10 +448,9 @@ class Launcher:
         if len(last) < 2:  # none (the report says so) or one
             return self.paths.root
         out = self.paths.root / f"{self.run}-mean{len(last)}.safetensors"
-        argv = [sys.executable, "-m", "services.cli", "model", "export", *map(str, last), "--out", str(out)]
-        result = subprocess.run(argv, check=False, stdout=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"))
-        if result.returncode != 0:
-            raise RunStateError(f"`model export` of the last {len(last)} checkpoints failed (exit {result.returncode})")
+        code = _cli(["model", "export", *map(str, last), "--out", str(out)], stdout=subprocess.DEVNULL)
+        if code != 0:
+            raise RunStateError(f"`model export` of the last {len(last)} checkpoints failed (exit {code})")
         print(f"final model: the mean of {', '.join(p.name for p in last)} ({out})", file=sys.stderr)
         return out
 
@@ -459,21 +458,25 @@ class Launcher:
         """Evaluate the final model (:meth:`final_model`) with the test protocol and write the report."""
         a = self.args
         model = str(self.final_model())
-        cmd = [sys.executable, "-m", "services.cli"]
-        evaluate = cmd + ["evaluate", "--checkpoint", model,
-                          "--episodes-per-start", str(a.final_episodes),
-                          "--json", str(self.paths.stats / "final-eval.json"),
-                          "--rrd", str(self.paths.recordings / "final-eval.rrd")]
+        evaluate = ["evaluate", "--checkpoint", model, "--episodes-per-start", str(a.final_episodes),
+                    "--json", str(self.paths.stats / "final-eval.json"),
+                    "--rrd", str(self.paths.recordings / "final-eval.rrd")]
         # the new model beside the shipped one (and the baselines, and the paper's figures)
-        report = cmd + ["report", str(self.paths.root), "--model", model, "--episodes-per-start", str(a.final_episodes),
-                        "--compare", "pretrained"]
+        report = ["report", str(self.paths.root), "--model", model, "--episodes-per-start", str(a.final_episodes),
+                  "--compare", "pretrained"]
         for argv in (evaluate, report):
-            result = subprocess.run(argv, check=False, env=dict(os.environ, RERUN_ANALYTICS="0"))
-            if result.returncode != 0:
-                print(f"{' '.join(argv[3:5])} failed (exit {result.returncode})", file=sys.stderr)
-                return result.returncode
+            code = _cli(argv)
+            if code != 0:
+                print(f"{' '.join(argv[:2])} failed (exit {code})", file=sys.stderr)
+                return code
         print(f"report: {self.paths.report / 'report.html'} (and report.md)", file=sys.stderr)
         return 0
+
+
+def _cli(argv: list[str], stdout: int | None = None) -> int:
+    """Run ``cogexplore ARGV`` in a child process (offline: no Rerun analytics); its exit status."""
+    return subprocess.run([sys.executable, "-m", "services.cli", *argv], check=False, stdout=stdout,
+                          env=dict(os.environ, RERUN_ANALYTICS="0")).returncode
 
 
 class RunStateError(CogexploreError):

@@ -19,13 +19,14 @@ from typing import Any
 from shared.config import ConfigError, SensorConfig
 
 PAPER_MAX_STEPS = 200
-# The paper's Table III, mean moving steps of 200 over its 12 starts (Gazebo, 160 x 120 depth): the
-# baselines and DRL after each number of updates.
-PAPER_BASELINE_STEPS = {"SL": 14.6, "RL": 20.9}
-PAPER_DRL_STEPS = {500: 9.3, 4000: 21.6, 7500: 27.3, 40000: 92.6}
 """Moving steps per test episode at most (the paper's cap)."""
 PAPER_EPISODES_PER_START = 10
 """Test episodes from each start pose (the paper's 12 x 10)."""
+PAPER_BASELINE_STEPS = {"SL": 14.6, "RL": 20.9}
+"""The paper's Table III, mean moving steps of 200 over its 12 starts (Gazebo, 160 x 120 depth):
+its supervised and RL baselines."""
+PAPER_DRL_STEPS = {500: 9.3, 4000: 21.6, 7500: 27.3, 40000: 92.6}
+"""The same table's DRL model after each number of updates."""
 DEFAULT_WORLD = "paper-indoor"
 """The world a model without a stored training world is evaluated in."""
 POLICY_NAMES: tuple[str, ...] = ("greedy", "random", "reactive", "sl", "rl")
