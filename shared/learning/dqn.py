@@ -52,6 +52,7 @@ from shared.learning.model import (
     InferenceRunner,
     QNetwork,
     architecture_fingerprint,
+    conv_autocast_dtype,
     forward_flops,
     load_tensors,
     mirror_images,
@@ -192,6 +193,8 @@ class DQNAgent:
         if seed is not None:
             torch.manual_seed(seed)
         self.online = QNetwork(self.model_cfg, self.sensor_cfg).to(self.device)
+        # the updates' conv arithmetic; the policies acting on these weights run float32
+        self.online.conv_autocast = conv_autocast_dtype(self.cfg.conv_precision, self.device)
         self.target = copy.deepcopy(self.online)
         self.target.eval()
         for p in self.target.parameters():
@@ -212,9 +215,11 @@ class DQNAgent:
             # frozen representation: no conv weight gradients at all (saves a third of backward)
             for p in conv:
                 p.requires_grad_(False)
+        # fused: one kernel over all parameters (Adam's step: 0.4 ms instead of 2.9 ms on one CPU
+        # core, an eighth of a bfloat16 update), the same arithmetic as the per-tensor loop
         if cfg.optimizer == "sgd":
-            return torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum)
-        return torch.optim.Adam(groups, lr=cfg.lr)
+            return torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum, fused=True)
+        return torch.optim.Adam(groups, lr=cfg.lr, fused=True)
 
     def _set_lr(self, factor: float) -> None:
         # From the config, not from the groups: a restored optimizer state brings its own lr.

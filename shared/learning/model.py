@@ -138,6 +138,30 @@ def reduce_allocator_page_faults() -> bool:
     return ok
 
 
+def bfloat16_is_native(device: torch.device) -> bool:
+    """Whether ``device`` computes bfloat16 convolutions natively (a CPU with AVX512-BF16 or AMX,
+    through oneDNN; a CUDA GPU that supports bfloat16), rather than emulating them."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    if device.type == "cpu":
+        try:
+            return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+        except (AttributeError, RuntimeError):
+            return False
+    return False
+
+
+def conv_autocast_dtype(precision: str, device: torch.device) -> torch.dtype | None:
+    """The dtype the conv layers run in for ``dqn.conv_precision`` on ``device`` (None: float32)."""
+    if precision == "float32":
+        return None
+    if precision == "bfloat16" or (precision == "auto" and bfloat16_is_native(device)):
+        return torch.bfloat16
+    if precision == "auto":
+        return None
+    raise ModelError(f"unknown conv precision {precision!r}")
+
+
 def encode_depth(x: torch.Tensor, encoding: str) -> torch.Tensor:
     """Re-encode ``preprocess_depth`` output (depth / 4 m, 0 = no return) for the conv layers.
 
@@ -207,7 +231,11 @@ class QNetwork(nn.Module):
     bias-free layer (``previous_action_fc``) added to fc1's output: the same as widening fc1's
     input by the one-hot, while fc1 keeps the shape the frozen-conv and probe code expect.
     ``previous_action=None`` reads as "no previous command" (an episode's first step).
+    ``conv_autocast`` (None: float32) runs the conv layers under ``torch.autocast`` in that dtype
+    (the learner's ``dqn.conv_precision``); pool3 comes back as float32 for the fc layers.
     """
+
+    conv_autocast: torch.dtype | None = None
 
     def __init__(self, model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig | None = None):
         super().__init__()
@@ -228,10 +256,15 @@ class QNetwork(nn.Module):
             self.fc3 = nn.Linear(cfg.fc2, NUM_ACTIONS)
         self.to(memory_format=torch.channels_last)
 
-    def features(self, x: torch.Tensor) -> torch.Tensor:
-        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, 1, H, W)."""
+    def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
+        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, 1, H, W); ``float32``:
+        in float32 whatever ``conv_autocast`` says (acting and evaluation)."""
         self._check_input(x)
-        return self.trunk(x)
+        if self.conv_autocast is None or float32:
+            return self.trunk(x)
+        with torch.autocast(x.device.type, dtype=self.conv_autocast):
+            pool3 = self.trunk(x)
+        return pool3.float()
 
     def head(self, pool3: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
         """pool3 activations (and the previous commands, see the class) -> (B, 5) Q-values."""
@@ -246,8 +279,8 @@ class QNetwork(nn.Module):
             return self.value(h) + adv - adv.mean(dim=1, keepdim=True)
         return self.fc3(h)
 
-    def forward(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
-        return self.head(self.features(x), previous_action)
+    def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
+        return self.head(self.features(x, float32=float32), previous_action)
 
     def _check_input(self, x: torch.Tensor) -> None:
         want = (1, self.sensor_cfg.height, self.sensor_cfg.width)
@@ -370,7 +403,7 @@ class InferenceRunner:
         self.net.eval()
         try:
             with torch.inference_mode():
-                q = self.net(preprocess_depth(depth, self.device), previous_action)
+                q = self.net(preprocess_depth(depth, self.device), previous_action, float32=True)
         finally:
             self.net.train(was_training)
         out = q.float().cpu().numpy()

@@ -303,3 +303,40 @@ def test_a_previous_action_network_learns_a_value_that_only_the_previous_command
         q[previous] = agent.q_values(batch.obs[:5], np.arange(5))[:, 2]
     assert np.ptp(q[False]) < 1.0  # one value for all rows: the mean, about -19
     assert q[True][0] < -80 and np.all(np.abs(q[True][1:] - 1.0) < 5)
+
+
+def test_conv_precision_is_validated_and_resolved():
+    from shared.config import ConfigError
+    from shared.learning.model import bfloat16_is_native, conv_autocast_dtype
+
+    with pytest.raises(ConfigError, match="conv_precision"):
+        DQNConfig(conv_precision="fp16")
+    cpu = torch.device("cpu")
+    assert conv_autocast_dtype("float32", cpu) is None
+    assert conv_autocast_dtype("bfloat16", cpu) is torch.bfloat16
+    assert conv_autocast_dtype("auto", cpu) is (torch.bfloat16 if bfloat16_is_native(cpu) else None)
+
+
+def test_bfloat16_convs_train_close_to_float32_and_act_in_float32():
+    # The same weights and batch: bfloat16 conv arithmetic gives targets and a gradient step close
+    # to float32's, weights and optimiser stay float32, and acting ignores the learner's precision.
+    agents = {p: DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3, momentum=0.0, double_dqn=True, conv_precision=p),
+                          device="cpu", seed=3) for p in ("float32", "bfloat16")}
+    f32, b16 = agents["float32"], agents["bfloat16"]
+    assert b16.online.conv_autocast is torch.bfloat16 and b16.target.conv_autocast is torch.bfloat16
+    assert f32.online.conv_autocast is None
+    batch = make_batch(32, seed=5)
+    y32 = f32.prepare(batch, None).y
+    y16 = b16.prepare(batch, None).y
+    assert not torch.equal(y32, y16)  # the convolutions really ran in bfloat16
+    torch.testing.assert_close(y16, y32, rtol=0.02, atol=0.05)
+    depth = np.random.default_rng(1).uniform(0.3, 4.0, (30, 40)).astype(np.float32)
+    np.testing.assert_array_equal(b16.q_values(depth, 2), f32.q_values(depth, 2))  # acting: float32 both
+    before = {n: p.detach().clone() for n, p in b16.online.named_parameters()}
+    m16, m32 = b16.update(batch), f32.update(batch)
+    assert np.isfinite(m16["loss"]) and abs(m16["loss"] - m32["loss"]) <= 0.02 * abs(m32["loss"])
+    # plain SGD: each step is the gradient, whose direction bfloat16 keeps
+    steps = {p: torch.cat([(q.detach() - before[n]).flatten() for n, q in a.online.named_parameters()])
+             for p, a in agents.items()}
+    assert all(q.dtype == torch.float32 for q in b16.online.parameters())
+    assert torch.nn.functional.cosine_similarity(steps["bfloat16"], steps["float32"], dim=0) > 0.98
