@@ -21,7 +21,7 @@ import tomllib
 from shared.errors import CogexploreError
 
 PRESET_DIR = Path(__file__).with_name("presets")
-DEFAULT_PRESET = "fast-40x30"
+DEFAULT_PRESET = "robust-40x30"
 """The preset a run starts from when none is named (``up``, the services, docker compose): the shipped
 model's recipe (shared/pretrained/MODEL_CARD.md)."""
 
@@ -93,6 +93,11 @@ class SensorConfig:
     0.0019 / m; ``shared.sim.sensor.KINECT_NOISE_OFFSET_M``); 0 = the same sigma at every distance."""
     dropout_prob: float = 0.0
     """Probability that a valid pixel reads 0 (dropped return), per pixel and frame."""
+
+    def noise_free(self) -> "SensorConfig":
+        """The camera itself, without noise or dropped returns: what a network's weights file
+        describes (a run's training noise is a training condition; the test protocol adds its own)."""
+        return replace(self, noise_std_m=0.0, noise_quadratic_per_m=0.0, dropout_prob=0.0)
 
     def __post_init__(self) -> None:
         s = "sensor"

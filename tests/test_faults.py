@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import zenoh
 
 from services.bus.security import init_secure
 from services.bus.session import (
@@ -187,9 +188,13 @@ def test_an_actor_s_worst_batches_leave_the_learner_standing_and_bounded(system:
                                           policy_version=[0], pose=[(0, 0, 0)]).encode()
 
     with system.open("actor") as s:
+        # blocking puts: a dropped poison batch (the default under a busy router) would be neither
+        # refused nor counted, and the count below could never be reached
         for _ in range(20):
-            s.put(KEYS.transitions("poison"), batch("poison", reward=3.4e38))
-            s.put(KEYS.transitions("poison"), batch("poison", depth=9.0))
+            s.put(KEYS.transitions("poison"), batch("poison", reward=3.4e38),
+                  congestion_control=zenoh.CongestionControl.BLOCK)
+            s.put(KEYS.transitions("poison"), batch("poison", depth=9.0),
+                  congestion_control=zenoh.CongestionControl.BLOCK)
         for i in range(4097):
             s.put(KEYS.transitions(f"ghost-{i}"), batch(f"ghost-{i}"))
     after = system.wait(lambda st: st.rejects.get("range", 0) >= 40 and st.updates > before.updates + 5, 180,

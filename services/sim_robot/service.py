@@ -60,9 +60,11 @@ class SimRobot:
     def __init__(self, session, args: argparse.Namespace):
         self.args = args
         cfg = load_preset(args.preset or DEFAULT_PRESET)
+        # the camera without a preset's training noise: what `evaluate --protocol paper` sees, so a
+        # lock-step drive repeats that path
         self.env = ExploreEnv(dataclasses.replace(cfg.env, world=args.world, speed_table="test",
                                                   start_index=None, max_episode_steps=10**9),
-                              cfg.sensor, render_mode="depth_array")
+                              cfg.sensor.noise_free(), render_mode="depth_array")
         world_starts = len(self.env.world.starts)
         if not 1 <= args.start <= world_starts:
             raise CogexploreError(f"--start {args.start}: world {self.env.world.name!r} has starts 1..{world_starts}")

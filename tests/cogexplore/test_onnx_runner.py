@@ -17,6 +17,7 @@ import cogexplore
 from cogexplore.onnx_runner import OnnxModelError, OnnxPolicy, load_onnx_policy
 from shared.evaluation.protocol import protocol_env_config
 from shared.evaluation.setup import setup_evaluation
+from shared.learning.checkpoints import load_model
 from shared.learning.onnx_export import export_onnx
 from shared.learning.onnx_format import MATCH_TOLERANCE, METADATA_KEY
 from shared.learning.policy import PolicyError
@@ -88,13 +89,14 @@ def test_it_chooses_the_torch_policys_commands_over_a_real_episode(torch_policy:
 def test_it_has_the_torch_policys_surface(torch_policy: cogexplore.Policy, policy: OnnxPolicy,
                                          onnx_path: Path) -> None:
     assert cogexplore.OnnxPolicy is OnnxPolicy and cogexplore.load_onnx_policy is load_onnx_policy
-    assert policy.label == torch_policy.label == "drl@16000" and policy.sensor == torch_policy.sensor
+    label = f"drl@{load_model('pretrained').policy_version}"
+    assert policy.label == torch_policy.label == label and policy.sensor == torch_policy.sensor
     assert policy.control_period_s == torch_policy.control_period_s
     assert policy.command_names == torch_policy.command_names == cogexplore.COMMAND_NAMES
     for command in range(5):
         for table in ("test", "train"):
             assert policy.twist(command, table) == torch_policy.twist(command, table)
-    assert policy.path == onnx_path and "drl@16000" in repr(policy) and "40x30" in repr(policy)
+    assert policy.path == onnx_path and label in repr(policy) and "40x30" in repr(policy)
     image = np.full((30, 40), 1.5, dtype=np.float32)
     policy.reset()
     fresh = policy.q_values(image)

@@ -58,9 +58,15 @@ def test_robust_preset_is_fast_40x30_trained_under_the_robust_protocols_conditio
                                                                         2 * test.start_jitter_deg)
     assert robust.sensor == test.sensor(fast.sensor) and robust.sensor.noise_std_m > 0
     assert (fast.env.start_jitter_m, fast.env.start_jitter_deg, fast.sensor.noise_std_m) == (0.0, 0.0, 0.0)
+    # at twice the learning rate, falling to a tenth over 100000 updates, and trained that long
+    assert (robust.dqn.lr, robust.dqn.lr_decay_updates, robust.dqn.lr_final_scale) == (2 * fast.dqn.lr, 100000, 0.1)
+    assert fast.dqn.lr_decay_updates == 0 and robust.train.total_updates > robust.dqn.lr_decay_updates
     same = dataclasses.replace(robust, sensor=fast.sensor,
-                               env=dataclasses.replace(robust.env, start_jitter_m=0.0, start_jitter_deg=0.0))
-    assert same == fast  # everything else is the shipped recipe
+                               env=dataclasses.replace(robust.env, start_jitter_m=0.0, start_jitter_deg=0.0,
+                                                       extra_world_prob=fast.env.extra_world_prob),
+                               dqn=dataclasses.replace(robust.dqn, lr=fast.dqn.lr, lr_decay_updates=0),
+                               train=dataclasses.replace(robust.train, total_updates=fast.train.total_updates))
+    assert same == fast  # everything else is fast-40x30's
 
 
 @pytest.mark.parametrize("section,field,value,match", [
