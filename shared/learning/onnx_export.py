@@ -101,7 +101,9 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
         raise OnnxModelError(f"only a Q-network exports to ONNX; {source} holds a {type(net).__name__}")
     # a CPU float32 copy in eval mode: the caller's network (maybe on CUDA, maybe training) is left as it is
     net = copy.deepcopy(net).to("cpu", torch.float32).eval()
-    info = OnnxPolicyInfo(sensor=net.sensor_cfg.noise_free(), model=net.model_cfg, control_period_s=_control_period_s(model),
+    # the camera itself, as setup_evaluation gives it: a run's training noise is no part of the model
+    info = OnnxPolicyInfo(sensor=net.sensor_cfg.noise_free(), model=net.model_cfg,
+                          control_period_s=_control_period_s(model),
                           label=label, source=source, policy_version=int(version), weights_sha256=weights_sha256(net),
                           cogexplore_version=_cogexplore_version(), extra=dict(extra or {}))
     data = _serialise(net, info)

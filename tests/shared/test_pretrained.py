@@ -140,8 +140,8 @@ def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: P
 def test_fast_recipes_start_from_the_shipped_sl_model(preset: str) -> None:
     """The fast and robust recipes start from the shipped supervised model (`pretrained:sl`; conv
     weights fit any image size), and the 40 x 30 ones build the shipped DRL model's architecture
-    and camera, so the model card's recipe reproduces it (the default preset's
-    camera is the shipped one, noise included: tests/shared/test_config.py)."""
+    and camera, so the model card's recipe reproduces it (the default preset's camera is the
+    shipped one, noise included: tests/shared/test_config.py)."""
     from shared.learning.checkpoints import init_agent_conv, load_supervised
     from shared.learning.model import architecture_fingerprint
 
