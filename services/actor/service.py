@@ -273,10 +273,10 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                robot_radius_m=cfg.env.robot_radius_m)
         log.info("streaming every %d-th episode to the Rerun viewer at %s", rerun_every_episodes, rerun_url)
 
-    with open_session(settings, wait_s=30.0) as session, TensorBoardLog(tensorboard) as board:
+    with open_session(settings, wait_s=30.0) as session, TensorBoardLog(tensorboard) as board, \
+            follower.following(session, keys):
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
         learners = LivelinessWatch(session, keys.all_alive("learner"))
-        weights_sub = follower.subscribe(session, keys)  # noqa: F841
         flow_sub = subscribe_messages(session, keys.flow, FlowControl, gate.on_flow, rejects)  # noqa: F841
         outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps, actor_epoch),
                         declare_reliable_publisher(session, keys.transitions(actor_id)),

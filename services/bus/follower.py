@@ -11,20 +11,23 @@ that does not fit (another fingerprint, or tensors that do not load despite it) 
 cause in ``rejects`` and dropped, never raised.
 
     follower = WeightFollower(fingerprint, rejects)
-    follower.subscribe(session, keys)        # the stream, and the query on its own thread
-    ...
-    message = follower.take()                # None until something newer arrives
-    if message is not None and follower.load(net, message):
-        policy_version = message.policy_version
+    with open_session(settings) as session, follower.following(session, keys):
+        ...                                  # the stream, and the query on its own thread
+        message = follower.take()            # None until something newer arrives
+        if message is not None and follower.load(net, message):
+            policy_version = message.policy_version
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
+import zenoh
 
 from services.bus.session import query_latest, subscribe_messages
 from shared.learning.model import ModelError
@@ -62,6 +65,7 @@ class WeightFollower:
         self._arrived = threading.Condition()
         self._newest: WeightsMessage | None = None
         self._taken_version: tuple[int, int] = (-1, -1)
+        self._queries: list[threading.Thread] = []
 
     # -- Zenoh threads -------------------------------------------------------------------------
 
@@ -101,16 +105,44 @@ class WeightFollower:
         """Query the learner's latest-weights queryable and offer the reply (none: the stream will
         bring weights); ``background``: on a daemon thread, so the caller never waits on it."""
         if background:
-            threading.Thread(target=self.fetch_latest, args=(session, keys, timeout_s), name="weights-query",
-                             daemon=True).start()
+            query = threading.Thread(target=self.fetch_latest, args=(session, keys, timeout_s), name="weights-query",
+                                     daemon=True)
+            with self._arrived:
+                self._queries = [q for q in self._queries if q.is_alive()] + [query]
+            query.start()
             return
-        payload = query_latest(session, keys.weights_latest, timeout_s=timeout_s)
+        try:
+            payload = query_latest(session, keys.weights_latest, timeout_s=timeout_s)
+        except zenoh.ZError as exc:  # the session closed first: the receiver is stopping
+            log.debug("no query for the latest weights: %s", exc)
+            return
         if payload is None:
             log.info("no answer from %s yet: waiting for the weights stream", keys.weights_latest)
             return
         message = self.rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
         if message is not None:
             self.offer(message, keys.weights_latest)
+
+    @contextmanager
+    def following(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Iterator[Any]:
+        """``subscribe`` for the length of a ``with`` block, inside the session's own ``with``; leaving
+        it closes the session and waits for the queries on their threads, which that ends at once.
+
+        Both guard the process's end. ``zenoh.Session.__exit__`` needs the session to itself and
+        raises "Already borrowed", leaving it open, if a query thread is inside ``get`` just then;
+        ``close()`` does not. And a query thread left running may free the session while the
+        interpreter shuts down: before Python 3.14 that thread is ended with pthread_exit inside
+        Zenoh's Rust code, which aborts the process ("FATAL: exception not rethrown", status -6)
+        instead of letting it exit with its own status."""
+        subscriber = self.subscribe(session, keys, query_timeout_s)
+        try:
+            yield subscriber
+        finally:
+            session.close()
+            with self._arrived:
+                queries, self._queries = self._queries, []
+            for query in queries:
+                query.join(timeout=query_timeout_s + 5.0)
 
     # -- the receiver's loop ---------------------------------------------------------------------
 

@@ -223,8 +223,8 @@ class EvaluatorService:
     def run(self, stop: threading.Event, once: bool = False, wait_weights_s: float = 60.0) -> int:
         """Evaluate until ``stop`` is set (or, with ``once``, the latest weights once). Returns
         a process exit status: 0, or 1 when ``once`` found no weights within ``wait_weights_s``."""
-        with open_session(self.settings, wait_s=self.connect_wait_s) as session:
-            subscriber = self.weights.subscribe(session, self.keys, self.query_timeout_s)
+        with open_session(self.settings, wait_s=self.connect_wait_s) as session, \
+                self.weights.following(session, self.keys, self.query_timeout_s):
             # Announced once subscribed: whoever sees the token can publish weights to us.
             token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))
             log.info("evaluator %s on run %r: every %d updates, %d episode(s) per start, world %s, protocol %s",
@@ -251,7 +251,6 @@ class EvaluatorService:
                         return 0
                 return 0
             finally:
-                subscriber.undeclare()
                 token.undeclare()
                 self.board.close()
                 log.info("evaluator %s stopping (rejected weights: %s)", self.evaluator_id,

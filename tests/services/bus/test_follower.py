@@ -91,6 +91,31 @@ def test_a_follower_gets_the_learners_newest_weights_through_a_real_router():
         assert follower.take(timeout_s=10.0).policy_version == 42
 
 
+def test_leaving_following_closes_the_session_and_ends_the_query_thread_even_mid_query():
+    # A query thread left running past its session may free Zenoh objects while the interpreter shuts
+    # down, which aborts the process on Python < 3.14; the session's own __exit__ would raise "Already
+    # borrowed" while that thread is inside get. Leaving `following` closes the session and joins it.
+    net, keys = network(0), RunKeys("follow-join")
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    held: list[object] = []  # queries kept unanswered: the follower's query stays open
+    follower = follower_for(net)
+    with open_router([endpoint]), open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as learner:
+        queryable = learner.declare_queryable(keys.weights_latest, held.append)  # noqa: F841
+        with open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as actor:
+            with follower.following(actor, keys, query_timeout_s=60.0):
+                deadline = time.monotonic() + 10
+                while not held and time.monotonic() < deadline:
+                    time.sleep(0.05)
+                assert held, "the follower's query never reached the learner"
+                assert [t for t in threading.enumerate() if t.name == "weights-query"]  # waiting for an answer
+                follower.fetch_latest(actor, keys, 60.0, background=True)  # a second, as on a learner's return
+                started = time.monotonic()
+            assert time.monotonic() - started < 5.0  # not the 60 s query timeout
+            assert actor.is_closed()
+            assert not [t for t in threading.enumerate() if t.name == "weights-query"]
+        held.clear()
+
+
 def test_a_restarted_learners_weights_replace_the_dead_ones_at_once_and_absurd_versions_are_refused():
     from shared.wire.messages import MessageError, new_epoch
 
