@@ -126,7 +126,7 @@ class WeightFollower:
     @contextmanager
     def following(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Iterator[Any]:
         """``subscribe`` for the length of a ``with`` block, inside the session's own ``with``; leaving
-        it closes the session and waits for the queries on their threads, which that ends at once.
+        it closes the session, which ends the queries at once, and waits for their threads.
 
         Both guard the process's end. ``zenoh.Session.__exit__`` needs the session to itself and
         raises "Already borrowed", leaving it open, if a query thread is inside ``get`` just then;
