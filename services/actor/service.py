@@ -163,8 +163,9 @@ class Outbox:
     out as ``EpisodeStats``. ``policy_version`` is the version of the weights acting now."""
 
     def __init__(self, actor_id: str, batcher: TransitionBatcher, publisher: Any, stats_publisher: Any,
-                 gate: FlowGate, guide: ExpertGuide, main_world: str):
+                 gate: FlowGate, guide: ExpertGuide, main_world: str, rejects: RejectCounter):
         self.actor_id = actor_id
+        self.rejects = rejects
         self.batcher = batcher
         self.publisher = publisher
         self.stats_publisher = stats_publisher
@@ -197,7 +198,7 @@ class Outbox:
             epsilon=episode.last_step.choice.epsilon, policy_version=self.policy_version,
             duration_s=time.monotonic() - episode.started_s,
             extra={"expert_guided": float(self.guide.active), "extra_world": float(info["world"] != self.main_world),
-                   EpisodeStats.HELD_S: self.held_s})
+                   EpisodeStats.HELD_S: self.held_s, EpisodeStats.REJECTED: float(self.rejects.total)})
         self.held_s = 0.0
         self.stats_publisher.put(stats.encode())
 
@@ -280,7 +281,8 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
         flow_sub = subscribe_messages(session, keys.flow, FlowControl, gate.on_flow, rejects)  # noqa: F841
         outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps, actor_epoch),
                         declare_reliable_publisher(session, keys.transitions(actor_id)),
-                        session.declare_publisher(keys.episode_stats(actor_id)), gate, guide, env.main_world.name)
+                        session.declare_publisher(keys.episode_stats(actor_id)), gate, guide, env.main_world.name,
+                        rejects)
         loop = Rollout(env, policy, [guide, outbox] + ([EpisodeScalars(board, outbox, guide)] if board.enabled else [])
                        + ([LiveEpisodes(stream, env)] if stream is not None else []))
         loop.begin_episode(seed=seed)

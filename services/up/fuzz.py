@@ -21,7 +21,9 @@ future, another architecture's weights). So the rejects must add up: each receiv
 what was sent to it. The services' memory (VmRSS) is read after a first fifth of the payloads,
 when the allocators and queues have warmed (every kind of payload, and with ``--big-bytes`` the
 big ones, have passed), and after each of four more rounds: a leak grows every round, warming
-levels off. Prints JSON.
+levels off. Fuzzing starts once every receiver has joined and each fuzzing publisher has seen its
+receivers' subscriptions, and ends once the learner's and the actor's live statistics have counted
+every payload sent to them, so a slow machine delays the counts instead of losing them. Prints JSON.
 """
 
 from __future__ import annotations
@@ -213,7 +215,7 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
     from services.up.bench import _launcher_args
     from services.up.launcher import Launcher
     from shared.wire.keys import RunKeys
-    from shared.wire.messages import EvalResult, LearnerStats, RejectCounter
+    from shared.wire.messages import EpisodeStats, EvalResult, LearnerStats, RejectCounter
 
     if payloads < 1 or max_bytes < 16 or big_bytes < 0:
         raise FuzzError("payloads must be >= 1, max_bytes >= 16 and big_bytes >= 0")
@@ -241,24 +243,42 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
     try:
         launcher.start()
         with open_session(launcher.settings("viewer"), wait_s=60) as viewer:
-            updates = [0]  # the learner's, as its statistics report them
+            # what the services report while the run goes on: the start waits until every receiver
+            # has joined (an evaluator still loading would miss the first payloads), the end until the
+            # learner and the actor have counted every payload sent to them (a loaded machine drains late)
+            seen: dict[str, Any] = {"updates": 0, "learner_rejects": 0, "actor_rejects": None, "evaluated": False}
 
             def on_stats(message: Any, _key: str) -> None:
                 if isinstance(message, LearnerStats):
-                    updates[0] = max(updates[0], message.updates)
+                    seen["updates"] = max(seen["updates"], message.updates)
+                    seen["learner_rejects"] = max(seen["learner_rejects"], sum(message.rejects.values()))
+                elif isinstance(message, EpisodeStats):
+                    seen["actor_rejects"] = max(seen["actor_rejects"] or 0, int(message.extra.get(EpisodeStats.REJECTED, 0)))
+                elif isinstance(message, EvalResult):
+                    seen["evaluated"] = True
 
             subs = [subscribe_messages(viewer, keys.all_stats(), None, on_stats, stats_rejects,
                                        max_bytes=EvalResult.MAX_BYTES)]  # the largest statistics message
             deadline = time.monotonic() + 300
-            while updates[0] == 0:
+            while not (seen["updates"] and seen["actor_rejects"] is not None and seen["evaluated"]):
                 if time.monotonic() > deadline or any(c.process.poll() is not None for c in launcher.children):
-                    raise FuzzError(f"the run did not start (logs in {launcher.paths.logs}; stats rejected: "
-                                    f"{stats_rejects.counts})")
+                    raise FuzzError(f"the run did not start (logs in {launcher.paths.logs}; seen: {seen}; "
+                                    f"stats rejected: {stats_rejects.counts})")
                 time.sleep(0.5)
             sessions = {role: open_session(ZenohSettings(mode="client", connect=(launcher.endpoint,),
                                                          config_file=str(launcher.secure.config(role))), wait_s=30)
                         for role in ("actor", "learner", "evaluator")}
             import zenoh
+
+            # a put on a fresh session before it has heard of the receivers' subscriptions goes nowhere
+            publishers = {key: sessions[role].declare_publisher(key, congestion_control=zenoh.CongestionControl.BLOCK)
+                          for role, name, key in targets if name != "query"}
+            deadline = time.monotonic() + 30
+            while not all(p.matching_status.matching for p in publishers.values()):
+                if time.monotonic() > deadline:
+                    raise FuzzError("the fuzzing sessions never saw the receivers' subscriptions: "
+                                    f"{[k for k, p in publishers.items() if not p.matching_status.matching]}")
+                time.sleep(0.1)
 
             def send(k: int) -> None:
                 role, name, key = targets[k % len(targets)]
@@ -268,7 +288,7 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                 if name == "query":  # what a query carries is the learner's to ignore
                     sessions[role].get(key, payload=payload, timeout=2.0)
                 else:
-                    sessions[role].put(key, payload, congestion_control=zenoh.CongestionControl.BLOCK)
+                    publishers[key].put(payload)
                 sent[name] += 1
                 sent_kinds[kind] += 1
 
@@ -284,14 +304,22 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                     send(k)
                 if big_bytes:
                     for role, name, key in targets[:-1]:
-                        sessions[role].put(key, b"\x00" * big_bytes, congestion_control=zenoh.CongestionControl.BLOCK)
+                        publishers[key].put(b"\x00" * big_bytes)
                         sent[name] += 1
                         sent_kinds["big"] += 1
                 time.sleep(2.0)  # the receivers drain
                 rss["after_first_round" if i == 0 else f"after_round_{i + 1}"] = {
                     c.name: _rss_mb(c.process.pid) for c in launcher.children}
                 echo(f"round {i + 1}: {sum(sent.values())} payloads sent")
+            drain_started = time.monotonic()
+            while (seen["learner_rejects"] < sent["transitions"] or (seen["actor_rejects"] or 0) < sent["weights"] + sent["flow"]) \
+                    and time.monotonic() - drain_started < 120:
+                time.sleep(0.2)
+            time.sleep(1.0)  # the evaluator takes the same weights stream as the actor
+            drain_s = time.monotonic() - drain_started
             answered = query_latest(sessions["actor"], keys.weights_latest, timeout_s=5.0) is not None
+            for p in publishers.values():
+                p.undeclare()
             for s in sessions.values():
                 s.close()
             for sub in subs:
@@ -317,6 +345,8 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                              "evaluator (weights)": sent["weights"],
                              "viewer (stats)": sent["stats/learner"] + sent["stats/episode"] + sent["stats/eval"]},
         "weights_query_answered_after": answered,
+        "drain_s": round(drain_s, 1),
+        "reported_live": {"learner (transitions)": seen["learner_rejects"], "actor-0 (weights + flow)": seen["actor_rejects"]},
         "rss_mb": {**rss, "at_end": rss[f"after_round_{len(rounds)}"] if len(rounds) > 1 else rss["after_first_round"]},
         "seconds": round(time.monotonic() - started, 1), "logs": str(launcher.paths.logs),
     }

@@ -608,6 +608,9 @@ class EpisodeStats(Message):
     HELD_S: ClassVar[str] = "held_s"
     """``extra`` key: seconds of the episode in which the actor was held by the learner's flow
     control (out of credit: the learner is behind the replay ratio)."""
+    REJECTED: ClassVar[str] = "rejected_messages"
+    """``extra`` key: the messages (weights, flow control) the actor has rejected since it started,
+    so an operator, or ``bench fuzz``, sees them while the run goes on."""
 
     actor_id: str
     episode: int
