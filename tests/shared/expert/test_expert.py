@@ -67,13 +67,15 @@ def trained(dataset, tmp_path_factory):
 # ----------------------------------------------------------------------------------- expert
 
 
-def test_clearance_map_is_the_exact_distance_to_the_nearest_occupied_cell():
+@pytest.mark.parametrize("shape, share", [((23, 31), 0.05), ((6, 41), 0.0), ((41, 6), 0.0), ((50, 60), 0.002)])
+def test_clearance_map_is_the_exact_distance_to_the_nearest_occupied_cell(shape, share):
+    # sparse grids leave whole columns free: their nearest occupied cell lies far along the row
     rng = np.random.default_rng(3)
-    occ = rng.random((23, 31)) < 0.05
+    occ = rng.random(shape) < share
     occ[0, 0] = True
     got = clearance_map(occ, 0.1)
     cells = np.argwhere(occ)
-    iy, ix = np.mgrid[0:23, 0:31]
+    iy, ix = np.mgrid[0:shape[0], 0:shape[1]]
     brute = np.sqrt(((iy[..., None] - cells[:, 0]) ** 2 + (ix[..., None] - cells[:, 1]) ** 2).min(axis=-1)) * 0.1
     np.testing.assert_allclose(got, brute, atol=1e-9)
     assert np.all(got[occ] == 0)
