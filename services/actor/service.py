@@ -255,7 +255,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     seed = cfg.train.seed * 1000 + actor_index + 1 if seed is None else seed
     env = ExploreEnv(cfg.env, cfg.sensor)
     env.share_extra_worlds(actor_index % num_actors, num_actors)  # a world costs ~0.2 s of CPU to build
-    net = QNetwork(cfg.model, cfg.sensor).to(device)
+    net = QNetwork(cfg.model, cfg.sensor).to(device).eval()  # it only acts: no dropout, no mode switch per step
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=seed + 7_919)
     policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed,
                                  guide=guide, step_scale=num_actors)

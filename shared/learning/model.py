@@ -399,8 +399,8 @@ class InferenceRunner:
         """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy; ``previous_action``
         (None, an int or (B,) ints, -1 = none) is read only by a ``model.previous_action`` net."""
         single = getattr(depth, "ndim", 0) == 2
-        # an actor's net stays in eval mode: setting the mode walks every module, a twentieth of
-        # an actor's step, so only a net in training mode is switched (and switched back)
+        # an actor's net stays in eval mode: setting the mode walks every module (5% of an actor's
+        # CPU), so only a net in training mode, the learner's, is switched (and switched back)
         was_training = self.net.training
         if was_training:
             self.net.eval()

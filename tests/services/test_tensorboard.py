@@ -15,8 +15,10 @@ from pathlib import Path
 import pytest
 from service_processes import cogexplore
 
-from services.bus.session import free_tcp_port, open_router
+from services.bus.session import ZenohSettings, free_tcp_port, open_router, open_session, subscribe_messages
 from shared.learning.stats import EpisodeRow, LearnerRow
+from shared.wire.keys import RunKeys
+from shared.wire.messages import EpisodeStats, RejectCounter
 
 RUN = "tb"
 
@@ -50,13 +52,21 @@ def test_services_write_scalars_that_survive_sigterm(tmp_path: Path, tensorboard
                                               "--num-actors", "2"], tmp_path / f"actor-{i}.log")
             procs["evaluator"] = cogexplore(["evaluator", *common, "--id", "evaluator", "--every-updates", "20",
                                          "--max-steps", "10", "--no-record"], tmp_path / "evaluator.log")
-            deadline = time.monotonic() + 240
-            while not (len(_eval_rows(run / "stats" / "eval.jsonl")) >= 2
-                       and len(set(updates := _learner_updates(run / "stats" / "learner.csv"))) >= 3
-                       and max(updates) >= 40):
-                assert time.monotonic() < deadline, "no 2 evaluations and 3 learner rows to 40 updates in time"
-                assert all(p.poll() is None for p in procs.values()), {n: p.poll() for n, p in procs.items()}
-                time.sleep(0.5)
+            # actor-0 must also have finished an episode acted with learned weights: on a loaded
+            # machine flow control can hold it through the learner's first 40 updates
+            acted_with: list[int] = [0]
+            with open_session(ZenohSettings(mode="client", connect=(endpoint,)), wait_s=30) as watcher:
+                watch = subscribe_messages(  # noqa: F841  (kept alive)
+                    watcher, RunKeys(RUN).episode_stats("actor-0"), EpisodeStats,
+                    lambda m, _k: acted_with.append(m.policy_version), RejectCounter("episode stats"))
+                deadline = time.monotonic() + 240
+                while not (len(_eval_rows(run / "stats" / "eval.jsonl")) >= 2
+                           and len(set(updates := _learner_updates(run / "stats" / "learner.csv"))) >= 3
+                           and max(updates) >= 40 and max(acted_with) > 0):
+                    assert time.monotonic() < deadline, \
+                        "no 2 evaluations, 3 learner rows to 40 updates and an episode of actor-0 with weights in time"
+                    assert all(p.poll() is None for p in procs.values()), {n: p.poll() for n, p in procs.items()}
+                    time.sleep(0.5)
             for p in procs.values():
                 p.send_signal(signal.SIGTERM)
             codes = {name: p.wait(60) for name, p in procs.items()}
