@@ -1,4 +1,4 @@
-"""What every process shell does the same way: its id, its logging, its stop signal."""
+"""What every process shell does the same way: its id, its logging, its stop signal, its priority."""
 
 from __future__ import annotations
 
@@ -36,3 +36,14 @@ def stop_event_on_signals() -> threading.Event:
     signal.signal(signal.SIGINT, handler)
     signal.signal(signal.SIGTERM, handler)
     return stop
+
+
+def lower_priority(niceness: int) -> int:
+    """Lower this process's CPU priority by ``niceness`` (0-19; 0 leaves it) and return its nice value.
+
+    Call it before any thread starts (Zenoh's, torch's): Linux keeps a nice value per thread, and a
+    thread takes its creator's. An actor or evaluator that shares cores with the learner (``up`` on
+    one machine) then takes the time the learner leaves instead of taking it from the learner."""
+    if isinstance(niceness, bool) or not isinstance(niceness, int) or not 0 <= niceness <= 19:
+        raise ValueError(f"a niceness must be an integer in [0, 19], got {niceness!r}")
+    return os.nice(niceness)

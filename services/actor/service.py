@@ -44,7 +44,7 @@ from services.bus.session import (
     subscribe_messages,
     zenoh_settings,
 )
-from services.process import default_process_id, setup_logging, stop_event_on_signals
+from services.process import default_process_id, lower_priority, setup_logging, stop_event_on_signals
 from services.runs import run_paths
 from shared.config import ConfigError, RunConfig
 from shared.expert.expert import ExpertGuide
@@ -340,6 +340,8 @@ def run_actor_command(args: argparse.Namespace) -> int:
     log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
     if args.num_actors < 1:
         raise ConfigError(f"--num-actors must be >= 1, got {args.num_actors}")
+    if not 0 <= args.nice <= 19:
+        raise ConfigError(f"--nice must be in [0, 19], got {args.nice}")
     for option, value in (("--rerun-every-episodes", args.rerun_every_episodes),
                           ("--rerun-image-every", args.rerun_image_every)):
         if value < 1:
@@ -353,6 +355,7 @@ def run_actor_command(args: argparse.Namespace) -> int:
     index = args.actor_index if args.actor_index is not None else digest % args.num_actors
     if not 0 <= index < args.num_actors:
         raise ConfigError(f"--actor-index must be in [0, {args.num_actors}), got {index}")
+    lower_priority(args.nice)  # before the first session: its Zenoh threads, and torch's, take it too
     cfg, check = join_run_config(args, paths, settings, "this actor")  # before the handlers: Ctrl-C ends a wait
     stop = stop_event_on_signals()
     if check is not None:

@@ -61,7 +61,7 @@ from services.evaluator.options import (
     add_evaluator_arguments,
 )
 from services.options import protocol_from_args
-from services.process import default_process_id, setup_logging, stop_event_on_signals
+from services.process import default_process_id, lower_priority, setup_logging, stop_event_on_signals
 from services.runs import run_paths
 from services.viz.rerun import ViewerLink, evaluate_recorded
 from shared.config import ConfigError, RunConfig
@@ -271,6 +271,11 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
         paths = run_paths(args)
         setup_logging(args.log_level, paths.logs / f"{evaluator_id}.log")
         settings = zenoh_settings(args, "evaluator")
+        if not args.once:
+            # A watcher, not a worker: where it shares cores with the learner (`up` on one machine), it
+            # takes the time the learner leaves, and its evaluations come a little later instead.
+            # Before the first session, so that its Zenoh threads, and torch's, take it too.
+            lower_priority(EVALUATOR_NICENESS)
         cfg, check = join_run_config(args, paths, settings, "this evaluator")
         # Like the actors, 'auto' means CPU here: the GPU, if any, belongs to the learner.
         device = cfg.train.device if cfg.train.device != "auto" else "cpu"
@@ -288,10 +293,6 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
     # One image at a time gains nothing from intra-op threads, and threads that spin-wait on a shared
     # core take it from the learner (py-spy on a 2-core `up`: inference was 63% of its time).
     torch.set_num_threads(1)
-    if not args.once:
-        # A watcher, not a worker: where it shares cores with the learner (`up` on one machine), it
-        # takes the time the learner leaves, and its evaluations come a little later instead.
-        os.nice(EVALUATOR_NICENESS)
     stop = stop if stop is not None else stop_event_on_signals()
     if check is not None:
         check.start(settings, stop)  # a preset the run's weights do not fit stops the evaluator

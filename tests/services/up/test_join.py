@@ -4,6 +4,7 @@ configuration from the learner), and one with a preset the run's data cannot use
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -14,6 +15,7 @@ from pathlib import Path
 import pytest
 from service_processes import ENV, REPO, cogexplore, stop, wait_for
 
+from services.actor.options import DEFAULT_NICENESS
 from services.bus.session import (
     ZenohSettings,
     free_tcp_port,
@@ -24,6 +26,14 @@ from shared.wire.keys import RunKeys
 from shared.wire.messages import LearnerStats, RejectCounter
 
 RUN = "join"
+
+
+def _thread_niceness(pid: int) -> set[int]:
+    """The nice values of a process's threads (field 19 of /proc/<pid>/task/<tid>/stat)."""
+    found = set()
+    for stat in Path(f"/proc/{pid}/task").glob("*/stat"):
+        found.add(int(stat.read_text().rsplit(")", 1)[1].split()[16]))
+    return found
 
 
 @pytest.mark.timeout(240)
@@ -61,6 +71,10 @@ def test_an_actor_with_only_connect_and_run_joins_and_a_mismatched_preset_stops_
                                  "--no-tensorboard"], joiner_log)
             wait_for(lambda: any(n > 0 for a, n in received().items() if a != "actor-0"), 90,
                      "the joining actor's transitions in the learner's replay", logs)
+            # the learner goes first: every thread of the actor (its Zenoh and torch threads too) runs
+            # at the actor's niceness, above the learner's 0
+            expected = min(19, os.nice(0) + DEFAULT_NICENESS)  # on top of this test's own
+            assert _thread_niceness(joiner.pid) == {expected}, _thread_niceness(joiner.pid)
             text = joiner_log.read_text()
             assert f"Zenoh credentials of role actor: {tmp_path / RUN / 'secure' / 'actor.json5'}" in text
             assert f"using the run's configuration (learner 'learner' of run '{RUN}')" in text
