@@ -9,6 +9,8 @@ import socket
 import threading
 from pathlib import Path
 
+from shared.config import ConfigError
+
 
 def default_process_id(role: str) -> str:
     """hostname-pid: distinct for scaled containers and for processes on one machine."""
@@ -45,5 +47,5 @@ def lower_priority(niceness: int) -> int:
     thread takes its creator's. An actor or evaluator that shares cores with the learner (``up`` on
     one machine) then takes the time the learner leaves instead of taking it from the learner."""
     if isinstance(niceness, bool) or not isinstance(niceness, int) or not 0 <= niceness <= 19:
-        raise ValueError(f"a niceness must be an integer in [0, 19], got {niceness!r}")
+        raise ConfigError(f"niceness {niceness!r} is invalid: an integer in [0, 19] (--nice)")
     return os.nice(niceness)

@@ -340,8 +340,6 @@ def run_actor_command(args: argparse.Namespace) -> int:
     log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
     if args.num_actors < 1:
         raise ConfigError(f"--num-actors must be >= 1, got {args.num_actors}")
-    if not 0 <= args.nice <= 19:
-        raise ConfigError(f"--nice must be in [0, 19], got {args.nice}")
     for option, value in (("--rerun-every-episodes", args.rerun_every_episodes),
                           ("--rerun-image-every", args.rerun_image_every)):
         if value < 1:
