@@ -72,7 +72,8 @@ def run_select(args: argparse.Namespace) -> int:
                          validation_worlds=parse_world_list(args.validate),
                          test_worlds=parse_world_list(args.test) if args.test else (),
                          episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
-                         half=args.half, device=args.device, protocol=protocol_from_args(args))
+                         half=args.half, device=args.device, protocol=protocol_from_args(args),
+                         seed=args.seed)
     summary = select(opts, echo=lambda msg: print(msg, file=sys.stderr, flush=True))
     print(summary.pop("table"), end="", file=sys.stderr)
     _print_json(summary)

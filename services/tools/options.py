@@ -18,6 +18,7 @@ from shared.evaluation import (
     PAPER_MAX_STEPS,
     POLICY_NAMES,
     PROTOCOLS,
+    SELECTION_SEED,
 )
 
 PRETRAIN_WORLDS = ("corridor", "paper-indoor")
@@ -279,4 +280,8 @@ def add_model_select_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"moving steps per episode at most (default {PAPER_MAX_STEPS})")
     p.add_argument("--half", action="store_true", help="store float16")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
+    p.add_argument("--seed", type=int, default=SELECTION_SEED,
+                   help=f"seed of the gate and validation episodes' start draws and sensor noise (default "
+                        f"{SELECTION_SEED}: not the test's 0, so no window is chosen on the draws `evaluate` and "
+                        "`report` then measure it on; --test worlds are played with 0)")
     add_protocol_arguments(p)

@@ -14,7 +14,10 @@ the window is chosen by a rule fixed before any test world is played:
 3. when no window reaches the gate, the best gate score wins (and the report says so).
 
 Test worlds play no part in the choice: with ``test_worlds`` the chosen window alone is played
-on them afterwards, once, and reported apart.
+on them afterwards, once, and reported apart. Nor do the test's draws: the gate and validation
+episodes are drawn from ``seed`` (default :data:`SELECTION_SEED`), the test's from seed 0 (``cogexplore
+evaluate`` and ``report``), so a window is never chosen on jittered starts and sensor noise that its
+reported figures are then measured on.
 
 Scores are cached in a JSON-lines file keyed by the window's weights digest and the protocol,
 so an interrupted selection, or one rerun with more checkpoints, only plays new windows.
@@ -35,7 +38,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from shared.errors import CogexploreError
-from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, ProtocolConfig
+from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, SELECTION_SEED, ProtocolConfig
 
 log = logging.getLogger("cogexplore.select")
 
@@ -237,13 +240,16 @@ class SelectOptions:
     device: str = "auto"
     protocol: ProtocolConfig = PROTOCOLS[DEFAULT_PROTOCOL]
     """The test conditions every window is scored under (the export's ``selection`` records it)."""
+    seed: int = SELECTION_SEED
+    """Seed of the gate and validation episodes' draws (start jitter, sensor noise); the test
+    worlds are played with the test's seed, 0."""
 
 
 def _protocol_key(o: SelectOptions) -> dict[str, Any]:
     return {"gate_world": o.gate_world, "gate_min": o.gate_min, "gate_start_min": o.gate_start_min,
             "validation_worlds": list(o.validation_worlds),
             "episodes_per_start": o.episodes_per_start, "max_steps": o.max_steps,
-            "protocol": o.protocol.to_dict()}
+            "protocol": o.protocol.to_dict(), "seed": o.seed}
 
 
 def _load_cache(path: Path, key: dict[str, Any]) -> dict[str, WindowScore]:
@@ -307,17 +313,17 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     cache = _load_cache(cache_path, key)
     scores: list[WindowScore] = []
 
-    def steps(setup: Any, world: str) -> tuple[float, float]:
+    def steps(setup: Any, world: str, seed: int) -> tuple[float, float]:
         """(mean steps, the lowest start's mean steps)."""
         results = evaluate_policy(setup.policy_fn, world=world, sensor_cfg=setup.sensor_cfg, env_cfg=setup.env_cfg,
-                                  episodes_per_start=o.episodes_per_start, max_steps=o.max_steps, progress=False,
-                                  meta=setup.meta(), protocol=o.protocol)
+                                  episodes_per_start=o.episodes_per_start, max_steps=o.max_steps, seed=seed,
+                                  progress=False, meta=setup.meta(), protocol=o.protocol)
         summary = results.summary
         return (float(summary["overall"]["mean_steps"]),
                 float(min(p["mean_steps"] for p in summary["per_start"])))
 
-    def mean_steps(setup: Any, world: str) -> float:
-        return steps(setup, world)[0]
+    def mean_steps(setup: Any, world: str, seed: int) -> float:
+        return steps(setup, world, seed)[0]
 
     for i, win in enumerate(todo, 1):
         model = average_models([load_model(p, o.device) for p in win.paths])
@@ -326,13 +332,14 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
             score = dataclasses.replace(cached, end_update=win.end_update)
         else:
             setup = setup_evaluation("greedy", world=o.gate_world, model=model, device=o.device)
-            gate, worst = steps(setup, o.gate_world)
+            gate, worst = steps(setup, o.gate_world, o.seed)
             per_world = {o.gate_world: gate}
             score = WindowScore(win.end_update, model.weights_sha256, gate, None, per_world,
                                 tuple(str(p) for p in win.paths), worst)
             if score.passes(o.gate_min, o.gate_start_min):
                 for w in o.validation_worlds:
-                    per_world[w] = mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w)
+                    per_world[w] = mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w,
+                                              o.seed)
                 score = dataclasses.replace(
                     score, validation=sum(per_world[w] for w in o.validation_worlds) / len(o.validation_worlds))
             cache_path.parent.mkdir(parents=True, exist_ok=True)
@@ -348,10 +355,11 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     selection = {"rule": rule, "window": o.window, "end_update": chosen.end_update, "gate_world": o.gate_world,
                  "gate_min": o.gate_min, "gate_start_min": o.gate_start_min, "gate": chosen.gate,
                  "gate_worst_start": chosen.gate_worst_start, "validation_worlds": list(o.validation_worlds),
-                 "validation": chosen.validation, "windows_scored": len(scores), "protocol": o.protocol.to_dict()}
+                 "validation": chosen.validation, "windows_scored": len(scores), "protocol": o.protocol.to_dict(),
+                 "seed": o.seed}
     if o.test_worlds:
         echo(f"testing the window ending at {chosen.end_update} on {len(o.test_worlds)} test world(s)")
-        per_world = {w: mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w)
+        per_world = {w: mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w, 0)
                      for w in o.test_worlds}
         selection["test"] = {"mean": sum(per_world.values()) / len(per_world), "per_world": per_world}
     out = export_weights(o.out, model.net, model.policy_version, half=o.half,

@@ -22,7 +22,9 @@ from services.tools.selection import (
     windows,
 )
 from shared.config import load_preset
-from shared.evaluation import PROTOCOLS
+from shared.evaluation import PROTOCOLS, SELECTION_SEED
+from shared.evaluation.protocol import evaluate_policy
+from shared.evaluation.setup import setup_evaluation
 from shared.learning.checkpoints import (
     CheckpointManager,
     load_exported_weights,
@@ -172,6 +174,40 @@ def test_select_falls_back_to_the_best_gate_score_without_playing_validation(tmp
                                   validation_worlds=("corridor",), max_steps=6))
     assert strict["rule"].startswith("no window of 3 reaches 0 (every start 1e+09)")
     assert strict["chosen"]["validation"] is None
+
+
+def test_select_draws_its_episodes_from_its_own_seed_not_the_tests(tmp_path: Path) -> None:
+    """A window chosen on the test's own start draws and noise would be chosen on its test: the
+    gate is played with SELECTION_SEED (a seed the test never uses) unless told another."""
+    assert SELECTION_SEED != 0  # 0: evaluate's, report's and the evaluator's
+    run = make_run(tmp_path / "run", (100, 200))
+    out = tmp_path / "best.safetensors"
+    opts = SelectOptions(run=run, out=out, window=1, gate_world="paper-indoor", gate_min=1e9,
+                         validation_worlds=("corridor",), max_steps=60)
+    lines: list[str] = []
+    summary = select(opts, echo=lines.append)
+    _, meta = load_exported_weights(out)
+    assert summary["chosen"]["end_update"] == meta["selection"]["end_update"]
+    assert meta["selection"]["seed"] == SELECTION_SEED
+
+    def played(seed: int) -> list[float]:
+        gates = []
+        for p in sorted((run / "checkpoints").glob("ckpt-*.safetensors")):
+            setup = setup_evaluation("greedy", world="paper-indoor", model=load_model(p), device="cpu")
+            gates.append(evaluate_policy(setup.policy_fn, world="paper-indoor", sensor_cfg=setup.sensor_cfg,
+                                         env_cfg=setup.env_cfg, episodes_per_start=1, max_steps=60, seed=seed,
+                                         progress=False, protocol=PROTOCOLS["robust"]).summary["overall"]["mean_steps"])
+        return gates
+
+    rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
+    assert [r["score"]["gate"] for r in rows] == pytest.approx(played(SELECTION_SEED))
+    assert played(SELECTION_SEED) != played(0)  # the draws matter here, so the line above can tell the seeds apart
+    # another seed is other draws: scored anew, never taken from the first seed's cache
+    lines.clear()
+    select(dataclasses.replace(opts, seed=0), echo=lines.append)
+    rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
+    assert not any(line.endswith("(cached)") for line in lines)
+    assert [r["score"]["gate"] for r in rows if r["protocol"]["seed"] == 0] == pytest.approx(played(0))
 
 
 def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -> None:
