@@ -199,15 +199,16 @@ def test_select_draws_its_episodes_from_its_own_seed_not_the_tests(tmp_path: Pat
                                          progress=False, protocol=PROTOCOLS["robust"]).summary["overall"]["mean_steps"])
         return gates
 
+    ours, the_tests = played(SELECTION_SEED), played(0)
+    assert ours != the_tests  # the draws matter here, so the next line can tell the seeds apart
     rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
-    assert [r["score"]["gate"] for r in rows] == pytest.approx(played(SELECTION_SEED))
-    assert played(SELECTION_SEED) != played(0)  # the draws matter here, so the line above can tell the seeds apart
+    assert [r["score"]["gate"] for r in rows] == pytest.approx(ours)
     # another seed is other draws: scored anew, never taken from the first seed's cache
     lines.clear()
     select(dataclasses.replace(opts, seed=0), echo=lines.append)
     rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
     assert not any(line.endswith("(cached)") for line in lines)
-    assert [r["score"]["gate"] for r in rows if r["protocol"]["seed"] == 0] == pytest.approx(played(0))
+    assert [r["score"]["gate"] for r in rows if r["protocol"]["seed"] == 0] == pytest.approx(the_tests)
 
 
 def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -> None:
