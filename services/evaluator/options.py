@@ -7,7 +7,7 @@ import os
 
 from services.options import add_protocol_arguments, add_service_arguments
 from services.viz import ENV_RERUN_URL
-from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS
+from shared.evaluation import PAPER_EPISODES_PER_START, PAPER_MAX_STEPS, TEST_SEED
 
 DEFAULT_EVERY_UPDATES = 1000
 CHEAP_EPISODES_PER_START = 1
@@ -36,7 +36,8 @@ def add_evaluator_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"also stream every evaluation live to the Rerun viewer at URL, e.g. "
                              f"rerun+http://rerun:9876/proxy (env {ENV_RERUN_URL}; default: none). A viewer "
                              "that does not answer is skipped with a warning; the service goes on")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the evaluation episodes")
+    parser.add_argument("--seed", type=int, default=TEST_SEED,
+                        help=f"seed of the evaluation episodes (default {TEST_SEED})")
     parser.add_argument("--once", action="store_true", help="evaluate the latest weights once and exit")
     parser.add_argument("--wait-weights", type=float, default=60.0, metavar="SECONDS",
                         help="with --once: how long to wait for weights (default 60)")

@@ -71,6 +71,7 @@ from shared.evaluation import (
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
     PROTOCOLS,
+    TEST_SEED,
     ProtocolConfig,
 )
 from shared.evaluation.policies import GreedyPolicy
@@ -106,7 +107,7 @@ class EvaluatorService:
     def __init__(self, cfg: RunConfig, run: str, root: Path, settings: ZenohSettings, evaluator_id: str, *,
                  every_updates: int = DEFAULT_EVERY_UPDATES, episodes_per_start: int = CHEAP_EPISODES_PER_START,
                  max_steps: int = PAPER_MAX_STEPS, world: str | None = None, image_every: int = DEFAULT_IMAGE_EVERY,
-                 record: bool = True, seed: int = 0, device: str = "cpu", query_timeout_s: float = 2.0,
+                 record: bool = True, seed: int = TEST_SEED, device: str = "cpu", query_timeout_s: float = 2.0,
                  connect_wait_s: float = 30.0, rerun_url: str | None = None, tensorboard: Path | None = None,
                  protocol: ProtocolConfig = PROTOCOLS[DEFAULT_PROTOCOL]):
         for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),

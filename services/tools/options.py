@@ -19,6 +19,7 @@ from shared.evaluation import (
     POLICY_NAMES,
     PROTOCOLS,
     SELECTION_SEED,
+    TEST_SEED,
 )
 
 PRETRAIN_WORLDS = ("corridor", "paper-indoor")
@@ -53,7 +54,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--starts", type=int, nargs="+", default=None, metavar="I",
                         help="only these start poses, numbered from 1 as in every table and "
                              "`worlds starts` (default: all)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and the random policy")
+    parser.add_argument("--seed", type=int, default=TEST_SEED,
+                        help=f"seed of the episodes and the random policy (default {TEST_SEED}: the test draws)")
     parser.add_argument("--json", dest="json_out", metavar="PATH",
                         help="write the results JSON here (several worlds: one file each, PATH-<world>.json)")
     parser.add_argument("--rrd", metavar="PATH", help="write a Rerun recording here")
@@ -99,7 +101,8 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--world", default=None, help="world to evaluate in (default: the run's)")
     parser.add_argument("--probe", action="append", default=[], metavar="FILE",
                         help="an extra probe depth image: 16-bit PNG in millimetres or .npy in metres (repeatable)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the episodes and the random baseline")
+    parser.add_argument("--seed", type=int, default=TEST_SEED,
+                        help=f"seed of the episodes and the random baseline (default {TEST_SEED}: the test draws)")
     parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--protocol", nargs="+", choices=tuple(PROTOCOLS), default=list(REPORT_PROTOCOLS),
@@ -137,8 +140,8 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
                              f"{UNSEEN_WORLDS})")
     parser.add_argument("--episodes-per-start", type=int, default=10, help="test episodes per start (default 10)")
     parser.add_argument("--max-steps", type=int, default=200, help="steps per test episode at most (default 200)")
-    parser.add_argument("--seed", type=int, default=0,
-                        help="seed of the supervised model's training and of the test episodes (default 0)")
+    parser.add_argument("--seed", type=int, default=TEST_SEED,
+                        help=f"seed of the supervised model's training and of the test episodes (default {TEST_SEED})")
     parser.add_argument("--device", default=None, help="torch device for training: auto, cpu, cuda")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     add_protocol_arguments(parser, default="paper")
@@ -226,9 +229,10 @@ def add_worlds_demo_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--episodes", type=int, default=1, metavar="N",
                    help="with --protocol robust: draws per start, episode k's draw that of an evaluation with "
                         "--seed (default 1)")
-    p.add_argument("--seed", type=int, default=0,
-                   help="with --protocol robust: the draws' seed (default 0: the very draws `cogexplore evaluate` "
-                        "meets, a check that they can be survived; give another for training demonstrations)")
+    p.add_argument("--seed", type=int, default=TEST_SEED,
+                   help=f"with --protocol robust: the draws' seed (default {TEST_SEED}: the very draws "
+                        "`cogexplore evaluate` meets, a check that they can be survived; give another for "
+                        "training demonstrations)")
     p.add_argument("--quiet", action="store_true", help="no progress lines")
 
 
@@ -282,6 +286,6 @@ def add_model_select_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     p.add_argument("--seed", type=int, default=SELECTION_SEED,
                    help=f"seed of the gate and validation episodes' start draws and sensor noise (default "
-                        f"{SELECTION_SEED}: not the test's 0, so no window is chosen on the draws `evaluate` and "
-                        "`report` then measure it on; --test worlds are played with 0)")
+                        f"{SELECTION_SEED}: not the test's {TEST_SEED}, so no window is chosen on the draws `evaluate` "
+                        f"and `report` then measure it on; --test worlds are played with {TEST_SEED})")
     add_protocol_arguments(p)

@@ -53,6 +53,7 @@ from shared.evaluation import (
     PAPER_DRL_STEPS,
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
+    TEST_SEED,
     ProtocolConfig,
     protocol_named,
 )
@@ -249,7 +250,7 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
 def build_report(run_dir: str | Path, *, model: str | Path | None = None, compare: Sequence[str | Path] = (),
                  out_dir: str | Path | None = None,
                  episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
-                 world: str | None = None, probe_files: Sequence[str | Path] = (), seed: int = 0,
+                 world: str | None = None, probe_files: Sequence[str | Path] = (), seed: int = TEST_SEED,
                  device: str = "cpu", progress: bool = True,
                  baselines: Sequence[str] = BASELINES,
                  protocols: Sequence[str | ProtocolConfig] = REPORT_PROTOCOLS) -> Report:

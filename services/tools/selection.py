@@ -15,9 +15,9 @@ the window is chosen by a rule fixed before any test world is played:
 
 Test worlds play no part in the choice: with ``test_worlds`` the chosen window alone is played
 on them afterwards, once, and reported apart. Nor do the test's draws: the gate and validation
-episodes are drawn from ``seed`` (default :data:`SELECTION_SEED`), the test's from seed 0 (``cogexplore
-evaluate`` and ``report``), so a window is never chosen on jittered starts and sensor noise that its
-reported figures are then measured on.
+episodes are drawn from ``seed`` (default :data:`SELECTION_SEED`), the test's from
+:data:`TEST_SEED` (``cogexplore evaluate`` and ``report``), so a window is never chosen on jittered
+starts and sensor noise that its reported figures are then measured on.
 
 Scores are cached in a JSON-lines file keyed by the window's weights digest and the protocol,
 so an interrupted selection, or one rerun with more checkpoints, only plays new windows.
@@ -38,7 +38,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from shared.errors import CogexploreError
-from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, SELECTION_SEED, ProtocolConfig
+from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, SELECTION_SEED, TEST_SEED, ProtocolConfig
 
 log = logging.getLogger("cogexplore.select")
 
@@ -359,7 +359,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
                  "seed": o.seed}
     if o.test_worlds:
         echo(f"testing the window ending at {chosen.end_update} on {len(o.test_worlds)} test world(s)")
-        per_world = {w: mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w, 0)
+        per_world = {w: mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w, TEST_SEED)
                      for w in o.test_worlds}
         selection["test"] = {"mean": sum(per_world.values()) / len(per_world), "per_world": per_world}
     out = export_weights(o.out, model.net, model.policy_version, half=o.half,

@@ -164,10 +164,13 @@ DEFAULT_PROTOCOL = "robust"
 """The protocol ``cogexplore evaluate``, ``model select`` and the evaluator service run unless told
 otherwise: a figure a real robot can reproduce. ``experiment paper`` defaults to ``paper``, the
 paper's comparison; ``report`` shows both."""
+TEST_SEED = 0
+"""Seed of the test episodes' start draws and sensor noise: the default of ``cogexplore evaluate``,
+``report``, ``experiment``, the evaluator service and ``model select``'s ``--test`` worlds, so every
+reported figure of a model is measured on the same draws."""
 SELECTION_SEED = 1
-"""Seed of the episodes ``cogexplore model select`` chooses a model on. Not the test's (0, the
-default of ``evaluate``, ``report`` and the evaluator): a model is never chosen on the start draws
-and sensor noise its reported figures are measured on."""
+"""Seed of the episodes ``cogexplore model select`` chooses a model on. Not :data:`TEST_SEED`: a
+model is never chosen on the start draws and sensor noise its reported figures are measured on."""
 
 
 def protocol_named(name: str) -> ProtocolConfig:

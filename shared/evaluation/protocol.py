@@ -27,6 +27,7 @@ from shared.evaluation import (
     PAPER_MAX_STEPS,
     PROTOCOL_SENSOR_FIELDS,
     PROTOCOLS,
+    TEST_SEED,
     ProtocolConfig,
 )
 from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError, _is_int
@@ -115,7 +116,7 @@ class _RecorderSteps:
 
 def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Sequence[int] | None = None,
                  episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
-                 seed: int = 0, recorder: Any = None, progress: bool = True,
+                 seed: int = TEST_SEED, recorder: Any = None, progress: bool = True,
                  keep_trajectories: bool = True, meta: Mapping[str, Any] | None = None,
                  stop: threading.Event | None = None, protocol: ProtocolConfig = PROTOCOLS["paper"]) -> EvalResults:
     """Run exactly ``len(starts) * episodes_per_start`` episodes and return their results.
@@ -194,7 +195,7 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
 
 def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig, env_cfg: EnvConfig | None = None,
                     episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
-                    seed: int = 0, starts: Sequence[int] | None = None, policy_version: int = 0,
+                    seed: int = TEST_SEED, starts: Sequence[int] | None = None, policy_version: int = 0,
                     progress: bool = True, meta: Mapping[str, Any] | None = None,
                     stop: threading.Event | None = None, recorder: Any = None,
                     protocol: ProtocolConfig = PROTOCOLS["paper"]) -> EvalResults:

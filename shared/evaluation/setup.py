@@ -17,6 +17,7 @@ from shared.evaluation import (
     DEFAULT_WORLD,
     POLICY_NAMES,
     PROTOCOL_SENSOR_FIELDS,
+    TEST_SEED,
 )
 from shared.evaluation.policies import make_policy
 from shared.evaluation.protocol import PolicyFn
@@ -50,7 +51,7 @@ class EvalSetup:
 
 
 def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *, world: str | None = None,
-                     preset: str | None = None, overrides: Sequence[str] = (), seed: int = 0,
+                     preset: str | None = None, overrides: Sequence[str] = (), seed: int = TEST_SEED,
                      device: str = "auto", model: LoadedModel | None = None) -> EvalSetup:
     """Resolve policy, network, sensor, env and world (shared by ``evaluate`` and ``report``)."""
     policy = policy or ("greedy" if (checkpoint is not None or model is not None) else None)

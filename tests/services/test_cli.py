@@ -87,6 +87,20 @@ def test_every_option_of_every_command_says_what_it_does() -> None:
     assert not silent, silent
 
 
+def test_every_command_that_plays_test_episodes_draws_them_from_the_test_seed() -> None:
+    """One seed for every reported figure (evaluate, report, experiment, the evaluator, the
+    demonstration check), another for choosing a model: changing one never moves the other."""
+    from services.cli import build_parser
+    from shared.evaluation import SELECTION_SEED, TEST_SEED
+
+    seeds = {path: action.default for path, parser in _parsers(build_parser()) for action in parser._actions
+             if "--seed" in action.option_strings}
+    for path in [("evaluate",), ("report",), ("experiment",), ("evaluator",), ("worlds", "demo")]:
+        assert seeds.pop(path) == TEST_SEED, path
+    assert seeds.pop(("model", "select")) == SELECTION_SEED != TEST_SEED
+    assert set(seeds) == {("pretrain",), ("bench", "fuzz")}  # their seeds draw training data and payloads
+
+
 @pytest.mark.parametrize("argv,message", [
     (["actor", "--connect", "not-an-endpoint"], "--connect endpoint 'not-an-endpoint' is invalid"),
     (["learner", "--zenoh-config", "/no/such/zenoh.json5"], "Zenoh config file /no/such/zenoh.json5 does not exist"),

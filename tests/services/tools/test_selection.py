@@ -22,7 +22,7 @@ from services.tools.selection import (
     windows,
 )
 from shared.config import load_preset
-from shared.evaluation import PROTOCOLS, SELECTION_SEED
+from shared.evaluation import PROTOCOLS, SELECTION_SEED, TEST_SEED
 from shared.evaluation.protocol import evaluate_policy
 from shared.evaluation.setup import setup_evaluation
 from shared.learning.checkpoints import (
@@ -179,7 +179,7 @@ def test_select_falls_back_to_the_best_gate_score_without_playing_validation(tmp
 def test_select_draws_its_episodes_from_its_own_seed_not_the_tests(tmp_path: Path) -> None:
     """A window chosen on the test's own start draws and noise would be chosen on its test: the
     gate is played with SELECTION_SEED (a seed the test never uses) unless told another."""
-    assert SELECTION_SEED != 0  # 0: evaluate's, report's and the evaluator's
+    assert SELECTION_SEED != TEST_SEED  # evaluate's, report's and the evaluator's
     run = make_run(tmp_path / "run", (100, 200))
     out = tmp_path / "best.safetensors"
     opts = SelectOptions(run=run, out=out, window=1, gate_world="paper-indoor", gate_min=1e9,
@@ -199,16 +199,16 @@ def test_select_draws_its_episodes_from_its_own_seed_not_the_tests(tmp_path: Pat
                                          progress=False, protocol=PROTOCOLS["robust"]).summary["overall"]["mean_steps"])
         return gates
 
-    ours, the_tests = played(SELECTION_SEED), played(0)
+    ours, the_tests = played(SELECTION_SEED), played(TEST_SEED)
     assert ours != the_tests  # the draws matter here, so the next line can tell the seeds apart
     rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
     assert [r["score"]["gate"] for r in rows] == pytest.approx(ours)
     # another seed is other draws: scored anew, never taken from the first seed's cache
     lines.clear()
-    select(dataclasses.replace(opts, seed=0), echo=lines.append)
+    select(dataclasses.replace(opts, seed=TEST_SEED), echo=lines.append)
     rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
     assert not any(line.endswith("(cached)") for line in lines)
-    assert [r["score"]["gate"] for r in rows if r["protocol"]["seed"] == 0] == pytest.approx(the_tests)
+    assert [r["score"]["gate"] for r in rows if r["protocol"]["seed"] == TEST_SEED] == pytest.approx(the_tests)
 
 
 def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -> None:
