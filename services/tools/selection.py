@@ -242,7 +242,7 @@ class SelectOptions:
     """The test conditions every window is scored under (the export's ``selection`` records it)."""
     seed: int = SELECTION_SEED
     """Seed of the gate and validation episodes' draws (start jitter, sensor noise); the test
-    worlds are played with the test's seed, 0."""
+    worlds are played with :data:`TEST_SEED`."""
 
 
 def _protocol_key(o: SelectOptions) -> dict[str, Any]:
