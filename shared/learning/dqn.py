@@ -203,6 +203,7 @@ class DQNAgent:
         self.optimizer = self._make_optimizer()
         self.update_count = 0
         self.policy_version = 0
+        self.target_version = 0  # bumped whenever theta^- is written (sync, state load): copies can skip it
         self._runner = InferenceRunner(self.online)
 
     def _make_optimizer(self) -> torch.optim.Optimizer:
@@ -358,6 +359,7 @@ class DQNAgent:
         with torch.no_grad():
             for pt, po in zip(self.target.parameters(), self.online.parameters()):
                 pt.copy_(po)
+        self.target_version += 1
 
     # ------------------------------------------------------------------ acting and weights
     def q_values(self, depth: Any, previous_action: Any = None) -> np.ndarray:
@@ -420,6 +422,7 @@ class DQNAgent:
                            f"{type(self.optimizer).__name__}")
         load_tensors(self.online, {k[7:]: v for k, v in tensors.items() if k.startswith("online.")})
         load_tensors(self.target, {k[7:]: v for k, v in tensors.items() if k.startswith("target.")})
+        self.target_version += 1
         state: dict[int, dict[str, Any]] = {}
         for key, val in tensors.items():
             if key.startswith("optim."):

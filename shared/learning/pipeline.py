@@ -47,6 +47,7 @@ class TargetPipeline:
         self.agent = agent
         self._online = _frozen_copy(agent.online)
         self._target = _frozen_copy(agent.target)
+        self._target_version = agent.target_version
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="td-targets")
         self._pending: tuple[Batch, Future[PreparedBatch]] | None = None
 
@@ -56,8 +57,14 @@ class TargetPipeline:
 
     @torch.no_grad()
     def _refresh(self) -> None:
-        # the worker is idle: its copies take the agent's current theta and theta^-
-        for mine, theirs in ((self._online, self.agent.online), (self._target, self.agent.target)):
+        # the worker is idle: its copies take the agent's current theta, and theta^- when it was
+        # written since (every target_sync_every updates; copying it each update took 0.34 ms, 1.8%
+        # of a `make run` update)
+        pairs = [(self._online, self.agent.online)]
+        if self._target_version != self.agent.target_version:
+            pairs.append((self._target, self.agent.target))
+            self._target_version = self.agent.target_version
+        for mine, theirs in pairs:
             torch._foreach_copy_(list(mine.parameters()), list(theirs.parameters()))
 
     def submit(self, batch: Batch) -> None:

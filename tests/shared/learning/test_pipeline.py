@@ -64,6 +64,37 @@ def test_targets_come_from_the_weights_before_the_previous_update_and_the_first_
         pipeline.close()
 
 
+def test_the_workers_theta_minus_follows_each_sync_and_each_loaded_state():
+    agent = _agent()  # target_sync_every=2
+    pipeline = TargetPipeline(agent)
+    try:
+        version = agent.target_version
+        for update in (1, 2, 3):
+            _submit(pipeline, make_batch(seed=update), agent)
+            _, prepared = pipeline.take()
+            assert agent.apply(prepared)["synced_target"] == (update == 2)
+        assert agent.target_version == version + 1  # written once, by update 2's sync
+        # the next targets use the synced theta^- (and theta as it is now: nothing trains beside them)
+        snapshot = copy.deepcopy(agent)
+        flips = _submit(pipeline, make_batch(seed=4), snapshot)
+        _, prepared = pipeline.take()
+        assert torch.equal(prepared.y, snapshot.prepare(make_batch(seed=4), flips).y)
+
+        other = _agent()  # another run's state, its theta^- synced at other updates
+        for seed in (5, 6, 7, 8, 9):
+            other.update(make_batch(seed=seed))
+        other.sync_target()
+        agent.load_state_tensors(*other.state_tensors())
+        assert agent.target_version > version + 1
+        flips = _submit(pipeline, make_batch(seed=10), other)
+        _, prepared = pipeline.take()
+        assert torch.equal(prepared.y, other.prepare(make_batch(seed=10), flips).y)
+        assert all(torch.equal(mine, theirs) for mine, theirs in
+                   zip(pipeline._target.parameters(), other.target.parameters()))
+    finally:
+        pipeline.close()
+
+
 def test_the_worker_reads_its_own_copies_never_the_trained_parameters():
     agent = _agent()
     pipeline = TargetPipeline(agent)
