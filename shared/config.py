@@ -154,6 +154,12 @@ def parse_world_list(text: str) -> tuple[str, ...]:
     return tuple(names)
 
 
+NEW_AREA_CAP_M2 = 4.0
+"""The most newly seen floor (m^2) one step is paid for (``EnvConfig.reward_new_area_per_m2``): a
+turn of 0.6 rad in one 0.5 s step opens at most a 4.8 m^2 wedge of the 4 m, 57 degree view, and
+almost every step opens far less; the cap bounds what any reward may be."""
+
+
 @dataclass(frozen=True)
 class EnvConfig:
     """The exploration task: world, robot motion, reward and episode end."""
@@ -180,6 +186,13 @@ class EnvConfig:
     """r_move: reward for a collision-free move."""
     reward_collision: float = -100.0
     """r_ter: reward on collision (terminal)."""
+    reward_new_area_per_m2: float = 0.0
+    """A novelty term added to r_move: this much per m^2 of free floor the depth camera sees for
+    the first time in the episode at the step (the evaluation's coverage measure,
+    ``shared.sim.maps.CoverageTracker``; the first image's view is not paid, and a step pays for at
+    most ``NEW_AREA_CAP_M2``). Exploration is the task, and r_move alone pays a robot circling in
+    one room as much as one that opens up the world. 0 (the paper's reward) in the paper preset; a
+    collision pays r_ter alone."""
     start_index: int | None = None
     """Start pose index; None draws one of the world's starts uniformly each episode."""
     random_start_prob: float = 0.0
@@ -233,6 +246,8 @@ class EnvConfig:
         _check(_finite(self.reward_move), s, "reward_move", self.reward_move, "a finite number")
         _check(_finite(self.reward_collision), s, "reward_collision", self.reward_collision,
                "a finite number")
+        _check(_finite(self.reward_new_area_per_m2) and 0 <= self.reward_new_area_per_m2 <= 100, s,
+               "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
         _check(self.start_index is None or (isinstance(self.start_index, int) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
         _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
@@ -253,6 +268,32 @@ class EnvConfig:
                self.start_jitter_m, "metres in [0, 1]")
         _check(_finite(self.start_jitter_deg) and 0 <= self.start_jitter_deg <= 45, s, "start_jitter_deg",
                self.start_jitter_deg, "degrees in [0, 45]")
+
+    def pays_for_a_move(self, reward: Any) -> Any:
+        """Elementwise (numpy bool): whether ``reward`` is one this task pays for a collision-free
+        step, r_move plus a novelty term in [0, reward_new_area_per_m2 * NEW_AREA_CAP_M2], compared
+        in float32 as transitions carry it."""
+        import numpy as np
+
+        r = np.asarray(reward, dtype=np.float32)
+        return (r >= np.float32(self.reward_move)) & \
+            (r <= np.float32(self.reward_move + self.reward_new_area_per_m2 * NEW_AREA_CAP_M2))
+
+    def pays(self, reward: Any) -> Any:
+        """Elementwise (numpy bool): whether this task pays ``reward`` for some step, a move's or r_ter.
+        What a learner checks an actor's rewards against: one finite but huge reward would make every
+        TD target it reaches huge."""
+        import numpy as np
+
+        collision = np.asarray(reward, np.float32) == np.float32(self.reward_collision)
+        return self.pays_for_a_move(reward) | collision
+
+    def describe_rewards(self) -> str:
+        """What :meth:`pays` accepts, for error messages."""
+        move = f"{self.reward_move:g}"
+        if self.reward_new_area_per_m2 > 0:
+            move += f" to {self.reward_move + self.reward_new_area_per_m2 * NEW_AREA_CAP_M2:g}"
+        return f"{move} per move and {self.reward_collision:g} for a collision"
 
     @property
     def extra_world_names(self) -> tuple[str, ...]:
@@ -675,7 +716,7 @@ MUST_MATCH_FIELDS: tuple[str, ...] = (
     "sensor.min_range_m", "sensor.mount_height_m", "sensor.mount_forward_m",
     "model.fc1", "model.fc2", "model.dueling", "model.depth_encoding", "model.previous_action",
     "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
-    "env.collision_distance_m", "env.reward_move", "env.reward_collision",
+    "env.collision_distance_m", "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
 )
 """The fields an actor's or the evaluator's configuration must share with its run's learner: what a
 depth image is (the sensor; its backend agrees to 2 cm, and noise is an actor's to add), the network

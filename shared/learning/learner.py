@@ -88,7 +88,6 @@ class LearnerCore:
         self.dropped_nonfinite = 0
         """Transitions removed from replay because an update on them had a non-finite loss."""
         self._max_depth_mm = math.ceil(cfg.sensor.max_range_m * 1000)
-        self._rewards = {np.float32(cfg.env.reward_move), np.float32(cfg.env.reward_collision)}
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
         self._demo_window: collections.deque = collections.deque(maxlen=1000)  # demo_agreement
         self._last_metrics: dict[str, Any] = {}
@@ -98,8 +97,9 @@ class LearnerCore:
                        next_obs: np.ndarray | None, terminated: bool, truncated: bool) -> None:
         """Store one transition (ReplayError for a reward this task does not pay: one finite but huge
         reward, stored, would make every TD target it reaches huge)."""
-        if np.float32(reward) not in self._rewards:
-            raise ReplayError(f"reward {reward!r} is not one this task pays ({sorted(self._rewards)})")
+        if not self.cfg.env.pays(reward):
+            raise ReplayError(f"reward {reward!r} is not one this task pays "
+                              f"(it pays {self.cfg.env.describe_rewards()})")
         self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated)
         self.received += 1
 
@@ -111,8 +111,7 @@ class LearnerCore:
         """
         batch.require_frame_shape(self.cfg.sensor.height, self.cfg.sensor.width)
         env = self.cfg.env
-        batch.require_physical(reward_move=env.reward_move, reward_collision=env.reward_collision,
-                               max_depth_mm=self._max_depth_mm)
+        batch.require_physical(env, max_depth_mm=self._max_depth_mm)
         stream = (batch.actor_id, batch.actor_epoch, batch.episode)
         last = batch.steps - 1
         for i in range(batch.steps):
@@ -146,7 +145,7 @@ class LearnerCore:
         """Remove stored transitions this task cannot produce (a reward it does not pay, or not
         finite): a replay memory saved by an older build may hold them. Returns how many."""
         ids, rewards = self.replay.stored_rewards()
-        return self.replay.remove(ids[~np.isin(rewards, np.array(sorted(self._rewards), np.float32))])
+        return self.replay.remove(ids[~self.cfg.env.pays(rewards)])
 
     # -- the ratio rule --------------------------------------------------------------------
     @property

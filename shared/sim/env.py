@@ -32,6 +32,7 @@ import numpy as np
 
 from shared.config import (
     ACTION_NAMES,
+    NEW_AREA_CAP_M2,
     NUM_ACTIONS,
     PROCEDURAL_PREFIX,
     SPEED_TABLES,
@@ -90,6 +91,7 @@ class _Scene:
     _clear: tuple[Any, np.ndarray] | None = None
     _clearance: tuple[Any, np.ndarray] | None = None
     _canvas: Any = None
+    _coverage: Any = None
 
     @classmethod
     def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
@@ -112,6 +114,14 @@ class _Scene:
             grid, clearance = self.clearance()
             self._clear = grid, np.argwhere(clearance >= clearance_m)
         return self._clear
+
+    def coverage(self) -> Any:
+        """The world's ``shared.sim.maps.CoverageTracker`` (the novelty reward's), on the clearance grid."""
+        if self._coverage is None:
+            from shared.sim.maps import CoverageTracker
+
+            self._coverage = CoverageTracker(self.clearance()[0], self.camera.cfg)
+        return self._coverage
 
     def canvas(self) -> Any:
         """The world's top-down map for ``rgb_array`` frames (a ``shared.sim.render.MapCanvas``)."""
@@ -244,7 +254,10 @@ class ExploreEnv(gym.Env):
             pose = (start.x, start.y, start.yaw)
             self.robot.set_pose(*pose)
             self._depth = self.camera.capture(self.data)
-        x, y, _ = pose
+        x, y, yaw = pose
+        if self.env_config.reward_new_area_per_m2 > 0:  # the first view is the start's, not a reward
+            self._scene.coverage().reset()
+            self._scene.coverage().observe(x, y, yaw, self._depth)
         self._start_index = int(index)
         self._start_xy = self._last_xy = (x, y)
         self._trail = [(x, y)]
@@ -267,7 +280,7 @@ class ExploreEnv(gym.Env):
         touched = self.robot.drive(float(linear_mps), float(angular_rps), cfg.substeps)
         self._depth = self.camera.capture(self.data)
         self._steps += 1
-        x, y, _ = self.robot.pose()
+        x, y, yaw = self.robot.pose()
         self._path_length += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         self._last_xy = (x, y)
         self._trail.append((x, y))
@@ -277,21 +290,27 @@ class ExploreEnv(gym.Env):
         terminated = cause is not None
         truncated = not terminated and self._steps >= cfg.max_episode_steps
         reward = cfg.reward_collision if terminated else cfg.reward_move
+        if cfg.reward_new_area_per_m2 > 0 and not terminated:
+            new_area_m2 = self._scene.coverage().observe(x, y, yaw, self._depth)
+            reward += cfg.reward_new_area_per_m2 * min(new_area_m2, NEW_AREA_CAP_M2)
         return self._depth, float(reward), terminated, truncated, self._info(cause, min_depth)
 
     def snapshot(self) -> tuple[Any, ...]:
-        """The episode's state now (robot physics, step count, path, image): :meth:`restore`
-        puts the episode back exactly there, so a planner can try several commands from one
-        pose (shared.learning.demos). Only within the episode and world it was taken in; the sensor's noise
-        draws (``SensorConfig.noise_std_m``) are not rewound."""
+        """The episode's state now (robot physics, step count, path, image, the floor seen for the
+        novelty reward): :meth:`restore` puts the episode back exactly there, so a planner can try
+        several commands from one pose (shared.learning.demos). Only within the episode and world it
+        was taken in; the sensor's noise draws (``SensorConfig.noise_std_m``) are not rewound."""
+        seen = self._scene.coverage().seen if self.env_config.reward_new_area_per_m2 > 0 else None
         return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
-                self._depth.copy(), tuple(self._trail))
+                self._depth.copy(), tuple(self._trail), seen)
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
         """Return to a :meth:`snapshot` of the current episode."""
-        scene, state, self._steps, self._path_length, self._last_xy, depth, trail = snapshot
+        scene, state, self._steps, self._path_length, self._last_xy, depth, trail, seen = snapshot
         if scene is not self._scene:
             raise EnvError("a snapshot can only be restored in the episode's own world")
+        if seen is not None:
+            scene.coverage().restore(seen)
         self.robot.set_state(state)
         self._depth = depth.copy()
         self._trail = list(trail)

@@ -452,6 +452,12 @@ class CoverageTracker:
     def reset(self) -> None:
         self._seen[:] = False
 
+    def restore(self, seen: np.ndarray) -> None:
+        """Set the seen cells to a copy of an earlier :attr:`seen` (a snapshot's)."""
+        if np.shape(seen) != self._seen.shape:
+            raise MapError(f"seen has shape {np.shape(seen)}, this grid is {self._seen.shape}")
+        self._seen[:] = seen
+
     @property
     def seen(self) -> np.ndarray:
         """(ny, nx) bool: free cells seen so far (a copy)."""

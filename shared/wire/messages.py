@@ -44,7 +44,7 @@ from typing import Any, ClassVar, Mapping, Sequence, TypeVar
 import msgpack
 import numpy as np
 
-from shared.config import NUM_ACTIONS, ConfigError, RunConfig, from_dict
+from shared.config import NUM_ACTIONS, ConfigError, EnvConfig, RunConfig, from_dict
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 from shared.wire.keys import KeyExprError, validate_name
@@ -460,19 +460,19 @@ class TransitionBatch(Message):
         flags[-1] = self.truncated
         return flags
 
-    def require_physical(self, *, reward_move: float, reward_collision: float, max_depth_mm: int,
-                         max_abs_xy_m: float = 1e4) -> None:
-        """Raise MessageError(RANGE) unless the batch could have come from the receiver's task: every
-        reward is ``reward_move``, except a terminal last one, which is ``reward_collision``; no depth
-        beyond the sensor's range; positions within ``max_abs_xy_m``. A finite reward of 3e38 passes
-        the schema, and would still poison every TD target it reaches."""
-        want = np.full(self.steps, reward_move, np.float32)
+    def require_physical(self, env: EnvConfig, *, max_depth_mm: int, max_abs_xy_m: float = 1e4) -> None:
+        """Raise MessageError(RANGE) unless the batch could have come from the receiver's task ``env``:
+        every reward one ``env`` pays for a move (``EnvConfig.pays_for_a_move``), except a terminal
+        last one, which is its collision reward; no depth beyond the sensor's range; positions within
+        ``max_abs_xy_m``. A finite reward of 3e38 passes the schema, and would still poison every TD
+        target it reaches."""
+        ok = env.pays_for_a_move(self.reward)
         if self.terminated:
-            want[-1] = reward_collision
-        if not np.array_equal(self.reward, want):
-            bad = int(np.flatnonzero(self.reward != want)[0])
-            raise MessageError(RANGE, f"reward[{bad}] = {float(self.reward[bad])!r}: this task pays {reward_move} "
-                                      f"per move and {reward_collision} for a collision")
+            ok[-1] = self.reward[-1] == np.float32(env.reward_collision)
+        if not ok.all():
+            bad = int(np.flatnonzero(~ok)[0])
+            raise MessageError(RANGE, f"reward[{bad}] = {float(self.reward[bad])!r}: this task pays "
+                                      f"{env.describe_rewards()}")
         deepest = max(int(self.depth_mm.max()), 0 if self.next_depth_mm is None else int(self.next_depth_mm.max()))
         if deepest > max_depth_mm:
             raise MessageError(RANGE, f"depth {deepest} mm is beyond the sensor's range ({max_depth_mm} mm)")

@@ -64,6 +64,21 @@ def test_ingest_refuses_what_the_task_cannot_produce_and_stores_nothing(batch: T
     assert core.received == 1
 
 
+def test_a_novelty_paying_task_accepts_a_moves_bonus_up_to_its_cap_and_nothing_beyond():
+    from shared.config import NEW_AREA_CAP_M2
+
+    core = LearnerCore(load_preset("smoke").with_overrides({"env.reward_new_area_per_m2": 2.5}), device="cpu")
+    top = 1.0 + 2.5 * NEW_AREA_CAP_M2
+    for reward in (1.0, 1.37, top):
+        core.ingest(TransitionBatch.decode(_batch(reward=reward).encode()))
+    for reward in (top + 0.01, 0.5):
+        with pytest.raises(MessageError, match="pays 1 to 11 per move"):
+            core.ingest(_batch(reward=reward))
+    with pytest.raises(MessageError, match="reward"):  # a collision is still r_ter alone
+        core.ingest(_batch(reward=1.37, terminated=True))
+    assert core.received == 3
+
+
 def test_per_actor_state_stays_bounded_whatever_ids_arrive():
     from shared.learning.learner import MAX_TRACKED_ACTORS
     from shared.learning.replay import MAX_OPEN_STREAMS

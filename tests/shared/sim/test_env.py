@@ -272,3 +272,53 @@ def test_extra_world_lists_parse_and_bad_ones_are_config_errors():
         EnvConfig(extra_world_prob=0.5)  # no extra worlds to play
     with pytest.raises(ConfigError, match="extra_world_prob"):
         EnvConfig(extra_worlds="corridor", extra_world_prob=float("nan"))
+
+
+def test_the_novelty_reward_pays_each_steps_newly_seen_floor_and_a_snapshot_rewinds_it():
+    from shared.config import NEW_AREA_CAP_M2
+    from shared.sim.maps import CoverageTracker, occupancy_grid
+
+    per_m2 = 2.5
+    env = ExploreEnv(world="paper-indoor", reward_new_area_per_m2=per_m2, max_episode_steps=60)
+    plain = ExploreEnv(world="paper-indoor", max_episode_steps=60)
+    # An independent tracker fed the same poses and images: the first view is not paid.
+    tracker = CoverageTracker(occupancy_grid(env.world), env.sensor_config)
+    # Start 5 of paper-indoor, circling half-right: the first lap opens new floor, the next
+    # ones see it again and pay little more than r_move (the sensor's edge cells).
+    depth, info = env.reset(seed=3, options={"start_index": 4})
+    plain.reset(seed=3, options={"start_index": 4})
+    tracker.observe(*info["pose"], depth)
+    paid, snap = [], None
+    for k, action in enumerate([3] * 30):
+        if k == 4:
+            snap = env.snapshot()
+        depth, reward, terminated, truncated, info = env.step(action)
+        _, plain_reward, plain_terminated, *_ = plain.step(action)
+        assert terminated == plain_terminated  # the term pays; it never moves the robot
+        if terminated:
+            assert reward == plain_reward == -100.0  # a collision pays r_ter alone
+            break
+        new_area = tracker.observe(*info["pose"], depth)
+        assert plain_reward == 1.0
+        assert reward == pytest.approx(1.0 + per_m2 * min(new_area, NEW_AREA_CAP_M2))
+        paid.append(reward)
+    assert len(paid) == 30 and max(paid) > 1.5 and min(paid) >= 1.0 and paid[-1] < 1.25
+    # Rewound to step 4 and replayed, step 5 pays again what it paid: the seen floor is rewound too.
+    env.restore(snap)
+    assert paid[4] > 1.0 and env.step(3)[1] == pytest.approx(paid[4])
+
+
+def test_the_novelty_reward_is_validated_and_bounds_what_a_learner_accepts():
+    from shared.config import NEW_AREA_CAP_M2, ConfigError
+
+    with pytest.raises(ConfigError, match="reward_new_area_per_m2"):
+        EnvConfig(reward_new_area_per_m2=-1.0)
+    with pytest.raises(ConfigError, match="reward_new_area_per_m2"):
+        EnvConfig(reward_new_area_per_m2=math.nan)
+    paper, novelty = EnvConfig(), EnvConfig(reward_new_area_per_m2=2.5)
+    top = 1.0 + 2.5 * NEW_AREA_CAP_M2
+    rewards = np.array([1.0, 1.7, top, top + 0.01, 0.99, -100.0, 3.4e38])
+    assert paper.pays(rewards).tolist() == [True, False, False, False, False, True, False]
+    assert novelty.pays(rewards).tolist() == [True, True, True, False, False, True, False]
+    assert not novelty.pays_for_a_move(-100.0)
+    assert "1 to 11 per move" in novelty.describe_rewards()
