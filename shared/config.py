@@ -269,15 +269,18 @@ class EnvConfig:
         _check(_finite(self.start_jitter_deg) and 0 <= self.start_jitter_deg <= 45, s, "start_jitter_deg",
                self.start_jitter_deg, "degrees in [0, 45]")
 
+    @property
+    def max_move_reward(self) -> float:
+        """The most one collision-free step pays: r_move plus the novelty term for ``NEW_AREA_CAP_M2``."""
+        return self.reward_move + self.reward_new_area_per_m2 * NEW_AREA_CAP_M2
+
     def pays_for_a_move(self, reward: Any) -> Any:
         """Elementwise (numpy bool): whether ``reward`` is one this task pays for a collision-free
-        step, r_move plus a novelty term in [0, reward_new_area_per_m2 * NEW_AREA_CAP_M2], compared
-        in float32 as transitions carry it."""
+        step, in [r_move, ``max_move_reward``], compared in float32 as transitions carry it."""
         import numpy as np
 
         r = np.asarray(reward, dtype=np.float32)
-        return (r >= np.float32(self.reward_move)) & \
-            (r <= np.float32(self.reward_move + self.reward_new_area_per_m2 * NEW_AREA_CAP_M2))
+        return (r >= np.float32(self.reward_move)) & (r <= np.float32(self.max_move_reward))
 
     def pays(self, reward: Any) -> Any:
         """Elementwise (numpy bool): whether this task pays ``reward`` for some step, a move's or r_ter.
@@ -285,14 +288,14 @@ class EnvConfig:
         TD target it reaches huge."""
         import numpy as np
 
-        collision = np.asarray(reward, np.float32) == np.float32(self.reward_collision)
-        return self.pays_for_a_move(reward) | collision
+        r = np.asarray(reward, dtype=np.float32)
+        return self.pays_for_a_move(r) | (r == np.float32(self.reward_collision))
 
     def describe_rewards(self) -> str:
         """What :meth:`pays` accepts, for error messages."""
         move = f"{self.reward_move:g}"
-        if self.reward_new_area_per_m2 > 0:
-            move += f" to {self.reward_move + self.reward_new_area_per_m2 * NEW_AREA_CAP_M2:g}"
+        if self.max_move_reward > self.reward_move:
+            move += f" to {self.max_move_reward:g}"
         return f"{move} per move and {self.reward_collision:g} for a collision"
 
     @property
