@@ -125,7 +125,6 @@ class Ros2Publisher(_Entity):
             self._handle.put(payload, attachment=attachment)
 
 
-
 class Ros2Subscriber(_Entity):
     """Hands each CDR payload of one topic to a callback, on a Zenoh thread."""
 
@@ -170,7 +169,6 @@ class Ros2Subscriber(_Entity):
         """Samples whose callback raised."""
         with self._lock:
             return self._callback_errors
-
 
 
 class Ros2Node:

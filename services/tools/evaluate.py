@@ -2,6 +2,7 @@
 
     cogexplore evaluate --checkpoint runs/exp1 --json out.json --rrd out.rrd
     cogexplore evaluate --checkpoint pretrained --protocol paper      # exact starts, no noise
+    cogexplore evaluate --checkpoint runs/exp1 --ensemble runs/exp2 runs/exp3   # a Q-value ensemble
     cogexplore evaluate --policy random --world paper-indoor --episodes-per-start 2 --json out.json
     cogexplore evaluate --checkpoint runs/exp1 --rerun-connect rerun+http://127.0.0.1:9876/proxy
     cogexplore evaluate --checkpoint runs/exp1 --rerun-serve     # then open the printed address
@@ -16,6 +17,10 @@ overall (``shared.evaluation.results``) go to the JSON, the steps to an optional
 viewer that does not answer is warned about and skipped) or a gRPC server plus web viewer that
 this command hosts (``--rerun-serve``; it prints the address to open and keeps serving after
 the evaluation until Ctrl-C, or for ``--rerun-serve-seconds``).
+
+``--ensemble CKPT ...`` adds checkpoints whose Q-values the greedy policy averages with
+``--checkpoint``'s (each fed the command the ensemble chose last): a Q-value ensemble of
+independently trained models, played in ``--checkpoint``'s environment.
 
 ``--checkpoint`` accepts what ``shared.learning.checkpoints.load_model`` reads: a checkpoint file,
 a checkpoint directory (its ``latest``, falling back to the newest that loads), a run folder (its
@@ -32,6 +37,7 @@ import json
 import logging
 import os
 import time
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -132,11 +138,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         protocol = protocol_from_args(args)
     except ConfigError as exc:
         raise EvaluateError(f"--protocol: {exc}") from None
-    model = None
+    model, ensemble = None, args.ensemble
     for world in _worlds_of(args):
-        setup, results, recorder = _evaluate_one(args, world, model, protocol)
+        setup, results, recorder = _evaluate_one(args, world, model, ensemble, protocol)
         done.append((setup, results))
-        model = setup.model  # loaded once for every world
+        model, ensemble = setup.model, setup.ensemble  # loaded once for every world
     several = len(done) > 1
     print(f"protocol {protocol.describe()}")
     for setup, results in done:
@@ -176,11 +182,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedModel | None,
-                  protocol: ProtocolConfig) -> tuple[EvalSetup, EvalResults, Any]:
+                  ensemble: Sequence[str | LoadedModel], protocol: ProtocolConfig,
+                  ) -> tuple[EvalSetup, EvalResults, Any]:
     """One world of ``cogexplore evaluate``: (setup, results, the live-served recorder or None)."""
     setup = setup_evaluation(args.policy, None if model is not None else args.checkpoint, world=world,
                              preset=args.preset, overrides=args.overrides, seed=args.seed, device=args.device,
-                             model=model)
+                             model=model, ensemble=ensemble)
     log.info("evaluating %s on %s", setup.meta()["model"], setup.world)
     recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"  # the protocol: a property
     recorder = None

@@ -38,6 +38,10 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", metavar="CKPT",
                         help="checkpoint file or directory, run folder, weights export, or `pretrained` "
                              "(the shipped DRL model; with --policy sl the shipped supervised model)")
+    parser.add_argument("--ensemble", nargs="+", default=(), metavar="CKPT",
+                        help="further checkpoints (as --checkpoint) whose Q-values the greedy policy averages "
+                             "with --checkpoint's: a Q-value ensemble of independently trained models; the "
+                             "episodes run in --checkpoint's environment")
     parser.add_argument("--policy", choices=POLICY_NAMES, default=None,
                         help="greedy (the checkpoint's; default with --checkpoint), random or reactive "
                              "(baselines, no checkpoint needed), sl (--checkpoint: a supervised model from "

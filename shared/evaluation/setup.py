@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shared.config import EnvConfig, SensorConfig, load_preset, parse_override
+from shared.config import EnvConfig, SensorConfig, config_differences, load_preset, parse_override
 from shared.errors import CogexploreError
 from shared.evaluation import (
     BASELINE_POLICIES,
@@ -30,7 +30,6 @@ class EvaluateError(CogexploreError):
     """A checkpoint that cannot be found or used, or options that do not fit together."""
 
 
-
 @dataclass(frozen=True)
 class EvalSetup:
     """What an evaluation runs with, resolved from the options."""
@@ -41,19 +40,26 @@ class EvalSetup:
     env_cfg: EnvConfig
     world: str
     model: LoadedModel | None
+    ensemble: tuple[LoadedModel, ...] = ()
+    """Further models whose Q-values the greedy policy averages with ``model``'s."""
 
     def meta(self) -> dict[str, Any]:
-        out: dict[str, Any] = {"policy": self.policy,
-                               "model": self.model.label if self.model is not None else self.policy}
+        label = self.model.label if self.model is not None else self.policy
+        out: dict[str, Any] = {"policy": self.policy, "model": "+".join([label, *(m.label for m in self.ensemble)])}
         if self.model is not None:
             out.update(self.model.meta())
+        if self.ensemble:
+            out["ensemble"] = [m.meta() for m in self.ensemble]
         return out
 
 
 def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *, world: str | None = None,
                      preset: str | None = None, overrides: Sequence[str] = (), seed: int = TEST_SEED,
-                     device: str = "auto", model: LoadedModel | None = None) -> EvalSetup:
-    """Resolve policy, network, sensor, env and world (shared by ``evaluate`` and ``report``)."""
+                     device: str = "auto", model: LoadedModel | None = None,
+                     ensemble: Sequence[str | Path | LoadedModel] = ()) -> EvalSetup:
+    """Resolve policy, network, sensor, env and world (shared by ``evaluate`` and ``report``).
+    ``ensemble``: further checkpoints (or loaded models) whose Q-values the greedy policy averages
+    with the checkpoint's; the environment stays the checkpoint's."""
     policy = policy or ("greedy" if (checkpoint is not None or model is not None) else None)
     if policy is None:
         raise EvaluateError("give --checkpoint (greedy policy) or --policy random|reactive")
@@ -64,6 +70,19 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                             + " or ".join(BASELINE_POLICIES) + ")")
     if model is None and checkpoint is not None:
         model = load_supervised_model(checkpoint, device) if policy == "sl" else load_model(checkpoint, device)
+    if ensemble and policy != "greedy":
+        raise EvaluateError(f"an ensemble plays the greedy policy, not {policy}")
+    members = tuple(m if isinstance(m, LoadedModel) else load_model(m, device) for m in ensemble)
+    for member in members:
+        # The episodes run in the checkpoint's environment: a member trained for another robot
+        # (speeds, control period, collision rule) would be scored on moves it never made.
+        if model is not None and model.run_config is not None and member.run_config is not None:
+            env_differences = [d for d in config_differences(member.run_config, model.run_config)
+                               if d[0].startswith("env.")]
+            if env_differences:
+                name, theirs, mine = env_differences[0]
+                raise EvaluateError(f"ensemble member {member.path} was trained with {name} = {theirs!r}, "
+                                    f"the checkpoint with {mine!r}: an ensemble's models must share the robot")
     if model is not None and (policy == "sl") != (model.kind == "supervised"):
         raise EvaluateError(f"{model.path} is a {model.kind} file: the sl policy takes a supervised model "
                             "(`cogexplore pretrain`), the other policies a Q-network checkpoint")
@@ -102,8 +121,9 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                             "images; the sensor size cannot be overridden")
     # the camera itself: a run's training noise (robust-40x30's) is no part of it, the protocol adds its own
     sensor = cfg.sensor.noise_free()
-    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=sensor, seed=seed)
+    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=sensor, seed=seed,
+                     ensemble=[m.net for m in members])
     world_name = world or (model.run_config.env.world if model is not None and model.run_config is not None
                            else DEFAULT_WORLD)
     return EvalSetup(policy, fn, sensor, cfg.env, world_name,
-                     model if policy in ("greedy", "sl", "rl") else None)
+                     model if policy in ("greedy", "sl", "rl") else None, members)

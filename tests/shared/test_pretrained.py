@@ -27,8 +27,6 @@ from shared.learning.dqn import DQNAgent
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
-
-
 def test_model_export_half_precision_keeps_the_greedy_policy(tmp_path: Path, capsys) -> None:
     cfg = load_preset("paper")
     agent = DQNAgent(ModelConfig(fc1=64, fc2=32), SensorConfig(width=80, height=60), cfg.dqn, device="cpu", seed=3)

@@ -85,7 +85,6 @@ def test_a_worst_start_gate_keeps_only_windows_whose_every_start_reaches_it() ->
     assert WindowScore.from_json(scores[1].to_json()) == scores[1]
 
 
-
 def test_wall_minutes_carry_the_clock_across_a_resume(tmp_path: Path) -> None:
     csv = tmp_path / "learner.csv"
     csv.write_text("time_s,update,loss\n60,100,1\n120,200,1\n6,250,1\nbad,300,1\n66,300,1\n")

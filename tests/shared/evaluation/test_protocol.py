@@ -114,7 +114,7 @@ def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one(
     policy = GreedyPolicy(QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor))
     seen: list[int | None] = []  # the previous command of each call
     chosen: list[int] = []
-    runner = policy.policy._runner
+    runner = policy.policies[0]._runner
     q_values = runner.q_values
 
     def spy(depth, previous_action=None):
@@ -347,3 +347,69 @@ def test_greedy_policy_takes_the_best_q_value(tmp_path: Path) -> None:
     action, q = policy(depth)
     assert q.shape == (5,) and action == int(np.argmax(q)) and all(math.isfinite(v) for v in q)
     assert weights_sha256(model.net) == model.weights_sha256
+
+
+def test_an_ensemble_plays_the_mean_of_its_networks_q_values(tmp_path: Path) -> None:
+    import torch
+
+    from shared.config import ModelConfig
+    from shared.learning.model import InferenceRunner, QNetwork
+
+    sensor = SensorConfig(width=40, height=30)
+    torch.manual_seed(0)
+    nets = [QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor) for _ in range(2)]
+    alone, pair = make_policy("greedy", net=nets[0]), make_policy("greedy", net=nets[0], ensemble=[nets[1]])
+    runners = [InferenceRunner(n) for n in nets]
+    rng = np.random.default_rng(0)
+    previous = None
+    differ = 0
+    for _ in range(12):
+        depth = rng.uniform(0.3, 4.0, (30, 40)).astype(np.float32)
+        action, q = pair(depth)
+        # each network reads the command the ensemble chose last, not the one it would have chosen
+        mean = np.mean([r.q_values(depth, previous) for r in runners], axis=0)
+        assert np.allclose(q, mean, atol=1e-6) and action == int(np.argmax(mean))
+        differ += not np.allclose(q, runners[0].q_values(depth, previous))
+        previous = action
+    assert differ == 12  # two different networks: the mean is neither's
+    pair.reset()
+    alone.reset()
+    depth = np.full((30, 40), 2.0, np.float32)
+    assert np.allclose(pair(depth)[1], np.mean([r.q_values(depth, None) for r in runners], axis=0), atol=1e-6)
+    # an ensemble of a network with itself is that network
+    twin = make_policy("greedy", net=nets[0], ensemble=[nets[0]])
+    assert np.allclose(twin(depth)[1], alone(depth)[1], atol=1e-6)
+    with pytest.raises(PolicyError, match="same camera"):
+        make_policy("greedy", net=nets[0], ensemble=[QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=64,
+                                                                                                      height=48))])
+    with pytest.raises(PolicyError, match="greedy policy"):
+        make_policy("rl", net=nets[0], ensemble=[nets[1]])
+
+
+def test_evaluate_an_ensemble_records_its_members(tmp_path: Path, capsys) -> None:
+    first, second = make_run(tmp_path / "a", seed=0), make_run(tmp_path / "b", policy_version=2000, seed=1)
+    argv = ["--checkpoint", str(first), "--world", "box-room", "--episodes-per-start", "1", "--max-steps", "5",
+            "--device", "cpu", "--quiet"]
+    assert evaluate(argv + ["--ensemble", str(second / "weights.safetensors"), "--json", str(tmp_path / "e.json")]) == 0
+    results = validate_results_json((tmp_path / "e.json").read_text())
+    assert results.meta["model"] == "a@1000+weights@2000"
+    assert [m["policy_version"] for m in results.meta["ensemble"]] == [2000]
+    assert results.meta["ensemble"][0]["weights_sha256"] == load_model(second).weights_sha256
+    # with itself as its only member, an ensemble plays exactly the checkpoint alone
+    assert evaluate(argv + ["--ensemble", str(first), "--json", str(tmp_path / "twin.json")]) == 0
+    assert evaluate(argv + ["--json", str(tmp_path / "alone.json")]) == 0
+    twin, alone = (validate_results_json((tmp_path / f"{n}.json").read_text()) for n in ("twin", "alone"))
+    assert [e.steps for e in twin.episodes] == [e.steps for e in alone.episodes]
+    assert [e.trajectory_xy for e in twin.episodes] == [e.trajectory_xy for e in alone.episodes]
+    capsys.readouterr()
+    other = tmp_path / "other"  # trained for another robot: refused, not scored on moves it never made
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.dqn import DQNAgent
+
+    cfg = small_config().with_overrides({"env.control_period_s": 0.25})
+    CheckpointManager(other / "checkpoints").save(DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=2),
+                                                  config=cfg.to_dict())
+    assert evaluate(argv + ["--ensemble", str(other)]) == 2
+    assert "env.control_period_s" in capsys.readouterr().err
+    assert evaluate(["--policy", "random", "--world", "box-room", "--ensemble", str(first), "--quiet"]) == 2
+    assert "ensemble plays the greedy policy" in capsys.readouterr().err

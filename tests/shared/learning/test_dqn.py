@@ -191,7 +191,6 @@ def test_conv_layers_learn_slower_and_can_be_frozen():
     assert not torch.equal(frozen.online.fc1.weight, fc_before)
 
 
-
 def test_learning_rates_fall_linearly_to_the_final_scale_and_resume_on_schedule():
     assert [lr_factor(u, 100, 0.1) for u in (0, 50, 100, 500)] == pytest.approx([1.0, 0.55, 0.1, 0.1])
     assert lr_factor(10**6, 0, 0.1) == 1.0  # off: the paper's constant rate
