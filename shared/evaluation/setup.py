@@ -70,8 +70,6 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                             + " or ".join(BASELINE_POLICIES) + ")")
     if model is None and checkpoint is not None:
         model = load_supervised_model(checkpoint, device) if policy == "sl" else load_model(checkpoint, device)
-    if ensemble and policy != "greedy":
-        raise EvaluateError(f"an ensemble plays the greedy policy, not {policy}")
     members = tuple(m if isinstance(m, LoadedModel) else load_model(m, device) for m in ensemble)
     for member in members:
         # The episodes run in the checkpoint's environment: a member trained for another robot
