@@ -50,7 +50,7 @@ class Policy(CameraPolicy):
     @property
     def previous_command(self) -> int | None:
         """The command the last :meth:`act` chose (None after :meth:`reset`)."""
-        return self._greedy.policies[0].previous_action
+        return self._greedy.policy.previous_action
 
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;

@@ -142,7 +142,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     for world in _worlds_of(args):
         setup, results, recorder = _evaluate_one(args, world, model, ensemble, protocol)
         done.append((setup, results))
-        model, ensemble = setup.model, setup.ensemble  # loaded once for every world
+        model, ensemble = setup.model, ()  # loaded (and joined into one ensemble) once for every world
     several = len(done) > 1
     print(f"protocol {protocol.describe()}")
     for setup, results in done:

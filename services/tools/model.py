@@ -32,9 +32,12 @@ def run_export(args: argparse.Namespace) -> int:
                           "or both")
     if args.half and not args.out:
         raise ConfigError("--half stores the --out weights as float16; an --onnx export is float32")
-    from shared.learning.checkpoints import average_models, export_weights, load_model
+    from shared.learning.checkpoints import average_models, ensemble_models, export_weights, load_model
 
-    loaded = average_models([load_model(c) for c in args.checkpoint])
+    if args.ensemble and len(args.checkpoint) < 2:
+        raise ConfigError("--ensemble joins several checkpoints: give at least two")
+    sources = [load_model(c) for c in args.checkpoint]
+    loaded = ensemble_models(sources) if args.ensemble else average_models(sources)
     card = {}
     if args.card:
         try:
@@ -53,12 +56,14 @@ def run_export(args: argparse.Namespace) -> int:
         extra: dict[str, Any] = {}
         if loaded.averaged_from:
             extra["averaged_from"] = list(loaded.averaged_from)
+        if loaded.ensemble_of:
+            extra["ensemble_of"] = list(loaded.ensemble_of)
         if card:
             extra["card"] = card
         out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
         report.update(out=str(out), bytes=out.stat().st_size, half=args.half)
     _print_json({**report, "policy_version": loaded.policy_version, "source": str(loaded.path),
-                 "averaged": max(1, len(loaded.averaged_from))})
+                 "averaged": max(1, len(loaded.averaged_from)), "ensemble": len(loaded.ensemble_of)})
     return 0
 
 

@@ -41,7 +41,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ensemble", nargs="+", default=(), metavar="CKPT",
                         help="further checkpoints (as --checkpoint) whose Q-values the greedy policy averages "
                              "with --checkpoint's: a Q-value ensemble of independently trained models; the "
-                             "episodes run in --checkpoint's environment")
+                             "episodes run in --checkpoint's environment (`model export A B --ensemble` makes "
+                             "one file of it)")
     parser.add_argument("--policy", choices=POLICY_NAMES, default=None,
                         help="greedy (the checkpoint's; default with --checkpoint), random or reactive "
                              "(baselines, no checkpoint needed), sl (--checkpoint: a supervised model from "
@@ -252,6 +253,10 @@ def add_model_export_arguments(p: argparse.ArgumentParser) -> None:
                    help="checkpoint file or directory, run folder, weights export or `pretrained` (the shipped "
                         "model); with several (one run's later checkpoints), their weights' mean, labelled with "
                         "the last one's update")
+    p.add_argument("--ensemble", action="store_true",
+                   help="several checkpoints (independently trained runs) become one Q-value ensemble instead "
+                        "of a weights' mean: the greedy command is the argmax of their mean Q-values (as "
+                        "`evaluate --ensemble`), labelled with the first one's update")
     p.add_argument("--out", default=None, help="output .safetensors path (weights only, for torch)")
     p.add_argument("--onnx", default=None, metavar="F.onnx",
                    help="output ONNX path, instead of --out or beside it: the network for a robot computer "

@@ -5,8 +5,8 @@ Every policy is a callable ``policy(depth_m) -> (action, scores or None)`` as
 (0 = no return) and ``action`` an index into ``shared.config.ACTION_NAMES``. A policy with
 memory across steps also has ``reset()``, which the protocol calls at each episode's start.
 
-- ``greedy``: argmax of a QNetwork's Q-values, dropout off (the paper's test protocol); of the
-  mean of several networks' Q-values with an ensemble.
+- ``greedy``: argmax of a QNetwork's Q-values, dropout off (the paper's test protocol); a
+  ``QEnsemble`` plays the same way, on the mean of its networks' Q-values.
 - ``sl``: the supervised model (the authors' IROS 2016 baseline, ``shared.expert``): argmax
   of its five class scores; the softmax probabilities are returned as the scores.
 - ``rl``: the authors' RCAR 2016 Q-learning baseline: greedy on a DQN checkpoint whose conv
@@ -49,43 +49,24 @@ def _check_depth(depth_m: Any, sensor_cfg: SensorConfig | None) -> np.ndarray:
 
 class GreedyPolicy:
     """Argmax of a Q-network's values (eval mode: dropout off); returns the Q-values too.
-    Remembers its last command for a ``model.previous_action`` network.
-
-    With ``ensemble`` (further Q-networks that read the same camera), the argmax is of the mean of
-    every network's Q-values, each fed the command the ensemble chose last: a Q-value ensemble of
-    independently trained models (Osband et al. 2016, Anschel et al. 2017: averaging cuts the
-    variance that makes one DQN's greedy policy swing)."""
+    Remembers its last command for a ``model.previous_action`` network (a ``QEnsemble`` feeds it
+    to every member)."""
 
     name = "greedy"
 
-    def __init__(self, net: Any, ensemble: Sequence[Any] = ()):
+    def __init__(self, net: Any):
         from shared.learning.policy import EpsilonGreedyPolicy
 
         self.net = net
-        for other in ensemble:
-            mine, theirs = net.sensor_cfg.noise_free(), other.sensor_cfg.noise_free()
-            if mine != theirs:
-                raise PolicyError(f"an ensemble's networks must read the same camera: {mine} against {theirs}")
-        # no schedule: greedy, with the actors' memory of the last command
-        self.policies = [EpsilonGreedyPolicy(n) for n in (net, *ensemble)]
+        self.policy = EpsilonGreedyPolicy(net)  # no schedule: greedy, with the actors' memory
 
     def reset(self) -> None:
-        for p in self.policies:
-            p.reset()
+        self.policy.reset()
 
     def __call__(self, depth_m: np.ndarray) -> tuple[int, np.ndarray]:
-        depth = _check_depth(depth_m, self.net.sensor_cfg)
-        if len(self.policies) == 1:
-            # argmax takes the first maximum: ties (a fresh net rarely has any) break toward "left".
-            choice = self.policies[0].greedy(depth)
-            return choice.action, choice.q_values
-        from shared.learning.policy import greedy_action
-
-        q_values = np.mean([p.greedy(depth).q_values for p in self.policies], axis=0, dtype=np.float32)
-        action = greedy_action(q_values)
-        for p in self.policies:
-            p.previous_action = action
-        return action, q_values
+        # argmax takes the first maximum: ties (a fresh net rarely has any) break toward "left".
+        choice = self.policy.greedy(_check_depth(depth_m, self.net.sensor_cfg))
+        return choice.action, choice.q_values
 
 
 class RLPolicy(GreedyPolicy):
@@ -238,16 +219,13 @@ class ReactivePolicy:
 
 
 def make_policy(name: str, *, net: Any = None, sensor_cfg: SensorConfig | None = None,
-                seed: int = 0, ensemble: Sequence[Any] = ()) -> PolicyFn:
-    """A policy by name: ``greedy`` and ``rl`` need ``net`` (a QNetwork), ``sl`` a SupervisedNet,
-    ``random`` uses ``seed``, ``reactive`` the sensor geometry of ``sensor_cfg``. ``ensemble``:
-    further QNetworks whose Q-values ``greedy`` averages with ``net``'s."""
+                seed: int = 0) -> PolicyFn:
+    """A policy by name: ``greedy`` and ``rl`` need ``net`` (a QNetwork or QEnsemble), ``sl`` a
+    SupervisedNet, ``random`` uses ``seed``, ``reactive`` the sensor geometry of ``sensor_cfg``."""
     if name in ("greedy", "rl", "sl") and net is None:
         raise PolicyError(f"the {name} policy needs a network: give a checkpoint")
-    if ensemble and name != "greedy":
-        raise PolicyError(f"an ensemble plays the greedy policy, not {name}")
     if name == "greedy":
-        return GreedyPolicy(net, ensemble)
+        return GreedyPolicy(net)
     if name == "rl":
         return RLPolicy(net)
     if name == "sl":

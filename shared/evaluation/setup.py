@@ -21,7 +21,7 @@ from shared.evaluation import (
 )
 from shared.evaluation.policies import make_policy
 from shared.evaluation.protocol import PolicyFn
-from shared.learning.checkpoints import LoadedModel, load_model, load_supervised_model
+from shared.learning.checkpoints import LoadedModel, ensemble_models, load_model, load_supervised_model
 
 log = logging.getLogger("cogexplore.evaluate")
 
@@ -40,16 +40,14 @@ class EvalSetup:
     env_cfg: EnvConfig
     world: str
     model: LoadedModel | None
-    ensemble: tuple[LoadedModel, ...] = ()
-    """Further models whose Q-values the greedy policy averages with ``model``'s."""
+    """The network played (a Q-value ensemble when ``setup_evaluation`` was given ``ensemble``); None
+    for a baseline."""
 
     def meta(self) -> dict[str, Any]:
-        label = self.model.label if self.model is not None else self.policy
-        out: dict[str, Any] = {"policy": self.policy, "model": "+".join([label, *(m.label for m in self.ensemble)])}
+        out: dict[str, Any] = {"policy": self.policy,
+                               "model": self.model.label if self.model is not None else self.policy}
         if self.model is not None:
             out.update(self.model.meta())
-        if self.ensemble:
-            out["ensemble"] = [m.meta() for m in self.ensemble]
         return out
 
 
@@ -59,7 +57,8 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                      ensemble: Sequence[str | Path | LoadedModel] = ()) -> EvalSetup:
     """Resolve policy, network, sensor, env and world (shared by ``evaluate`` and ``report``).
     ``ensemble``: further checkpoints (or loaded models) whose Q-values the greedy policy averages
-    with the checkpoint's; the environment stays the checkpoint's."""
+    with the checkpoint's (``EvalSetup.model`` is then their ensemble); the environment stays the
+    checkpoint's."""
     policy = policy or ("greedy" if (checkpoint is not None or model is not None) else None)
     if policy is None:
         raise EvaluateError("give --checkpoint (greedy policy) or --policy random|reactive")
@@ -70,6 +69,8 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                             + " or ".join(BASELINE_POLICIES) + ")")
     if model is None and checkpoint is not None:
         model = load_supervised_model(checkpoint, device) if policy == "sl" else load_model(checkpoint, device)
+    if ensemble and policy != "greedy":
+        raise EvaluateError(f"an ensemble plays the greedy policy, not {policy}")
     members = tuple(m if isinstance(m, LoadedModel) else load_model(m, device) for m in ensemble)
     for member in members:
         # The episodes run in the checkpoint's environment: a member trained for another robot
@@ -81,6 +82,8 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                 name, theirs, mine = env_differences[0]
                 raise EvaluateError(f"ensemble member {member.path} was trained with {name} = {theirs!r}, "
                                     f"the checkpoint with {mine!r}: an ensemble's models must share the robot")
+    if members and model is not None:
+        model = ensemble_models([model, *members])
     if model is not None and (policy == "sl") != (model.kind == "supervised"):
         raise EvaluateError(f"{model.path} is a {model.kind} file: the sl policy takes a supervised model "
                             "(`cogexplore pretrain`), the other policies a Q-network checkpoint")
@@ -119,9 +122,7 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                             "images; the sensor size cannot be overridden")
     # the camera itself: a run's training noise (robust-40x30's) is no part of it, the protocol adds its own
     sensor = cfg.sensor.noise_free()
-    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=sensor, seed=seed,
-                     ensemble=[m.net for m in members])
+    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=sensor, seed=seed)
     world_name = world or (model.run_config.env.world if model is not None and model.run_config is not None
                            else DEFAULT_WORLD)
-    return EvalSetup(policy, fn, sensor, cfg.env, world_name,
-                     model if policy in ("greedy", "sl", "rl") else None, members)
+    return EvalSetup(policy, fn, sensor, cfg.env, world_name, model if policy in ("greedy", "sl", "rl") else None)

@@ -32,7 +32,8 @@ conv layers into a DQN agent.
 
 **Loading for play**: ``load_model`` takes whatever a user names (a checkpoint file or directory,
 a run folder, a weights export, ``pretrained``) and returns a :class:`LoadedModel` (network in eval
-mode, where it came from, its run config); ``average_models`` averages several.
+mode, where it came from, its run config); ``average_models`` averages several networks' weights,
+``ensemble_models`` makes a Q-value ensemble of them (one file with ``export_weights``).
 
 Weights are safetensors and metadata JSON: nothing is ever unpickled.
 """
@@ -62,7 +63,9 @@ from shared.config import ConfigError, ModelConfig, RunConfig, SensorConfig, fro
 from shared.errors import CogexploreError
 from shared.learning.dqn import DQNAgent, DQNError
 from shared.learning.model import (
+    MAX_ENSEMBLE_MEMBERS,
     ModelError,
+    QEnsemble,
     QNetwork,
     SupervisedNet,
     architecture_fingerprint,
@@ -358,18 +361,21 @@ class CheckpointManager:
 
 
 # --------------------------------------------------------------------------- weights-only export
-def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0, *, half: bool = False,
+def export_weights(path: Path | str, net: QNetwork | QEnsemble, policy_version: int = 0, *, half: bool = False,
                    extra: Mapping[str, Any] | None = None) -> Path:
     """Write the network's weights, architecture and policy version (for deployment).
 
-    ``half`` stores float16 (half the bytes; loading casts back to float32, and the greedy
-    action is what matters, not the last bits of a Q-value). ``extra`` is JSON-able metadata
-    kept beside the weights (e.g. a model card)."""
+    A :class:`QEnsemble` is written as one file: every member's weights (``members.<i>.``) and, in
+    ``members``, every member's model config. ``half`` stores float16 (half the bytes; loading
+    casts back to float32, and the greedy action is what matters, not the last bits of a Q-value).
+    ``extra`` is JSON-able metadata kept beside the weights (e.g. a model card)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
             "fingerprint": architecture_fingerprint(net),
             "model": asdict(net.model_cfg), "sensor": asdict(net.sensor_cfg), **dict(extra or {})}
+    if isinstance(net, QEnsemble):
+        meta["members"] = [asdict(m.model_cfg) for m in net.members]
     tensors = weights_to_tensors(net)
     if half:
         tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
@@ -377,13 +383,24 @@ def export_weights(path: Path | str, net: QNetwork, policy_version: int = 0, *, 
     return path
 
 
-def load_exported_weights(path: Path | str, device: str | torch.device = "cpu") -> tuple[QNetwork, dict[str, Any]]:
-    """Rebuild the QNetwork of an ``export_weights`` file (eval mode) and return it with its metadata."""
+def load_exported_weights(path: Path | str, device: str | torch.device = "cpu",
+                          ) -> tuple[QNetwork | QEnsemble, dict[str, Any]]:
+    """Rebuild the network of an ``export_weights`` file (eval mode: a QNetwork, or a QEnsemble
+    for an ensemble's file) and return it with its metadata."""
     path = Path(path)
     tensors, meta = load_tensors_file(path, WEIGHTS_FORMAT)
+    members = meta.get("members")
     try:
-        net = QNetwork(ModelConfig(**meta["model"]), SensorConfig(**meta["sensor"]))
-    except (ConfigError, TypeError, KeyError) as exc:
+        sensor = SensorConfig(**meta["sensor"])
+        if members is None:
+            net: QNetwork | QEnsemble = QNetwork(ModelConfig(**meta["model"]), sensor)
+        elif not (isinstance(members, list) and 2 <= len(members) <= MAX_ENSEMBLE_MEMBERS
+                  and all(isinstance(m, dict) for m in members)):
+            raise CheckpointError(f"{path}: an ensemble's members must be a list of 2 to {MAX_ENSEMBLE_MEMBERS} "
+                                  "model configs")
+        else:
+            net = QEnsemble([QNetwork(ModelConfig(**m), sensor) for m in members])
+    except (ConfigError, ModelError, TypeError, KeyError) as exc:
         raise CheckpointError(f"{path}: architecture metadata is invalid: {exc}") from None
     if architecture_fingerprint(net) != meta.get("fingerprint"):
         raise CheckpointError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its own "
@@ -421,8 +438,9 @@ def pretrained_path(name: str | Path) -> Path | None:
 
 def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
     """Fine-tuning (``train.init_from``): the agent's online and target networks from a weights
-    export or ``pretrained`` (the shipped DRL model). Raises CheckpointError when the file's
-    network or image is not the agent's. Returns the file's metadata."""
+    export or ``pretrained`` (the shipped DRL model); from an ensemble's file, its first member (a
+    learner trains one network, and the first is the one the ensemble was built around). Raises
+    CheckpointError when the file's network or image is not the agent's. Returns the file's metadata."""
     path = pretrained_path(source) or Path(source)
     if not path.is_file():
         raise CheckpointError(f"train.init_from = {str(source)!r}: no such file")
@@ -431,6 +449,10 @@ def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
     except CheckpointError as exc:
         raise CheckpointError(f"train.init_from: {exc} (a training checkpoint becomes a weights file with "
                               "`cogexplore model export CKPT --out FILE`)") from None
+    if isinstance(net, QEnsemble):
+        log.info("train.init_from = %s: an ensemble of %d networks; starting from its first", source,
+                 len(net.members))
+        net = net.members[0]
     theirs, ours = net.sensor_cfg, agent.sensor_cfg
     if architecture_fingerprint(net) != agent.fingerprint or (theirs.width, theirs.height, theirs.max_range_m) != (
             ours.width, ours.height, ours.max_range_m):
@@ -522,7 +544,7 @@ class LoadedModel:
     """A network ready for greedy evaluation, and where it came from."""
 
     net: Any
-    """The QNetwork (eval mode, on the requested device)."""
+    """The QNetwork, or QEnsemble for an ensemble (eval mode, on the requested device)."""
     path: Path
     """The file actually loaded (a run folder resolves to its latest checkpoint)."""
     kind: str
@@ -537,6 +559,9 @@ class LoadedModel:
     """A fixed table name (the baselines: 'SL', 'RL'); None: derived from the path."""
     averaged_from: tuple[dict[str, Any], ...] = ()
     """For a mean of several checkpoints (:func:`average_models`): each source and its update."""
+    ensemble_of: tuple[dict[str, Any], ...] = ()
+    """For a Q-value ensemble (:func:`ensemble_models`, or an ensemble's weights file): each member's
+    source, policy version and weights digest, in the order of ``net.members``."""
 
     @property
     def label(self) -> str:
@@ -547,8 +572,21 @@ class LoadedModel:
         return f"{stem}@{self.policy_version}"
 
     def meta(self) -> dict[str, Any]:
-        return {"checkpoint": str(self.path), "checkpoint_kind": self.kind, "policy_version": self.policy_version,
-                "fingerprint": self.fingerprint, "weights_sha256": self.weights_sha256}
+        out = {"checkpoint": str(self.path), "checkpoint_kind": self.kind, "policy_version": self.policy_version,
+               "fingerprint": self.fingerprint, "weights_sha256": self.weights_sha256}
+        if self.ensemble_of:
+            out["ensemble"] = [dict(m) for m in self.ensemble_of]
+        return out
+
+    def member_entries(self) -> tuple[dict[str, Any], ...]:
+        """What an ensemble records of this model: one entry per network it holds."""
+        if self.ensemble_of:
+            return self.ensemble_of
+        entry: dict[str, Any] = {"source": str(self.path), "label": self.label,
+                                 "policy_version": self.policy_version, "weights_sha256": self.weights_sha256}
+        if self.averaged_from:
+            entry["averaged_from"] = list(self.averaged_from)
+        return (entry,)
 
 
 def weights_sha256(net: torch.nn.Module) -> str:
@@ -636,7 +674,29 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
         errors.append(str(exc))
         raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
     return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
-                       weights_sha256(net), None, averaged_from=_averaged_from(meta))
+                       weights_sha256(net), None, averaged_from=_averaged_from(meta),
+                       ensemble_of=_ensemble_of(meta, net))
+
+
+def ensemble_models(models: Sequence[LoadedModel]) -> LoadedModel:
+    """A Q-value ensemble (:class:`QEnsemble`) of several loaded models, labelled ``a@v+b@w``, with
+    the first model's file, update and run config; one model is returned as is. An ensemble among
+    them joins with all its networks. CheckpointError when the networks read different cameras."""
+    if not models:
+        raise CheckpointError("an ensemble needs at least one model")
+    if len(models) == 1:
+        return models[0]
+    first = models[0]
+    if any(m.kind == "supervised" for m in models):
+        raise CheckpointError("an ensemble is of Q-networks; a supervised model cannot join one")
+    try:
+        net = QEnsemble([m.net for m in models])
+    except ModelError as exc:
+        raise CheckpointError(f"cannot make an ensemble of these models: {exc}") from None
+    entries = tuple(e for m in models for e in m.member_entries())
+    return dataclasses.replace(first, net=net.eval(), fingerprint=architecture_fingerprint(net),
+                               weights_sha256=weights_sha256(net), averaged_from=(), ensemble_of=entries,
+                               name="+".join(m.label for m in models))
 
 
 def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
@@ -677,6 +737,28 @@ def _averaged_from(meta: Mapping[str, Any]) -> tuple[dict[str, Any], ...]:
             for s in sources):
         return ()
     return tuple({"source": s["source"], "policy_version": s["policy_version"]} for s in sources)
+
+
+def _ensemble_of(meta: Mapping[str, Any], net: torch.nn.Module) -> tuple[dict[str, Any], ...]:
+    """One entry per network of an ensemble's export (``model export --ensemble``): where the file
+    says each member came from, and its weights digest recomputed from the file. Like
+    ``_averaged_from`` this only labels the model, so a malformed list is dropped, not trusted."""
+    if not isinstance(net, QEnsemble):
+        return ()
+    stored = meta.get("ensemble_of")
+    if not (isinstance(stored, list) and len(stored) == len(net.members) and all(
+            isinstance(e, dict) and isinstance(e.get("source"), str) and isinstance(e.get("policy_version"), int)
+            for e in stored)):
+        stored = [{"source": f"member {i}", "policy_version": 0} for i in range(len(net.members))]
+    entries = []
+    for e, member in zip(stored, net.members):
+        entry = {"source": e["source"], "label": str(e.get("label") or e["source"]),
+                 "policy_version": e["policy_version"], "weights_sha256": weights_sha256(member)}
+        averaged = _averaged_from(e)
+        if averaged:
+            entry["averaged_from"] = list(averaged)
+        entries.append(entry)
+    return tuple(entries)
 
 
 def _stored_config(data: Mapping[str, Any], section: str) -> Any:

@@ -295,6 +295,52 @@ class QNetwork(nn.Module):
         return [p for n, p in self.named_parameters() if not n.startswith("trunk.")]
 
 
+MAX_ENSEMBLE_MEMBERS = 16
+"""The most networks one :class:`QEnsemble` (and an ensemble weights file) may hold."""
+
+
+class QEnsemble(nn.Module):
+    """Several independently trained Q-networks that read one camera, acting as one network: the
+    Q-values are the mean of the members', each member fed the same previous command (the one the
+    ensemble chose last). Averaging cuts the variance that makes one DQN's greedy policy swing
+    between runs of the same recipe (Osband et al. 2016; Anschel et al. 2017, Averaged-DQN).
+
+    It plays wherever a QNetwork is played (greedy policies, ``InferenceRunner``, ``cogexplore
+    drive``, ONNX export); ``features`` stacks the members' pool3 maps along the channels, so a
+    receptive-field map sums every member's. ``model_cfg`` is the first member's (members may
+    differ in their fc layers or depth encoding). It is never trained: a learner trains one QNetwork.
+    """
+
+    def __init__(self, members: Any):
+        super().__init__()
+        members = list(members)
+        if not 2 <= len(members) <= MAX_ENSEMBLE_MEMBERS:
+            raise ModelError(f"an ensemble holds 2 to {MAX_ENSEMBLE_MEMBERS} networks, got {len(members)}")
+        flat: list[QNetwork] = []
+        for m in members:  # an ensemble of ensembles is the ensemble of all their networks
+            flat += list(m.members) if isinstance(m, QEnsemble) else [m]
+        if not all(isinstance(m, QNetwork) for m in flat):
+            raise ModelError("an ensemble's members must be Q-networks, got "
+                             + ", ".join(sorted({type(m).__name__ for m in flat})))
+        if len(flat) > MAX_ENSEMBLE_MEMBERS:
+            raise ModelError(f"an ensemble holds at most {MAX_ENSEMBLE_MEMBERS} networks, got {len(flat)}")
+        camera = flat[0].sensor_cfg.noise_free()
+        for m in flat[1:]:
+            if m.sensor_cfg.noise_free() != camera:
+                raise ModelError(f"an ensemble's networks must read the same camera: {camera} against "
+                                 f"{m.sensor_cfg.noise_free()}")
+        self.members = nn.ModuleList(flat)
+        self.sensor_cfg = flat[0].sensor_cfg
+        self.model_cfg = flat[0].model_cfg
+
+    def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
+        """Every member's pool3, stacked along the channels: (B, 64 * members, H/8, W/8)."""
+        return torch.cat([m.features(x, float32=float32) for m in self.members], dim=1)
+
+    def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
+        return torch.stack([m(x, previous_action, float32=float32) for m in self.members]).mean(0)
+
+
 class SupervisedNet(nn.Module):
     """The authors' supervised obstacle-avoidance model: the same ConvTrunk + one fc to 5 classes."""
 

@@ -1,10 +1,11 @@
-"""A Q-network as an ONNX file that a robot computer runs without torch (``cogexplore model export
---onnx``; the runner is ``cogexplore.onnx_runner``, the file's contract ``shared.learning.onnx_format``).
+"""A Q-network (or a Q-value ensemble) as an ONNX file that a robot computer runs without torch
+(``cogexplore model export --onnx``; the runner is ``cogexplore.onnx_runner``, the file's contract
+``shared.learning.onnx_format``).
 
 The graph is traced from :class:`_ExportGraph`, which has fixed tensor inputs and no Python branch
 on their values, so the trace is the whole computation for every input. Every export is checked
 before it lands on disk: onnxruntime runs the serialised file on random range-gated images with
-every previous command, at batch sizes 1 and 12, against ``QNetwork.forward``; a mismatch raises
+every previous command, at batch sizes 1 and 12, against the network's forward; a mismatch raises
 :class:`OnnxModelError` and leaves no file behind.
 """
 
@@ -30,7 +31,7 @@ from shared.config import NUM_ACTIONS, load_preset
 from shared.depth import range_gate
 from shared.evaluation.setup import setup_evaluation
 from shared.learning.checkpoints import LoadedModel, weights_sha256
-from shared.learning.model import QNetwork, preprocess_depth
+from shared.learning.model import QEnsemble, QNetwork, preprocess_depth
 from shared.learning.onnx_format import (
     DEPTH_INPUT,
     MATCH_TOLERANCE,
@@ -49,22 +50,27 @@ CHECK_IMAGES_PER_COMMAND = 2
 
 
 class _ExportGraph(nn.Module):
-    """``QNetwork.forward`` on explicit tensors: metres in (``preprocess_depth``, the one place depth
-    becomes network input), and the previous command as an int64 index with -1 for none.
+    """``QNetwork.forward`` (or ``QEnsemble.forward``: the mean over its members) on explicit
+    tensors: metres in (``preprocess_depth``, the one place depth becomes network input), and the
+    previous command as an int64 index with -1 for none.
 
     Its head repeats ``QNetwork.head`` with the one-hot built by comparison with ``arange``, which
     traces to plain ops (``previous_action_input`` branches on values to validate them); the check
-    of every export against ``QNetwork.forward`` is what keeps the two the same."""
+    of every export against the network's forward is what keeps the two the same."""
 
-    def __init__(self, net: QNetwork):
+    def __init__(self, net: QNetwork | QEnsemble):
         super().__init__()
-        self.net = net
+        self.members = nn.ModuleList(net.members if isinstance(net, QEnsemble) else [net])
         self.register_buffer("commands", torch.arange(NUM_ACTIONS, dtype=torch.int64), persistent=False)
 
     def forward(self, depth_m: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
-        net = self.net
+        x = preprocess_depth(depth_m[:, 0])
+        q = [self._member_q(net, x, previous_action) for net in self.members]
+        return q[0] if len(q) == 1 else torch.stack(q).mean(0)
+
+    def _member_q(self, net: QNetwork, x: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
         # the trunk, not features(): its shape check is the graph's fixed input shape here
-        pool3 = net.trunk(preprocess_depth(depth_m[:, 0]))
+        pool3 = net.trunk(x)
         h = net.fc1(torch.flatten(pool3.contiguous(), 1))
         if net.previous_action_fc is not None:
             # -1 (none) equals no command: a zero row, as previous_action_input gives it
@@ -91,13 +97,15 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
     if isinstance(model, LoadedModel):
         net, source, version = model.net, str(model.path), model.policy_version
         label = label or model.label
-        extra = {**({"averaged_from": list(model.averaged_from)} if model.averaged_from else {}), **dict(extra or {})}
-    elif isinstance(model, QNetwork):
+        extra = {**({"averaged_from": list(model.averaged_from)} if model.averaged_from else {}),
+                 **({"ensemble_of": list(model.ensemble_of)} if model.ensemble_of else {}), **dict(extra or {})}
+    elif isinstance(model, (QNetwork, QEnsemble)):
         net, source, version = model, label or "network", 0
         label = label or "network"
     else:
-        raise OnnxModelError(f"export_onnx takes a LoadedModel or a QNetwork, got {type(model).__name__}")
-    if not isinstance(net, QNetwork):
+        raise OnnxModelError(f"export_onnx takes a LoadedModel, a QNetwork or a QEnsemble, "
+                             f"got {type(model).__name__}")
+    if not isinstance(net, (QNetwork, QEnsemble)):
         raise OnnxModelError(f"only a Q-network exports to ONNX; {source} holds a {type(net).__name__}")
     # a CPU float32 copy in eval mode: the caller's network (maybe on CUDA, maybe training) is left as it is
     net = copy.deepcopy(net).to("cpu", torch.float32).eval()
@@ -135,7 +143,7 @@ def _cogexplore_version() -> str:
         return "0+unknown"
 
 
-def _serialise(net: QNetwork, info: OnnxPolicyInfo) -> bytes:
+def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
     s = net.sensor_cfg
     example = (torch.zeros(2, 1, s.height, s.width), torch.full((2,), NO_PREVIOUS_ACTION, dtype=torch.int64))
     buffer = io.BytesIO()
@@ -163,7 +171,7 @@ def _serialise(net: QNetwork, info: OnnxPolicyInfo) -> bytes:
     return proto.SerializeToString()
 
 
-def check_inputs(net: QNetwork, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def check_inputs(net: QNetwork | QEnsemble, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Random range-gated depth images (B, 1, H, W) with no-return holes and one empty image, and
     every previous command (-1..4) ``CHECK_IMAGES_PER_COMMAND`` times (B,): what an export is checked on."""
     s = net.sensor_cfg
@@ -180,7 +188,7 @@ def q_difference(q: np.ndarray, reference: np.ndarray) -> float:
     return float(np.abs(q - reference).max() / max(1.0, float(np.abs(reference).max())))
 
 
-def _check_against_torch(net: QNetwork, data: bytes, path: Path) -> None:
+def _check_against_torch(net: QNetwork | QEnsemble, data: bytes, path: Path) -> None:
     depth, previous = check_inputs(net)
     with torch.inference_mode():
         reference = net(preprocess_depth(depth[:, 0]), previous).numpy()

@@ -83,7 +83,7 @@ def test_it_chooses_the_torch_policys_commands_over_a_real_episode(torch_policy:
             assert not (terminated or truncated)  # the shipped model survives these 30 steps
     finally:
         env.close()
-    assert len(set(commands)) >= 4  # it turns both ways: not one easy command all along
+    assert len(set(commands)) >= 3  # it steers and goes straight: not one easy command all along
 
 
 def test_it_has_the_torch_policys_surface(torch_policy: cogexplore.Policy, policy: OnnxPolicy,

@@ -70,6 +70,8 @@ def test_the_default_preset_is_the_shipped_models_recipe() -> None:
     from shared.learning.model import QNetwork, architecture_fingerprint
 
     cfg = load_preset(DEFAULT_PRESET)
-    shipped = load_model("pretrained").net
-    assert architecture_fingerprint(QNetwork(cfg.model, cfg.sensor)) == architecture_fingerprint(shipped)
-    assert cfg.sensor == shipped.sensor_cfg
+    shipped = load_model("pretrained").net  # an ensemble of networks of this recipe
+    assert len(shipped.members) == 3
+    for member in shipped.members:
+        assert architecture_fingerprint(QNetwork(cfg.model, cfg.sensor)) == architecture_fingerprint(member)
+        assert cfg.sensor == member.sensor_cfg

@@ -114,7 +114,7 @@ def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one(
     policy = GreedyPolicy(QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor))
     seen: list[int | None] = []  # the previous command of each call
     chosen: list[int] = []
-    runner = policy.policies[0]._runner
+    runner = policy.policy._runner
     q_values = runner.q_values
 
     def spy(depth, previous_action=None):
@@ -353,12 +353,12 @@ def test_an_ensemble_plays_the_mean_of_its_networks_q_values(tmp_path: Path) -> 
     import torch
 
     from shared.config import ModelConfig
-    from shared.learning.model import InferenceRunner, QNetwork
+    from shared.learning.model import InferenceRunner, ModelError, QEnsemble, QNetwork
 
     sensor = SensorConfig(width=40, height=30)
     torch.manual_seed(0)
-    nets = [QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor) for _ in range(2)]
-    alone, pair = make_policy("greedy", net=nets[0]), make_policy("greedy", net=nets[0], ensemble=[nets[1]])
+    nets = [QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor).eval() for _ in range(2)]
+    alone, pair = make_policy("greedy", net=nets[0]), make_policy("greedy", net=QEnsemble(nets))
     runners = [InferenceRunner(n) for n in nets]
     rng = np.random.default_rng(0)
     previous = None
@@ -377,13 +377,18 @@ def test_an_ensemble_plays_the_mean_of_its_networks_q_values(tmp_path: Path) -> 
     depth = np.full((30, 40), 2.0, np.float32)
     assert np.allclose(pair(depth)[1], np.mean([r.q_values(depth, None) for r in runners], axis=0), atol=1e-6)
     # an ensemble of a network with itself is that network
-    twin = make_policy("greedy", net=nets[0], ensemble=[nets[0]])
+    twin = make_policy("greedy", net=QEnsemble([nets[0], nets[0]]))
     assert np.allclose(twin(depth)[1], alone(depth)[1], atol=1e-6)
-    with pytest.raises(PolicyError, match="same camera"):
-        make_policy("greedy", net=nets[0], ensemble=[QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=64,
-                                                                                                      height=48))])
-    with pytest.raises(PolicyError, match="greedy policy"):
-        make_policy("rl", net=nets[0], ensemble=[nets[1]])
+    # an ensemble joins with its networks; features stack every member's pool3 (receptive-field maps)
+    trio = QEnsemble([QEnsemble(nets), nets[0]])
+    assert len(trio.members) == 3
+    assert tuple(trio.features(torch.ones(1, 1, 30, 40)).shape) == (1, 3 * 64, 3, 5)
+    with pytest.raises(ModelError, match="same camera"):
+        QEnsemble([nets[0], QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=64, height=48))])
+    with pytest.raises(ModelError, match="2 to 16"):
+        QEnsemble(nets[:1])
+    with pytest.raises(ModelError, match="at most 16"):
+        QEnsemble([QEnsemble(nets * 5), QEnsemble(nets * 4)])
 
 
 def test_evaluate_an_ensemble_records_its_members(tmp_path: Path, capsys) -> None:
@@ -393,14 +398,25 @@ def test_evaluate_an_ensemble_records_its_members(tmp_path: Path, capsys) -> Non
     assert evaluate(argv + ["--ensemble", str(second / "weights.safetensors"), "--json", str(tmp_path / "e.json")]) == 0
     results = validate_results_json((tmp_path / "e.json").read_text())
     assert results.meta["model"] == "a@1000+weights@2000"
-    assert [m["policy_version"] for m in results.meta["ensemble"]] == [2000]
-    assert results.meta["ensemble"][0]["weights_sha256"] == load_model(second).weights_sha256
+    assert [m["policy_version"] for m in results.meta["ensemble"]] == [1000, 2000]
+    assert [m["weights_sha256"] for m in results.meta["ensemble"]] == [load_model(first).weights_sha256,
+                                                                      load_model(second).weights_sha256]
     # with itself as its only member, an ensemble plays exactly the checkpoint alone
     assert evaluate(argv + ["--ensemble", str(first), "--json", str(tmp_path / "twin.json")]) == 0
     assert evaluate(argv + ["--json", str(tmp_path / "alone.json")]) == 0
     twin, alone = (validate_results_json((tmp_path / f"{n}.json").read_text()) for n in ("twin", "alone"))
     assert [e.steps for e in twin.episodes] == [e.steps for e in alone.episodes]
     assert [e.trajectory_xy for e in twin.episodes] == [e.trajectory_xy for e in alone.episodes]
+    # the same ensemble as one file (`model export --ensemble`) plays the same episodes
+    joined = tmp_path / "joined.safetensors"
+    assert main(["model", "export", str(first), str(second / "weights.safetensors"), "--ensemble",
+                 "--out", str(joined)]) == 0
+    assert evaluate(argv[:1] + [str(joined)] + argv[2:] + ["--json", str(tmp_path / "file.json")]) == 0
+    from_file = validate_results_json((tmp_path / "file.json").read_text())
+    assert [e.trajectory_xy for e in from_file.episodes] == [e.trajectory_xy for e in results.episodes]
+    assert from_file.meta["model"] == "joined@1000"
+    assert [m["weights_sha256"] for m in from_file.meta["ensemble"]] == [
+        m["weights_sha256"] for m in results.meta["ensemble"]]
     capsys.readouterr()
     other = tmp_path / "other"  # trained for another robot: refused, not scored on moves it never made
     from shared.learning.checkpoints import CheckpointManager

@@ -18,6 +18,7 @@ from shared.learning.checkpoints import (
     save_checkpoint,
 )
 from shared.learning.dqn import DQNAgent
+from shared.learning.model import QEnsemble
 from shared.learning.replay import ReplayMemory
 
 TINY = SensorConfig(width=40, height=30)
@@ -253,5 +254,47 @@ def test_init_from_starts_the_whole_network_from_a_weights_file_and_refuses_misf
     shipped = load_preset("fast-40x30").with_overrides({"replay.capacity": 500, "train.init_from": "pretrained"})
     assert shipped.train.init_conv_from == "pretrained:sl"
     net, _ = load_exported_weights(pretrained_path("pretrained"))
+    first = net.members[0] if isinstance(net, QEnsemble) else net  # an ensemble starts a run from its first network
     core = LearnerCore(shipped, device="cpu")
-    assert all(torch.equal(core.agent.online.state_dict()[n], t) for n, t in net.state_dict().items())
+    assert all(torch.equal(core.agent.online.state_dict()[n], t) for n, t in first.state_dict().items())
+
+
+def test_an_ensemble_is_one_weights_file_that_plays_the_mean_and_refuses_a_forged_shape(tmp_path, capsys):
+    """``model export A B --ensemble``: one file holding both networks that loads as a QEnsemble
+    (the mean of their Q-values, each member's provenance kept), starts a fine-tuning run from
+    its first network, and whose member list, when forged, is a clear error."""
+    from services.cli import main
+    from shared.config import load_preset
+    from shared.learning.checkpoints import load_model, load_tensors_file, save_tensors_file
+    from shared.learning.learner import LearnerCore
+
+    base = load_preset("tiny").with_overrides({"replay.capacity": 500})
+    agents = [LearnerCore(base.with_overrides({"train.seed": s}), device="cpu").agent for s in (1, 2)]
+    paths = [export_weights(tmp_path / f"m{i}.safetensors", a.online, 100 * (i + 1)) for i, a in enumerate(agents)]
+    out = tmp_path / "ens.safetensors"
+    assert main(["model", "export", *map(str, paths), "--ensemble", "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out)["ensemble"] == 2
+    model = load_model(out)
+    assert isinstance(model.net, QEnsemble) and len(model.net.members) == 2 and model.label == "ens@100"
+    assert [e["source"] for e in model.ensemble_of] == list(map(str, paths))
+    assert [e["weights_sha256"] for e in model.ensemble_of] == [load_model(p).weights_sha256 for p in paths]
+    depth = np.random.default_rng(0).random((3, 30, 40)).astype(np.float32) * 4
+    from shared.learning.model import InferenceRunner
+
+    want = np.mean([a.q_values(depth) for a in agents], axis=0)
+    np.testing.assert_allclose(InferenceRunner(model.net).q_values(depth), want, rtol=1e-5, atol=1e-6)
+    # fine-tuning from an ensemble: a learner trains one network, the first
+    core = LearnerCore(base.with_overrides({"train.init_from": str(out)}), device="cpu")
+    for name, tensor in agents[0].online.state_dict().items():
+        assert torch.equal(core.agent.online.state_dict()[name], tensor), name
+
+    assert main(["model", "export", str(paths[0]), "--ensemble", "--out", str(tmp_path / "one.safetensors")]) == 2
+    assert "at least two" in capsys.readouterr().err
+    tensors, meta = load_tensors_file(out, "cogexplore-weights")
+    for forged in (meta["members"][:1], meta["members"] * 9, "two", [1, 2]):
+        bad = tmp_path / "forged.safetensors"
+        save_tensors_file(bad, tensors, {k: v for k, v in meta.items() if k != "digest"} | {"members": forged})
+        with pytest.raises(CheckpointError, match="members must be a list|does not match"):
+            load_model(bad)
+    save_tensors_file(bad, tensors, {k: v for k, v in meta.items() if k != "digest"} | {"ensemble_of": "forged"})
+    assert [e["source"] for e in load_model(bad).ensemble_of] == ["member 0", "member 1"]  # labels only

@@ -15,10 +15,10 @@ import pytest
 import torch
 
 from services.cli import main
-from shared.config import NUM_ACTIONS, load_preset
+from shared.config import NUM_ACTIONS, ModelConfig, load_preset
 from shared.learning import onnx_export
 from shared.learning.checkpoints import LoadedModel, load_model, load_supervised_model
-from shared.learning.model import QNetwork, preprocess_depth
+from shared.learning.model import QEnsemble, QNetwork, preprocess_depth
 from shared.learning.onnx_export import check_inputs, export_onnx, q_difference
 from shared.learning.onnx_format import (
     MATCH_TOLERANCE,
@@ -40,6 +40,14 @@ def _smoke_net() -> QNetwork:
     return QNetwork(cfg.model, cfg.sensor).eval()
 
 
+def _ensemble() -> QEnsemble:
+    """Two random networks that read the previous command, of different fc widths: a Q-value ensemble."""
+    torch.manual_seed(4)
+    sensor = load_preset("fast-40x30").sensor
+    return QEnsemble([QNetwork(ModelConfig(fc1=fc, fc2=16, previous_action=True, depth_encoding="inverse"), sensor)
+                      for fc in (32, 48)]).eval()
+
+
 @pytest.fixture(scope="module")
 def shipped() -> LoadedModel:
     return load_model("pretrained")
@@ -55,10 +63,10 @@ def _onnx_q(path: Path, depth: np.ndarray, previous: np.ndarray) -> np.ndarray:
     return session.run(["q_values"], {"depth_m": depth, "previous_action": previous})[0]
 
 
-@pytest.mark.parametrize("which", ["pretrained", "smoke"])
+@pytest.mark.parametrize("which", ["pretrained", "smoke", "ensemble"])
 def test_the_export_gives_torchs_q_values_for_every_previous_command_and_batch(
         which: str, shipped: LoadedModel, tmp_path: Path) -> None:
-    model = shipped if which == "pretrained" else _smoke_net()
+    model = {"pretrained": shipped, "smoke": _smoke_net(), "ensemble": _ensemble()}[which]
     net = model.net if isinstance(model, LoadedModel) else model
     path = export_onnx(model, tmp_path / f"{which}.onnx")
     depth, _ = check_inputs(net, seed=11)  # other images than the export's own check
@@ -97,9 +105,9 @@ def test_the_file_describes_its_network(shipped: LoadedModel, tmp_path: Path) ->
     assert (info.label, info.policy_version, info.weights_sha256) == (
         shipped.label, shipped.policy_version, shipped.weights_sha256)
     assert info.source == str(shipped.path) and info.cogexplore_version == cogexplore.__version__
-    # the shipped model is a mean of four checkpoints: the file says which
-    assert len(shipped.averaged_from) == 4
-    assert info.extra == {"averaged_from": list(shipped.averaged_from), "card": {"robot": "turtlebot"}}
+    # the shipped model is an ensemble of three networks, each a mean of four checkpoints: the file says which
+    assert [len(m["averaged_from"]) for m in shipped.ensemble_of] == [4, 4, 4]
+    assert info.extra == {"ensemble_of": list(shipped.ensemble_of), "card": {"robot": "turtlebot"}}
     body = json.loads(props[METADATA_KEY])
     assert body["sensor"]["hfov_deg"] == 57.0 and body["model"]["depth_encoding"] == "inverse"
     assert body["model"]["previous_action"] is True and body["format"] == "cogexplore-onnx"
@@ -120,7 +128,7 @@ def test_a_mismatching_or_diverged_export_never_lands_on_disk(tmp_path: Path, mo
     with pytest.raises(OnnxModelError, match="not finite"):
         export_onnx(net, path)
     assert path.read_bytes() == b"the previous export" and sorted(p.name for p in tmp_path.iterdir()) == ["model.onnx"]
-    with pytest.raises(OnnxModelError, match="takes a LoadedModel or a QNetwork"):
+    with pytest.raises(OnnxModelError, match="takes a LoadedModel, a QNetwork or a QEnsemble"):
         export_onnx("pretrained", path)  # type: ignore[arg-type]
     with pytest.raises(OnnxModelError, match="only a Q-network exports to ONNX; .*sl.safetensors holds a SupervisedNet"):
         export_onnx(load_supervised_model("pretrained"), path)
