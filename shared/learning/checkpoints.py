@@ -681,15 +681,14 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
 def ensemble_models(models: Sequence[LoadedModel]) -> LoadedModel:
     """A Q-value ensemble (:class:`QEnsemble`) of several loaded models, labelled ``a@v+b@w``, with
     the first model's file, update and run config; one model is returned as is. An ensemble among
-    them joins with all its networks. CheckpointError when the networks read different cameras."""
+    them joins with all its networks. CheckpointError when one is not a Q-network or the networks
+    read different cameras."""
     if not models:
         raise CheckpointError("an ensemble needs at least one model")
     if len(models) == 1:
         return models[0]
     first = models[0]
-    if any(m.kind == "supervised" for m in models):
-        raise CheckpointError("an ensemble is of Q-networks; a supervised model cannot join one")
-    try:
+    try:  # QEnsemble refuses what is not a Q-network (a supervised model) and another camera
         net = QEnsemble([m.net for m in models])
     except ModelError as exc:
         raise CheckpointError(f"cannot make an ensemble of these models: {exc}") from None
