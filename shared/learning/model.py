@@ -309,21 +309,25 @@ class QEnsemble(nn.Module):
     drive``, ONNX export); ``features`` stacks the members' pool3 maps along the channels, so a
     receptive-field map sums every member's. ``model_cfg`` is the first member's (members may
     differ in their fc layers or depth encoding). It is never trained: a learner trains one QNetwork.
+
+    Without autograd (acting, evaluation) and when every member has one model config, the members
+    run as one network: conv1 with every member's filters, conv2 and conv3 as grouped convolutions,
+    the fc layers as batched matrix products (:class:`_FusedMembers`). Same Q-values to float
+    rounding, and one pass instead of one per member: a single image's latency grows far less than
+    the member count.
     """
 
     def __init__(self, members: Any):
         super().__init__()
         members = list(members)
-        if not 2 <= len(members) <= MAX_ENSEMBLE_MEMBERS:
-            raise ModelError(f"an ensemble holds 2 to {MAX_ENSEMBLE_MEMBERS} networks, got {len(members)}")
         flat: list[QNetwork] = []
         for m in members:  # an ensemble of ensembles is the ensemble of all their networks
             flat += list(m.members) if isinstance(m, QEnsemble) else [m]
         if not all(isinstance(m, QNetwork) for m in flat):
             raise ModelError("an ensemble's members must be Q-networks, got "
                              + ", ".join(sorted({type(m).__name__ for m in flat})))
-        if len(flat) > MAX_ENSEMBLE_MEMBERS:
-            raise ModelError(f"an ensemble holds at most {MAX_ENSEMBLE_MEMBERS} networks, got {len(flat)}")
+        if not 2 <= len(flat) <= MAX_ENSEMBLE_MEMBERS:
+            raise ModelError(f"an ensemble holds 2 to {MAX_ENSEMBLE_MEMBERS} networks, got {len(flat)}")
         camera = flat[0].sensor_cfg.noise_free()
         for m in flat[1:]:
             if m.sensor_cfg.noise_free() != camera:
@@ -332,13 +336,81 @@ class QEnsemble(nn.Module):
         self.members = nn.ModuleList(flat)
         self.sensor_cfg = flat[0].sensor_cfg
         self.model_cfg = flat[0].model_cfg
+        self._fused: _FusedMembers | None = None
 
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
         """Every member's pool3, stacked along the channels: (B, 64 * members, H/8, W/8)."""
         return torch.cat([m.features(x, float32=float32) for m in self.members], dim=1)
 
     def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
+        if not torch.is_grad_enabled() and self._fusable(float32):
+            self.members[0]._check_input(x)
+            if self._fused is None or not self._fused.matches(self.members):
+                self._fused = _FusedMembers(self.members)
+            return self._fused(x, previous_action)
         return torch.stack([m(x, previous_action, float32=float32) for m in self.members]).mean(0)
+
+    def _fusable(self, float32: bool) -> bool:
+        first = self.members[0]
+        return (all(m.model_cfg == first.model_cfg for m in self.members)
+                and (float32 or all(m.conv_autocast is None for m in self.members))
+                and not any(m.training and m.model_cfg.dropout > 0 for m in self.members))
+
+
+class _FusedMembers:
+    """An ensemble's members of one model config as one network (see :class:`QEnsemble`): their
+    weights stacked once, re-stacked when any member's weights change (``matches``)."""
+
+    def __init__(self, members: nn.ModuleList):
+        self.key = self._key(members)
+        self.groups = len(members)
+        self.depth_encoding = members[0].model_cfg.depth_encoding
+        self.dueling = members[0].model_cfg.dueling
+        with torch.no_grad():
+            def cat(name: str) -> torch.Tensor:
+                return torch.cat([m.get_parameter(name) for m in members])
+
+            def stack(name: str) -> torch.Tensor:
+                return torch.stack([m.get_parameter(name) for m in members])
+
+            self.convs = [(cat(f"trunk.{c}.weight").contiguous(memory_format=torch.channels_last),
+                           cat(f"trunk.{c}.bias")) for c in ("conv1", "conv2", "conv3")]
+            # (G, in, out) views of (G, out, in) and (G, 1, out): h @ W + b for every member at once
+            linear = ["fc1", "fc2"] + (["value", "advantage"] if self.dueling else ["fc3"])
+            self.linear = {n: (stack(f"{n}.weight").transpose(1, 2), stack(f"{n}.bias")[:, None]) for n in linear}
+            self.previous_action = (stack("previous_action_fc.weight").transpose(1, 2)
+                                    if members[0].previous_action_fc is not None else None)
+
+    @staticmethod
+    def _key(members: nn.ModuleList) -> tuple:
+        return tuple((p.data_ptr(), p._version, p.dtype) for p in members.parameters())
+
+    def matches(self, members: nn.ModuleList) -> bool:
+        return self._key(members) == self.key
+
+    def __call__(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        h = encode_depth(x, self.depth_encoding)
+        for i, (w, b) in enumerate(self.convs):
+            h = F.conv2d(h, w, b, padding=CONV_KERNEL // 2, groups=1 if i == 0 else self.groups)
+            h = F.relu(F.max_pool2d(h, 2), inplace=True)  # pool before ReLU, as ConvTrunk
+        batch = h.shape[0]
+        # each member's channels flattened in NCHW order, as QNetwork.head does: (G, B, 64*h*w)
+        h = h.contiguous().reshape(batch, self.groups, -1).transpose(0, 1)
+
+        def linear(name: str, a: torch.Tensor) -> torch.Tensor:
+            w, b = self.linear[name]
+            return torch.baddbmm(b, a, w)
+
+        h = linear("fc1", h)
+        if self.previous_action is not None:
+            h = h + previous_action_input(previous_action, batch, h.device, h.dtype) @ self.previous_action
+        h = F.relu(linear("fc2", F.relu(h)))
+        if self.dueling:
+            adv = linear("advantage", h)
+            q = linear("value", h) + adv - adv.mean(dim=2, keepdim=True)
+        else:
+            q = linear("fc3", h)
+        return q.mean(0)
 
 
 class SupervisedNet(nn.Module):

@@ -68,7 +68,7 @@ def test_it_chooses_the_torch_policys_commands_over_a_real_episode(torch_policy:
     camera = DepthCamera(env.model, dataclasses.replace(torch_policy.sensor, width=640, height=480))
     commands = []
     try:
-        obs, _ = env.reset(seed=0, options={"start_index": 4})
+        obs, _ = env.reset(seed=0, options={"start_index": 6})
         torch_policy.reset()
         policy.reset()
         for _step in range(30):

@@ -71,7 +71,7 @@ def test_the_default_preset_is_the_shipped_models_recipe() -> None:
 
     cfg = load_preset(DEFAULT_PRESET)
     shipped = load_model("pretrained").net  # an ensemble of networks of this recipe
-    assert len(shipped.members) == 3
+    assert len(shipped.members) == 4
     for member in shipped.members:
         assert architecture_fingerprint(QNetwork(cfg.model, cfg.sensor)) == architecture_fingerprint(member)
         assert cfg.sensor == member.sensor_cfg

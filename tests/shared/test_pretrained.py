@@ -116,7 +116,7 @@ def test_shipped_models_carry_their_card_and_evaluate_out_of_the_box(tmp_path: P
     assert drl.kind == "weights" and drl.path == PRETRAINED_DIR / "drl.safetensors"
     _, meta = load_exported_weights(drl.path)
     card = meta["card"]
-    # an ensemble of three runs: the card names each member, in the file's order
+    # an ensemble of four runs: the card names each member, in the file's order
     assert card["world"] == "paper-indoor" and drl.policy_version > 0
     assert [m["updates"] for m in card["members"]] == [e["policy_version"] for e in drl.ensemble_of]
     assert [m["run"] for m in card["members"]] == [e["label"].split("@")[0] for e in drl.ensemble_of]
@@ -158,7 +158,7 @@ def test_fast_recipes_start_from_the_shipped_sl_model(preset: str) -> None:
         assert torch.equal(mine, target)
     if preset.endswith("40x30"):  # the architecture and camera of the shipped models
         shipped = load_model("pretrained").net
-        for member in shipped.members:  # the shipped DRL model is an ensemble of three runs of one recipe
+        for member in shipped.members:  # the shipped DRL model is an ensemble of four runs of one recipe
             assert architecture_fingerprint(agent.online) == architecture_fingerprint(member)
         # (the stored sensor as the code reads it: fields added since then take their defaults)
         assert SensorConfig(**meta["sensor"]) == cfg.sensor.noise_free() == shipped.sensor_cfg.noise_free()

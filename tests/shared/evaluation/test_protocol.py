@@ -381,13 +381,13 @@ def test_an_ensemble_plays_the_mean_of_its_networks_q_values(tmp_path: Path) -> 
     assert np.allclose(twin(depth)[1], alone(depth)[1], atol=1e-6)
     # an ensemble joins with its networks; features stack every member's pool3 (receptive-field maps)
     trio = QEnsemble([QEnsemble(nets), nets[0]])
-    assert len(trio.members) == 3
+    assert len(trio.members) == 3 and len(QEnsemble([trio]).members) == 3  # counted once flattened
     assert tuple(trio.features(torch.ones(1, 1, 30, 40)).shape) == (1, 3 * 64, 3, 5)
     with pytest.raises(ModelError, match="same camera"):
         QEnsemble([nets[0], QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=64, height=48))])
     with pytest.raises(ModelError, match="2 to 16"):
         QEnsemble(nets[:1])
-    with pytest.raises(ModelError, match="at most 16"):
+    with pytest.raises(ModelError, match="2 to 16 networks, got 18"):
         QEnsemble([QEnsemble(nets * 5), QEnsemble(nets * 4)])
 
 

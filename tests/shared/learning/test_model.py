@@ -11,6 +11,7 @@ from shared.learning.model import (
     INVERSE_DEPTH_NEAR_M,
     InferenceRunner,
     ModelError,
+    QEnsemble,
     QNetwork,
     SupervisedNet,
     architecture_fingerprint,
@@ -225,3 +226,40 @@ def test_previous_action_input_changes_q_and_none_means_no_previous_command():
             net(x, bad)
     with pytest.raises(ConfigError, match="previous_action"):
         ModelConfig(previous_action=1)
+
+
+@pytest.mark.parametrize("cfg", [ModelConfig(fc1=32, fc2=16, previous_action=True, depth_encoding="inverse"),
+                                 ModelConfig(fc1=32, fc2=16, dueling=True)], ids=["previous-command", "dueling"])
+def test_an_ensemble_acting_runs_its_members_as_one_network_with_the_same_q_values(cfg):
+    torch.manual_seed(0)
+    nets = [QNetwork(cfg, TINY).eval() for _ in range(3)]
+    ensemble = QEnsemble(nets).eval()
+    x = preprocess_depth(np.random.default_rng(1).uniform(0.3, 4.0, (4, 30, 40)).astype(np.float32))
+    for previous in (None, 2, [0, 4, -1, 1]):
+        with torch.no_grad():  # a plain loop over the members, with autograd on
+            mean = torch.stack([n(x, previous) for n in nets]).mean(0)
+        with torch.inference_mode():
+            fused = ensemble(x, previous)
+        assert ensemble._fused is not None  # the fused path ran
+        torch.testing.assert_close(fused, mean, rtol=1e-5, atol=1e-5)
+    # new weights in a member (a state dict loaded in place) reach the fused network
+    with torch.no_grad():
+        nets[1].fc2.bias.add_(1.0)
+    with torch.inference_mode():
+        after = ensemble(x, 2)
+    torch.testing.assert_close(after, torch.stack([n(x, 2) for n in nets]).mean(0).detach(), rtol=1e-5, atol=1e-5)
+    assert not torch.allclose(after, fused)
+    with torch.inference_mode(), pytest.raises(ModelError, match="network input"):
+        ensemble(torch.zeros(1, 1, 48, 64))
+
+
+def test_an_ensemble_of_different_fc_layers_still_plays_the_mean():
+    torch.manual_seed(0)
+    nets = [QNetwork(SMALL, TINY).eval(), QNetwork(ModelConfig(fc1=16, fc2=8), TINY).eval()]
+    x = preprocess_depth(np.full((2, 30, 40), 2.0, np.float32))
+    ensemble = QEnsemble(nets)
+    with torch.inference_mode():
+        q = ensemble(x)
+        torch.testing.assert_close(q, (nets[0](x) + nets[1](x)) / 2)
+    assert ensemble._fused is None  # one network after the other
+

@@ -105,8 +105,8 @@ def test_the_file_describes_its_network(shipped: LoadedModel, tmp_path: Path) ->
     assert (info.label, info.policy_version, info.weights_sha256) == (
         shipped.label, shipped.policy_version, shipped.weights_sha256)
     assert info.source == str(shipped.path) and info.cogexplore_version == cogexplore.__version__
-    # the shipped model is an ensemble of three networks, each a mean of four checkpoints: the file says which
-    assert [len(m["averaged_from"]) for m in shipped.ensemble_of] == [4, 4, 4]
+    # the shipped model is an ensemble of four networks, each a mean of four checkpoints: the file says which
+    assert [len(m["averaged_from"]) for m in shipped.ensemble_of] == [4, 4, 4, 4]
     assert info.extra == {"ensemble_of": list(shipped.ensemble_of), "card": {"robot": "turtlebot"}}
     body = json.loads(props[METADATA_KEY])
     assert body["sensor"]["hfov_deg"] == 57.0 and body["model"]["depth_encoding"] == "inverse"
