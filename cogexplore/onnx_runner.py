@@ -23,7 +23,7 @@ import numpy as np
 import onnxruntime
 
 from cogexplore._policy_io import CameraPolicy
-from shared.config import NUM_ACTIONS, SensorConfig
+from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, SensorConfig
 from shared.errors import PolicyError
 from shared.learning.onnx_format import (
     DEPTH_INPUT,
@@ -43,7 +43,7 @@ class OnnxPolicy(CameraPolicy):
 
     Made by :func:`load_onnx_policy`; ``observation``, ``q_values``, ``act``, ``decide``, ``reset``,
     ``previous_command``, ``twist``, ``label``, ``sensor`` and ``control_period_s`` behave as
-    :class:`cogexplore.Policy`'s. Not thread-safe: it remembers the previous command."""
+    :class:`cogexplore.Policy`'s. Not thread-safe: it remembers the previous commands."""
 
     def __init__(self, session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path):
         self.info: OnnxPolicyInfo = info
@@ -53,7 +53,9 @@ class OnnxPolicy(CameraPolicy):
         self.sensor: SensorConfig = info.sensor
         self.control_period_s: float = info.control_period_s
         self._session = session
-        self._previous: int | None = None
+        shape = next(i.shape for i in session.get_inputs() if i.name == PREVIOUS_ACTION_INPUT)
+        self._history = int(shape[1]) if len(shape) == 2 else 0  # 0: (B,), the last command only
+        self._previous_commands: tuple[int, ...] = ()  # most recent first
 
     @property
     def label(self) -> str:
@@ -63,25 +65,30 @@ class OnnxPolicy(CameraPolicy):
     @property
     def previous_command(self) -> int | None:
         """The command the last :meth:`act` chose (None after :meth:`reset`)."""
-        return self._previous
+        return self._previous_commands[0] if self._previous_commands else None
 
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;
         changes nothing (the next :meth:`act` still sees the same previous command)."""
-        previous = NO_PREVIOUS_ACTION if self._previous is None else self._previous
-        feed = {DEPTH_INPUT: self.observation(depth_m)[None, None],
-                PREVIOUS_ACTION_INPUT: np.array([previous], dtype=np.int64)}
+        if self._history:
+            known = self._previous_commands[:self._history]
+            previous = np.array([known + (NO_PREVIOUS_ACTION,) * (self._history - len(known))], dtype=np.int64)
+        else:
+            last = self.previous_command
+            previous = np.array([NO_PREVIOUS_ACTION if last is None else last], dtype=np.int64)
+        feed = {DEPTH_INPUT: self.observation(depth_m)[None, None], PREVIOUS_ACTION_INPUT: previous}
         return self._session.run([Q_OUTPUT], feed)[0][0]
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
         q = self.q_values(depth_m)
         # np.argmax takes the first maximum: ties go to the lowest index, as GreedyPolicy's
-        self._previous = int(np.argmax(q))
-        return self._previous, q
+        command = int(np.argmax(q))
+        self._previous_commands = (command, *self._previous_commands[:max(self._history, 1) - 1])
+        return command, q
 
     def reset(self) -> None:
         """A new episode: no previous command."""
-        self._previous = None
+        self._previous_commands = ()
 
     def __repr__(self) -> str:
         return (f"OnnxPolicy({self.label!r}, {self.sensor.width}x{self.sensor.height} px, "
@@ -120,9 +127,15 @@ def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxP
 def _check_signature(session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path) -> None:
     """The graph takes and gives what the metadata's camera says (a batch axis of any name or size)."""
     s = info.sensor
-    want_in = {DEPTH_INPUT: ("tensor(float)", [1, s.height, s.width]),
-               PREVIOUS_ACTION_INPUT: ("tensor(int64)", [])}
     got_in = {i.name: (i.type, list(i.shape[1:])) for i in session.get_inputs()}
+    # (B,) the last command, or (B, K) the last K commands for networks that read them
+    history = got_in.get(PREVIOUS_ACTION_INPUT, (None, []))[1]
+    if not ((history == [] and info.model.action_history == 1)
+            or (len(history) == 1 and isinstance(history[0], int)
+                and max(2, info.model.action_history) <= history[0] <= MAX_ACTION_HISTORY)):
+        history = [max(2, info.model.action_history)] if info.model.action_history > 1 else []
+    want_in = {DEPTH_INPUT: ("tensor(float)", [1, s.height, s.width]),
+               PREVIOUS_ACTION_INPUT: ("tensor(int64)", history)}
     got_out = {o.name: (o.type, list(o.shape[1:])) for o in session.get_outputs()}
     if got_in != want_in or got_out != {Q_OUTPUT: ("tensor(float)", [NUM_ACTIONS])}:
         raise OnnxModelError(f"{path}: the graph's inputs {got_in} and outputs {got_out} are not the "

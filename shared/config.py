@@ -51,6 +51,9 @@ SPEED_TABLES: dict[str, tuple[tuple[float, ...], float]] = {
 }
 ACTION_NAMES: tuple[str, ...] = ("left", "half-left", "straight", "half-right", "right")
 NUM_ACTIONS = len(ACTION_NAMES)
+MAX_ACTION_HISTORY = 8
+"""The most previous commands a network may read (``ModelConfig.action_history``); replay and the
+policies keep this many, so any network of the range can learn from and act on them."""
 
 
 def mirror_action(action: Any) -> Any:
@@ -344,6 +347,12 @@ class ModelConfig:
     is nearly symmetric and a single-frame policy flips between left and right. The command
     fixes the robot's motion over the last step (every command has the same linear speed), so
     it carries what a second frame would, at no image cost. Off in the paper preset."""
+    action_history: int = 1
+    """How many of the latest commands fc1 reads with ``previous_action`` (1: the last one; up to
+    ``MAX_ACTION_HISTORY``), each as its own one-hot, most recent first. Before a dead end a policy
+    that sees one command flips between left and right (a quarter of the shipped networks' collisions
+    follow two or more turn reversals in eight steps); the last few commands show that it is
+    flipping, and how long it has been turning."""
 
     def __post_init__(self) -> None:
         s = "model"
@@ -356,6 +365,11 @@ class ModelConfig:
         _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
         _check(isinstance(self.previous_action, bool), s, "previous_action", self.previous_action,
                "true or false")
+        _check(isinstance(self.action_history, int) and not isinstance(self.action_history, bool)
+               and 1 <= self.action_history <= MAX_ACTION_HISTORY, s, "action_history", self.action_history,
+               f"an integer in [1, {MAX_ACTION_HISTORY}]")
+        _check(self.action_history == 1 or self.previous_action, s, "action_history", self.action_history,
+               "1 unless model.previous_action is on (the history is of previous commands)")
         _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
                f"one of {', '.join(DEPTH_ENCODINGS)}")
 
@@ -718,6 +732,7 @@ MUST_MATCH_FIELDS: tuple[str, ...] = (
     "sensor.width", "sensor.height", "sensor.hfov_deg", "sensor.vfov_deg", "sensor.max_range_m",
     "sensor.min_range_m", "sensor.mount_height_m", "sensor.mount_forward_m",
     "model.fc1", "model.fc2", "model.dueling", "model.depth_encoding", "model.previous_action",
+    "model.action_history",
     "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
     "env.collision_distance_m", "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
 )

@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.config import DQNConfig, ModelConfig, SensorConfig
+from shared.config import MAX_ACTION_HISTORY, DQNConfig, ModelConfig, SensorConfig
 from shared.learning.dqn import DQNAgent, td_targets, update_flops
 from shared.learning.model import (
     InferenceRunner,
@@ -83,8 +83,8 @@ def synthetic_batch(sensor: SensorConfig, batch_size: int, seed: int = 0) -> Bat
                  rewards=np.where(terminated, -100.0, 1.0).astype(np.float32)[:, None],
                  n_steps=np.ones(batch_size, dtype=np.int64), terminated=terminated,
                  next_obs=rng.integers(300, 4000, shape).astype(np.uint16),
-                 previous_action=rng.integers(-1, 5, batch_size).astype(np.int64),
-                 next_previous_action=rng.integers(0, 5, batch_size).astype(np.int64),
+                 previous_action=rng.integers(-1, 5, (batch_size, MAX_ACTION_HISTORY)).astype(np.int64),
+                 next_previous_action=rng.integers(0, 5, (batch_size, MAX_ACTION_HISTORY)).astype(np.int64),
                  weights=np.ones(batch_size, dtype=np.float32), indices=np.arange(batch_size))
 
 

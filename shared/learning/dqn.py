@@ -146,8 +146,8 @@ class TensorBatch:
     terminated: torch.Tensor
     next_obs: torch.Tensor
     weights: torch.Tensor
-    previous_action: torch.Tensor  # (B,) int64, -1: none
-    next_previous_action: torch.Tensor  # (B,) int64
+    previous_action: torch.Tensor  # (B, J) int64 commands before obs, most recent first; -1: none
+    next_previous_action: torch.Tensor  # (B, J) int64
     demo: torch.Tensor | None = None  # (B,) bool: demonstration samples (large-margin loss)
 
 
@@ -157,7 +157,8 @@ def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
     previous ones too. Rewards, returns and episode ends are those of the mirror-image transition
     unchanged."""
     def mirror(action: torch.Tensor) -> torch.Tensor:
-        return torch.where(flip & (action >= 0), mirror_action(action), action)
+        rows = flip.reshape(-1, *([1] * (action.dim() - 1)))  # (B,) or (B, J) commands
+        return torch.where(rows & (action >= 0), mirror_action(action), action)
 
     return dataclasses.replace(tb, obs=mirror_images(tb.obs, flip), next_obs=mirror_images(tb.next_obs, flip),
                                action=mirror(tb.action), previous_action=mirror(tb.previous_action),

@@ -29,6 +29,7 @@ are created channels-last and ``.to(...)`` keeps that; single-image inference go
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from dataclasses import asdict
 from typing import Any
@@ -186,18 +187,25 @@ def mirror_images(x: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
 
 
 def previous_action_input(previous_action: Any, batch: int, device: torch.device | str | None = None,
-                          dtype: torch.dtype = torch.float32) -> torch.Tensor:
-    """(B, 5) one-hot of the previous commands (``model.previous_action``): ``previous_action`` is
-    None (no previous command: every row zeros), an int, or (B,) ints where -1 means none."""
+                          dtype: torch.dtype = torch.float32, history: int = 1) -> torch.Tensor:
+    """(B, 5 * history) one-hots of the previous commands (``model.previous_action``), one block per
+    command, most recent first. ``previous_action`` is None (no previous command: every row zeros),
+    an int or (B,) ints (the last command; older ones read as none), or (B, J) ints (the last J
+    commands, most recent first: the first ``history`` columns are read, missing ones read as none);
+    -1 means none."""
     if previous_action is None:
-        return torch.zeros(batch, NUM_ACTIONS, dtype=dtype, device=device)
-    prev = torch.as_tensor(previous_action, dtype=torch.int64, device=device).reshape(-1)
-    if prev.numel() == 1 and batch != 1:
-        prev = prev.expand(batch)
-    if prev.shape != (batch,) or bool(((prev < -1) | (prev >= NUM_ACTIONS)).any()):
-        raise ModelError(f"previous_action must be None, or {batch} command indices in [-1, {NUM_ACTIONS}) "
-                         f"(-1: none), got {previous_action!r}")
-    return F.one_hot(prev.clamp(min=0), NUM_ACTIONS).to(dtype) * (prev >= 0).to(dtype)[:, None]
+        return torch.zeros(batch, NUM_ACTIONS * history, dtype=dtype, device=device)
+    prev = torch.as_tensor(previous_action, dtype=torch.int64, device=device)
+    prev = prev[:, :history] if prev.dim() == 2 else prev.reshape(-1, 1)
+    if prev.shape[0] == 1 and batch != 1:
+        prev = prev.expand(batch, -1)
+    if prev.shape[0] != batch or bool(((prev < -1) | (prev >= NUM_ACTIONS)).any()):
+        raise ModelError(f"previous_action must be None, {batch} command indices or ({batch}, J) command "
+                         f"histories, in [-1, {NUM_ACTIONS}) (-1: none), got {previous_action!r}")
+    if prev.shape[1] < history:
+        prev = F.pad(prev, (0, history - prev.shape[1]), value=-1)
+    one_hot = F.one_hot(prev.clamp(min=0), NUM_ACTIONS).to(dtype) * (prev >= 0).to(dtype)[..., None]
+    return one_hot.reshape(batch, NUM_ACTIONS * history)
 
 
 class ConvTrunk(nn.Module):
@@ -227,10 +235,11 @@ class ConvTrunk(nn.Module):
 class QNetwork(nn.Module):
     """Depth image -> 5 Q-values (left, half-left, straight, half-right, right).
 
-    With ``model.previous_action`` the previous command also enters fc1, through its own
-    bias-free layer (``previous_action_fc``) added to fc1's output: the same as widening fc1's
-    input by the one-hot, while fc1 keeps the shape the frozen-conv and probe code expect.
-    ``previous_action=None`` reads as "no previous command" (an episode's first step).
+    With ``model.previous_action`` the previous command (the last ``model.action_history``
+    commands) also enters fc1, through its own bias-free layer (``previous_action_fc``) added to
+    fc1's output: the same as widening fc1's input by the one-hots, while fc1 keeps the shape the
+    frozen-conv and probe code expect. ``previous_action`` is what :func:`previous_action_input`
+    takes; None reads as "no previous command" (an episode's first step).
     ``conv_autocast`` (None: float32) runs the conv layers under ``torch.autocast`` in that dtype
     (the learner's ``dqn.conv_precision``); pool3 comes back as float32 for the fc layers.
     """
@@ -246,7 +255,8 @@ class QNetwork(nn.Module):
         cfg = self.model_cfg
         self.trunk = ConvTrunk(cfg.depth_encoding)
         self.fc1 = nn.Linear(flat, cfg.fc1)
-        self.previous_action_fc = nn.Linear(NUM_ACTIONS, cfg.fc1, bias=False) if cfg.previous_action else None
+        self.previous_action_fc = (nn.Linear(NUM_ACTIONS * cfg.action_history, cfg.fc1, bias=False)
+                                   if cfg.previous_action else None)
         self.fc2 = nn.Linear(cfg.fc1, cfg.fc2)
         self.dropout = nn.Dropout(cfg.dropout)
         if cfg.dueling:
@@ -271,7 +281,8 @@ class QNetwork(nn.Module):
         # flatten in NCHW order whatever the memory format, so fc1 weights are format-independent
         h = self.fc1(torch.flatten(pool3.contiguous(), 1))
         if self.previous_action_fc is not None:
-            h = h + self.previous_action_fc(previous_action_input(previous_action, h.shape[0], h.device, h.dtype))
+            h = h + self.previous_action_fc(previous_action_input(previous_action, h.shape[0], h.device, h.dtype,
+                                                                  self.model_cfg.action_history))
         h = self.dropout(F.relu(h, inplace=True))
         h = self.dropout(F.relu(self.fc2(h), inplace=True))
         if self.model_cfg.dueling:
@@ -351,20 +362,28 @@ class QEnsemble(nn.Module):
         return torch.stack([m(x, previous_action, float32=float32) for m in self.members]).mean(0)
 
     def _fusable(self, float32: bool) -> bool:
-        first = self.members[0]
-        return (all(m.model_cfg == first.model_cfg for m in self.members)
+        first = _fused_config(self.members[0].model_cfg)
+        return (all(_fused_config(m.model_cfg) == first for m in self.members)
                 and (float32 or all(m.conv_autocast is None for m in self.members))
                 and not any(m.training and m.model_cfg.dropout > 0 for m in self.members))
 
 
+def _fused_config(cfg: ModelConfig) -> ModelConfig:
+    """What members must share to run fused: all but the command history, since a network that
+    reads K commands is one that reads more with zero weights on the older ones."""
+    return dataclasses.replace(cfg, action_history=1)
+
+
 class _FusedMembers:
-    """An ensemble's members of one model config as one network (see :class:`QEnsemble`): their
-    weights stacked once, re-stacked when any member's weights change (``matches``)."""
+    """An ensemble's members of one model config (but the command history) as one network (see
+    :class:`QEnsemble`): their weights stacked once, re-stacked when any member's weights change
+    (``matches``)."""
 
     def __init__(self, members: nn.ModuleList):
         self.key = self._key(members)
         self.groups = len(members)
         self.depth_encoding = members[0].model_cfg.depth_encoding
+        self.action_history = max(m.model_cfg.action_history for m in members)
         self.dueling = members[0].model_cfg.dueling
         with torch.no_grad():
             def cat(name: str) -> torch.Tensor:
@@ -378,7 +397,10 @@ class _FusedMembers:
             # (G, in, out) views of (G, out, in) and (G, 1, out): h @ W + b for every member at once
             linear = ["fc1", "fc2"] + (["value", "advantage"] if self.dueling else ["fc3"])
             self.linear = {n: (stack(f"{n}.weight").transpose(1, 2), stack(f"{n}.bias")[:, None]) for n in linear}
-            self.previous_action = (stack("previous_action_fc.weight").transpose(1, 2)
+            width = NUM_ACTIONS * self.action_history  # shorter histories padded with zero weights
+            self.previous_action = (torch.stack([F.pad(m.previous_action_fc.weight,
+                                                       (0, width - m.previous_action_fc.in_features))
+                                                 for m in members]).transpose(1, 2)
                                     if members[0].previous_action_fc is not None else None)
 
     @staticmethod
@@ -403,7 +425,8 @@ class _FusedMembers:
 
         h = linear("fc1", h)
         if self.previous_action is not None:
-            h = h + previous_action_input(previous_action, batch, h.device, h.dtype) @ self.previous_action
+            h = h + previous_action_input(previous_action, batch, h.device, h.dtype,
+                                          self.action_history) @ self.previous_action
         h = F.relu(linear("fc2", F.relu(h)))
         if self.dueling:
             adv = linear("advantage", h)
@@ -515,7 +538,8 @@ class InferenceRunner:
 
     def q_values(self, depth: Any, previous_action: Any = None) -> np.ndarray:
         """(H, W) -> (5,) or (B, H, W) -> (B, 5) Q-values as float32 numpy; ``previous_action``
-        (None, an int or (B,) ints, -1 = none) is read only by a ``model.previous_action`` net."""
+        (None, an int, (B,) ints or (B, J) histories, -1 = none: see :func:`previous_action_input`)
+        is read only by a ``model.previous_action`` net."""
         single = getattr(depth, "ndim", 0) == 2
         # an actor's net stays in eval mode: setting the mode walks every module (5% of an actor's
         # CPU), so only a net in training mode, the learner's, is switched (and switched back)
@@ -558,7 +582,8 @@ def layer_summary(model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig
                 x = row(f"pool{i}", F.max_pool2d(x, 2))
             h = torch.flatten(x, 1)
             if net.previous_action_fc is not None:
-                row("previous_action_fc", net.previous_action_fc(torch.zeros(1, NUM_ACTIONS)), net.previous_action_fc)
+                fc = net.previous_action_fc
+                row("previous_action_fc", fc(torch.zeros(1, fc.in_features)), fc)
             h = row("fc1", F.relu(net.fc1(h)), net.fc1)
             h = row("fc2", F.relu(net.fc2(h)), net.fc2)
             if net.model_cfg.dueling:

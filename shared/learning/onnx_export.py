@@ -52,7 +52,8 @@ CHECK_IMAGES_PER_COMMAND = 2
 class _ExportGraph(nn.Module):
     """``QNetwork.forward`` (or ``QEnsemble.forward``: the mean over its members) on explicit
     tensors: metres in (``preprocess_depth``, the one place depth becomes network input), and the
-    previous command as an int64 index with -1 for none.
+    previous command as an int64 index with -1 for none: (B,), or (B, K) for networks that read the
+    last K commands (``command_history``), most recent first.
 
     Its head repeats ``QNetwork.head`` with the one-hot built by comparison with ``arange``, which
     traces to plain ops (``previous_action_input`` branches on values to validate them); the check
@@ -65,17 +66,19 @@ class _ExportGraph(nn.Module):
 
     def forward(self, depth_m: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
         x = preprocess_depth(depth_m[:, 0])
-        q = [self._member_q(net, x, previous_action) for net in self.members]
+        history = previous_action if previous_action.dim() == 2 else previous_action[:, None]
+        q = [self._member_q(net, x, history) for net in self.members]
         return q[0] if len(q) == 1 else torch.stack(q).mean(0)
 
-    def _member_q(self, net: QNetwork, x: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
+    def _member_q(self, net: QNetwork, x: torch.Tensor, history: torch.Tensor) -> torch.Tensor:
         # the trunk, not features(): its shape check is the graph's fixed input shape here
         pool3 = net.trunk(x)
         h = net.fc1(torch.flatten(pool3.contiguous(), 1))
         if net.previous_action_fc is not None:
             # -1 (none) equals no command: a zero row, as previous_action_input gives it
-            one_hot = (previous_action[:, None] == self.commands[None, :]).to(h.dtype)
-            h = h + net.previous_action_fc(one_hot)
+            k = net.model_cfg.action_history
+            one_hot = (history[:, :k, None] == self.commands[None, None, :]).to(h.dtype)
+            h = h + net.previous_action_fc(one_hot.reshape(-1, NUM_ACTIONS * k))
         h = F.relu(h)
         h = F.relu(net.fc2(h))  # dropout: off in eval mode, so not in the graph
         if net.model_cfg.dueling:
@@ -143,9 +146,17 @@ def _cogexplore_version() -> str:
         return "0+unknown"
 
 
+def command_history(net: QNetwork | QEnsemble) -> int:
+    """How many previous commands the file's ``previous_action`` input holds per image: the most
+    any member reads (``model.action_history``); 1 (shape (B,)) for networks that read one or none."""
+    return max(m.model_cfg.action_history for m in (net.members if isinstance(net, QEnsemble) else [net]))
+
+
 def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
     s = net.sensor_cfg
-    example = (torch.zeros(2, 1, s.height, s.width), torch.full((2,), NO_PREVIOUS_ACTION, dtype=torch.int64))
+    history = command_history(net)
+    previous_shape = (2,) if history == 1 else (2, history)
+    example = (torch.zeros(2, 1, s.height, s.width), torch.full(previous_shape, NO_PREVIOUS_ACTION, dtype=torch.int64))
     buffer = io.BytesIO()
     batch = {0: "batch"}
     with warnings.catch_warnings():
@@ -161,10 +172,11 @@ def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
         # the trace drops an input no op reads (a net without model.previous_action): put it back, so every
         # export takes the same two inputs and a runner needs no case for it
         proto.graph.input.append(onnx.helper.make_tensor_value_info(PREVIOUS_ACTION_INPUT, onnx.TensorProto.INT64,
-                                                                    ["batch"]))
+                                                                    ["batch"]))  # history > 1 is always read
     proto.producer_name, proto.producer_version = "cogexplore", info.cogexplore_version
     proto.doc_string = (f"cogexplore Q-network {info.label}: {DEPTH_INPUT} float32 (B, 1, {s.height}, {s.width}) "
-                        f"metres, range-gated, 0 = no return; {PREVIOUS_ACTION_INPUT} int64 (B,), -1 = none -> "
+                        f"metres, range-gated, 0 = no return; {PREVIOUS_ACTION_INPUT} int64 "
+                        f"{'(B,)' if history == 1 else f'(B, {history}), most recent first'}, -1 = none -> "
                         f"{Q_OUTPUT} float32 (B, {NUM_ACTIONS}); greedy command = argmax")
     onnx.helper.set_model_props(proto, {METADATA_KEY: info.to_json()})
     onnx.checker.check_model(proto, full_check=True)
@@ -173,13 +185,18 @@ def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
 
 def check_inputs(net: QNetwork | QEnsemble, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Random range-gated depth images (B, 1, H, W) with no-return holes and one empty image, and
-    every previous command (-1..4) ``CHECK_IMAGES_PER_COMMAND`` times (B,): what an export is checked on."""
+    every previous command (-1..4) ``CHECK_IMAGES_PER_COMMAND`` times (B,), or as the first of (B, K)
+    random command histories (``command_history``): what an export is checked on."""
     s = net.sensor_cfg
     rng = np.random.default_rng(seed)
     commands = np.tile(np.arange(NO_PREVIOUS_ACTION, NUM_ACTIONS, dtype=np.int64), CHECK_IMAGES_PER_COMMAND)
     depth = rng.uniform(0.0, 1.1 * s.max_range_m, (len(commands), 1, s.height, s.width))
     depth[rng.random(depth.shape) < 0.2] = 0.0
     depth[0] = 0.0  # nothing in range at all
+    history = command_history(net)
+    if history > 1:
+        older = rng.integers(NO_PREVIOUS_ACTION, NUM_ACTIONS, (len(commands), history - 1))
+        commands = np.concatenate([commands[:, None], older], axis=1)
     return range_gate(depth, s.min_range_m, s.max_range_m), commands
 
 

@@ -6,7 +6,9 @@ This module imports neither torch nor onnx: a robot computer reads it with numpy
 The graph (opset 17, any batch size B)::
 
     depth_m          float32 (B, 1, H, W)  metres at the network's size, range-gated, 0 = no return
-    previous_action  int64   (B,)          the previous command 0..4, -1 = none (an episode's start)
+    previous_action  int64   (B,)          the previous command 0..4, -1 = none (an episode's start);
+                             (B, K)        for networks that read the last K commands
+                                           (``model.action_history``): most recent first
     q_values         float32 (B, 5)        one Q-value per command (left ... right); greedy = argmax
 
 and one metadata entry, ``cogexplore``, a JSON object (:class:`OnnxPolicyInfo`): the camera the

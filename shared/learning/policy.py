@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.config import NUM_ACTIONS, ExploreConfig
+from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, ExploreConfig
 from shared.errors import PolicyError  # defined torch-free, for the ONNX runner too
 from shared.learning.model import InferenceRunner, QNetwork
 
@@ -76,8 +76,9 @@ class EpsilonGreedyPolicy:
 
     The network is shared, not copied: load new weights into ``net`` and the next ``act`` uses
     them. Random draws come from the policy's own generator (seeded), never the global ones.
-    The policy remembers the command it chose last (``previous_action``, which a
-    ``model.previous_action`` network reads); call ``reset()`` when an episode starts.
+    The policy remembers the commands it chose last (``previous_actions``, most recent first, up to
+    ``MAX_ACTION_HISTORY``: what a ``model.previous_action`` network reads); call ``reset()`` when an
+    episode starts.
 
     As a rollout policy (``shared.rollout``), ``policy(obs, info, env_steps)`` acts at step
     ``env_steps * step_scale`` (an actor of a fleet of N estimates the fleet's step count as its own
@@ -92,7 +93,7 @@ class EpsilonGreedyPolicy:
         self.schedule = schedule
         self.rng = np.random.default_rng(seed)
         self._runner = InferenceRunner(net)
-        self.previous_action: int | None = None
+        self.previous_actions: tuple[int, ...] = ()
         self.guide = guide
         self.step_scale = step_scale
 
@@ -102,11 +103,20 @@ class EpsilonGreedyPolicy:
 
     def reset(self) -> None:
         """A new episode: no previous command."""
-        self.previous_action = None
+        self.previous_actions = ()
+
+    @property
+    def previous_action(self) -> int | None:
+        """The last command chosen this episode (None before the first)."""
+        return self.previous_actions[0] if self.previous_actions else None
 
     def _chose(self, choice: ActionChoice) -> ActionChoice:
-        self.previous_action = choice.action
+        self.previous_actions = (choice.action, *self.previous_actions[:MAX_ACTION_HISTORY - 1])
         return choice
+
+    def _q_values(self, depth_m: np.ndarray) -> np.ndarray:
+        history = np.array([self.previous_actions], dtype=np.int64) if self.previous_actions else None
+        return self._runner.q_values(depth_m, history)
 
     def epsilon(self, step: int) -> float:
         return 0.0 if self.schedule is None else self.schedule(step)
@@ -114,7 +124,7 @@ class EpsilonGreedyPolicy:
     def act(self, depth_m: np.ndarray, step: int = 0, guide_action: int | None = None) -> ActionChoice:
         """Choose an action for one (H, W) depth image at environment step ``step``.
         ``guide_action`` (an expert's command) replaces the greedy one, not the random one."""
-        q = self._runner.q_values(depth_m, self.previous_action)
+        q = self._q_values(depth_m)
         eps = self.epsilon(step)
         # draw both numbers every step so the random stream does not depend on the Q-values
         u, rand_action = self.rng.random(), int(self.rng.integers(NUM_ACTIONS))
@@ -128,5 +138,5 @@ class EpsilonGreedyPolicy:
 
     def greedy(self, depth_m: np.ndarray) -> ActionChoice:
         """The greedy action (test protocol)."""
-        q = self._runner.q_values(depth_m, self.previous_action)
+        q = self._q_values(depth_m)
         return self._chose(ActionChoice(greedy_action(q), q, 0.0, False))

@@ -11,7 +11,8 @@ transition reuses the previous next_obs frame when its obs is that same image (c
 transition never links the wrong frames). The per-stream chain (``next`` links) is what n-step
 returns are computed from at sampling time, for any n. It also gives each transition its
 previous command (the action of its predecessor in the chain, -1 at an episode's start or after
-a broken link), for networks that read it (``model.previous_action``).
+a broken link), and the ``MAX_ACTION_HISTORY`` commands before that (its predecessor's history,
+shifted), for networks that read them (``model.previous_action``, ``model.action_history``).
 
 Frames and transitions are both FIFO rings. The frame ring has some slack over the transition
 capacity (one extra frame per truncated episode); when a frame is overwritten, every transition
@@ -34,7 +35,7 @@ from typing import Any, Hashable
 
 import numpy as np
 
-from shared.config import NUM_ACTIONS, ReplayConfig
+from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, ReplayConfig
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 
@@ -64,8 +65,8 @@ class Batch:
     n_steps: np.ndarray  # (B,) int64, 1..n
     terminated: np.ndarray  # (B,) bool
     next_obs: np.ndarray  # (B, H, W) uint16 mm; zeros where terminated
-    previous_action: np.ndarray  # (B,) int64 command before obs (-1: none, an episode's start)
-    next_previous_action: np.ndarray  # (B,) int64 command before next_obs (the chain's last action)
+    previous_action: np.ndarray  # (B, MAX_ACTION_HISTORY) int64 commands before obs, most recent first (-1: none)
+    next_previous_action: np.ndarray  # (B, MAX_ACTION_HISTORY) int64 commands before next_obs (the chain's last first)
     weights: np.ndarray  # (B,) float32 importance-sampling weights (ones when uniform)
     indices: np.ndarray  # (B,) int64 transition ids, for update_priorities
     demo: np.ndarray | None = None  # (B,) bool: from a demonstration (shared.learning.demos); None: none are
@@ -153,7 +154,7 @@ class ReplayMemory:
         self._next_tid = np.full(n, -1, dtype=np.int64)
         self._reward = np.zeros(n, dtype=np.float32)
         self._action = np.zeros(n, dtype=np.uint8)
-        self._previous_action = np.full(n, -1, dtype=np.int8)
+        self._previous_action = np.full((n, MAX_ACTION_HISTORY), -1, dtype=np.int8)  # most recent first
         self._terminated = np.zeros(n, dtype=bool)
         self._truncated = np.zeros(n, dtype=bool)
         self._valid = np.zeros(n, dtype=bool)
@@ -271,8 +272,11 @@ class ReplayMemory:
         self._reward[slot] = reward
         self._action[slot] = int(action)
         prev_slot = prev_tid % self.capacity
-        self._previous_action[slot] = (self._action[prev_slot] if prev_tid >= 0 and self._tid[prev_slot] == prev_tid
-                                       else -1)
+        if prev_tid >= 0 and self._tid[prev_slot] == prev_tid:
+            self._previous_action[slot, 0] = self._action[prev_slot]
+            self._previous_action[slot, 1:] = self._previous_action[prev_slot, :-1]
+        else:
+            self._previous_action[slot] = -1
         self._terminated[slot] = bool(terminated)
         self._truncated[slot] = bool(truncated)
         self._valid[slot] = True
@@ -389,7 +393,9 @@ class ReplayMemory:
         return Batch(obs=obs, action=self._action[slots].astype(np.int64), rewards=rewards,
                      n_steps=n_steps, terminated=terminated, next_obs=next_obs,
                      previous_action=self._previous_action[slots].astype(np.int64),
-                     next_previous_action=self._action[last].astype(np.int64), weights=weights,
+                     next_previous_action=np.concatenate(
+                         [self._action[last, None], self._previous_action[last, :-1]], axis=1).astype(np.int64),
+                     weights=weights,
                      indices=self._tid[slots].copy())
 
     def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray) -> None:
@@ -454,8 +460,14 @@ class ReplayMemory:
             for name in ("frame_id", "frame_refs", "tid", "obs_fid", "next_fid", "next_tid",
                          "reward", "action", "terminated", "truncated", "valid"):
                 getattr(self, f"_{name}")[...] = arrays[name]
-            # replays saved before previous commands were kept: every transition reads "none"
-            self._previous_action[...] = arrays.get("previous_action", -1)
+            # replays saved before previous commands were kept read "none"; before their history, the
+            # last command only
+            previous = np.asarray(arrays.get("previous_action", -1))
+            self._previous_action[...] = -1
+            if previous.ndim == 1:
+                self._previous_action[:, 0] = previous
+            else:
+                self._previous_action[...] = previous
             if self._tree is not None:
                 self._tree.tree[...] = arrays["tree"]
         except (KeyError, ValueError) as exc:

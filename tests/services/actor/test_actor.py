@@ -4,7 +4,7 @@ import numpy as np
 
 from services.actor.batcher import TransitionBatcher
 from services.actor.service import FlowGate
-from shared.config import load_preset
+from shared.config import MAX_ACTION_HISTORY, load_preset
 from shared.learning.learner import LearnerCore
 from shared.wire.messages import FlowControl, TransitionBatch
 
@@ -81,7 +81,9 @@ def test_ingested_batches_give_each_transition_its_previous_command_across_batch
                 core.ingest(TransitionBatch.decode(batch.encode()))  # through the wire format
     got = core.replay._gather(np.arange(10), 1, np.ones(10, np.float32))
     np.testing.assert_array_equal(got.action, actions * 2)
-    np.testing.assert_array_equal(got.previous_action, [-1, 4, 0, 3, 1] * 2)
+    np.testing.assert_array_equal(got.previous_action[:, 0], [-1, 4, 0, 3, 1] * 2)
+    np.testing.assert_array_equal(got.previous_action[4, :5], [1, 3, 0, 4, -1])  # the episode's commands, latest first
+    np.testing.assert_array_equal(got.previous_action[5], [-1] * MAX_ACTION_HISTORY)
 
 
 def test_flow_gate_follows_one_learner_process_and_counts_only_its_own_actor_process():

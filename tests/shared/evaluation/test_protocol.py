@@ -111,7 +111,8 @@ def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one(
 
     sensor = SensorConfig(width=40, height=30)
     torch.manual_seed(0)
-    policy = GreedyPolicy(QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True), sensor))
+    policy = GreedyPolicy(QNetwork(ModelConfig(fc1=16, fc2=8, previous_action=True, action_history=3),
+                                        sensor))
     seen: list[int | None] = []  # the previous command of each call
     chosen: list[int] = []
     runner = policy.policy._runner
@@ -129,7 +130,11 @@ def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one(
                               max_steps=4, progress=False, stop=threading.Event())
     firsts = set(np.cumsum([0] + [e.steps for e in results.episodes])[:-1].tolist())
     assert len(firsts) == 4 and all(seen[i] is None for i in firsts)
-    assert all(seen[i] == chosen[i - 1] for i in range(len(seen)) if i not in firsts)
+    # the commands this episode chose, most recent first
+    for i in range(len(seen)):
+        if i not in firsts:
+            start = max(f for f in firsts if f < i)
+            assert seen[i].tolist() == [chosen[start:i][::-1]]
 
 
 def test_random_policy_repeats_under_a_seed() -> None:

@@ -164,7 +164,7 @@ def test_the_demo_replay_keeps_each_chain_with_its_previous_commands():
         t = int(batch.indices[i])  # one chain: transition id = step
         np.testing.assert_array_equal(batch.obs[i], demo.depth_mm[t])
         assert batch.action[i] == demo.actions[t]
-        assert batch.previous_action[i] == (demo.actions[t - 1] if t else -1)
+        assert batch.previous_action[i, 0] == (demo.actions[t - 1] if t else -1)
         assert batch.n_steps[i] == min(3, 6 - t) and not batch.terminated[i]
         np.testing.assert_array_equal(batch.next_obs[i], demo.depth_mm[t + batch.n_steps[i]])
 

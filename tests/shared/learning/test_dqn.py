@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from shared.config import (
+    MAX_ACTION_HISTORY,
     DQNConfig,
     ModelConfig,
     ReplayConfig,
@@ -41,8 +42,8 @@ def make_batch(b: int = 8, seed: int = 0, terminated=None, n: int = 1) -> Batch:
         n_steps=np.full(b, n, dtype=np.int64),
         terminated=np.zeros(b, bool) if terminated is None else np.asarray(terminated),
         next_obs=rng.integers(300, 4000, (b, 30, 40)).astype(np.uint16),
-        previous_action=rng.integers(-1, 5, b).astype(np.int64),
-        next_previous_action=rng.integers(0, 5, b).astype(np.int64),
+        previous_action=rng.integers(-1, 5, (b, MAX_ACTION_HISTORY)).astype(np.int64),
+        next_previous_action=rng.integers(0, 5, (b, MAX_ACTION_HISTORY)).astype(np.int64),
         weights=np.ones(b, np.float32),
         indices=np.arange(b),
     )
@@ -138,8 +139,8 @@ def test_mirror_batch_flips_frames_and_swaps_commands_only_where_asked():
         assert torch.equal(m.obs[i], want(tb.obs[i])) and torch.equal(m.next_obs[i], want(tb.next_obs[i]))
         assert m.action[i] == (4 - tb.action[i] if flip[i] else tb.action[i])
         for name in ("previous_action", "next_previous_action"):  # -1 (none) stays none
-            before, after = getattr(tb, name)[i], getattr(m, name)[i]
-            assert after == (4 - before if flip[i] and before >= 0 else before)
+            before, after = getattr(tb, name)[i], getattr(m, name)[i]  # each command of the history
+            assert torch.equal(after, torch.where(flip[i] & (before >= 0), 4 - before, before))
     assert torch.equal(m.rewards, tb.rewards) and torch.equal(m.terminated, tb.terminated)
     assert m.obs.is_contiguous(memory_format=torch.channels_last)
 
@@ -290,7 +291,8 @@ def test_a_previous_action_network_learns_a_value_that_only_the_previous_command
     batch.obs[:] = batch.obs[0]
     batch.action[:] = 2
     prev = np.arange(16) % 5
-    batch.previous_action[:] = prev
+    batch.previous_action[:] = -1
+    batch.previous_action[:, 0] = prev
     batch.terminated[:] = prev == 0
     batch.rewards[:, 0] = np.where(prev == 0, -100.0, 1.0)
     q = {}
@@ -302,6 +304,30 @@ def test_a_previous_action_network_learns_a_value_that_only_the_previous_command
         q[previous] = agent.q_values(batch.obs[:5], np.arange(5))[:, 2]
     assert np.ptp(q[False]) < 1.0  # one value for all rows: the mean, about -19
     assert q[True][0] < -80 and np.all(np.abs(q[True][1:] - 1.0) < 5)
+
+
+def test_a_command_history_network_learns_a_value_that_only_an_older_command_explains():
+    """Same image, same command, same last command: a collision follows only when the command two
+    steps back was 'left'. A network that reads one command cannot tell the rows apart; one that
+    reads two can."""
+    batch = make_batch(16)
+    batch.obs[:] = batch.obs[0]
+    batch.action[:] = 2
+    older = np.arange(16) % 5
+    batch.previous_action[:] = -1
+    batch.previous_action[:, 0] = 2
+    batch.previous_action[:, 1] = older
+    batch.terminated[:] = older == 0
+    batch.rewards[:, 0] = np.where(older == 0, -100.0, 1.0)
+    q = {}
+    for history in (1, 2):
+        model = ModelConfig(fc1=32, fc2=16, dropout=0.0, previous_action=True, action_history=history)
+        agent = DQNAgent(model, TINY, DQNConfig(optimizer="adam", lr=1e-2, gamma=0.0), device="cpu", seed=0)
+        for _ in range(150):
+            agent.update(batch)
+        q[history] = agent.q_values(batch.obs[:5], batch.previous_action[:5])[:, 2]
+    assert np.ptp(q[1]) < 1.0
+    assert q[2][0] < -80 and np.all(np.abs(q[2][1:] - 1.0) < 5)
 
 
 def test_conv_precision_is_validated_and_resolved():

@@ -228,14 +228,42 @@ def test_previous_action_input_changes_q_and_none_means_no_previous_command():
         ModelConfig(previous_action=1)
 
 
+def test_a_command_history_network_reads_its_last_commands_most_recent_first():
+    torch.manual_seed(0)
+    net = QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True, action_history=3), TINY).eval()
+    one = QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True), TINY)
+    assert architecture_fingerprint(net) != architecture_fingerprint(one)
+    assert net.previous_action_fc.in_features == 15
+    assert [r for r in layer_summary(net=net) if r["layer"] == "previous_action_fc"][0]["params"] == 15 * 32
+    x = preprocess_depth(np.random.default_rng(1).random((2, 30, 40)).astype(np.float32) * 4)
+    with torch.no_grad():
+        q = lambda prev: net(x, torch.tensor(prev))  # noqa: E731
+        # older commands change the values; columns past the history are not read; missing ones read as none
+        assert not torch.allclose(q([[1, 0, -1], [1, 0, -1]]), q([[1, 4, -1], [1, 4, -1]]))
+        assert not torch.allclose(q([[1, 0, 2], [1, 0, 2]]), q([[1, 0, -1], [1, 0, -1]]))
+        torch.testing.assert_close(q([[1, 0, 2, 4, 4], [3, 3, 3, 0, 0]]), q([[1, 0, 2], [3, 3, 3]]))
+        torch.testing.assert_close(q([[1, 0], [2, -1]]), q([[1, 0, -1], [2, -1, -1]]))
+        torch.testing.assert_close(q([1, 2]), q([[1, -1, -1], [2, -1, -1]]))  # (B,): the last command only
+        torch.testing.assert_close(net(x), q([[-1] * 3] * 2))
+    with pytest.raises(ModelError, match="previous_action"):
+        net(x, torch.tensor([[1, 5, 0], [0, 0, 0]]))
+    for bad in (0, 9, True):
+        with pytest.raises(ConfigError, match="action_history"):
+            ModelConfig(previous_action=True, action_history=bad)
+    with pytest.raises(ConfigError, match="action_history"):
+        ModelConfig(action_history=2)  # a history of commands the network does not read
+
+
 @pytest.mark.parametrize("cfg", [ModelConfig(fc1=32, fc2=16, previous_action=True, depth_encoding="inverse"),
-                                 ModelConfig(fc1=32, fc2=16, dueling=True)], ids=["previous-command", "dueling"])
+                                 ModelConfig(fc1=32, fc2=16, previous_action=True, action_history=4),
+                                 ModelConfig(fc1=32, fc2=16, dueling=True)],
+                         ids=["previous-command", "command-history", "dueling"])
 def test_an_ensemble_acting_runs_its_members_as_one_network_with_the_same_q_values(cfg):
     torch.manual_seed(0)
     nets = [QNetwork(cfg, TINY).eval() for _ in range(3)]
     ensemble = QEnsemble(nets).eval()
     x = preprocess_depth(np.random.default_rng(1).uniform(0.3, 4.0, (4, 30, 40)).astype(np.float32))
-    for previous in (None, 2, [0, 4, -1, 1]):
+    for previous in (None, 2, [0, 4, -1, 1], [[0, 1, 2, 3], [4, 4, -1, -1], [2, -1, -1, -1], [1, 3, 1, 3]]):
         with torch.no_grad():  # a plain loop over the members, with autograd on
             mean = torch.stack([n(x, previous) for n in nets]).mean(0)
         with torch.inference_mode():
@@ -251,6 +279,20 @@ def test_an_ensemble_acting_runs_its_members_as_one_network_with_the_same_q_valu
     assert not torch.allclose(after, fused)
     with torch.inference_mode(), pytest.raises(ModelError, match="network input"):
         ensemble(torch.zeros(1, 1, 48, 64))
+
+
+def test_networks_of_different_command_histories_still_run_fused():
+    torch.manual_seed(0)
+    nets = [QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True, action_history=k), TINY).eval()
+            for k in (1, 4, 2)]
+    ensemble = QEnsemble(nets).eval()
+    x = preprocess_depth(np.random.default_rng(1).uniform(0.3, 4.0, (2, 30, 40)).astype(np.float32))
+    for previous in (None, [3, 1], [[0, 1, 2, 3, 4], [4, -1, -1, -1, -1]]):
+        with torch.inference_mode():
+            fused = ensemble(x, previous)
+            mean = torch.stack([n(x, previous) for n in nets]).mean(0)
+        assert ensemble._fused is not None and ensemble._fused.action_history == 4
+        torch.testing.assert_close(fused, mean, rtol=1e-5, atol=1e-5)
 
 
 def test_an_ensemble_of_different_fc_layers_still_plays_the_mean():

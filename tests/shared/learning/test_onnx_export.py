@@ -89,6 +89,37 @@ def test_the_export_gives_torchs_q_values_for_every_previous_command_and_batch(
     assert np.allclose(*first) == (which == "smoke")
 
 
+def test_networks_that_read_several_commands_export_a_history_input_and_the_runner_keeps_it(tmp_path: Path) -> None:
+    from cogexplore.onnx_runner import load_onnx_policy
+    from shared.evaluation.policies import GreedyPolicy
+
+    torch.manual_seed(5)
+    sensor = load_preset("fast-40x30").sensor
+    # the last command only, and the last three: the file's input holds the most any member reads
+    net = QEnsemble([QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True, action_history=k,
+                                          depth_encoding="inverse"), sensor) for k in (1, 3)]).eval()
+    path = export_onnx(net, tmp_path / "history.onnx")
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [i.shape[1:] for i in session.get_inputs() if i.name == "previous_action"] == [[3]]
+    depth, histories = check_inputs(net, seed=12)
+    assert histories.shape == (len(depth), 3)
+    assert q_difference(_onnx_q(path, depth, histories), _torch_q(net, depth, histories)) <= MATCH_TOLERANCE
+    # an older command changes the values (the history reaches the graph)
+    older = histories.copy()
+    older[:, 2] = (older[:, 2] + 2) % NUM_ACTIONS
+    assert not np.allclose(_onnx_q(path, depth, older), _onnx_q(path, depth, histories))
+    # the runner remembers the commands it chose as the torch policy does, and forgets them on reset
+    runner, greedy = load_onnx_policy(path), GreedyPolicy(net)
+    images = np.random.default_rng(13).uniform(0.3, 4.0, (7, sensor.height, sensor.width)).astype(np.float32)
+    for episode in range(2):
+        runner.reset()
+        greedy.reset()
+        for image in images[episode:]:
+            (ours, q), (theirs, q_torch) = runner.decide(image), greedy(image)
+            assert ours == theirs and q_difference(q[None], q_torch[None]) <= MATCH_TOLERANCE
+        assert runner.previous_command == greedy.policy.previous_action
+
+
 def test_the_file_describes_its_network(shipped: LoadedModel, tmp_path: Path) -> None:
     import onnx
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from shared.config import ReplayConfig
+from shared.config import MAX_ACTION_HISTORY, ReplayConfig
 from shared.depth import depth_to_mm
 from shared.learning.replay import Batch, ReplayError, ReplayMemory
 
@@ -187,15 +187,26 @@ def test_previous_commands_follow_each_stream_chain_and_restart_with_each_episod
     a2 = add_episode(mem, "a", 100, 2, "open")  # the same stream's next episode
     lost = mem.add("b", frame(999), 2, 1.0, frame(1000), False)  # a lost transition breaks b's chain
     got = mem._gather(np.array(a + b + a2 + [lost]), 1, np.ones(9, np.float32))
-    np.testing.assert_array_equal(got.previous_action, [-1, 0, 1, 2, -1, 4, -1, 0, -1])
-    np.testing.assert_array_equal(got.next_previous_action, got.action)  # one step: this command
+    assert got.previous_action.shape == (9, MAX_ACTION_HISTORY)
+    np.testing.assert_array_equal(got.previous_action[:, 0], [-1, 0, 1, 2, -1, 4, -1, 0, -1])
+    # the history, most recent first, within the episode only
+    np.testing.assert_array_equal(got.previous_action[3, :4], [2, 1, 0, -1])
+    np.testing.assert_array_equal(got.previous_action[7, :2], [0, -1])  # a2's second step
+    assert np.all(got.previous_action[:, 4:] == -1)
+    np.testing.assert_array_equal(got.next_previous_action[:, 0], got.action)  # one step: this command
+    np.testing.assert_array_equal(got.next_previous_action[:, 1:], got.previous_action[:, :-1])
     three = mem._gather(np.array([a[0], a[2]]), 3, np.ones(2, np.float32))
-    np.testing.assert_array_equal(three.next_previous_action, [2, 3])  # the chain's last command
-    # a replay saved before previous commands were kept restores with "none" everywhere
+    np.testing.assert_array_equal(three.next_previous_action[:, :4], [[2, 1, 0, -1], [3, 2, 1, 0]])
+    # a replay saved before previous commands were kept restores with "none" everywhere, one saved
+    # before their history with the last command only
     arrays, meta = mem.state_dict()
     old = ReplayMemory(ReplayConfig(capacity=100), SHAPE)
     old.load_state_dict({k: v for k, v in arrays.items() if k != "previous_action"}, meta)
     assert np.all(old._gather(np.array(a), 1, np.ones(4, np.float32)).previous_action == -1)
+    old.load_state_dict({**arrays, "previous_action": arrays["previous_action"][:, 0].copy()}, meta)
+    restored = old._gather(np.array(a), 1, np.ones(4, np.float32)).previous_action
+    np.testing.assert_array_equal(restored[:, 0], [-1, 0, 1, 2])
+    assert np.all(restored[:, 1:] == -1)
 
 
 def test_state_dict_round_trip_restores_contents_streams_and_rng():
