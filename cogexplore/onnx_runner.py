@@ -54,7 +54,8 @@ class OnnxPolicy(CameraPolicy):
         self.control_period_s: float = info.control_period_s
         self._session = session
         shape = next(i.shape for i in session.get_inputs() if i.name == PREVIOUS_ACTION_INPUT)
-        self._history = int(shape[1]) if len(shape) == 2 else 0  # 0: (B,), the last command only
+        self._history_input = len(shape) == 2  # (B, K) the last K commands, or (B,) the last one
+        self._history = int(shape[1]) if self._history_input else 1
         self._previous_commands: tuple[int, ...] = ()  # most recent first
 
     @property
@@ -70,20 +71,17 @@ class OnnxPolicy(CameraPolicy):
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;
         changes nothing (the next :meth:`act` still sees the same previous command)."""
-        if self._history:
-            known = self._previous_commands[:self._history]
-            previous = np.array([known + (NO_PREVIOUS_ACTION,) * (self._history - len(known))], dtype=np.int64)
-        else:
-            last = self.previous_command
-            previous = np.array([NO_PREVIOUS_ACTION if last is None else last], dtype=np.int64)
-        feed = {DEPTH_INPUT: self.observation(depth_m)[None, None], PREVIOUS_ACTION_INPUT: previous}
+        missing = (NO_PREVIOUS_ACTION,) * (self._history - len(self._previous_commands))
+        previous = np.array([self._previous_commands + missing], dtype=np.int64)  # (1, K)
+        feed = {DEPTH_INPUT: self.observation(depth_m)[None, None],
+                PREVIOUS_ACTION_INPUT: previous if self._history_input else previous[:, 0]}
         return self._session.run([Q_OUTPUT], feed)[0][0]
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
         q = self.q_values(depth_m)
         # np.argmax takes the first maximum: ties go to the lowest index, as GreedyPolicy's
         command = int(np.argmax(q))
-        self._previous_commands = (command, *self._previous_commands[:max(self._history, 1) - 1])
+        self._previous_commands = (command, *self._previous_commands[:self._history - 1])
         return command, q
 
     def reset(self) -> None:
@@ -128,12 +126,12 @@ def _check_signature(session: onnxruntime.InferenceSession, info: OnnxPolicyInfo
     """The graph takes and gives what the metadata's camera says (a batch axis of any name or size)."""
     s = info.sensor
     got_in = {i.name: (i.type, list(i.shape[1:])) for i in session.get_inputs()}
-    # (B,) the last command, or (B, K) the last K commands for networks that read them
+    # (B,) the last command, or (B, K) the last K commands: at least as many as the metadata's network
+    # reads (an ensemble's metadata names its first member)
+    reads = info.model.action_history
     history = got_in.get(PREVIOUS_ACTION_INPUT, (None, []))[1]
-    if not ((history == [] and info.model.action_history == 1)
-            or (len(history) == 1 and isinstance(history[0], int)
-                and max(2, info.model.action_history) <= history[0] <= MAX_ACTION_HISTORY)):
-        history = [max(2, info.model.action_history)] if info.model.action_history > 1 else []
+    if not (len(history) == 1 and isinstance(history[0], int) and max(2, reads) <= history[0] <= MAX_ACTION_HISTORY):
+        history = [reads] if reads > 1 else []
     want_in = {DEPTH_INPUT: ("tensor(float)", [1, s.height, s.width]),
                PREVIOUS_ACTION_INPUT: ("tensor(int64)", history)}
     got_out = {o.name: (o.type, list(o.shape[1:])) for o in session.get_outputs()}
