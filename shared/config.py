@@ -54,6 +54,8 @@ NUM_ACTIONS = len(ACTION_NAMES)
 MAX_ACTION_HISTORY = 8
 """The most previous commands a network may read (``ModelConfig.action_history``); replay and the
 policies keep this many, so any network of the range can learn from and act on them."""
+MAX_SHIFT_AUGMENT_PX = 8
+"""The largest random shift of a frame in the learner's batches (``DQNConfig.shift_augment_px``)."""
 
 
 def mirror_action(action: Any) -> Any:
@@ -426,7 +428,7 @@ class DQNConfig:
     double_dqn: bool = False
     """Double DQN targets (argmax by theta, value by theta^-)."""
     n_step: int = 1
-    """n-step returns."""
+    """n-step returns (the robust preset's 3; 5 scored no higher there: run M1, MODEL_CARD.md)."""
     loss: str = "mse"
     """'mse' (paper) or 'huber' (slope 1 beyond an error of 1: meant for rewards clipped to +-1; on
     the unclipped -100 collision reward it fits close to a median and under-weights rare collisions)."""
@@ -435,6 +437,12 @@ class DQNConfig:
     mirror_augment: bool = False
     """Mirror a random half of each batch left-right (both frames flipped, left <-> right
     commands swapped): the task is symmetric, so every transition teaches its mirror image too."""
+    shift_augment_px: int = 0
+    """Shift each sampled frame (both frames of a transition, each by its own draw) by up to this
+    many pixels in x and y, edges repeated (DrQ's random shift, Kostrikov et al. 2021): a camera
+    mounted a few degrees off in yaw or pitch (a 40 x 30 pixel spans 1.4 degrees) sees the same
+    room, so the Q-values should not hang on one pixel column. 0: off (the paper's, and every
+    preset's: at 2 the robust recipe did not score above its unshifted runs; run D1, MODEL_CARD.md)."""
     demo_batch: int = 0
     """Demonstration transitions (``train.demos``) added to every batch, on top of
     ``batch_size`` from the replay memory (0: none, the paper's)."""
@@ -476,6 +484,8 @@ class DQNConfig:
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
         _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
+        _check(type(self.shift_augment_px) is int and 0 <= self.shift_augment_px <= MAX_SHIFT_AUGMENT_PX, s,
+               "shift_augment_px", self.shift_augment_px, f"an integer in [0, {MAX_SHIFT_AUGMENT_PX}]")
         _check(type(self.demo_batch) is int and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
                "an integer in [0, 4096]")
         _check(_finite(self.demo_margin) and 0 <= self.demo_margin <= 100, s, "demo_margin", self.demo_margin,

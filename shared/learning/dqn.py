@@ -59,6 +59,7 @@ from shared.learning.model import (
     preprocess_depth,
     reduce_allocator_page_faults,
     resolve_device,
+    shift_images,
     weights_to_tensors,
 )
 from shared.learning.replay import Batch
@@ -165,9 +166,28 @@ def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
                                next_previous_action=mirror(tb.next_previous_action))
 
 
+@dataclass(frozen=True)
+class Augmentation:
+    """One update's random draws for its batch: which samples are mirrored (``dqn.mirror_augment``)
+    and by how many pixels each frame moves (``dqn.shift_augment_px``; (B, 2) (dy, dx), the
+    frame before and the frame after each drawn on its own, as DrQ does)."""
+
+    flip: torch.Tensor | None = None
+    obs_shift: torch.Tensor | None = None
+    next_obs_shift: torch.Tensor | None = None
+
+    def apply(self, tb: TensorBatch) -> TensorBatch:
+        if self.flip is not None:
+            tb = mirror_batch(tb, self.flip)
+        if self.obs_shift is not None:
+            tb = dataclasses.replace(tb, obs=shift_images(tb.obs, self.obs_shift),
+                                     next_obs=shift_images(tb.next_obs, self.next_obs_shift))
+        return tb
+
+
 @dataclass
 class PreparedBatch:
-    """A TensorBatch, mirrored, and its TD targets: all an update needs but the gradient step."""
+    """A TensorBatch, augmented, and its TD targets: all an update needs but the gradient step."""
 
     tb: TensorBatch
     y: torch.Tensor
@@ -271,27 +291,34 @@ class DQNAgent:
         return td_targets(tb.rewards, tb.n_steps, tb.terminated, next_q_target, self.cfg.gamma,
                           next_q_online)
 
-    def draw_flips(self, batch: Batch | TensorBatch) -> torch.Tensor | None:
-        """Which samples of ``batch`` an update mirrors (None without ``mirror_augment``): drawn from
-        torch's global generator, the one a checkpoint restores, so it is always drawn here, on the
-        thread that trains, in the same order as the dropout masks."""
-        if not self.cfg.mirror_augment:
+    def draw_augmentation(self, batch: Batch | TensorBatch) -> Augmentation | None:
+        """This update's mirror flips and pixel shifts for ``batch`` (None with neither
+        ``mirror_augment`` nor ``shift_augment_px``): drawn from torch's global generator, the one a
+        checkpoint restores, so they are always drawn here, on the thread that trains, in the same
+        order as the dropout masks."""
+        n = len(batch.action)
+        flip = obs_shift = next_obs_shift = None
+        if self.cfg.mirror_augment:
+            flip = torch.rand(n, device=self.device) < 0.5
+            if batch.demo is not None:
+                # A demonstration commits to one of two mirror-image manoeuvres; in a symmetric
+                # scene (paper-indoor's start 6 sees an exactly symmetric dead end) its mirror
+                # would teach the other turn on the same image, and the two would tie.
+                flip &= ~torch.as_tensor(batch.demo, dtype=torch.bool, device=self.device)
+        px = self.cfg.shift_augment_px
+        if px > 0:
+            obs_shift, next_obs_shift = torch.randint(-px, px + 1, (2, n, 2), device=self.device)
+        if flip is None and obs_shift is None:
             return None
-        flip = torch.rand(len(batch.action), device=self.device) < 0.5
-        if batch.demo is not None:
-            # A demonstration commits to one of two mirror-image manoeuvres; in a symmetric
-            # scene (paper-indoor's start 6 sees an exactly symmetric dead end) its mirror
-            # would teach the other turn on the same image, and the two would tie.
-            flip &= ~torch.as_tensor(batch.demo, dtype=torch.bool, device=self.device)
-        return flip
+        return Augmentation(flip, obs_shift, next_obs_shift)
 
-    def prepare(self, batch: Batch | TensorBatch, flips: torch.Tensor | None, online: QNetwork | None = None,
-                target: QNetwork | None = None) -> PreparedBatch:
-        """The part of an update that needs no gradient: tensors, mirroring by ``flips`` (from
-        :meth:`draw_flips`) and TD targets (see :meth:`compute_targets` for ``online``/``target``)."""
+    def prepare(self, batch: Batch | TensorBatch, augmentation: Augmentation | None,
+                online: QNetwork | None = None, target: QNetwork | None = None) -> PreparedBatch:
+        """The part of an update that needs no gradient: tensors, the augmentation drawn by
+        :meth:`draw_augmentation` and TD targets (see :meth:`compute_targets` for ``online``/``target``)."""
         tb = batch if isinstance(batch, TensorBatch) else self.to_tensors(batch)
-        if flips is not None:
-            tb = mirror_batch(tb, flips)
+        if augmentation is not None:
+            tb = augmentation.apply(tb)
         return PreparedBatch(tb, self.compute_targets(tb, online, target))
 
     def update(self, batch: Batch | TensorBatch) -> dict[str, Any]:
@@ -301,7 +328,7 @@ class DQNAgent:
         target_mean, td_abs_mean, grad_norm, synced_target, and td_errors (numpy (B,), y - Q)
         for prioritised replay.
         """
-        return self.apply(self.prepare(batch, self.draw_flips(batch)))
+        return self.apply(self.prepare(batch, self.draw_augmentation(batch)))
 
     def apply(self, prepared: PreparedBatch) -> dict[str, Any]:
         """The gradient step of :meth:`update` on a prepared batch (its targets already computed)."""

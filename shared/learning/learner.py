@@ -181,7 +181,7 @@ class LearnerCore:
         sample does, the network itself has diverged: DQNError."""
         if self._pipeline is None:
             batch = self._sample()
-            prepared = self.agent.prepare(batch, self.agent.draw_flips(batch))
+            prepared = self.agent.prepare(batch, self.agent.draw_augmentation(batch))
         else:
             if not self._pipeline.pending:
                 self._pipeline.submit(self._sample())

@@ -186,6 +186,20 @@ def mirror_images(x: torch.Tensor, flip: torch.Tensor) -> torch.Tensor:
     return torch.where(flip[:, None, None, None], x.flip(-1), x).contiguous(memory_format=torch.channels_last)
 
 
+def shift_images(x: torch.Tensor, shift: torch.Tensor) -> torch.Tensor:
+    """Network input (B, C, H, W) with image b moved by ``shift[b] = (dy, dx)`` pixels (integers):
+    output pixel (i, j) is input pixel (i + dy, j + dx), the border pixels repeated beyond the
+    edges (padding by replication, then cropping, as DrQ does). Channels-last, as the networks
+    take it."""
+    b, _, h, w = x.shape
+    rows = (torch.arange(h, device=x.device)[None, :] + shift[:, 0:1]).clamp_(0, h - 1)  # (B, H)
+    cols = (torch.arange(w, device=x.device)[None, :] + shift[:, 1:2]).clamp_(0, w - 1)  # (B, W)
+    batch = torch.arange(b, device=x.device)[:, None, None]
+    # advanced indices around the channel slice put their (B, H, W) first: (B, H, W, C)
+    moved = x[batch, :, rows[:, :, None], cols[:, None, :]]
+    return moved.permute(0, 3, 1, 2).contiguous(memory_format=torch.channels_last)
+
+
 def previous_action_input(previous_action: Any, batch: int, device: torch.device | str | None = None,
                           dtype: torch.dtype = torch.float32, history: int = 1) -> torch.Tensor:
     """(B, 5 * history) one-hots of the previous commands (``model.previous_action``), one block per

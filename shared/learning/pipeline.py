@@ -12,8 +12,8 @@ The price, stated: update k + 1's targets come from theta as it was *before* upd
 older than in :meth:`DQNAgent.update`), a delay of the kind distributed DQN learners accept
 (Ape-X, R2D2); theta^- is the same target network either way. The worker reads its own copies of
 theta and theta^-, refreshed from the agent while it is idle, so no optimiser step ever writes
-under a forward pass. Every random draw (mirror flips, dropout) stays on the calling thread, so a
-pipelined run repeats exactly whatever the threads' timing. The single-process trainer does not
+under a forward pass. Every random draw (mirror flips, pixel shifts, dropout) stays on the calling
+thread, so a pipelined run repeats exactly whatever the threads' timing. The single-process trainer does not
 pipeline: there the environment already fills the second core between updates.
 """
 
@@ -71,8 +71,9 @@ class TargetPipeline:
         if self._pending is not None:
             raise RuntimeError("TargetPipeline.submit: the previous batch was not taken")
         self._refresh()
-        flips = self.agent.draw_flips(batch)
-        self._pending = batch, self._worker.submit(self.agent.prepare, batch, flips, self._online, self._target)
+        augmentation = self.agent.draw_augmentation(batch)
+        self._pending = batch, self._worker.submit(self.agent.prepare, batch, augmentation, self._online,
+                                                   self._target)
 
     def take(self) -> tuple[Batch, PreparedBatch]:
         if self._pending is None:

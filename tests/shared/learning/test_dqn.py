@@ -6,6 +6,7 @@ import torch
 
 from shared.config import (
     MAX_ACTION_HISTORY,
+    ConfigError,
     DQNConfig,
     ModelConfig,
     ReplayConfig,
@@ -22,7 +23,7 @@ from shared.learning.dqn import (
     td_targets,
     update_flops,
 )
-from shared.learning.model import QNetwork, forward_flops
+from shared.learning.model import QNetwork, forward_flops, shift_images
 from shared.learning.replay import Batch, ReplayMemory
 
 TINY = SensorConfig(width=40, height=30)
@@ -160,6 +161,39 @@ def test_mirror_augment_teaches_the_mirror_image_of_each_transition():
             agent.update(batch)
         q_right[mirror] = float(agent.q_values(mirrored_obs)[:, 4].mean())
     assert q_right[True] < -50 and q_right[True] < q_right[False] - 30, q_right
+
+
+def test_shift_images_moves_each_frame_by_its_own_draw_and_repeats_the_edges():
+    x = torch.arange(2 * 5 * 6, dtype=torch.float32).reshape(2, 1, 5, 6)
+    shift = torch.tensor([[0, 2], [-1, 0]])  # frame 0: two columns left; frame 1: one row down
+    out = shift_images(x, shift)
+    assert out.shape == x.shape and out.is_contiguous(memory_format=torch.channels_last)
+    assert torch.equal(out[0, 0, :, :4], x[0, 0, :, 2:])  # pixel (i, j) from (i, j + 2)
+    assert torch.equal(out[0, 0, :, 4], x[0, 0, :, 5]) and torch.equal(out[0, 0, :, 5], x[0, 0, :, 5])
+    assert torch.equal(out[1, 0, 1:], x[1, 0, :4]) and torch.equal(out[1, 0, 0], x[1, 0, 0])
+    assert torch.equal(shift_images(x, torch.zeros(2, 2, dtype=torch.int64)), x)
+
+
+def test_shift_augment_draws_within_its_bound_and_the_targets_read_the_shifted_next_frame():
+    assert DQNAgent(SMALL, TINY, DQNConfig(), device="cpu", seed=0).draw_augmentation(make_batch()) is None
+    mirror_only = DQNAgent(SMALL, TINY, DQNConfig(mirror_augment=True), device="cpu", seed=0)
+    assert mirror_only.draw_augmentation(make_batch()).obs_shift is None
+    agent = DQNAgent(SMALL, TINY, DQNConfig(double_dqn=True, shift_augment_px=2), device="cpu", seed=0)
+    batch = make_batch(64, seed=5)
+    aug = agent.draw_augmentation(batch)
+    assert aug.flip is None and aug.obs_shift.shape == aug.next_obs_shift.shape == (64, 2)
+    for shift in (aug.obs_shift, aug.next_obs_shift):
+        assert set(shift.unique().tolist()) == {-2, -1, 0, 1, 2}
+    assert not torch.equal(aug.obs_shift, aug.next_obs_shift)  # each frame its own draw
+    prepared = agent.prepare(batch, aug)
+    plain = agent.to_tensors(batch)
+    assert torch.equal(prepared.tb.obs, shift_images(plain.obs, aug.obs_shift))
+    assert torch.equal(prepared.tb.next_obs, shift_images(plain.next_obs, aug.next_obs_shift))
+    assert torch.equal(prepared.y, agent.compute_targets(prepared.tb))
+    assert not torch.equal(prepared.y, agent.compute_targets(plain))
+    for bad in (-1, 9, 1.5, True):
+        with pytest.raises(ConfigError, match="shift_augment_px"):
+            DQNConfig(shift_augment_px=bad)
 
 
 def test_mse_weighs_a_rare_collision_and_huber_ignores_it():

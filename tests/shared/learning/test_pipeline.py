@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from shared.config import DQNConfig, ModelConfig, SensorConfig, load_preset
-from shared.learning.dqn import DQNAgent
+from shared.learning.dqn import Augmentation, DQNAgent
 from shared.learning.learner import LearnerCore
 from shared.learning.pipeline import TargetPipeline
 from tests.shared.learning.test_dqn import make_batch
@@ -20,19 +20,20 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _agent() -> DQNAgent:
-    cfg = DQNConfig(optimizer="adam", lr=1e-3, double_dqn=True, mirror_augment=True, target_sync_every=2)
+    cfg = DQNConfig(optimizer="adam", lr=1e-3, double_dqn=True, mirror_augment=True,
+                    shift_augment_px=2, target_sync_every=2)
     return DQNAgent(SMALL, TINY, cfg, device="cpu", seed=0)
 
 
-def _submit(pipeline: TargetPipeline, batch, twin: DQNAgent) -> torch.Tensor | None:
-    """Submit ``batch``; the flips it drew, drawn again by ``twin`` from the same generator state."""
+def _submit(pipeline: TargetPipeline, batch, twin: DQNAgent) -> Augmentation | None:
+    """Submit ``batch``; the augmentation it drew, drawn again by ``twin`` from the same generator state."""
     state = torch.get_rng_state()
     pipeline.submit(batch)
     after = torch.get_rng_state()
     torch.set_rng_state(state)
-    flips = twin.draw_flips(batch)
+    aug = twin.draw_augmentation(batch)
     torch.set_rng_state(after)
-    return flips
+    return aug
 
 
 def test_targets_come_from_the_weights_before_the_previous_update_and_the_first_ones_are_exact():
@@ -41,25 +42,25 @@ def test_targets_come_from_the_weights_before_the_previous_update_and_the_first_
     pipeline = TargetPipeline(agent)
     try:
         theta0 = copy.deepcopy(agent)
-        flips1 = _submit(pipeline, b1, theta0)
-        assert flips1 is not None and flips1.any() and not flips1.all()
+        aug1 = _submit(pipeline, b1, theta0)
+        assert aug1 is not None and aug1.flip.any() and not aug1.flip.all() and aug1.obs_shift.any()
         _, p1 = pipeline.take()
-        assert torch.equal(p1.y, theta0.prepare(b1, flips1).y)  # nothing to lag behind yet
+        assert torch.equal(p1.y, theta0.prepare(b1, aug1).y)  # nothing to lag behind yet
 
         snapshot = copy.deepcopy(agent)  # theta_0 still: batch 2's targets are made beside update 1
-        flips2 = _submit(pipeline, b2, snapshot)
+        aug2 = _submit(pipeline, b2, snapshot)
         agent.apply(p1)  # theta_1
         _, p2 = pipeline.take()
-        assert torch.equal(p2.y, snapshot.prepare(b2, flips2).y)
+        assert torch.equal(p2.y, snapshot.prepare(b2, aug2).y)
         lagged = dict(pipeline._online.named_parameters())
         assert all(torch.equal(lagged[n], p) for n, p in snapshot.online.named_parameters())
         assert any(not torch.equal(lagged[n], p) for n, p in agent.online.named_parameters())  # theta_1 moved on
 
         snapshot = copy.deepcopy(agent)  # theta_1, before update 2 syncs theta^-
-        flips3 = _submit(pipeline, b3, snapshot)
+        aug3 = _submit(pipeline, b3, snapshot)
         assert agent.apply(p2)["synced_target"]  # theta^- written while the worker computes
         _, p3 = pipeline.take()
-        assert torch.equal(p3.y, snapshot.prepare(b3, flips3).y)
+        assert torch.equal(p3.y, snapshot.prepare(b3, aug3).y)
     finally:
         pipeline.close()
 
@@ -76,9 +77,9 @@ def test_the_workers_theta_minus_follows_each_sync_and_each_loaded_state():
         assert agent.target_version == version + 1  # written once, by update 2's sync
         # the next targets use the synced theta^- (and theta as it is now: nothing trains beside them)
         snapshot = copy.deepcopy(agent)
-        flips = _submit(pipeline, make_batch(seed=4), snapshot)
+        aug = _submit(pipeline, make_batch(seed=4), snapshot)
         _, prepared = pipeline.take()
-        assert torch.equal(prepared.y, snapshot.prepare(make_batch(seed=4), flips).y)
+        assert torch.equal(prepared.y, snapshot.prepare(make_batch(seed=4), aug).y)
 
         other = _agent()  # another run's state, its theta^- synced at other updates
         for seed in (5, 6, 7, 8, 9):
@@ -86,9 +87,9 @@ def test_the_workers_theta_minus_follows_each_sync_and_each_loaded_state():
         other.sync_target()
         agent.load_state_tensors(*other.state_tensors())
         assert agent.target_version > version + 1
-        flips = _submit(pipeline, make_batch(seed=10), other)
+        aug = _submit(pipeline, make_batch(seed=10), other)
         _, prepared = pipeline.take()
-        assert torch.equal(prepared.y, other.prepare(make_batch(seed=10), flips).y)
+        assert torch.equal(prepared.y, other.prepare(make_batch(seed=10), aug).y)
         assert all(torch.equal(mine, theirs) for mine, theirs in
                    zip(pipeline._target.parameters(), other.target.parameters()))
     finally:
