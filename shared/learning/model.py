@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Iterable
 from dataclasses import asdict
 from typing import Any
 
@@ -382,6 +383,12 @@ class QEnsemble(nn.Module):
                 and not any(m.training and m.model_cfg.dropout > 0 for m in self.members))
 
 
+def most_commands_read(members: Iterable[QNetwork]) -> int:
+    """How many previous commands a group of networks needs per image: the most any of them reads
+    (``model.action_history``; a network that reads fewer gives the older ones zero weight)."""
+    return max(m.model_cfg.action_history for m in members)
+
+
 def _fused_config(cfg: ModelConfig) -> ModelConfig:
     """What members must share to run fused: all but the command history, since a network that
     reads K commands is one that reads more with zero weights on the older ones."""
@@ -397,7 +404,7 @@ class _FusedMembers:
         self.key = self._key(members)
         self.groups = len(members)
         self.depth_encoding = members[0].model_cfg.depth_encoding
-        self.action_history = max(m.model_cfg.action_history for m in members)
+        self.action_history = most_commands_read(members)
         self.dueling = members[0].model_cfg.dueling
         with torch.no_grad():
             def cat(name: str) -> torch.Tensor:

@@ -31,7 +31,7 @@ from shared.config import NUM_ACTIONS, load_preset
 from shared.depth import range_gate
 from shared.evaluation.setup import setup_evaluation
 from shared.learning.checkpoints import LoadedModel, weights_sha256
-from shared.learning.model import QEnsemble, QNetwork, preprocess_depth
+from shared.learning.model import QEnsemble, QNetwork, most_commands_read, preprocess_depth
 from shared.learning.onnx_format import (
     DEPTH_INPUT,
     MATCH_TOLERANCE,
@@ -149,7 +149,7 @@ def _cogexplore_version() -> str:
 def command_history(net: QNetwork | QEnsemble) -> int:
     """How many previous commands the file's ``previous_action`` input holds per image: the most
     any member reads (``model.action_history``); 1 (shape (B,)) for networks that read one or none."""
-    return max(m.model_cfg.action_history for m in (net.members if isinstance(net, QEnsemble) else [net]))
+    return most_commands_read(net.members if isinstance(net, QEnsemble) else [net])
 
 
 def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:

@@ -273,8 +273,7 @@ class ReplayMemory:
         self._action[slot] = int(action)
         prev_slot = prev_tid % self.capacity
         if prev_tid >= 0 and self._tid[prev_slot] == prev_tid:
-            self._previous_action[slot, 0] = self._action[prev_slot]
-            self._previous_action[slot, 1:] = self._previous_action[prev_slot, :-1]
+            self._previous_action[slot] = self._history_after(prev_slot)
         else:
             self._previous_action[slot] = -1
         self._terminated[slot] = bool(terminated)
@@ -393,10 +392,15 @@ class ReplayMemory:
         return Batch(obs=obs, action=self._action[slots].astype(np.int64), rewards=rewards,
                      n_steps=n_steps, terminated=terminated, next_obs=next_obs,
                      previous_action=self._previous_action[slots].astype(np.int64),
-                     next_previous_action=np.concatenate(
-                         [self._action[last, None], self._previous_action[last, :-1]], axis=1).astype(np.int64),
+                     next_previous_action=self._history_after(last),
                      weights=weights,
                      indices=self._tid[slots].copy())
+
+    def _history_after(self, slots: np.ndarray | int) -> np.ndarray:
+        """The command history (int64, most recent first) of whatever follows ``slots`` in their
+        chains: each slot's own command, then its history less the oldest."""
+        return np.concatenate([np.asarray(self._action[slots], dtype=np.int64)[..., None],
+                               self._previous_action[slots, :-1]], axis=-1)
 
     def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray) -> None:
         """Set priorities |td| + eps of sampled transitions (ids that were overwritten are skipped)."""
