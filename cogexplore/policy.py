@@ -18,7 +18,6 @@ from shared.config import SensorConfig
 from shared.errors import PolicyError
 from shared.evaluation.setup import EvalSetup, setup_evaluation
 from shared.learning.checkpoints import LoadedModel
-from shared.learning.model import InferenceRunner
 
 __all__ = ["ASPECT_TOLERANCE", "COMMAND_NAMES", "Command", "Policy", "load_policy"]
 
@@ -40,7 +39,6 @@ class Policy(CameraPolicy):
         self.sensor: SensorConfig = setup.sensor_cfg
         self.control_period_s: float = setup.env_cfg.control_period_s
         self._greedy = setup.policy_fn  # shared.evaluation.policies.GreedyPolicy: argmax and the memory
-        self._runner = InferenceRunner(self.model.net)
 
     @property
     def label(self) -> str:
@@ -53,9 +51,10 @@ class Policy(CameraPolicy):
         return self._greedy.policy.previous_action
 
     def q_values(self, depth_m: Any) -> np.ndarray:
-        """(5,) float32 Q-values of the commands for this image and the previous command;
-        changes nothing (the next :meth:`act` still sees the same previous command)."""
-        return self._runner.q_values(self.observation(depth_m), self.previous_command)
+        """(5,) float32 Q-values of the commands for this image and the previous command (and
+        images, for a network that reads several); changes nothing (the next :meth:`act` still
+        sees the same previous command)."""
+        return self._greedy.policy.q_values(self.observation(depth_m))
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
         return self._greedy(self.observation(depth_m))

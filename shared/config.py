@@ -54,6 +54,8 @@ NUM_ACTIONS = len(ACTION_NAMES)
 MAX_ACTION_HISTORY = 8
 """The most previous commands a network may read (``ModelConfig.action_history``); replay and the
 policies keep this many, so any network of the range can learn from and act on them."""
+MAX_FRAME_STACK = 4
+"""The most depth images a network may read per step (``ModelConfig.frame_stack``)."""
 MAX_SHIFT_AUGMENT_PX = 8
 """The largest random shift of a frame in the learner's batches (``DQNConfig.shift_augment_px``)."""
 
@@ -355,6 +357,13 @@ class ModelConfig:
     that sees one command flips between left and right (a quarter of the shipped networks' collisions
     follow two or more turn reversals in eight steps); the last few commands show that it is
     flipping, and how long it has been turning."""
+    frame_stack: int = 1
+    """Depth images the network reads per step, as conv1's input channels: the current one, then
+    the ones before it this episode, most recent first (at an episode's start the first image
+    stands in for those not yet seen; up to ``MAX_FRAME_STACK``). The camera's 57 degrees show a
+    wall beside the robot only until it turns: the images before the last turn still hold it.
+    Replay rebuilds each stack from the episode chain and the policies remember their episode's
+    images, so transitions on the wire stay one image each. 1 (the paper's one image) in every preset."""
 
     def __post_init__(self) -> None:
         s = "model"
@@ -374,6 +383,9 @@ class ModelConfig:
                "1 unless model.previous_action is on (the history is of previous commands)")
         _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
                f"one of {', '.join(DEPTH_ENCODINGS)}")
+        _check(isinstance(self.frame_stack, int) and not isinstance(self.frame_stack, bool)
+               and 1 <= self.frame_stack <= MAX_FRAME_STACK, s, "frame_stack", self.frame_stack,
+               f"an integer in [1, {MAX_FRAME_STACK}]")
 
 
 @dataclass(frozen=True)

@@ -119,6 +119,9 @@ def receptive_field(model: torch.nn.Module, depth_m: np.ndarray,
         x = x[:, None]
     elif x.ndim == 2:
         x = x[None, None]
+    stack = getattr(getattr(model, "model_cfg", None), "frame_stack", 1)
+    if x.shape[1] == 1 and stack > 1:  # a network that reads several images: a robot at rest sees this one
+        x = x.expand(-1, stack, -1, -1).contiguous(memory_format=torch.channels_last)
     param = next(model.parameters(), None)
     if param is not None:
         x = x.to(param.device)

@@ -407,9 +407,9 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
             try:
                 _, mask, q, action = receptive_field(net, depth)
             except ReceptiveFieldError as exc:
-                from shared.learning.model import InferenceRunner
+                from shared.learning.policy import EpsilonGreedyPolicy
 
-                q = InferenceRunner(net).q_values(depth)
+                q = EpsilonGreedyPolicy(net).q_values(depth)  # a network that reads several images sees this one
                 note = f"No receptive field for {m.name}: {exc}"
                 if note not in notes:
                     notes.append(note)

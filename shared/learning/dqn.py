@@ -253,9 +253,12 @@ class DQNAgent:
     def to_tensors(self, batch: Batch) -> TensorBatch:
         if len(batch) < 1:
             raise DQNError("empty batch")
-        want = (self.sensor_cfg.height, self.sensor_cfg.width)
+        stack = self.model_cfg.frame_stack
+        want = (self.sensor_cfg.height, self.sensor_cfg.width) if stack == 1 else \
+            (stack, self.sensor_cfg.height, self.sensor_cfg.width)
         if batch.obs.shape[1:] != want or batch.next_obs.shape[1:] != want:
-            raise DQNError(f"batch frames {batch.obs.shape[1:]} do not fit the sensor {want}")
+            raise DQNError(f"batch frames {batch.obs.shape[1:]} do not fit the sensor and model.frame_stack {want}"
+                           + (" (sample the replay with frames=model.frame_stack)" if stack > 1 else ""))
         dev = self.device
         return TensorBatch(
             obs=preprocess_depth(batch.obs, dev),

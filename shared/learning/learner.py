@@ -212,10 +212,11 @@ class LearnerCore:
     def _sample(self) -> Batch:
         """An update's batch: the replay memory's samples, then the demonstrations' (if any)."""
         dqn = self.cfg.dqn
-        batch = self.replay.sample(dqn.batch_size, dqn.n_step)
+        frames = self.cfg.model.frame_stack
+        batch = self.replay.sample(dqn.batch_size, dqn.n_step, frames)
         if self.demo_replay is None:
             return batch
-        return concat_batches(batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step))
+        return concat_batches(batch, self.demo_replay.sample(dqn.demo_batch, dqn.n_step, frames))
 
     @staticmethod
     def _replay_rows(batch: Batch) -> int:

@@ -71,8 +71,9 @@ def pool3_shape(sensor_cfg: SensorConfig) -> tuple[int, int, int]:
 def preprocess_depth(depth: Any, device: torch.device | str | None = None) -> torch.Tensor:
     """Depth image(s) -> network input (B, 1, H, W) float32 in [0, 1], channels-last.
 
-    ``depth`` is (H, W) or (B, H, W), a numpy array or tensor. Floating-point input is metres;
-    integer input (``uint16`` from the wire and replay) is millimetres. 0 (no return) stays 0.
+    ``depth`` is (H, W) or (B, H, W), a numpy array or tensor, or (B, K, H, W) stacks of K images
+    (``model.frame_stack``), which give (B, K, H, W). Floating-point input is metres; integer input
+    (``uint16`` from the wire and replay) is millimetres. 0 (no return) stays 0.
     """
     if isinstance(depth, np.ndarray):
         if depth.dtype == np.uint16:  # torch's uint16 support is partial: widen first
@@ -84,14 +85,16 @@ def preprocess_depth(depth: Any, device: torch.device | str | None = None) -> to
         raise ModelError(f"depth must be a numpy array or torch tensor, got {type(depth).__name__}")
     if t.dim() == 2:
         t = t.unsqueeze(0)
-    if t.dim() != 3:
-        raise ModelError(f"depth must be (H, W) or (B, H, W), got shape {tuple(t.shape)}")
+    if t.dim() not in (3, 4):
+        raise ModelError(f"depth must be (H, W), (B, H, W) or (B, K, H, W), got shape {tuple(t.shape)}")
     if t.dtype == torch.bool or t.is_complex():
         raise ModelError(f"depth must be float metres or integer millimetres, got {t.dtype}")
     scale = 1.0 / DEPTH_SCALE_M if t.dtype.is_floating_point else 1.0 / (DEPTH_SCALE_M * MM_PER_M)
     if device is not None:
         t = t.to(device, non_blocking=True)
-    x = (t.to(torch.float32) * scale).clamp_(0.0, 1.0).unsqueeze(1)
+    x = (t.to(torch.float32) * scale).clamp_(0.0, 1.0)
+    if x.dim() == 3:
+        x = x.unsqueeze(1)
     # NaN (a broken frame) would poison every Q-value: read it as "no return"
     x = torch.nan_to_num_(x, nan=0.0)
     return x.contiguous(memory_format=torch.channels_last)
@@ -226,14 +229,14 @@ def previous_action_input(previous_action: Any, batch: int, device: torch.device
 class ConvTrunk(nn.Module):
     """Depth encoding, then conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
 
-    def __init__(self, depth_encoding: str = "metric") -> None:
+    def __init__(self, depth_encoding: str = "metric", in_channels: int = 1) -> None:
         super().__init__()
         if depth_encoding not in DEPTH_ENCODINGS:  # fail here, not at the first forward
             raise ModelError(f"unknown depth encoding {depth_encoding!r}")
         self.depth_encoding = depth_encoding
         c1, c2, c3 = CONV_CHANNELS
         pad = CONV_KERNEL // 2
-        self.conv1 = nn.Conv2d(1, c1, CONV_KERNEL, padding=pad)
+        self.conv1 = nn.Conv2d(in_channels, c1, CONV_KERNEL, padding=pad)  # one per image read
         self.conv2 = nn.Conv2d(c1, c2, CONV_KERNEL, padding=pad)
         self.conv3 = nn.Conv2d(c2, c3, CONV_KERNEL, padding=pad)
 
@@ -268,7 +271,7 @@ class QNetwork(nn.Module):
         self.pool3_shape = pool3_shape(self.sensor_cfg)
         flat = int(np.prod(self.pool3_shape))
         cfg = self.model_cfg
-        self.trunk = ConvTrunk(cfg.depth_encoding)
+        self.trunk = ConvTrunk(cfg.depth_encoding, cfg.frame_stack)
         self.fc1 = nn.Linear(flat, cfg.fc1)
         self.previous_action_fc = (nn.Linear(NUM_ACTIONS * cfg.action_history, cfg.fc1, bias=False)
                                    if cfg.previous_action else None)
@@ -282,7 +285,8 @@ class QNetwork(nn.Module):
         self.to(memory_format=torch.channels_last)
 
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
-        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, 1, H, W); ``float32``:
+        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, K, H, W), K the images it
+        reads (``model.frame_stack``); ``float32``:
         in float32 whatever ``conv_autocast`` says (acting and evaluation)."""
         self._check_input(x)
         if self.conv_autocast is None or float32:
@@ -309,10 +313,11 @@ class QNetwork(nn.Module):
         return self.head(self.features(x, float32=float32), previous_action)
 
     def _check_input(self, x: torch.Tensor) -> None:
-        want = (1, self.sensor_cfg.height, self.sensor_cfg.width)
+        want = (self.model_cfg.frame_stack, self.sensor_cfg.height, self.sensor_cfg.width)
         if x.dim() != 4 or tuple(x.shape[1:]) != want:
             raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) "
-                             f"(use preprocess_depth), got {tuple(x.shape)}")
+                             f"(use preprocess_depth{' on stacks of images' if want[0] > 1 else ''}), "
+                             f"got {tuple(x.shape)}")
 
     def conv_parameters(self) -> list[nn.Parameter]:
         return list(self.trunk.parameters())
@@ -359,6 +364,10 @@ class QEnsemble(nn.Module):
             if m.sensor_cfg.noise_free() != camera:
                 raise ModelError(f"an ensemble's networks must read the same camera: {camera} against "
                                  f"{m.sensor_cfg.noise_free()}")
+        stacks = sorted({m.model_cfg.frame_stack for m in flat})
+        if len(stacks) > 1:
+            raise ModelError(f"an ensemble's networks must read the same number of images per step "
+                             f"(model.frame_stack), got {stacks}")
         self.members = nn.ModuleList(flat)
         self.sensor_cfg = flat[0].sensor_cfg
         self.model_cfg = flat[0].model_cfg
@@ -486,6 +495,13 @@ def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
                          f"network reads {dst.trunk.depth_encoding!r} (model.depth_encoding)")
     with torch.no_grad():
         for (n, ps), pd in zip(src.trunk.named_parameters(), dst.trunk.parameters()):
+            if n == "conv1.weight" and ps.shape[1] == 1 and pd.shape[1] > 1 and ps.shape[2:] == pd.shape[2:] \
+                    and ps.shape[0] == pd.shape[0]:
+                # a one-image trunk into one that reads a stack: the current image keeps its filters and
+                # the older ones start at zero weight, so the network first acts as the one-image one
+                pd.zero_()
+                pd[:, :1].copy_(ps)
+                continue
             if ps.shape != pd.shape:
                 raise ModelError(f"conv weight {n}: shape {tuple(ps.shape)} != {tuple(pd.shape)}")
             pd.copy_(ps)
@@ -596,7 +612,7 @@ def layer_summary(model_cfg: ModelConfig | None = None, sensor_cfg: SensorConfig
     net.eval()
     try:
         with torch.no_grad():
-            x = row("input", torch.zeros(1, 1, s.height, s.width))
+            x = row("input", torch.zeros(1, net.model_cfg.frame_stack, s.height, s.width))
             t = net.trunk
             for i, conv in enumerate((t.conv1, t.conv2, t.conv3), start=1):
                 x = row(f"conv{i}", F.relu(conv(x)), conv)
@@ -644,7 +660,7 @@ def forward_flops(net: QNetwork | SupervisedNet) -> dict[str, int]:
     net.eval()
     try:
         with torch.no_grad():
-            net(torch.zeros(1, 1, net.sensor_cfg.height, net.sensor_cfg.width))
+            net(torch.zeros(1, net.trunk.conv1.in_channels, net.sensor_cfg.height, net.sensor_cfg.width))
     finally:
         for h in hooks:
             h.remove()

@@ -110,6 +110,12 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
                              f"got {type(model).__name__}")
     if not isinstance(net, (QNetwork, QEnsemble)):
         raise OnnxModelError(f"only a Q-network exports to ONNX; {source} holds a {type(net).__name__}")
+    if net.model_cfg.frame_stack > 1:
+        # the ONNX contract is one image and the command history per step; a stack of images would
+        # need the runner to remember them too
+        raise OnnxModelError(f"{source} reads {net.model_cfg.frame_stack} images per step (model.frame_stack); "
+                             "the ONNX export takes networks that read one (play it with cogexplore drive "
+                             "or cogexplore.load_policy)")
     # a CPU float32 copy in eval mode: the caller's network (maybe on CUDA, maybe training) is left as it is
     net = copy.deepcopy(net).to("cpu", torch.float32).eval()
     # the camera itself, as setup_evaluation gives it: a run's training noise is no part of the model

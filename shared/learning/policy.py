@@ -77,7 +77,8 @@ class EpsilonGreedyPolicy:
     The network is shared, not copied: load new weights into ``net`` and the next ``act`` uses
     them. Random draws come from the policy's own generator (seeded), never the global ones.
     The policy remembers the commands it chose last (``previous_actions``, most recent first, up to
-    ``MAX_ACTION_HISTORY``: what a ``model.previous_action`` network reads); call ``reset()`` when an
+    ``MAX_ACTION_HISTORY``: what a ``model.previous_action`` network reads) and, for a network that reads
+    several images (``model.frame_stack``), the images it acted on before; call ``reset()`` when an
     episode starts.
 
     As a rollout policy (``shared.rollout``), ``policy(obs, info, env_steps)`` acts at step
@@ -94,6 +95,8 @@ class EpsilonGreedyPolicy:
         self.rng = np.random.default_rng(seed)
         self._runner = InferenceRunner(net)
         self.previous_actions: tuple[int, ...] = ()
+        self.frame_stack = int(getattr(net.model_cfg, "frame_stack", 1))
+        self.previous_frames: tuple[np.ndarray, ...] = ()  # most recent first, at most frame_stack - 1
         self.guide = guide
         self.step_scale = step_scale
 
@@ -102,8 +105,9 @@ class EpsilonGreedyPolicy:
         return self.act(depth_m, step=env_steps * self.step_scale, guide_action=guide_action)
 
     def reset(self) -> None:
-        """A new episode: no previous command."""
+        """A new episode: no previous command, no earlier images."""
         self.previous_actions = ()
+        self.previous_frames = ()
 
     @property
     def previous_action(self) -> int | None:
@@ -114,9 +118,21 @@ class EpsilonGreedyPolicy:
         self.previous_actions = (choice.action, *self.previous_actions[:MAX_ACTION_HISTORY - 1])
         return choice
 
-    def _q_values(self, depth_m: np.ndarray) -> np.ndarray:
+    def q_values(self, depth_m: np.ndarray) -> np.ndarray:
+        """(5,) Q-values for this image after this episode's commands (and images); changes nothing."""
         history = np.array([self.previous_actions], dtype=np.int64) if self.previous_actions else None
-        return self._runner.q_values(depth_m, history)
+        if self.frame_stack == 1:
+            return self._runner.q_values(depth_m, history)
+        # the replay's stacks: this image, the ones before it, the oldest repeated at an episode's start
+        earlier = self.previous_frames + (self.previous_frames[-1:] if self.previous_frames else (depth_m,)) \
+            * (self.frame_stack - 1 - len(self.previous_frames))
+        return self._runner.q_values(np.stack((depth_m, *earlier))[None], history)[0]
+
+    def _q_values(self, depth_m: np.ndarray) -> np.ndarray:
+        q = self.q_values(depth_m)
+        if self.frame_stack > 1:  # the image acted on joins the memory
+            self.previous_frames = (np.array(depth_m), *self.previous_frames)[:self.frame_stack - 1]
+        return q
 
     def epsilon(self, step: int) -> float:
         return 0.0 if self.schedule is None else self.schedule(step)

@@ -12,7 +12,9 @@ transition never links the wrong frames). The per-stream chain (``next`` links) 
 returns are computed from at sampling time, for any n. It also gives each transition its
 previous command (the action of its predecessor in the chain, -1 at an episode's start or after
 a broken link), and the ``MAX_ACTION_HISTORY`` commands before that (its predecessor's history,
-shifted), for networks that read them (``model.previous_action``, ``model.action_history``).
+shifted), for networks that read them (``model.previous_action``, ``model.action_history``), and
+the images before each one (its ancestors' obs frames) for networks that read several
+(``model.frame_stack``: ``sample(..., frames=K)``).
 
 Frames and transitions are both FIFO rings. The frame ring has some slack over the transition
 capacity (one extra frame per truncated episode); when a frame is overwritten, every transition
@@ -35,7 +37,7 @@ from typing import Any, Hashable
 
 import numpy as np
 
-from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, ReplayConfig
+from shared.config import MAX_ACTION_HISTORY, MAX_FRAME_STACK, NUM_ACTIONS, ReplayConfig
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 
@@ -59,12 +61,12 @@ class Batch:
     bootstraps from ``next_obs[i]`` with gamma ** n_steps[i]. Frames are uint16 millimetres.
     """
 
-    obs: np.ndarray  # (B, H, W) uint16 mm
+    obs: np.ndarray  # (B, H, W) uint16 mm; (B, K, H, W) sampled with frames=K > 1, most recent first
     action: np.ndarray  # (B,) int64
     rewards: np.ndarray  # (B, n) float32
     n_steps: np.ndarray  # (B,) int64, 1..n
     terminated: np.ndarray  # (B,) bool
-    next_obs: np.ndarray  # (B, H, W) uint16 mm; zeros where terminated
+    next_obs: np.ndarray  # (B, H, W) or (B, K, H, W) uint16 mm, as obs; zeros where terminated
     previous_action: np.ndarray  # (B, MAX_ACTION_HISTORY) int64 commands before obs, most recent first (-1: none)
     next_previous_action: np.ndarray  # (B, MAX_ACTION_HISTORY) int64 commands before next_obs (the chain's last first)
     weights: np.ndarray  # (B,) float32 importance-sampling weights (ones when uniform)
@@ -152,6 +154,7 @@ class ReplayMemory:
         self._obs_fid = np.full(n, -1, dtype=np.int64)
         self._next_fid = np.full(n, -1, dtype=np.int64)
         self._next_tid = np.full(n, -1, dtype=np.int64)
+        self._prev_tid = np.full(n, -1, dtype=np.int64)  # the chain's predecessor (-1: episode start)
         self._reward = np.zeros(n, dtype=np.float32)
         self._action = np.zeros(n, dtype=np.uint8)
         self._previous_action = np.full((n, MAX_ACTION_HISTORY), -1, dtype=np.int8)  # most recent first
@@ -178,7 +181,7 @@ class ReplayMemory:
     @property
     def nbytes(self) -> int:
         arrays = (self._frames, self._frame_id, self._frame_refs, self._tid, self._obs_fid,
-                  self._next_fid, self._next_tid, self._reward, self._action, self._previous_action,
+                  self._next_fid, self._next_tid, self._prev_tid, self._reward, self._action, self._previous_action,
                   self._terminated, self._truncated, self._valid)
         tree = self._tree.tree.nbytes if self._tree is not None else 0
         return sum(a.nbytes for a in arrays) + tree
@@ -274,8 +277,10 @@ class ReplayMemory:
         prev_slot = prev_tid % self.capacity
         if prev_tid >= 0 and self._tid[prev_slot] == prev_tid:
             self._previous_action[slot] = self._history_after(prev_slot)
+            self._prev_tid[slot] = prev_tid
         else:
             self._previous_action[slot] = -1
+            self._prev_tid[slot] = -1
         self._terminated[slot] = bool(terminated)
         self._truncated[slot] = bool(truncated)
         self._valid[slot] = True
@@ -322,12 +327,16 @@ class ReplayMemory:
         return frame_mm
 
     # ------------------------------------------------------------------ sampling
-    def sample(self, batch_size: int, n_step: int = 1) -> Batch:
-        """Draw ``batch_size`` transitions (with replacement) and their n-step chains."""
+    def sample(self, batch_size: int, n_step: int = 1, frames: int = 1) -> Batch:
+        """Draw ``batch_size`` transitions (with replacement) and their n-step chains. ``frames`` > 1:
+        obs and next_obs are stacks of that many images, each followed by the ones before it in its
+        episode (the oldest one known repeated where the episode, or its stored chain, began later)."""
         if not (isinstance(batch_size, int) and batch_size >= 1):
             raise ReplayError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         if not (isinstance(n_step, int) and n_step >= 1):
             raise ReplayError(f"n_step must be an integer >= 1, got {n_step!r}")
+        if not (isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_FRAME_STACK):
+            raise ReplayError(f"frames must be an integer in [1, {MAX_FRAME_STACK}], got {frames!r}")
         if self._num_valid == 0:
             raise ReplayError("cannot sample from an empty replay memory")
         if self._tree is not None:
@@ -338,7 +347,7 @@ class ReplayMemory:
         else:
             slots = self._sample_uniform(batch_size)
             weights = np.ones(batch_size, dtype=np.float32)
-        return self._gather(slots, n_step, weights)
+        return self._gather(slots, n_step, weights, frames)
 
     def _sample_uniform(self, batch_size: int) -> np.ndarray:
         filled = min(self._transitions_added, self.capacity)
@@ -367,7 +376,7 @@ class ReplayMemory:
             slots[bad] = self._rng.choice(valid, size=int(bad.sum()), p=p / p.sum())
         return slots
 
-    def _gather(self, slots: np.ndarray, n_step: int, weights: np.ndarray) -> Batch:
+    def _gather(self, slots: np.ndarray, n_step: int, weights: np.ndarray, frames: int = 1) -> Batch:
         b = slots.shape[0]
         rewards = np.zeros((b, n_step), dtype=np.float32)
         rewards[:, 0] = self._reward[slots]
@@ -385,9 +394,15 @@ class ReplayMemory:
             n_steps[ok] += 1
             alive = ok & ~(self._terminated[nxt_slot] | self._truncated[nxt_slot])
         terminated = self._terminated[last].copy()
-        obs = self._frames[self._obs_fid[slots] % self.frame_capacity]
         next_fid = self._next_fid[last]
-        next_obs = self._frames[np.where(next_fid >= 0, next_fid, 0) % self.frame_capacity]
+        next_fid = np.where(next_fid >= 0, next_fid, 0)
+        if frames == 1:
+            obs = self._frames[self._obs_fid[slots] % self.frame_capacity]
+            next_obs = self._frames[next_fid % self.frame_capacity]
+        else:  # the images before next_obs are the chain's last obs and the ones before it
+            obs = self._frames[self._obs_stack(slots, frames) % self.frame_capacity]
+            next_obs = self._frames[np.concatenate([next_fid[:, None], self._obs_stack(last, frames - 1)], axis=1)
+                                    % self.frame_capacity]
         next_obs[terminated] = 0
         return Batch(obs=obs, action=self._action[slots].astype(np.int64), rewards=rewards,
                      n_steps=n_steps, terminated=terminated, next_obs=next_obs,
@@ -395,6 +410,23 @@ class ReplayMemory:
                      next_previous_action=self._history_after(last),
                      weights=weights,
                      indices=self._tid[slots].copy())
+
+    def _obs_stack(self, slots: np.ndarray, frames: int) -> np.ndarray:
+        """(B, frames) frame ids: each slot's obs, then its predecessors' obs, most recent first; where
+        the chain stops (episode start, an overwritten transition or frame) the oldest id found repeats."""
+        fids = np.empty((slots.shape[0], frames), dtype=np.int64)
+        fids[:, 0] = self._obs_fid[slots]
+        cur = slots
+        ok = np.ones(slots.shape[0], dtype=bool)
+        for j in range(1, frames):
+            prev = self._prev_tid[cur]
+            prev_slot = prev % self.capacity
+            fid = self._obs_fid[prev_slot]
+            ok &= (prev >= 0) & (self._tid[prev_slot] == prev) & (fid >= 0)
+            ok &= self._frame_id[fid % self.frame_capacity] == fid
+            fids[:, j] = np.where(ok, fid, fids[:, j - 1])
+            cur = np.where(ok, prev_slot, cur)
+        return fids
 
     def _history_after(self, slots: np.ndarray | int) -> np.ndarray:
         """The command history (int64, most recent first) of whatever follows ``slots`` in their
@@ -434,7 +466,8 @@ class ReplayMemory:
         arrays = {
             "frames": self._frames[:filled_f], "frame_id": self._frame_id,
             "frame_refs": self._frame_refs, "tid": self._tid, "obs_fid": self._obs_fid,
-            "next_fid": self._next_fid, "next_tid": self._next_tid, "reward": self._reward,
+            "next_fid": self._next_fid, "next_tid": self._next_tid, "prev_tid": self._prev_tid,
+            "reward": self._reward,
             "action": self._action, "previous_action": self._previous_action,
             "terminated": self._terminated, "truncated": self._truncated,
             "valid": self._valid,
@@ -472,6 +505,8 @@ class ReplayMemory:
                 self._previous_action[:, 0] = previous
             else:
                 self._previous_action[...] = previous
+            # ...and before their predecessors were kept, every image stack starts at its own obs
+            self._prev_tid[...] = arrays.get("prev_tid", -1)
             if self._tree is not None:
                 self._tree.tree[...] = arrays["tree"]
         except (KeyError, ValueError) as exc:

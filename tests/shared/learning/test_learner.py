@@ -138,3 +138,21 @@ def test_a_resumed_replay_memory_keeps_nothing_the_task_cannot_produce(tmp_path)
     assert resume_from(CheckpointManager(tmp_path), resumed)
     _, rewards = resumed.replay.stored_rewards()
     assert len(resumed.replay) == 7 and set(rewards.tolist()) == {1.0}
+
+
+def test_a_frame_stack_learner_trains_on_stacks_from_the_replay_chain():
+    cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 8, "dqn.batch_size": 8,
+                                               "model.frame_stack": 2, "replay.capacity": 64})
+    core = LearnerCore(cfg, device="cpu")
+    for step in range(12):
+        core.add_transition("s", _frame(1.0 + 0.1 * step), step % 5, 1.0, _frame(1.1 + 0.1 * step), False, False)
+    batch = core._sample()
+    h, w = cfg.sensor.height, cfg.sensor.width
+    assert batch.obs.shape == (8, 2, h, w)
+    # each stack is this image and the one before it in the episode (the first image repeated at its start)
+    before = np.maximum(batch.obs[:, 0, 0, 0].astype(int) - 100, 1000)
+    np.testing.assert_array_equal(batch.obs[:, 1, 0, 0], before)
+    before_weights = core.agent.online.trunk.conv1.weight.detach().clone()
+    assert core.train_step() is not None
+    assert not torch.equal(before_weights, core.agent.online.trunk.conv1.weight)
+    core.close()

@@ -107,8 +107,10 @@ def test_inverse_depth_encoding_is_monotone_keeps_no_return_and_is_inside_the_ne
 
 
 def test_preprocess_rejects_bad_shapes():
-    with pytest.raises(ModelError, match=r"\(H, W\) or \(B, H, W\)"):
-        preprocess_depth(np.zeros((1, 1, 4, 4), dtype=np.float32))
+    with pytest.raises(ModelError, match=r"\(H, W\), \(B, H, W\) or \(B, K, H, W\)"):
+        preprocess_depth(np.zeros((1, 1, 1, 4, 4), dtype=np.float32))
+    with pytest.raises(ModelError, match=r"\(H, W\), \(B, H, W\) or \(B, K, H, W\)"):
+        preprocess_depth(np.zeros(4, dtype=np.float32))
     with pytest.raises(ModelError, match="numpy array or torch tensor"):
         preprocess_depth([[1.0]])
     net = QNetwork(SMALL, TINY)
@@ -305,3 +307,33 @@ def test_an_ensemble_of_different_fc_layers_still_plays_the_mean():
         torch.testing.assert_close(q, (nets[0](x) + nets[1](x)) / 2)
     assert ensemble._fused is None  # one network after the other
 
+
+
+def test_a_frame_stack_network_reads_its_images_as_channels_and_starts_from_a_one_image_trunk():
+    torch.manual_seed(0)
+    stack = QNetwork(ModelConfig(fc1=32, fc2=16, frame_stack=3, previous_action=True), TINY)
+    images = np.random.default_rng(1).random((2, 3, 30, 40)).astype(np.float32) * 4
+    x = preprocess_depth(images)
+    assert x.shape == (2, 3, 30, 40) and stack(x).shape == (2, 5)
+    with pytest.raises(ModelError, match=r"\(B, 3, 30, 40\).*stacks"):
+        stack(preprocess_depth(images[:, 0]))
+    assert layer_summary(net=stack)[0]["output_shape"] == [3, 30, 40]
+    assert forward_flops(stack)["conv1"] == 3 * forward_flops(QNetwork(SMALL, TINY))["conv1"]
+    # the supervised (one-image) conv layers: the current image keeps them, the older ones start at zero
+    sl = SupervisedNet(TINY)
+    copy_conv_weights(sl, stack)
+    torch.testing.assert_close(stack.features(x), sl.features(x[:, :1]))
+    older = x.clone()
+    older[:, 1:] = 0.5
+    stack.eval()  # dropout off
+    assert torch.equal(stack(older), stack(x))  # until training gives them weight, older images change nothing
+    with torch.no_grad():
+        stack.trunk.conv1.weight[:, 1:] += 0.1
+    assert not torch.allclose(stack(older), stack(x))
+    # networks reading different numbers of images cannot average their Q-values
+    with pytest.raises(ModelError, match="frame_stack"):
+        QEnsemble([stack, QNetwork(SMALL, TINY)])
+    pair = QEnsemble([stack, QNetwork(ModelConfig(fc1=32, fc2=16, frame_stack=3, previous_action=True), TINY)]).eval()
+    with torch.no_grad():  # fused
+        fused = pair(x, [1, 4])
+    torch.testing.assert_close(fused, torch.stack([m(x, [1, 4]) for m in pair.members]).mean(0))

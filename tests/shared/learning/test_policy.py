@@ -114,3 +114,28 @@ def test_the_policy_feeds_its_last_command_back_and_forgets_it_at_reset():
     assert [policy.act(depth).action for _ in range(3)] == [first.action] * 3  # repeats its last command
     policy.reset()
     assert policy.previous_action is None and policy.greedy(depth).action == 2
+
+
+def test_a_frame_stack_policy_feeds_the_images_it_acted_on_and_forgets_them_at_reset():
+    torch.manual_seed(0)
+    n = QNetwork(ModelConfig(fc1=16, fc2=8, dropout=0.0, frame_stack=3), TINY)
+    seen: list[np.ndarray] = []
+    forward = n.forward
+
+    def spy(x, previous_action=None, **kw):
+        seen.append(x[:, :, 0, 0].numpy().copy() * 4.0)  # back to metres: one pixel per image
+        return forward(x, previous_action, **kw)
+
+    n.forward = spy
+    policy = EpsilonGreedyPolicy(n, seed=0)
+    frames = [np.full((30, 40), d, np.float32) for d in (1.0, 2.0, 3.0, 3.5)]
+    for f in frames:
+        policy.greedy(f)
+    np.testing.assert_allclose(np.concatenate(seen), [[1, 1, 1], [2, 1, 1], [3, 2, 1], [3.5, 3, 2]])
+    # q_values looks without remembering; reset starts the next episode from its own first image
+    q = policy.q_values(frames[0])
+    np.testing.assert_allclose(seen[-1], [[1, 3.5, 3]])
+    np.testing.assert_allclose(policy.greedy(frames[0]).q_values, q)
+    policy.reset()
+    policy.greedy(frames[2])
+    np.testing.assert_allclose(seen[-1], [[3, 3, 3]])

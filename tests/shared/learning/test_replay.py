@@ -239,3 +239,51 @@ def test_a_paused_stream_never_reuses_a_frame_about_to_be_overwritten():
     b = mem.sample(64)
     np.testing.assert_array_equal(b.next_obs[~b.terminated, 0, 0], b.obs[~b.terminated, 0, 0] + 1)
     assert mem._gather(np.array([6]), 2, np.ones(1, np.float32)).obs[0, 0, 0] == 1
+
+
+def values(stacks: np.ndarray) -> list[list[int]]:
+    """The step each image of (B, K, H, W) stacks shows (frames are valued by step)."""
+    return stacks[:, :, 0, 0].astype(int).tolist()
+
+
+def test_image_stacks_follow_the_episode_chain_and_repeat_its_first_image():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE, seed=0)
+    a = add_episode(mem, "a", 0, 5, "collision")  # frames 0..4
+    b = add_episode(mem, "b", 200, 3, "truncation")  # frames 200..202, then 203
+    lost = mem.add("b", frame(900), 1, 1.0, frame(901), False)  # not b's last frame: a new chain
+    got = mem._gather(np.array([a[0], a[1], a[4], b[2], lost]), 1, np.ones(5, np.float32), frames=3)
+    assert got.obs.shape == (5, 3, *SHAPE) and got.next_obs.shape == (5, 3, *SHAPE)
+    assert values(got.obs) == [[0, 0, 0], [1, 0, 0], [4, 3, 2], [202, 201, 200], [900, 900, 900]]
+    # next_obs: the image after the chain, then the chain's last obs and the ones before it
+    assert values(got.next_obs)[1] == [2, 1, 0]
+    assert values(got.next_obs)[3] == [203, 202, 201]
+    assert np.all(got.next_obs[2] == 0)  # a collision has no next images
+    three = mem._gather(np.array([a[0], b[0]]), 3, np.ones(2, np.float32), frames=2)
+    assert values(three.next_obs) == [[3, 2], [203, 202]]
+    # frames=1 keeps the one-image layout
+    assert mem.sample(4, 2).obs.shape == (4, *SHAPE)
+    with pytest.raises(ReplayError, match="frames"):
+        mem.sample(4, 1, frames=9)
+
+
+def test_image_stacks_stop_at_overwritten_frames_and_survive_a_save():
+    # one long episode over small rings: the frame ring (6) overwrites before the transition ring (8)
+    mem = ReplayMemory(ReplayConfig(capacity=8), SHAPE, frame_capacity=6, seed=0)
+    tids = add_episode(mem, "a", 0, 14, "truncation")
+    valid = [t for t in tids if mem._tid[t % mem.capacity] == t and mem._valid[t % mem.capacity]]
+    oldest_frame = mem._frames_written - mem.frame_capacity
+    assert mem._tid[(valid[0] - 1) % mem.capacity] == valid[0] - 1 and valid[0] - 1 < oldest_frame
+    got = mem._gather(np.array([t % mem.capacity for t in valid]), 1, np.ones(len(valid), np.float32), frames=4)
+    for row, tid in zip(values(got.obs), valid):
+        stored = [s for s in range(tid, tid - 4, -1) if s >= oldest_frame]
+        # the images still stored, then the oldest of them repeated: never an overwritten frame's content
+        assert row == stored + [stored[-1]] * (4 - len(stored))
+    arrays, meta = mem.state_dict()
+    other = ReplayMemory(ReplayConfig(capacity=8), SHAPE, frame_capacity=6)
+    other.load_state_dict(arrays, meta)
+    again = other._gather(np.array([t % mem.capacity for t in valid]), 1, np.ones(len(valid), np.float32), frames=4)
+    np.testing.assert_array_equal(again.obs, got.obs)
+    # a replay saved before predecessors were kept: each stack is its own image repeated
+    other.load_state_dict({k: v for k, v in arrays.items() if k != "prev_tid"}, meta)
+    old = other._gather(np.array([valid[-1] % mem.capacity]), 1, np.ones(1, np.float32), frames=2)
+    assert values(old.obs) == [[valid[-1], valid[-1]]]
