@@ -46,8 +46,9 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", choices=POLICY_NAMES, default=None,
                         help="greedy (the checkpoint's; default with --checkpoint), random or reactive "
                              "(baselines, no checkpoint needed), sl (--checkpoint: a supervised model from "
-                             "`cogexplore pretrain`) or rl (--checkpoint: a frozen-conv Q-learning run; "
-                             "greedy, labelled RL)")
+                             "`cogexplore pretrain`), rl (--checkpoint: a frozen-conv Q-learning run; "
+                             "greedy, labelled RL) or expert (the privileged map expert: commands from the "
+                             "true pose and the world's map, never the image; a ceiling, not a baseline)")
     parser.add_argument("--world", default=None,
                         help="built-in world, procedural:<seed> or an MJCF file (default: the checkpoint's "
                              f"training world, else {DEFAULT_WORLD}); several, comma-separated or as seed "

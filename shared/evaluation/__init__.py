@@ -29,10 +29,11 @@ PAPER_DRL_STEPS = {500: 9.3, 4000: 21.6, 7500: 27.3, 40000: 92.6}
 """The same table's DRL model after each number of updates."""
 DEFAULT_WORLD = "paper-indoor"
 """The world a model without a stored training world is evaluated in."""
-POLICY_NAMES: tuple[str, ...] = ("greedy", "random", "reactive", "sl", "rl")
+POLICY_NAMES: tuple[str, ...] = ("greedy", "random", "reactive", "sl", "rl", "expert")
 """Names ``policies.make_policy`` and ``cogexplore evaluate --policy`` accept."""
-BASELINE_POLICIES: tuple[str, ...] = ("random", "reactive")
-"""Policies that need no checkpoint."""
+BASELINE_POLICIES: tuple[str, ...] = ("random", "reactive", "expert")
+"""Policies that need no checkpoint ("expert" reads the map, not the image: a ceiling, not a baseline
+a depth policy must beat)."""
 
 
 PROTOCOL_SENSOR_FIELDS: tuple[str, ...] = ("noise_std_m", "noise_quadratic_per_m", "dropout_prob")

@@ -25,13 +25,14 @@ memory across steps also has ``reset()``, which the protocol calls at each episo
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
-from shared.config import NUM_ACTIONS, SensorConfig
+from shared.config import NUM_ACTIONS, EnvConfig, SensorConfig
 from shared.evaluation import POLICY_NAMES
 from shared.learning.policy import PolicyError
 
@@ -218,10 +219,46 @@ class ReactivePolicy:
         return int(np.argmax(s)), s
 
 
+class ExpertPolicy:
+    """The privileged map expert (``shared.expert.expert.CommandExpert``, the supervised labels'
+    source) driving: each command from the robot's true pose on the world's clearance map, with a
+    3 m lookahead. It never reads the image, so its score is what a controller that knows the map
+    reaches under the protocol: a ceiling for the depth policies, not a baseline. The protocol passes
+    it the rollout's info (``reads_pose``); it builds one expert per world, at the protocol's speeds."""
+
+    name = "expert"
+    reads_pose = True
+
+    def __init__(self, sensor_cfg: SensorConfig | None = None, env_cfg: EnvConfig | None = None):
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.env_cfg = dataclasses.replace(env_cfg or EnvConfig(), speed_table="test")
+        self._experts: dict[str, Any] = {}
+
+    def __call__(self, depth_m: np.ndarray, info: Mapping[str, Any] | None = None) -> tuple[int, np.ndarray]:
+        if not info or "pose" not in info or "world" not in info:
+            raise PolicyError("the expert policy reads the robot's pose and world: play it through the test "
+                              "protocol (cogexplore evaluate --policy expert)")
+        expert = self._experts.get(info["world"])
+        if expert is None:
+            from shared.errors import CogexploreError
+            from shared.expert.expert import CommandExpert
+            from shared.sim.world import load_world
+
+            try:
+                world = load_world(info["world"])
+            except CogexploreError as exc:
+                raise PolicyError(f"the expert policy needs the map of world {info['world']!r}: {exc}") from None
+            expert = self._experts[info["world"]] = CommandExpert(world, self.env_cfg, self.sensor_cfg)
+        x, y, yaw = (float(v) for v in info["pose"])
+        scores = expert.scores(x, y, yaw)
+        return int(np.argmax(scores)), np.asarray(scores, dtype=np.float32)
+
+
 def make_policy(name: str, *, net: Any = None, sensor_cfg: SensorConfig | None = None,
-                seed: int = 0) -> PolicyFn:
+                seed: int = 0, env_cfg: EnvConfig | None = None) -> PolicyFn:
     """A policy by name: ``greedy`` and ``rl`` need ``net`` (a QNetwork or QEnsemble), ``sl`` a
-    SupervisedNet, ``random`` uses ``seed``, ``reactive`` the sensor geometry of ``sensor_cfg``."""
+    SupervisedNet, ``random`` uses ``seed``, ``reactive`` the sensor geometry of ``sensor_cfg``,
+    ``expert`` the robot of ``env_cfg`` (its speeds: the protocol's)."""
     if name in ("greedy", "rl", "sl") and net is None:
         raise PolicyError(f"the {name} policy needs a network: give a checkpoint")
     if name == "greedy":
@@ -234,4 +271,6 @@ def make_policy(name: str, *, net: Any = None, sensor_cfg: SensorConfig | None =
         return RandomPolicy(seed)
     if name == "reactive":
         return ReactivePolicy(sensor_cfg)
+    if name == "expert":
+        return ExpertPolicy(sensor_cfg, env_cfg)
     raise PolicyError(f"unknown policy {name!r}; known: {list(POLICY_NAMES)}")

@@ -72,9 +72,11 @@ class _ProtocolPolicy:
         self.stop = stop
         self.reset = getattr(policy_fn, "reset", None)
 
-    def __call__(self, depth_m: np.ndarray, _info: Any, _env_steps: int) -> Any:
+    def __call__(self, depth_m: np.ndarray, info: Any, _env_steps: int) -> Any:
         if self.stop is not None and self.stop.is_set():
             raise EvaluationCancelled("evaluation cancelled")
+        if getattr(self.policy_fn, "reads_pose", False):  # a privileged policy: the robot's pose and world
+            return self.policy_fn(depth_m, info)
         return self.policy_fn(depth_m)
 
 

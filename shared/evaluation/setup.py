@@ -122,7 +122,8 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
                             "images; the sensor size cannot be overridden")
     # the camera itself: a run's training noise (robust-40x30's) is no part of it, the protocol adds its own
     sensor = cfg.sensor.noise_free()
-    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=sensor, seed=seed)
+    fn = make_policy(policy, net=model.net if model is not None else None, sensor_cfg=sensor, seed=seed,
+                     env_cfg=cfg.env)
     world_name = world or (model.run_config.env.world if model is not None and model.run_config is not None
                            else DEFAULT_WORLD)
     return EvalSetup(policy, fn, sensor, cfg.env, world_name, model if policy in ("greedy", "sl", "rl") else None)

@@ -209,3 +209,22 @@ def test_evaluate_records_the_protocol_and_refuses_its_noise_as_an_override(tmp_
     with pytest.raises(SystemExit):
         main(["evaluate", *common, "--protocol", "exact"])
     assert "invalid choice: 'exact' (choose from 'paper', 'robust')" in capsys.readouterr().err
+
+
+def test_the_map_expert_drives_from_the_true_pose_and_outlasts_the_reactive_baseline(tmp_path: Path) -> None:
+    runs = {}
+    for policy in ("expert", "reactive"):
+        out = tmp_path / f"{policy}.json"
+        assert main(["evaluate", "--policy", policy, "--world", "procedural:301", "--starts", "1", "2", "3",
+                     "--episodes-per-start", "1", "--max-steps", "60", "--json", str(out), "--quiet"]) == 0
+        runs[policy] = load_results(out)
+    assert runs["expert"].meta["policy"] == "expert" and runs["expert"].meta["env"]["speed_table"] == "test"
+    expert_steps = [e.steps for e in runs["expert"].episodes]
+    reactive_steps = [e.steps for e in runs["reactive"].episodes]
+    assert sum(expert_steps) > sum(reactive_steps) and min(expert_steps) == 60
+    # without the rollout's pose it refuses, rather than guessing from the image
+    from shared.evaluation.policies import ExpertPolicy
+    from shared.learning.policy import PolicyError
+
+    with pytest.raises(PolicyError, match="pose and world"):
+        ExpertPolicy(SENSOR)(np.ones((30, 40), np.float32))
