@@ -285,9 +285,9 @@ class QNetwork(nn.Module):
         self.to(memory_format=torch.channels_last)
 
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
-        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, K, H, W), K the images it
-        reads (``model.frame_stack``); ``float32``:
-        in float32 whatever ``conv_autocast`` says (acting and evaluation)."""
+        """pool3 activations (B, 64, H/8, W/8) of preprocessed input x (B, K, H, W), K the images the
+        network reads (``model.frame_stack``); ``float32``: in float32 whatever ``conv_autocast``
+        says (acting and evaluation)."""
         self._check_input(x)
         if self.conv_autocast is None or float32:
             return self.trunk(x)
