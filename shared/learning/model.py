@@ -339,7 +339,9 @@ class QEnsemble(nn.Module):
     It plays wherever a QNetwork is played (greedy policies, ``InferenceRunner``, ``cogexplore
     drive``, ONNX export); ``features`` stacks the members' pool3 maps along the channels, so a
     receptive-field map sums every member's. ``model_cfg`` is the first member's (members may
-    differ in their fc layers or depth encoding). It is never trained: a learner trains one QNetwork.
+    differ in their fc layers or depth encoding) with the most images any member reads
+    (``frame_stack``): the ensemble takes that many, each member the newest of them. It is never
+    trained: a learner trains one QNetwork.
 
     Without autograd (acting, evaluation) and when every member has one model config, the members
     run as one network: conv1 with every member's filters, conv2 and conv3 as grouped convolutions,
@@ -364,32 +366,47 @@ class QEnsemble(nn.Module):
             if m.sensor_cfg.noise_free() != camera:
                 raise ModelError(f"an ensemble's networks must read the same camera: {camera} against "
                                  f"{m.sensor_cfg.noise_free()}")
-        stacks = sorted({m.model_cfg.frame_stack for m in flat})
-        if len(stacks) > 1:
-            raise ModelError(f"an ensemble's networks must read the same number of images per step "
-                             f"(model.frame_stack), got {stacks}")
         self.members = nn.ModuleList(flat)
         self.sensor_cfg = flat[0].sensor_cfg
-        self.model_cfg = flat[0].model_cfg
+        # what the ensemble is fed: the most images any member reads (each member reads the newest of them)
+        self.model_cfg = dataclasses.replace(flat[0].model_cfg, frame_stack=most_images_read(flat))
         self._fused: _FusedMembers | None = None
 
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
         """Every member's pool3, stacked along the channels: (B, 64 * members, H/8, W/8)."""
-        return torch.cat([m.features(x, float32=float32) for m in self.members], dim=1)
+        self._check_input(x)
+        return torch.cat([m.features(_images_for(m, x), float32=float32) for m in self.members], dim=1)
 
     def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
+        self._check_input(x)
         if not torch.is_grad_enabled() and self._fusable(float32):
-            self.members[0]._check_input(x)
             if self._fused is None or not self._fused.matches(self.members):
                 self._fused = _FusedMembers(self.members)
             return self._fused(x, previous_action)
-        return torch.stack([m(x, previous_action, float32=float32) for m in self.members]).mean(0)
+        return torch.stack([m(_images_for(m, x), previous_action, float32=float32) for m in self.members]).mean(0)
+
+    def _check_input(self, x: torch.Tensor) -> None:
+        want = (self.model_cfg.frame_stack, self.sensor_cfg.height, self.sensor_cfg.width)
+        if x.dim() != 4 or tuple(x.shape[1:]) != want:
+            raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) (the ensemble takes the "
+                             f"most images a member reads; use preprocess_depth), got {tuple(x.shape)}")
 
     def _fusable(self, float32: bool) -> bool:
         first = _fused_config(self.members[0].model_cfg)
         return (all(_fused_config(m.model_cfg) == first for m in self.members)
                 and (float32 or all(m.conv_autocast is None for m in self.members))
                 and not any(m.training and m.model_cfg.dropout > 0 for m in self.members))
+
+
+def most_images_read(members: Iterable[QNetwork]) -> int:
+    """How many images a group of networks needs per step: the most any of them reads
+    (``model.frame_stack``; a network that reads fewer reads the newest ones)."""
+    return max(m.model_cfg.frame_stack for m in members)
+
+
+def _images_for(net: QNetwork, x: torch.Tensor) -> torch.Tensor:
+    """The newest of an ensemble's input images that ``net`` reads."""
+    return x if x.shape[1] == net.model_cfg.frame_stack else x[:, :net.model_cfg.frame_stack]
 
 
 def most_commands_read(members: Iterable[QNetwork]) -> int:
@@ -399,13 +416,14 @@ def most_commands_read(members: Iterable[QNetwork]) -> int:
 
 
 def _fused_config(cfg: ModelConfig) -> ModelConfig:
-    """What members must share to run fused: all but the command history, since a network that
-    reads K commands is one that reads more with zero weights on the older ones."""
-    return dataclasses.replace(cfg, action_history=1)
+    """What members must share to run fused: all but the command history and the images read, since
+    a network that reads K commands (or images) is one that reads more with zero weights on the
+    older ones."""
+    return dataclasses.replace(cfg, action_history=1, frame_stack=1)
 
 
 class _FusedMembers:
-    """An ensemble's members of one model config (but the command history) as one network (see
+    """An ensemble's members of one model config (but the command history and images read) as one network (see
     :class:`QEnsemble`): their weights stacked once, re-stacked when any member's weights change
     (``matches``)."""
 
@@ -422,8 +440,12 @@ class _FusedMembers:
             def stack(name: str) -> torch.Tensor:
                 return torch.stack([m.get_parameter(name) for m in members])
 
-            self.convs = [(cat(f"trunk.{c}.weight").contiguous(memory_format=torch.channels_last),
-                           cat(f"trunk.{c}.bias")) for c in ("conv1", "conv2", "conv3")]
+            images = most_images_read(members)  # conv1 of a member that reads fewer: zero weights on the older
+            conv1 = torch.cat([F.pad(m.trunk.conv1.weight, (0, 0, 0, 0, 0, images - m.trunk.conv1.in_channels))
+                               for m in members])
+            self.convs = [(w.contiguous(memory_format=torch.channels_last), cat(f"trunk.{c}.bias"))
+                          for c, w in (("conv1", conv1), ("conv2", cat("trunk.conv2.weight")),
+                                       ("conv3", cat("trunk.conv3.weight")))]
             # (G, in, out) views of (G, out, in) and (G, 1, out): h @ W + b for every member at once
             linear = ["fc1", "fc2"] + (["value", "advantage"] if self.dueling else ["fc3"])
             self.linear = {n: (stack(f"{n}.weight").transpose(1, 2), stack(f"{n}.bias")[:, None]) for n in linear}

@@ -330,9 +330,16 @@ def test_a_frame_stack_network_reads_its_images_as_channels_and_starts_from_a_on
     with torch.no_grad():
         stack.trunk.conv1.weight[:, 1:] += 0.1
     assert not torch.allclose(stack(older), stack(x))
-    # networks reading different numbers of images cannot average their Q-values
-    with pytest.raises(ModelError, match="frame_stack"):
-        QEnsemble([stack, QNetwork(SMALL, TINY)])
+    # with a network that reads one image, the ensemble takes three and gives it the newest
+    one = QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True), TINY).eval()
+    mixed = QEnsemble([one, stack])
+    assert mixed.model_cfg.frame_stack == 3
+    with torch.no_grad():  # fused: the one-image network's conv1 padded with zero weights
+        torch.testing.assert_close(mixed(x, [2, 0]), (one(x[:, :1], [2, 0]) + stack(x, [2, 0])) / 2)
+    assert mixed._fused is not None
+    torch.testing.assert_close(mixed(x, [2, 0]), (one(x[:, :1], [2, 0]) + stack(x, [2, 0])) / 2)  # unfused
+    with pytest.raises(ModelError, match=r"network input must be \(B, 3, 30, 40\) \(the ensemble"):
+        mixed(x[:, :1])
     pair = QEnsemble([stack, QNetwork(ModelConfig(fc1=32, fc2=16, frame_stack=3, previous_action=True), TINY)]).eval()
     with torch.no_grad():  # fused
         fused = pair(x, [1, 4])
