@@ -226,6 +226,13 @@ def previous_action_input(previous_action: Any, batch: int, device: torch.device
     return one_hot.reshape(batch, NUM_ACTIONS * history)
 
 
+def _check_network_input(x: torch.Tensor, frames: int, sensor_cfg: SensorConfig, hint: str) -> None:
+    """ModelError unless ``x`` is (B, frames, H, W) for the sensor's image size."""
+    want = (frames, sensor_cfg.height, sensor_cfg.width)
+    if x.dim() != 4 or tuple(x.shape[1:]) != want:
+        raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) ({hint}), got {tuple(x.shape)}")
+
+
 class ConvTrunk(nn.Module):
     """Depth encoding, then conv1-conv3, each + ReLU + 2x2 max-pool; output is pool3."""
 
@@ -313,11 +320,8 @@ class QNetwork(nn.Module):
         return self.head(self.features(x, float32=float32), previous_action)
 
     def _check_input(self, x: torch.Tensor) -> None:
-        want = (self.model_cfg.frame_stack, self.sensor_cfg.height, self.sensor_cfg.width)
-        if x.dim() != 4 or tuple(x.shape[1:]) != want:
-            raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) "
-                             f"(use preprocess_depth{' on stacks of images' if want[0] > 1 else ''}), "
-                             f"got {tuple(x.shape)}")
+        _check_network_input(x, self.model_cfg.frame_stack, self.sensor_cfg,
+                             "use preprocess_depth" + (" on stacks of images" if self.model_cfg.frame_stack > 1 else ""))
 
     def conv_parameters(self) -> list[nn.Parameter]:
         return list(self.trunk.parameters())
@@ -386,10 +390,8 @@ class QEnsemble(nn.Module):
         return torch.stack([m(_images_for(m, x), previous_action, float32=float32) for m in self.members]).mean(0)
 
     def _check_input(self, x: torch.Tensor) -> None:
-        want = (self.model_cfg.frame_stack, self.sensor_cfg.height, self.sensor_cfg.width)
-        if x.dim() != 4 or tuple(x.shape[1:]) != want:
-            raise ModelError(f"network input must be (B, {want[0]}, {want[1]}, {want[2]}) (the ensemble takes the "
-                             f"most images a member reads; use preprocess_depth), got {tuple(x.shape)}")
+        _check_network_input(x, self.model_cfg.frame_stack, self.sensor_cfg,
+                             "the ensemble takes the most images a member reads; use preprocess_depth")
 
     def _fusable(self, float32: bool) -> bool:
         first = _fused_config(self.members[0].model_cfg)
@@ -517,16 +519,13 @@ def copy_conv_weights(src: nn.Module, dst: nn.Module) -> None:
                          f"network reads {dst.trunk.depth_encoding!r} (model.depth_encoding)")
     with torch.no_grad():
         for (n, ps), pd in zip(src.trunk.named_parameters(), dst.trunk.parameters()):
-            if n == "conv1.weight" and ps.shape[1] == 1 and pd.shape[1] > 1 and ps.shape[2:] == pd.shape[2:] \
-                    and ps.shape[0] == pd.shape[0]:
-                # a one-image trunk into one that reads a stack: the current image keeps its filters and
-                # the older ones start at zero weight, so the network first acts as the one-image one
-                pd.zero_()
-                pd[:, :1].copy_(ps)
-                continue
-            if ps.shape != pd.shape:
+            # a one-image conv1 into one that reads a stack: the current image gets its filters and the
+            # older ones start at zero weight, so the network first acts as the one-image one
+            into = pd[:, :1] if n == "conv1.weight" and ps.shape[1] == 1 else pd
+            if ps.shape != into.shape:
                 raise ModelError(f"conv weight {n}: shape {tuple(ps.shape)} != {tuple(pd.shape)}")
-            pd.copy_(ps)
+            pd.zero_()
+            into.copy_(ps)
 
 
 def architecture_fingerprint(net: nn.Module) -> str:

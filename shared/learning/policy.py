@@ -124,9 +124,9 @@ class EpsilonGreedyPolicy:
         if self.frame_stack == 1:
             return self._runner.q_values(depth_m, history)
         # the replay's stacks: this image, the ones before it, the oldest repeated at an episode's start
-        earlier = self.previous_frames + (self.previous_frames[-1:] if self.previous_frames else (depth_m,)) \
-            * (self.frame_stack - 1 - len(self.previous_frames))
-        return self._runner.q_values(np.stack((depth_m, *earlier))[None], history)[0]
+        images = (depth_m, *self.previous_frames)
+        images += images[-1:] * (self.frame_stack - len(images))
+        return self._runner.q_values(np.stack(images)[None], history)[0]
 
     def _q_values(self, depth_m: np.ndarray) -> np.ndarray:
         q = self.q_values(depth_m)
