@@ -459,11 +459,12 @@ class DQNConfig:
     """Demonstration transitions (``train.demos``) added to every batch, on top of
     ``batch_size`` from the replay memory (0: none, the paper's)."""
     demo_margin: float = 0.8
-    """Large-margin loss on demonstration samples (DQfD, shared.learning.demos): the demonstrated command's
-    Q-value should lead every other command's by this much (DQfD: 0.8)."""
+    """Large-margin loss on labelled samples (DQfD): demonstrations (shared.learning.demos) and
+    transitions the expert labelled (``explore.expert_label_prob``). The labelled command's Q-value
+    should lead every other command's by this much (DQfD: 0.8)."""
     demo_weight: float = 1.0
     """Weight of the large-margin loss against the TD loss (DQfD: 1; 0: demonstrations only add
-    TD targets)."""
+    TD targets and expert labels are ignored)."""
     conv_precision: str = "float32"
     """Number format of the conv layers' arithmetic in the learner's updates (forward, backward and
     the TD targets' forwards): 'float32'; 'bfloat16' (mixed precision: weights, optimiser and the
@@ -529,10 +530,18 @@ class ExploreConfig:
     (shared.expert.expert.CommandExpert, the supervised labels' source) chooses the non-random actions
     instead of the Q-network: demonstrations that reach the parts of the world an epsilon-greedy
     episode rarely does. The network still sees only depth; 0 is the paper's plain epsilon-greedy."""
+    expert_label_prob: float = 0.0
+    """Fraction of the actors' steps at which the privileged map expert also names its own command
+    for the state the network acted in (from the true pose, which the network never sees). The
+    label travels with the transition; the learner adds DQfD's large-margin loss on labelled samples
+    (``dqn.demo_margin``, ``dqn.demo_weight``): the expert as a teacher at the states the network
+    itself reaches (DAgger's states, "learning by cheating"). Costs the actor the expert's plan,
+    ~1.8 ms a labelled step. 0: no labels, the paper's DQN (and the shipped recipe: on the actors'
+    states one depth image barely shows what this expert decides, MODEL_CARD.md run ET2)."""
 
     def __post_init__(self) -> None:
         s = "explore"
-        for name in ("eps_start", "eps_end", "apex_base", "expert_episode_prob"):
+        for name in ("eps_start", "eps_end", "apex_base", "expert_episode_prob", "expert_label_prob"):
             v = getattr(self, name)
             _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
         _check(type(self.eps_decay_steps) is int and self.eps_decay_steps >= 0, s,

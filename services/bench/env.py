@@ -10,12 +10,15 @@ import time
 import numpy as np
 
 from shared.config import SensorConfig
+from shared.expert.expert import ExpertGuide
 from shared.sim.env import ExploreEnv
 
 
 def run(world: str = "paper-indoor", steps: int = 2000, backend: str = "raycast",
-        allow_columns: bool = True, pin_cpu: int | None = 0, seed: int = 0) -> dict:
-    """Random-policy rollouts; times every depth capture and every physics step separately."""
+        allow_columns: bool = True, pin_cpu: int | None = 0, seed: int = 0, expert_labels: bool = False) -> dict:
+    """Random-policy rollouts; times every depth capture and every physics step separately.
+    ``expert_labels``: also the map expert's label at every pose of the end-to-end rollout (what an
+    actor pays per step at ``explore.expert_label_prob`` = 1)."""
     if pin_cpu is not None and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {pin_cpu})
     env = ExploreEnv(world=world, sensor=SensorConfig(backend=backend))
@@ -40,12 +43,19 @@ def run(world: str = "paper-indoor", steps: int = 2000, backend: str = "raycast"
         depth_ms.append((t2 - t1) * 1e3)
     raw_s = time.perf_counter() - start
     # End-to-end through the Gymnasium API (reward, collision rule, info, resets).
+    guide = ExpertGuide(env, 0.0, label_prob=1.0) if expert_labels else None
+    label_ms = []
+    _, info = env.reset(seed=seed)
     start = time.perf_counter()
     for _ in range(steps):
-        _, _, term, trunc, _ = env.step(int(rng.integers(5)))
+        if guide is not None:
+            t0 = time.perf_counter()
+            guide.teacher_label(info["pose"])
+            label_ms.append((time.perf_counter() - t0) * 1e3)
+        _, _, term, trunc, info = env.step(int(rng.integers(5)))
         if term or trunc:
             episodes += 1
-            env.reset()
+            _, info = env.reset()
     env_s = time.perf_counter() - start
     env.close()
     return {
@@ -61,12 +71,14 @@ def run(world: str = "paper-indoor", steps: int = 2000, backend: str = "raycast"
         "physics_ms_p50": float(np.percentile(physics_ms, 50)),
         "raw_steps_per_s": steps / raw_s,
         "pinned_cpu": pin_cpu,
+        **({"expert_label_ms_p50": float(np.percentile(label_ms, 50)),
+            "expert_label_ms_p90": float(np.percentile(label_ms, 90))} if label_ms else {}),
     }
 
 
 def run_command(args: argparse.Namespace) -> int:
     """``cogexplore bench env``."""
     result = run(world=args.world, steps=args.steps, backend=args.backend, allow_columns=not args.per_pixel,
-                 pin_cpu=None if args.no_pin else 0)
+                 pin_cpu=None if args.no_pin else 0, expert_labels=args.expert_labels)
     print(json.dumps(result, indent=2, default=float) if args.json else result)
     return 0

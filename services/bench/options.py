@@ -15,6 +15,9 @@ def add_env_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--per-pixel", action="store_true",
                    help="cast every pixel's ray (disable the exact column fast path)")
     p.add_argument("--no-pin", action="store_true", help="do not pin the process to CPU 0")
+    p.add_argument("--expert-labels", action="store_true",
+                   help="also time the map expert's label at every step (explore.expert_label_prob's cost; "
+                        "steps_per_s then includes it)")
     p.add_argument("--json", action="store_true", help="print JSON")
 
 

@@ -1,5 +1,6 @@
-"""``cogexplore model summary|export|select``: a Q-network's layers, a weights-only or ONNX export, and
-the choice of the model to ship from a run's checkpoints."""
+"""``cogexplore model summary|export|select|agreement``: a Q-network's layers, a weights-only or ONNX
+export, the choice of the model to ship from a run's checkpoints, and how far models agree with the
+map expert's labels on the states a run's actors visited."""
 
 from __future__ import annotations
 
@@ -82,6 +83,45 @@ def run_select(args: argparse.Namespace) -> int:
     summary = select(opts, echo=lambda msg: print(msg, file=sys.stderr, flush=True))
     print(summary.pop("table"), end="", file=sys.stderr)
     _print_json(summary)
+    return 0
+
+
+def run_agreement(args: argparse.Namespace) -> int:
+    """How often each model's command is the map expert's, on the labelled states kept in a run's
+    replay memory (a run trained with explore.expert_label_prob > 0)."""
+    import numpy as np
+
+    from shared.config import ACTION_NAMES
+    from shared.expert.supervised import classification_metrics, predict
+    from shared.learning.checkpoints import load_model, load_replay, load_supervised_model
+    from shared.learning.model import InferenceRunner
+
+    memory = load_replay(args.run)
+    states = memory.labelled()
+    label = states.expert_action
+    counts = np.bincount(label, minlength=len(ACTION_NAMES))
+    majority = int(counts.argmax())
+    report: dict[str, Any] = {
+        "run": str(args.run), "labelled_states": int(len(label)),
+        "label_share": {n: float(c / len(label)) for n, c in zip(ACTION_NAMES, counts)},
+        "baselines": {f"always {ACTION_NAMES[majority]}": float((label == majority).mean()),
+                      "the actors' own commands": float((states.action == label).mean())},
+        "models": {}}
+    for source in args.model or ["pretrained"]:
+        net = load_model(source).net
+        stack = net.model_cfg.frame_stack
+        seen = memory.labelled(stack) if stack > 1 else states
+        runner = InferenceRunner(net)
+        greedy = np.concatenate([runner.q_values(seen.obs[i:i + 2048], seen.previous_action[i:i + 2048]).argmax(axis=1)
+                                 for i in range(0, len(label), 2048)])
+        report["models"][source] = classification_metrics(label, greedy)
+    for source in args.supervised:
+        report["models"][f"{source} (supervised)"] = classification_metrics(
+            label, predict(load_supervised_model(source).net, states.obs))
+    for name, metrics in report["models"].items():
+        print(f"{name}: agrees on {metrics['accuracy']:.1%} (balanced {metrics['balanced_accuracy']:.1%})",
+              file=sys.stderr)
+    _print_json(report)
     return 0
 
 

@@ -266,6 +266,16 @@ def add_model_export_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--card", metavar="JSON", help="a JSON object stored in the file's metadata (model card)")
 
 
+def add_model_agreement_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("run", help="run folder, its checkpoints directory or a checkpoint file whose replay memory was "
+                               "kept, from a run with explore.expert_label_prob > 0")
+    p.add_argument("--model", action="append", default=None, metavar="SOURCE",
+                   help="a Q-network: checkpoint, run folder, weights export or `pretrained` (repeatable; "
+                        "default: pretrained)")
+    p.add_argument("--supervised", action="append", default=[], metavar="SOURCE",
+                   help="a supervised model (`cogexplore pretrain`; `pretrained` = the shipped one), repeatable")
+
+
 def add_model_select_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="run folder or its checkpoints directory (train with train.keep_checkpoints "
                                "large enough to keep the windows)")

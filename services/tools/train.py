@@ -66,7 +66,7 @@ class _Training:
     def on_step(self, step: Step) -> None:
         core, train = self.core, self.cfg.train
         core.add_transition("env", step.obs, step.action, step.reward, None if step.terminated else step.next_obs,
-                            step.terminated, step.truncated)
+                            step.terminated, step.truncated, self.guide.teacher_label(step.info["pose"]))
         for _ in range(core.updates_due()):
             core.train_step()
             self.update_rate.add(1)
@@ -78,7 +78,7 @@ class _Training:
                     policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
                     updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
                     replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
-                    demo_agreement=core.recent_demo_agreement(train.log_every))
+                    label_agreement=core.recent_label_agreement(train.log_every))
                 self.learner_log.write(row)
                 self.board.write_row(row)
             if core.updates % train.checkpoint_every == 0:
@@ -95,10 +95,10 @@ class _Training:
         self.episodes += 1
         loss, _ = self.core.recent()
         mean_steps = sum(self.recent_lengths) / max(len(self.recent_lengths), 1)
-        agreement = self.core.recent_demo_agreement()
+        agreement = self.core.recent_label_agreement()
         self.bar.set_postfix_str(f"eps {epsilon:.2f} | steps/ep {mean_steps:5.1f}"
                                  f" | loss {loss if loss is not None else float('nan'):.3g}"
-                                 + ("" if agreement is None else f" | demo {agreement:.2f}"), refresh=False)
+                                 + ("" if agreement is None else f" | label {agreement:.2f}"), refresh=False)
 
 
 def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
@@ -115,7 +115,8 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
         rewind(paths.stats, LearnerRow, core.updates)
         rewind(paths.stats, EpisodeRow, core.updates)
     env = ExploreEnv(cfg.env, cfg.sensor)
-    guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2)
+    guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2,
+                        label_prob=cfg.explore.expert_label_prob)
     policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=cfg.train.seed + 1,
                                  guide=guide)
     deadline = time.monotonic() + max_minutes * 60 if max_minutes else None

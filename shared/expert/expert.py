@@ -321,15 +321,20 @@ class CommandExpert:
 
 class ExpertGuide:
     """Chooses which training episodes the expert drives (``explore.expert_episode_prob``) and
-    gives the expert's command in them; None in the others. One per environment."""
+    gives the expert's command in them; None in the others. Also draws which steps the expert
+    labels as a teacher (``explore.expert_label_prob``, :meth:`teacher_label`). One per environment."""
 
-    def __init__(self, env: Any, prob: float, seed: int | None = None):
-        if not (isinstance(prob, (int, float)) and 0.0 <= prob <= 1.0):
-            raise SupervisedError(f"expert episode probability must be in [0, 1], got {prob!r}")
+    def __init__(self, env: Any, prob: float, seed: int | None = None, *, label_prob: float = 0.0):
+        for name, p in (("expert episode probability", prob), ("expert label probability", label_prob)):
+            if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
+                raise SupervisedError(f"{name} must be in [0, 1], got {p!r}")
         self.prob = float(prob)
+        self.label_prob = float(label_prob)
         self.env = env
         self._experts: dict[str, CommandExpert] = {}  # per world, built when first needed
         self.rng = np.random.default_rng(seed)
+        # its own stream: labelling on or off leaves the episodes' draws as they were
+        self.label_rng = np.random.default_rng(None if seed is None else seed + 1)
         self.active = False
 
     def begin_episode(self, episode: Any = None) -> bool:
@@ -339,8 +344,16 @@ class ExpertGuide:
 
     def action(self, pose: Sequence[float]) -> int | None:
         """The expert's command at ``pose`` (x, y, yaw) in an expert-driven episode, else None."""
-        if not self.active:
+        return self._command(pose) if self.active else None
+
+    def teacher_label(self, pose: Sequence[float]) -> int | None:
+        """The expert's command at ``pose``, the pose a decision was taken at, for a ``label_prob``
+        share of the calls (None for the others)."""
+        if self.label_prob <= 0 or self.label_rng.random() >= self.label_prob:
             return None
+        return self._command(pose)
+
+    def _command(self, pose: Sequence[float]) -> int:
         world = self.env.world  # the world of the episode now playing (env.extra_worlds)
         expert = self._experts.get(world.name)
         if expert is None:

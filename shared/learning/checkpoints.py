@@ -59,7 +59,7 @@ import safetensors.torch
 import torch
 from safetensors import SafetensorError
 
-from shared.config import ConfigError, ModelConfig, RunConfig, SensorConfig, from_dict
+from shared.config import ConfigError, ModelConfig, ReplayConfig, RunConfig, SensorConfig, from_dict
 from shared.errors import CogexploreError
 from shared.learning.dqn import DQNAgent, DQNError
 from shared.learning.model import (
@@ -714,6 +714,34 @@ def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
     return dataclasses.replace(last, net=net.eval(), weights_sha256=weights_sha256(net),
                                averaged_from=tuple({"source": str(m.path), "policy_version": m.policy_version}
                                                    for m in models))
+
+
+def load_replay(source: str | Path) -> ReplayMemory:
+    """The replay memory saved with the newest checkpoint that kept one, of a run folder, its
+    checkpoints directory or one checkpoint file; built to the saved memory's own shape."""
+    path = Path(source)
+    if path.is_file():
+        candidates = [path]
+    else:
+        folder = path / "checkpoints" if (path / "checkpoints").is_dir() else path
+        candidates = CheckpointManager(folder).checkpoints()[::-1]
+    for ckpt_path in candidates:
+        ckpt = load_checkpoint(ckpt_path)
+        if ckpt.replay_path is None or not ckpt.replay_path.exists():
+            continue
+        arrays, meta = load_tensors_file(ckpt.replay_path, FORMAT + "-replay", framework="numpy")
+        if meta.get("digest") != ckpt.replay_digest:
+            raise CheckpointError(f"{ckpt.replay_path} belongs to another checkpoint")
+        try:
+            state = meta["replay"]
+            memory = ReplayMemory(ReplayConfig(capacity=int(state["capacity"]), prioritized=bool(state["prioritized"])),
+                                  tuple(state["frame_shape"]), frame_capacity=int(state["frame_capacity"]))
+            memory.load_state_dict(arrays, state)
+        except (ReplayError, ConfigError, KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{ckpt.replay_path} is not a readable replay memory: {exc}") from None
+        return memory
+    raise CheckpointError(f"{source}: no checkpoint there kept its replay memory (only the newest "
+                          "train.keep_replays do)")
 
 
 def load_supervised_model(source: str | Path, device: str | torch.device = "cpu") -> LoadedModel:

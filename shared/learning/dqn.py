@@ -124,15 +124,16 @@ def td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.T
     return torch.where(terminated, returns, returns + discount * bootstrap)
 
 
-def demo_margin_loss(q_all: torch.Tensor, demo_action: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
+def large_margin_loss(q_all: torch.Tensor, label: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
     """DQfD's large-margin loss (Hester et al. 2018): mean over samples of
-    max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E), zero once the demonstrated command a_E leads
-    every other by ``margin``; and the share of samples whose argmax already is a_E."""
+    max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E), zero once the labelled command a_E (a
+    demonstration's, or the expert's) leads every other by ``margin``; and the share of samples whose
+    argmax already is a_E."""
     penalty = torch.full_like(q_all, float(margin))
-    penalty.scatter_(1, demo_action[:, None], 0.0)
-    q_demo = q_all.gather(1, demo_action[:, None]).squeeze(1)
-    loss = ((q_all + penalty).max(dim=1).values - q_demo).mean()
-    agreement = float((q_all.detach().argmax(dim=1) == demo_action).float().mean())
+    penalty.scatter_(1, label[:, None], 0.0)
+    q_label = q_all.gather(1, label[:, None]).squeeze(1)
+    loss = ((q_all + penalty).max(dim=1).values - q_label).mean()
+    agreement = float((q_all.detach().argmax(dim=1) == label).float().mean())
     return loss, agreement
 
 
@@ -149,7 +150,8 @@ class TensorBatch:
     weights: torch.Tensor
     previous_action: torch.Tensor  # (B, J) int64 commands before obs, most recent first; -1: none
     next_previous_action: torch.Tensor  # (B, J) int64
-    demo: torch.Tensor | None = None  # (B,) bool: demonstration samples (large-margin loss)
+    demo: torch.Tensor | None = None  # (B,) bool: demonstration samples (never mirrored)
+    expert_action: torch.Tensor | None = None  # (B,) int64 labelled command (large-margin loss), -1: none
 
 
 def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
@@ -163,7 +165,8 @@ def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
 
     return dataclasses.replace(tb, obs=mirror_images(tb.obs, flip), next_obs=mirror_images(tb.next_obs, flip),
                                action=mirror(tb.action), previous_action=mirror(tb.previous_action),
-                               next_previous_action=mirror(tb.next_previous_action))
+                               next_previous_action=mirror(tb.next_previous_action),
+                               expert_action=None if tb.expert_action is None else mirror(tb.expert_action))
 
 
 @dataclass(frozen=True)
@@ -271,6 +274,8 @@ class DQNAgent:
             previous_action=torch.as_tensor(batch.previous_action, dtype=torch.int64, device=dev),
             next_previous_action=torch.as_tensor(batch.next_previous_action, dtype=torch.int64, device=dev),
             demo=None if batch.demo is None else torch.as_tensor(batch.demo, dtype=torch.bool, device=dev),
+            expert_action=None if batch.expert_action is None or not (batch.expert_action >= 0).any() else
+            torch.as_tensor(batch.expert_action, dtype=torch.int64, device=dev),
         )
 
     # ------------------------------------------------------------------ update
@@ -344,11 +349,13 @@ class DQNAgent:
         else:
             per_sample = (q - y).square()
         loss = (per_sample * tb.weights).mean()
-        demo_metrics: dict[str, float] = {}
-        if tb.demo is not None and self.cfg.demo_weight > 0 and bool(tb.demo.any()):
-            margin_loss, agreement = demo_margin_loss(q_all[tb.demo], tb.action[tb.demo], self.cfg.demo_margin)
+        label_metrics: dict[str, float] = {}
+        if tb.expert_action is not None and self.cfg.demo_weight > 0:
+            labelled = tb.expert_action >= 0  # demonstrations and the expert's labels
+            margin_loss, agreement = large_margin_loss(q_all[labelled], tb.expert_action[labelled],
+                                                       self.cfg.demo_margin)
             loss = loss + self.cfg.demo_weight * margin_loss
-            demo_metrics = {"demo_margin_loss": float(margin_loss.detach()), "demo_agreement": agreement}
+            label_metrics = {"label_margin_loss": float(margin_loss.detach()), "label_agreement": agreement}
         if not torch.isfinite(loss):
             # The offenders: a sample whose own loss is not finite, or so large that it alone can
             # overflow the batch mean (a Huber loss stays finite where the squared error does not).
@@ -382,7 +389,7 @@ class DQNAgent:
             "grad_norm": float(grad_norm),
             "synced_target": synced,
             "td_errors": td.cpu().numpy(),
-            **demo_metrics,
+            **label_metrics,
         }
 
     def sync_target(self) -> None:

@@ -89,18 +89,20 @@ class LearnerCore:
         """Transitions removed from replay because an update on them had a non-finite loss."""
         self._max_depth_mm = math.ceil(cfg.sensor.max_range_m * 1000)
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
-        self._demo_window: collections.deque = collections.deque(maxlen=1000)  # demo_agreement
+        self._label_window: collections.deque = collections.deque(maxlen=1000)  # label_agreement
         self._last_metrics: dict[str, Any] = {}
 
     # -- data in ---------------------------------------------------------------------------
     def add_transition(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
-                       next_obs: np.ndarray | None, terminated: bool, truncated: bool) -> None:
+                       next_obs: np.ndarray | None, terminated: bool, truncated: bool,
+                       expert_action: int | None = None) -> None:
         """Store one transition (ReplayError for a reward this task does not pay: one finite but huge
-        reward, stored, would make every TD target it reaches huge)."""
+        reward, stored, would make every TD target it reaches huge). ``expert_action``: the expert's
+        command in ``obs`` (``explore.expert_label_prob``), None: no label."""
         if not self.cfg.env.pays(reward):
             raise ReplayError(f"reward {reward!r} is not one this task pays "
                               f"(it pays {self.cfg.env.describe_rewards()})")
-        self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated)
+        self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated, expert_action=expert_action)
         self.received += 1
 
     def ingest(self, batch: TransitionBatch) -> int:
@@ -114,10 +116,11 @@ class LearnerCore:
         batch.require_physical(env, max_depth_mm=self._max_depth_mm)
         stream = (batch.actor_id, batch.actor_epoch, batch.episode)
         last = batch.steps - 1
+        labels = batch.expert_labels()
         for i in range(batch.steps):
             self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
                                 batch.next_depth(i), batch.terminated and i == last,
-                                batch.truncated and i == last)
+                                batch.truncated and i == last, None if labels[i] < 0 else int(labels[i]))
         record = self._record(batch.actor_id, batch.actor_epoch)
         record.received += batch.steps
         record.version = int(batch.policy_version[-1])  # its newest: a restarted learner's weights are lower
@@ -204,8 +207,8 @@ class LearnerCore:
             n_replay = self._replay_rows(batch)
             self.replay.update_priorities(batch.indices[:n_replay], metrics["td_errors"][:n_replay])
         self._window.append((metrics["loss"], metrics["q_mean"]))
-        if "demo_agreement" in metrics:
-            self._demo_window.append(metrics["demo_agreement"])
+        if "label_agreement" in metrics:
+            self._label_window.append(metrics["label_agreement"])
         self._last_metrics = metrics
         return metrics
 
@@ -236,12 +239,12 @@ class LearnerCore:
         items = list(self._window)[-n:]
         return float(np.mean([x[0] for x in items])), float(np.mean([x[1] for x in items]))
 
-    def recent_demo_agreement(self, n: int = 100) -> float | None:
-        """Share of demonstration samples whose greedy command was the demonstrated one, over the
-        last ``n`` updates (None without demonstrations)."""
-        if not self._demo_window:
+    def recent_label_agreement(self, n: int = 100) -> float | None:
+        """Share of labelled samples (demonstrations, expert labels) whose greedy command was the
+        labelled one, over the last ``n`` updates (None without labels)."""
+        if not self._label_window:
             return None
-        return float(np.mean(list(self._demo_window)[-n:]))
+        return float(np.mean(list(self._label_window)[-n:]))
 
     def weight_lag(self) -> dict[str, int]:
         """Versions between the learner's weights and those each actor's newest transitions used."""

@@ -72,14 +72,16 @@ class Batch:
     weights: np.ndarray  # (B,) float32 importance-sampling weights (ones when uniform)
     indices: np.ndarray  # (B,) int64 transition ids, for update_priorities
     demo: np.ndarray | None = None  # (B,) bool: from a demonstration (shared.learning.demos); None: none are
+    expert_action: np.ndarray | None = None  # (B,) int64 labelled command (large-margin loss), -1: none; None: none
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
 
 
 def concat_batches(batch: Batch, demo_batch: Batch) -> Batch:
-    """``batch`` followed by ``demo_batch``, the latter's samples marked as demonstrations (the
-    update adds the large-margin loss on them). Both must have the same n-step width."""
+    """``batch`` followed by ``demo_batch``, the latter's samples marked as demonstrations and labelled
+    with their own command (the update adds the large-margin loss on them). Both must have the same
+    n-step width."""
     if batch.rewards.shape[1] != demo_batch.rewards.shape[1]:
         raise ReplayError(f"n-step widths differ: {batch.rewards.shape[1]} and {demo_batch.rewards.shape[1]}")
     joined = {name: np.concatenate([getattr(batch, name), getattr(demo_batch, name)])
@@ -87,7 +89,9 @@ def concat_batches(batch: Batch, demo_batch: Batch) -> Batch:
                            "next_previous_action", "weights", "indices")}
     demo = np.concatenate([np.zeros(len(batch), bool) if batch.demo is None else batch.demo,
                            np.ones(len(demo_batch), bool)])
-    return Batch(**joined, demo=demo)
+    label = np.concatenate([np.full(len(batch), -1, np.int64) if batch.expert_action is None else batch.expert_action,
+                            demo_batch.action])
+    return Batch(**joined, demo=demo, expert_action=label)
 
 
 class SumTree:
@@ -157,6 +161,7 @@ class ReplayMemory:
         self._prev_tid = np.full(n, -1, dtype=np.int64)  # the chain's predecessor (-1: episode start)
         self._reward = np.zeros(n, dtype=np.float32)
         self._action = np.zeros(n, dtype=np.uint8)
+        self._expert_action = np.full(n, -1, dtype=np.int8)  # the expert's command in obs, -1: none
         self._previous_action = np.full((n, MAX_ACTION_HISTORY), -1, dtype=np.int8)  # most recent first
         self._terminated = np.zeros(n, dtype=bool)
         self._truncated = np.zeros(n, dtype=bool)
@@ -181,7 +186,8 @@ class ReplayMemory:
     @property
     def nbytes(self) -> int:
         arrays = (self._frames, self._frame_id, self._frame_refs, self._tid, self._obs_fid,
-                  self._next_fid, self._next_tid, self._prev_tid, self._reward, self._action, self._previous_action,
+                  self._next_fid, self._next_tid, self._prev_tid, self._reward, self._action, self._expert_action,
+                  self._previous_action,
                   self._terminated, self._truncated, self._valid)
         tree = self._tree.tree.nbytes if self._tree is not None else 0
         return sum(a.nbytes for a in arrays) + tree
@@ -226,16 +232,21 @@ class ReplayMemory:
 
     # ------------------------------------------------------------------ adding
     def add(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
-            next_obs: np.ndarray | None, terminated: bool, truncated: bool = False) -> int:
+            next_obs: np.ndarray | None, terminated: bool, truncated: bool = False, *,
+            expert_action: int | None = None) -> int:
         """Store one transition of stream ``stream_id``; returns its transition id.
 
         ``obs``/``next_obs`` are (H, W) float metres or uint16 millimetres. ``obs=None`` means
         "the previous next_obs of this stream" (compact streams). A collision (``terminated``)
         has no next frame: pass ``next_obs=None`` (a given one is ignored). A truncated
-        transition needs its next_obs; after either, the stream's episode ends.
+        transition needs its next_obs; after either, the stream's episode ends. ``expert_action``:
+        the expert's command in ``obs`` (a label for the large-margin loss), None: none.
         """
         if not (isinstance(action, (int, np.integer)) and 0 <= int(action) < NUM_ACTIONS):
             raise ReplayError(f"action must be an integer in [0, {NUM_ACTIONS}), got {action!r}")
+        if expert_action is not None and not (isinstance(expert_action, (int, np.integer))
+                                              and 0 <= int(expert_action) < NUM_ACTIONS):
+            raise ReplayError(f"expert_action must be None or an integer in [0, {NUM_ACTIONS}), got {expert_action!r}")
         if not np.isfinite(reward):
             raise ReplayError(f"reward must be finite, got {reward!r}")
         if terminated and truncated:
@@ -274,6 +285,7 @@ class ReplayMemory:
         self._next_tid[slot] = -1
         self._reward[slot] = reward
         self._action[slot] = int(action)
+        self._expert_action[slot] = -1 if expert_action is None else int(expert_action)
         prev_slot = prev_tid % self.capacity
         if prev_tid >= 0 and self._tid[prev_slot] == prev_tid:
             self._previous_action[slot] = self._history_after(prev_slot)
@@ -349,6 +361,19 @@ class ReplayMemory:
             weights = np.ones(batch_size, dtype=np.float32)
         return self._gather(slots, n_step, weights, frames)
 
+    def labelled(self, frames: int = 1) -> Batch:
+        """Every stored transition the expert labelled (``explore.expert_label_prob``), oldest first, as a
+        one-step Batch whose ``expert_action`` holds the labels: the states a run's actors visited, for
+        measuring how far a network (or anything) agrees with the expert there."""
+        if not (isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_FRAME_STACK):
+            raise ReplayError(f"frames must be an integer in [1, {MAX_FRAME_STACK}], got {frames!r}")
+        slots = np.flatnonzero(self._valid & (self._expert_action >= 0))
+        if slots.size == 0:
+            raise ReplayError("no stored transition carries an expert label (the run trained with "
+                              "explore.expert_label_prob = 0?)")
+        slots = slots[np.argsort(self._tid[slots])]
+        return self._gather(slots, 1, np.ones(slots.size, np.float32), frames)
+
     def _sample_uniform(self, batch_size: int) -> np.ndarray:
         filled = min(self._transitions_added, self.capacity)
         slots = self._rng.integers(0, filled, size=batch_size)
@@ -409,7 +434,8 @@ class ReplayMemory:
                      previous_action=self._previous_action[slots].astype(np.int64),
                      next_previous_action=self._history_after(last),
                      weights=weights,
-                     indices=self._tid[slots].copy())
+                     indices=self._tid[slots].copy(),
+                     expert_action=self._expert_action[slots].astype(np.int64))
 
     def _obs_stack(self, slots: np.ndarray, frames: int) -> np.ndarray:
         """(B, frames) frame ids: each slot's obs, then its predecessors' obs, most recent first; where
@@ -468,7 +494,7 @@ class ReplayMemory:
             "frame_refs": self._frame_refs, "tid": self._tid, "obs_fid": self._obs_fid,
             "next_fid": self._next_fid, "next_tid": self._next_tid, "prev_tid": self._prev_tid,
             "reward": self._reward,
-            "action": self._action, "previous_action": self._previous_action,
+            "action": self._action, "expert_action": self._expert_action, "previous_action": self._previous_action,
             "terminated": self._terminated, "truncated": self._truncated,
             "valid": self._valid,
         }
@@ -507,6 +533,9 @@ class ReplayMemory:
                 self._previous_action[...] = previous
             # ...and before their predecessors were kept, every image stack starts at its own obs
             self._prev_tid[...] = arrays.get("prev_tid", -1)
+            self._expert_action[...] = arrays.get("expert_action", -1)  # before labels: none
+            if ((self._expert_action < -1) | (self._expert_action >= NUM_ACTIONS)).any():
+                raise ValueError(f"an expert label outside -1..{NUM_ACTIONS - 1}")
             if self._tree is not None:
                 self._tree.tree[...] = arrays["tree"]
         except (KeyError, ValueError) as exc:

@@ -74,9 +74,10 @@ class LearnerRow(_Row):
     actors_alive: int = _cell()
     mean_weight_lag: float = _cell(".2f")
     """Policy versions between the learner's and the one the actors' newest transitions used."""
-    demo_agreement: float | None = _cell(".3f")
-    """Share of the demonstration samples (train.demos) whose greedy command is the demonstrated
-    one, over the recent updates; None without demonstrations."""
+    label_agreement: float | None = _cell(".3f")
+    """Share of the labelled samples (demonstrations, train.demos; expert labels,
+    explore.expert_label_prob) whose greedy command is the labelled one, over the recent updates;
+    None without labels."""
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,8 @@ actor within ONE episode (a batch never spans two episodes), every frame sent on
     reward[i]                                               float32 (T,)
     policy_version[i] weights version that chose action i   int64 (T,)
     pose[i]           (x, y, yaw) after action i            float32 (T, 3)
+    expert_action[i]  the map expert's command in obs i     uint8 (T,) or None: NO_EXPERT_LABEL
+                      (explore.expert_label_prob)           where it named none; None: no labels
     terminated        the LAST transition ended in a collision (no bootstrap)
     truncated         the LAST transition hit the step cap (bootstrap from next_depth_mm)
 
@@ -49,10 +51,12 @@ from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 from shared.wire.keys import KeyExprError, validate_name
 
-SCHEMA_VERSION = 2
+SCHEMA_VERSION = 3
 """Bumped on any incompatible change of a message layout; a receiver rejects other versions.
 2: learner and actor epochs (weights versions are (learner epoch, update); flow credit per actor
-process)."""
+process). 3: transitions carry the expert's labels (``TransitionBatch.expert_action``)."""
+NO_EXPERT_LABEL = 255
+"""``TransitionBatch.expert_action`` of a transition the expert did not label."""
 
 # --- size limits ----------------------------------------------------------------------------
 MAX_BATCH_STEPS = 64
@@ -400,6 +404,8 @@ class TransitionBatch(Message):
     pose: np.ndarray = _arr()
     terminated: bool = False
     truncated: bool = False
+    expert_action: np.ndarray | None = field(default=None, metadata={"wire": _WIRE_ARRAY})
+    """The map expert's command in each transition's obs (``NO_EXPERT_LABEL``: none); None: no labels."""
 
     def __post_init__(self) -> None:
         _set(self, "actor_id", _chunk(self.actor_id, "actor_id"))
@@ -432,6 +438,11 @@ class TransitionBatch(Message):
             raise MessageError(RANGE, f"policy_version must be in [0, {MAX_POLICY_VERSION}]")
         pose = _array(self.pose, "pose", "float32", (t, 3))
         _finite_array(pose, "pose")
+        if self.expert_action is not None:
+            label = _array(self.expert_action, "expert_action", "uint8", (t,))
+            if ((label >= NUM_ACTIONS) & (label != NO_EXPERT_LABEL)).any():
+                raise MessageError(RANGE, f"expert_action holds {sorted(set(label.tolist()))}: commands are "
+                                          f"0-{NUM_ACTIONS - 1}, {NO_EXPERT_LABEL} is no label")
 
     @property
     def steps(self) -> int:
@@ -447,6 +458,14 @@ class TransitionBatch(Message):
         if not 0 <= i < self.steps:
             raise IndexError(f"transition {i} of a batch of {self.steps}")
         return self.depth_mm[i + 1] if i + 1 < self.steps else self.next_depth_mm
+
+    def expert_labels(self) -> np.ndarray:
+        """Per-transition expert command, int64, -1 where the expert named none."""
+        if self.expert_action is None:
+            return np.full(self.steps, -1, dtype=np.int64)
+        label = self.expert_action.astype(np.int64)
+        label[label == NO_EXPERT_LABEL] = -1
+        return label
 
     def terminated_flags(self) -> np.ndarray:
         """Per-transition ``terminated`` (only the last can be True)."""
@@ -490,9 +509,11 @@ class TransitionBatch(Message):
                    depth: Sequence[np.ndarray] | np.ndarray, next_depth: np.ndarray | None,
                    action: Sequence[int], reward: Sequence[float], policy_version: Sequence[int],
                    pose: Sequence[Sequence[float]], terminated: bool = False,
-                   truncated: bool = False, actor_epoch: int = 0) -> "TransitionBatch":
+                   truncated: bool = False, actor_epoch: int = 0,
+                   expert_action: Sequence[int | None] | None = None) -> "TransitionBatch":
         """Build from per-step lists. Float depth is taken as metres and converted to mm;
-        uint16 depth is taken as mm already."""
+        uint16 depth is taken as mm already. ``expert_action``: the expert's command per step
+        (None where it named none); None, or None at every step: no labels."""
 
         def frames(x: Any) -> np.ndarray:
             x = np.asarray(x)
@@ -508,7 +529,9 @@ class TransitionBatch(Message):
                    reward=np.asarray(reward, dtype=np.float32),
                    policy_version=np.asarray(policy_version, dtype=np.int64),
                    pose=np.asarray(pose, dtype=np.float32).reshape(-1, 3),
-                   terminated=terminated, truncated=truncated)
+                   terminated=terminated, truncated=truncated,
+                   expert_action=None if expert_action is None or all(a is None for a in expert_action) else
+                   np.asarray([NO_EXPERT_LABEL if a is None else int(a) for a in expert_action], dtype=np.uint8))
 
 
 def shape_fingerprint(named_shapes: Mapping[str, Sequence[int]],

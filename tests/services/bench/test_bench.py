@@ -27,7 +27,9 @@ def test_bench_env_json() -> None:
     assert out["image"] == [120, 160]
     assert out["steps_per_s"] > 0 and out["raw_steps_per_s"] > 0
     assert 0 < out["depth_ms_p50"] <= out["depth_ms_p90"]
-    assert out["physics_ms_p50"] > 0
+    assert out["physics_ms_p50"] > 0 and "expert_label_ms_p50" not in out
+    taught = _bench("env", "--world", "box-room", "--steps", "20", "--no-pin", "--expert-labels", timeout_s=120)
+    assert 0 < taught["expert_label_ms_p50"] <= taught["expert_label_ms_p90"]
 
 
 def test_bench_transport_json() -> None:

@@ -63,6 +63,8 @@ def test_the_line_shows_env_steps_per_second_over_the_run_and_the_end_time() -> 
                                   env_steps=0, env_s=None, episodes=0, mean_steps=None, loss=None))
     assert early == ("warm-up: filling replay 10/1000 | env - st/s avg | ep 0 | steps/ep - | loss - | actors 2 | "
                      "ETA after the first minute")
+    # a run whose transitions carry the expert's labels (explore.expert_label_prob) shows the agreement
+    assert "| loss 1.5 | label 0.43 | actors 2 |" in progress_line(figures(label_agreement=0.432))
 
 
 def test_the_end_time_waits_for_a_minute_or_five_percent_of_the_updates() -> None:

@@ -183,6 +183,29 @@ def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_comman
         ExploreConfig(expert_episode_prob=-0.1)
 
 
+def test_expert_guide_labels_the_drawn_share_of_steps_as_a_teacher_without_touching_the_episode_draws():
+    from shared.config import ExploreConfig
+    from shared.sim.env import ExploreEnv
+
+    env = ExploreEnv(TEST_ENV, SMALL_SENSOR, world="box-room", max_episode_steps=40)
+    _, info = env.reset(seed=0)
+    assert ExpertGuide(env, 0.5, seed=0).teacher_label(info["pose"]) is None  # labelling off
+    half = ExpertGuide(env, 0.5, seed=0, label_prob=0.4)
+    plain = ExpertGuide(env, 0.5, seed=0)
+    expert = CommandExpert(env.world, env.env_config, env.sensor_config)
+    labels = []
+    for _ in range(200):
+        assert half.begin_episode() == plain.begin_episode()  # the episodes' draws are the same
+        labels.append(half.teacher_label(info["pose"]))
+    given = [a for a in labels if a is not None]
+    assert 0.3 < len(given) / len(labels) < 0.5
+    assert set(given) == {expert.label(*info["pose"])}
+    with pytest.raises(SupervisedError, match="label probability"):
+        ExpertGuide(env, 0.0, label_prob=-0.5)
+    with pytest.raises(ConfigError, match="expert_label_prob"):
+        ExploreConfig(expert_label_prob=1.5)
+
+
 def test_expert_config_is_validated():
     with pytest.raises(SupervisedError, match="turn_steps"):
         ExpertConfig(horizon_steps=4, turn_steps=4)

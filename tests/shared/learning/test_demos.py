@@ -18,7 +18,7 @@ from shared.learning.demos import (
     record_demonstration,
     save_demonstrations,
 )
-from shared.learning.dqn import DQNAgent, demo_margin_loss
+from shared.learning.dqn import DQNAgent, large_margin_loss
 from shared.learning.replay import concat_batches
 from shared.sim.env import ExploreEnv
 from shared.sim.world import SceneBuilder, StartPose
@@ -172,7 +172,7 @@ def test_the_demo_replay_keeps_each_chain_with_its_previous_commands():
 def test_margin_loss_by_hand_and_zero_once_the_demonstrated_command_leads():
     q = torch.tensor([[1.0, 2.0, 0.0, 0.0, 0.0], [5.0, 0.0, 0.0, 0.0, 0.0]])
     action = torch.tensor([0, 0])
-    loss, agreement = demo_margin_loss(q, action, 0.8)
+    loss, agreement = large_margin_loss(q, action, 0.8)
     # row 0: max(1, 2.8, 0.8, ...) - 1 = 1.8; row 1: max(5, 0.8, ...) - 5 = 0
     assert loss.item() == pytest.approx(0.9) and agreement == 0.5
 
@@ -187,14 +187,14 @@ def test_the_margin_loss_teaches_the_demonstrated_commands(one_torch_thread):
     q = agent.q_values(demos[0].depth_mm[:-1], np.concatenate([[-1], demos[0].actions[:-1]]))
     assert (q.argmax(axis=1) == demos[0].actions).mean() < 0.5  # a fresh network does not know them
     first = agent.update(concat_batches(replay.sample(16, 3), memory.sample(8, 3)))
-    assert set(first) >= {"demo_margin_loss", "demo_agreement"}
+    assert set(first) >= {"label_margin_loss", "label_agreement"}
     for _ in range(400):
         metrics = agent.update(concat_batches(replay.sample(16, 3), memory.sample(8, 3)))
-    assert metrics["demo_margin_loss"] < 0.1 * first["demo_margin_loss"]
+    assert metrics["label_margin_loss"] < 0.1 * first["label_margin_loss"]
     q = agent.q_values(demos[0].depth_mm[:-1], np.concatenate([[-1], demos[0].actions[:-1]]))
     assert (q.argmax(axis=1) == demos[0].actions).all()
     # without demonstration samples the update reports no demonstration metrics
-    assert "demo_agreement" not in agent.update(replay.sample(16, 3))
+    assert "label_agreement" not in agent.update(replay.sample(16, 3))
 
 
 def test_the_learner_core_mixes_demonstrations_into_every_batch(tmp_path, one_torch_thread):
@@ -209,7 +209,7 @@ def test_the_learner_core_mixes_demonstrations_into_every_batch(tmp_path, one_to
     for t in range(20):
         core.add_transition("a", demo.depth_mm[t], int(demo.actions[t]), 1.0, demo.depth_mm[t + 1], False, t == 19)
     metrics = core.train_step()
-    assert len(metrics["td_errors"]) == cfg.dqn.batch_size + 4 and "demo_agreement" in metrics
+    assert len(metrics["td_errors"]) == cfg.dqn.batch_size + 4 and "label_agreement" in metrics
 
     with pytest.raises(ConfigError, match="demo_batch"):
         cfg.with_overrides({"dqn.demo_batch": 0})
@@ -260,7 +260,7 @@ def test_demonstrations_are_not_mirrored_so_a_symmetric_scene_keeps_its_demonstr
     for _ in range(300):
         metrics = agent.update(concat_batches(replay.sample(16, 3), memory.sample(8, 3)))
     q = agent.q_values(frames[:-1], np.concatenate([[-1], demo.actions[:-1]]))
-    assert (q.argmax(axis=1) == 3).all() and metrics["demo_agreement"] == 1.0
+    assert (q.argmax(axis=1) == 3).all() and metrics["label_agreement"] == 1.0
     assert (q[:, 3] - q[:, 1] > 0.4).all()  # not a tie with the mirror-image turn
 
 

@@ -21,7 +21,7 @@ from shared.learning.stats import (
 def row(**changes) -> LearnerRow:
     values = dict(time_s=1.23456, update=50, policy_version=50, loss=0.5, mean_q=None, updates_per_s=2.0,
                   transitions=700, transitions_per_s=None, replay_size=700, rejected=0, actors_alive=1,
-                  mean_weight_lag=0.0, demo_agreement=0.875)
+                  mean_weight_lag=0.0, label_agreement=0.875)
     values.update(changes)
     return LearnerRow(**values)
 
@@ -29,7 +29,7 @@ def row(**changes) -> LearnerRow:
 def test_columns_are_the_fields_in_order_and_return_keeps_its_name():
     assert LearnerRow.columns() == ("time_s", "update", "policy_version", "loss", "mean_q", "updates_per_s",
                                     "transitions", "transitions_per_s", "replay_size", "rejected", "actors_alive",
-                                    "mean_weight_lag", "demo_agreement")
+                                    "mean_weight_lag", "label_agreement")
     assert EpisodeRow.columns()[5] == "return" and "episode_return" not in EpisodeRow.columns()
 
 
@@ -37,14 +37,14 @@ def test_a_log_writes_its_header_once_across_reopening_and_formats_each_cell(tmp
     with CsvLog(tmp_path, LearnerRow) as log:
         log.write(row())
     with CsvLog(tmp_path, LearnerRow) as log:  # a resumed run appends
-        log.write(row(update=100, loss=None, demo_agreement=None))
+        log.write(row(update=100, loss=None, label_agreement=None))
         with pytest.raises(TypeError, match="LearnerRow"):
             log.write(EpisodeRow(0, 0, 0, 0, 1, 1.0, 0.5, None, 0.0, 0.0, 0.0, 0, "box-room"))
     rows = list(csv.reader(open(tmp_path / "learner.csv", newline="")))
     assert rows[0] == list(LearnerRow.columns()) and len(rows) == 3
     first = dict(zip(rows[0], rows[1]))
     assert first["time_s"] == "1.235" and first["loss"] == "0.5" and first["mean_q"] == ""
-    assert first["transitions_per_s"] == "" and first["demo_agreement"] == "0.875"
+    assert first["transitions_per_s"] == "" and first["label_agreement"] == "0.875"
     assert dict(zip(rows[0], rows[2]))["loss"] == "" and rows[2][1] == "100"
 
 
@@ -58,15 +58,15 @@ def test_rows_become_scalars_tagged_by_file_and_column_at_their_step_column(tmp_
         assert board.enabled
         board.write_row(row(update=10, mean_q=2.5))
         board.write_row(row(update=10, loss=9.0))  # the same update again: one point per step
-        board.write_row(row(update=20, loss=0.25, demo_agreement=None))
+        board.write_row(row(update=20, loss=0.25, label_agreement=None))
         board.write("eval", {"mean_steps": 12.5, "collisions": {"depth": 3}, "world": "box-room", "none": None}, 20)
     got = tensorboard_scalars(tmp_path / "tb" / "learner").tags
     numeric = {"time_s", "policy_version", "loss", "mean_q", "updates_per_s", "transitions", "replay_size",
-               "rejected", "actors_alive", "mean_weight_lag", "demo_agreement"}
+               "rejected", "actors_alive", "mean_weight_lag", "label_agreement"}
     assert set(got) == {f"learner/{c}" for c in numeric} | {"eval/mean_steps", "eval/collisions/depth"}
     assert got["learner/loss"] == [(10, 0.5), (20, 0.25)]
     assert got["learner/mean_q"] == [(10, 2.5)]  # None at update 20: no point
-    assert got["learner/demo_agreement"] == [(10, 0.875)]
+    assert got["learner/label_agreement"] == [(10, 0.875)]
     assert got["learner/time_s"] == [(10, pytest.approx(1.23456)), (20, pytest.approx(1.23456))]
     assert got["eval/collisions/depth"] == [(20, 3.0)]
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import subprocess
@@ -108,6 +109,21 @@ def test_transition_batch_round_trip(terminated: bool, truncated: bool) -> None:
     else:
         assert np.array_equal(back.next_depth_mm, batch.next_depth_mm)
     assert not back.depth_mm.flags.writeable  # zero-copy views of the message bytes
+    assert back.expert_action is None and (back.expert_labels() == -1).all()
+
+
+def test_expert_labels_round_trip_and_hostile_ones_are_refused() -> None:
+    labels = np.array([3, m.NO_EXPERT_LABEL, 0, 4], np.uint8)
+    batch = dataclasses.replace(make_batch(), expert_action=labels)
+    back = TransitionBatch.decode(batch.encode())
+    assert back.expert_action.tolist() == labels.tolist() and back.expert_labels().tolist() == [3, -1, 0, 4]
+    good = batch.encode()
+    assert cause_of(rewrite(good, _set_array("expert_action", np.array([3, 5, 0, 4], np.uint8)))) == m.RANGE
+    assert cause_of(rewrite(good, _set_array("expert_action", np.array([3, 1, 0], np.uint8)))) == m.SHAPE
+    assert cause_of(rewrite(good, _set_array("expert_action", np.array([3, 1, 0, 4], np.int64)))) == m.DTYPE
+    assert cause_of(rewrite(good, lambda o: o.update(expert_action=[3, 1, 0, 4]))) == m.FIELD_TYPE
+    # a sender of the previous schema (no labels field) is told apart, not half-read
+    assert cause_of(rewrite(good, lambda o: o.pop("expert_action"))) == m.MISSING_FIELD
 
 
 def test_batch_layout_carries_each_frame_once() -> None:
