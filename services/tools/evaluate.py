@@ -53,6 +53,7 @@ from services.viz.rerun import (
 )
 from shared.config import ConfigError, parse_world_list
 from shared.evaluation import ProtocolConfig
+from shared.evaluation.foresight import ForesightProbe, foresight_summary
 from shared.evaluation.protocol import evaluate_policy, protocol_env_config
 from shared.evaluation.results import (
     EvalResults,
@@ -140,12 +141,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
         raise EvaluateError(f"--protocol: {exc}") from None
     model, ensemble = None, args.ensemble
     for world in _worlds_of(args):
-        setup, results, recorder = _evaluate_one(args, world, model, ensemble, protocol)
-        done.append((setup, results))
+        setup, results, recorder, probe = _evaluate_one(args, world, model, ensemble, protocol)
+        done.append((setup, results, probe))
         model, ensemble = setup.model, ()  # loaded (and joined into one ensemble) once for every world
     several = len(done) > 1
     print(f"protocol {protocol.describe()}")
-    for setup, results in done:
+    for setup, results, probe in done:
         json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None
         if json_path is not None:
             save_results(results, json_path)
@@ -157,13 +158,20 @@ def run_evaluate(args: argparse.Namespace) -> int:
                           **{k: summary[k] for k in (
             "episodes", "mean_steps", "mean_distance_m", "mean_path_length_m", "mean_coverage_pct",
             "collisions", "reached_cap")}}, default=float))
+        if probe is not None:
+            print(json.dumps({"world": setup.world, "foresight": probe.summary([e.terminated for e in results.episodes])}))
         if json_path is not None:
             print(f"results: {json_path}")
     if several:
-        per_world = {setup.world: float(results.summary["overall"]["mean_steps"]) for setup, results in done}
+        per_world = {setup.world: float(results.summary["overall"]["mean_steps"]) for setup, results, _ in done}
         print(json.dumps({"model": done[0][0].meta()["model"], "protocol": protocol.name, "worlds": len(per_world),
                           "mean_steps_over_worlds": sum(per_world.values()) / len(per_world),
                           "per_world_mean_steps": per_world}))
+        probes = [(probe, results) for _, results, probe in done if probe is not None]
+        if probes:
+            pooled = foresight_summary([e for p, _ in probes for e in p.episodes],
+                                       [e.terminated for _, r in probes for e in r.episodes], probes[0][0].horizon)
+            print(json.dumps({"worlds": len(probes), "foresight": pooled}))
     if args.rrd:
         print(f"recording: {args.rrd}")
     if recorder is not None:
@@ -183,8 +191,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedModel | None,
                   ensemble: Sequence[str | LoadedModel], protocol: ProtocolConfig,
-                  ) -> tuple[EvalSetup, EvalResults, Any]:
-    """One world of ``cogexplore evaluate``: (setup, results, the live-served recorder or None)."""
+                  ) -> tuple[EvalSetup, EvalResults, Any, ForesightProbe | None]:
+    """One world of ``cogexplore evaluate``: (setup, results, the live-served recorder or None, the
+    --foresight probe or None)."""
     setup = setup_evaluation(args.policy, None if model is not None else args.checkpoint, world=world,
                              preset=args.preset, overrides=args.overrides, seed=args.seed, device=args.device,
                              model=model, ensemble=ensemble)
@@ -201,16 +210,18 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
                                  recording_name=recording_name)
         print(f"rerun: open {recorder.web_url} in a browser, or run `rerun --connect {recorder.viewer_url}` "
               "(from another machine, put this machine's name in place of localhost/127.0.0.1)", flush=True)
+    probe = ForesightProbe(setup.policy_fn, setup.sensor_cfg, setup.env_cfg) if args.foresight else None
+    policy_fn = setup.policy_fn if probe is None else probe
     run = {"episodes_per_start": args.episodes_per_start, "max_steps": args.max_steps, "seed": args.seed,
            "starts": _start_indices(args.starts, setup.world),
            "policy_version": setup.model.policy_version if setup.model else 0,
            "progress": not args.quiet, "meta": setup.meta(), "protocol": protocol}
     try:
         if recorder is not None:
-            results = evaluate_policy(setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
+            results = evaluate_policy(policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
                                       env_cfg=setup.env_cfg, recorder=recorder, **run)
         else:
-            results = evaluate_recorded(setup.policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
+            results = evaluate_recorded(policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
                                         env_cfg=setup.env_cfg, rrd=args.rrd, rerun_connect=args.rerun_connect,
                                         image_every=args.image_every, recording_name=recording_name, **run)
     except BaseException:
@@ -219,4 +230,4 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
             if recorder.path is not None:
                 recorder.path.unlink(missing_ok=True)
         raise
-    return setup, results, recorder
+    return setup, results, recorder, probe

@@ -62,6 +62,10 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                              "`worlds starts` (default: all)")
     parser.add_argument("--seed", type=int, default=TEST_SEED,
                         help=f"seed of the episodes and the random policy (default {TEST_SEED}: the test draws)")
+    parser.add_argument("--foresight", action="store_true",
+                        help="also ask the map expert at every decision whether some command still has a safe plan "
+                             "(its 24-step horizon) and print, per world, how many decisions before each collision "
+                             "the last such state was (how far ahead the policy went wrong); it only observes")
     parser.add_argument("--json", dest="json_out", metavar="PATH",
                         help="write the results JSON here (several worlds: one file each, PATH-<world>.json)")
     parser.add_argument("--rrd", metavar="PATH", help="write a Rerun recording here")
