@@ -13,13 +13,13 @@ bound on what can be survived, so "no safe plan" can be pessimistic in tight pla
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 
 from shared.config import EnvConfig, SensorConfig
+from shared.evaluation.policies import ExpertsByWorld
 
 
 class ForesightProbe:
@@ -35,34 +35,22 @@ class ForesightProbe:
         self.policy_fn = policy_fn
         self.reset = getattr(policy_fn, "reset", None)
         self.name = getattr(policy_fn, "name", "policy")
-        self.sensor_cfg = sensor_cfg
-        self.env_cfg = dataclasses.replace(env_cfg, speed_table="test")
+        self.experts = ExpertsByWorld(sensor_cfg, env_cfg)
         most = ExpertConfig().horizon_steps
         self.horizon = most if horizon is None else horizon
         if not (isinstance(self.horizon, int) and 1 <= self.horizon <= most):
             raise ValueError(f"horizon must be an integer in [1, {most}] (the expert's plans), got {horizon!r}")
-        self._experts: dict[str, Any] = {}
         self.episodes: list[list[bool]] = []
         """Per episode, per decision: some command still had a ``horizon``-step safe plan."""
 
     def __call__(self, depth_m: np.ndarray, info: Mapping[str, Any] | None = None) -> Any:
-        if not info or "pose" not in info or "world" not in info:
-            raise ValueError("the foresight probe reads the robot's pose and world: play it through the test protocol")
+        expert, pose = self.experts(info, "the foresight probe")
         if info.get("step", 0) == 0 or not self.episodes:
             self.episodes.append([])
-        self.episodes[-1].append(self._safe_plan_exists(info["world"], info["pose"]))
+        safe, _ = expert.plan_scores(*pose)
+        self.episodes[-1].append(bool(safe.max() >= self.horizon))
         inner = self.policy_fn
         return inner(depth_m, info) if getattr(inner, "reads_pose", False) else inner(depth_m)
-
-    def _safe_plan_exists(self, world_name: str, pose: Sequence[float]) -> bool:
-        expert = self._experts.get(world_name)
-        if expert is None:
-            from shared.expert.expert import CommandExpert
-            from shared.sim.world import load_world
-
-            expert = self._experts[world_name] = CommandExpert(load_world(world_name), self.env_cfg, self.sensor_cfg)
-        safe, _ = expert.plan_scores(*(float(v) for v in pose))
-        return bool(safe.max() >= self.horizon)
 
     def summary(self, collided: Sequence[bool]) -> dict[str, Any]:
         """:func:`foresight_summary` of the episodes observed (``collided``: each one's, in the order played)."""

@@ -219,6 +219,34 @@ class ReactivePolicy:
         return int(np.argmax(s)), s
 
 
+class ExpertsByWorld:
+    """The privileged map expert of each world a protocol plays, built when first asked for, at the
+    protocol's speeds (``env_cfg``'s robot with the test speed table)."""
+
+    def __init__(self, sensor_cfg: SensorConfig | None = None, env_cfg: EnvConfig | None = None):
+        self.sensor_cfg = sensor_cfg or SensorConfig()
+        self.env_cfg = dataclasses.replace(env_cfg or EnvConfig(), speed_table="test")
+        self._experts: dict[str, Any] = {}
+
+    def __call__(self, info: Mapping[str, Any] | None, who: str) -> tuple[Any, tuple[float, float, float]]:
+        """(the expert of ``info``'s world, the pose in ``info``); PolicyError naming ``who`` without them."""
+        if not info or "pose" not in info or "world" not in info:
+            raise PolicyError(f"{who} reads the robot's pose and world: play it through the test protocol")
+        expert = self._experts.get(info["world"])
+        if expert is None:
+            from shared.errors import CogexploreError
+            from shared.expert.expert import CommandExpert
+            from shared.sim.world import load_world
+
+            try:
+                world = load_world(info["world"])
+            except CogexploreError as exc:
+                raise PolicyError(f"{who} needs the map of world {info['world']!r}: {exc}") from None
+            expert = self._experts[info["world"]] = CommandExpert(world, self.env_cfg, self.sensor_cfg)
+        x, y, yaw = (float(v) for v in info["pose"])
+        return expert, (x, y, yaw)
+
+
 class ExpertPolicy:
     """The privileged map expert (``shared.expert.expert.CommandExpert``, the supervised labels'
     source) driving: each command from the robot's true pose on the world's clearance map, with a
@@ -230,27 +258,11 @@ class ExpertPolicy:
     reads_pose = True
 
     def __init__(self, sensor_cfg: SensorConfig | None = None, env_cfg: EnvConfig | None = None):
-        self.sensor_cfg = sensor_cfg or SensorConfig()
-        self.env_cfg = dataclasses.replace(env_cfg or EnvConfig(), speed_table="test")
-        self._experts: dict[str, Any] = {}
+        self.experts = ExpertsByWorld(sensor_cfg, env_cfg)
 
     def __call__(self, depth_m: np.ndarray, info: Mapping[str, Any] | None = None) -> tuple[int, np.ndarray]:
-        if not info or "pose" not in info or "world" not in info:
-            raise PolicyError("the expert policy reads the robot's pose and world: play it through the test "
-                              "protocol (cogexplore evaluate --policy expert)")
-        expert = self._experts.get(info["world"])
-        if expert is None:
-            from shared.errors import CogexploreError
-            from shared.expert.expert import CommandExpert
-            from shared.sim.world import load_world
-
-            try:
-                world = load_world(info["world"])
-            except CogexploreError as exc:
-                raise PolicyError(f"the expert policy needs the map of world {info['world']!r}: {exc}") from None
-            expert = self._experts[info["world"]] = CommandExpert(world, self.env_cfg, self.sensor_cfg)
-        x, y, yaw = (float(v) for v in info["pose"])
-        scores = expert.scores(x, y, yaw)
+        expert, pose = self.experts(info, "the expert policy (cogexplore evaluate --policy expert)")
+        scores = expert.scores(*pose)
         return int(np.argmax(scores)), np.asarray(scores, dtype=np.float32)
 
 
