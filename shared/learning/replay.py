@@ -347,8 +347,7 @@ class ReplayMemory:
             raise ReplayError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         if not (isinstance(n_step, int) and n_step >= 1):
             raise ReplayError(f"n_step must be an integer >= 1, got {n_step!r}")
-        if not (isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_FRAME_STACK):
-            raise ReplayError(f"frames must be an integer in [1, {MAX_FRAME_STACK}], got {frames!r}")
+        _check_frames(frames)
         if self._num_valid == 0:
             raise ReplayError("cannot sample from an empty replay memory")
         if self._tree is not None:
@@ -365,8 +364,7 @@ class ReplayMemory:
         """Every stored transition the expert labelled (``explore.expert_label_prob``), oldest first, as a
         one-step Batch whose ``expert_action`` holds the labels: the states a run's actors visited, for
         measuring how far a network (or anything) agrees with the expert there."""
-        if not (isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_FRAME_STACK):
-            raise ReplayError(f"frames must be an integer in [1, {MAX_FRAME_STACK}], got {frames!r}")
+        _check_frames(frames)
         slots = np.flatnonzero(self._valid & (self._expert_action >= 0))
         if slots.size == 0:
             raise ReplayError("no stored transition carries an expert label (the run trained with "
@@ -546,6 +544,11 @@ class ReplayMemory:
         self._max_priority = float(meta["max_priority"])
         self._streams = {_stream_from_key(k): (int(t), int(f)) for k, t, f in meta["streams"]}
         self._rng.bit_generator.state = meta["rng"]
+
+
+def _check_frames(frames: Any) -> None:
+    if not (isinstance(frames, int) and not isinstance(frames, bool) and 1 <= frames <= MAX_FRAME_STACK):
+        raise ReplayError(f"frames must be an integer in [1, {MAX_FRAME_STACK}], got {frames!r}")
 
 
 def _stream_key(k: Hashable) -> Any:
