@@ -161,6 +161,10 @@ def parse_world_list(text: str) -> tuple[str, ...]:
     return tuple(names)
 
 
+TRAP_HORIZON_STEPS = 16
+"""Steps a way out must stay safe for (``EnvConfig.reward_trap_penalty``): 2.6 m at the training
+speed, beyond the 1.4 m (11 decisions) by which the networks typically enter a place too late."""
+
 NEW_AREA_CAP_M2 = 4.0
 """The most newly seen floor (m^2) one step is paid for (``EnvConfig.reward_new_area_per_m2``): a
 turn of 0.6 rad in one 0.5 s step opens at most a 4.8 m^2 wedge of the 4 m, 57 degree view, and
@@ -200,6 +204,15 @@ class EnvConfig:
     most ``NEW_AREA_CAP_M2``). Exploration is the task, and r_move alone pays a robot circling in
     one room as much as one that opens up the world. 0 (the paper's reward) in the paper preset; a
     collision pays r_ter alone."""
+    reward_trap_penalty: float = 0.0
+    """Foresight in the training reward: a collision-free step that takes the robot from a pose
+    with a way out to one without pays r_move less this. "A way out": the privileged map expert
+    finds some command sequence that stays safe for ``TRAP_HORIZON_STEPS`` steps at the episode's
+    speeds (``CommandExpert.has_way_out``; its check reads the world's map, the policy still reads
+    only the depth image). The networks fail by entering a place with no way out a median of 11
+    decisions before the wall (MODEL_CARD.md, "Where the gap is"), where r_ter, discounted by
+    gamma = 0.85, weighs 17%; this charges the entry itself. Costs an actor about 2 ms a step. 0
+    (the paper's reward) in every preset; a collision pays r_ter alone."""
     start_index: int | None = None
     """Start pose index; None draws one of the world's starts uniformly each episode."""
     random_start_prob: float = 0.0
@@ -255,6 +268,8 @@ class EnvConfig:
                "a finite number")
         _check(_finite(self.reward_new_area_per_m2) and 0 <= self.reward_new_area_per_m2 <= 100, s,
                "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
+        _check(_finite(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
+               "reward_trap_penalty", self.reward_trap_penalty, "a number in [0, 1000]")
         _check(self.start_index is None or (isinstance(self.start_index, int) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
         _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
@@ -281,13 +296,19 @@ class EnvConfig:
         """The most one collision-free step pays: r_move plus the novelty term for ``NEW_AREA_CAP_M2``."""
         return self.reward_move + self.reward_new_area_per_m2 * NEW_AREA_CAP_M2
 
+    @property
+    def min_move_reward(self) -> float:
+        """The least one collision-free step pays: r_move less ``reward_trap_penalty``."""
+        return self.reward_move - self.reward_trap_penalty
+
     def pays_for_a_move(self, reward: Any) -> Any:
         """Elementwise (numpy bool): whether ``reward`` is one this task pays for a collision-free
-        step, in [r_move, ``max_move_reward``], compared in float32 as transitions carry it."""
+        step, in [``min_move_reward``, ``max_move_reward``], compared in float32 as transitions
+        carry it."""
         import numpy as np
 
         r = np.asarray(reward, dtype=np.float32)
-        return (r >= np.float32(self.reward_move)) & (r <= np.float32(self.max_move_reward))
+        return (r >= np.float32(self.min_move_reward)) & (r <= np.float32(self.max_move_reward))
 
     def pays(self, reward: Any) -> Any:
         """Elementwise (numpy bool): whether this task pays ``reward`` for some step, a move's or r_ter.
@@ -300,8 +321,8 @@ class EnvConfig:
 
     def describe_rewards(self) -> str:
         """What :meth:`pays` accepts, for error messages."""
-        move = f"{self.reward_move:g}"
-        if self.max_move_reward > self.reward_move:
+        move = f"{self.min_move_reward:g}"
+        if self.max_move_reward > self.min_move_reward:
             move += f" to {self.max_move_reward:g}"
         return f"{move} per move and {self.reward_collision:g} for a collision"
 
@@ -766,6 +787,7 @@ MUST_MATCH_FIELDS: tuple[str, ...] = (
     "model.action_history",
     "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
     "env.collision_distance_m", "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
+    "env.reward_trap_penalty",
 )
 """The fields an actor's or the evaluator's configuration must share with its run's learner: what a
 depth image is (the sensor; its backend agrees to 2 cm, and noise is an actor's to add), the network

@@ -52,10 +52,11 @@ def episode_seed(seed: int, start_index: int, episode: int) -> int:
 def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> EnvConfig:
     """The protocol's environment: ``base``'s robot and task, the given world, the TEST speed
     table, every start (none fixed), no training start jitter (the protocol's own is a reset
-    option) and a step cap no shorter than the protocol's."""
+    option), no trap reward (the protocol counts steps; the trap's map checks would only cost time)
+    and a step cap no shorter than the protocol's."""
     return dataclasses.replace(base or EnvConfig(), world=world, speed_table="test",
                                max_episode_steps=max_steps, start_index=None,
-                               start_jitter_m=0.0, start_jitter_deg=0.0)
+                               start_jitter_m=0.0, start_jitter_deg=0.0, reward_trap_penalty=0.0)
 
 
 def _check_action(action: Any) -> int:

@@ -261,6 +261,33 @@ class CommandExpert:
         """The expert's command (index into ACTION_NAMES) at pose (x, y, yaw)."""
         return int(np.argmax(self.scores(x, y, yaw)))
 
+    def _successors(self, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every command from every pose (N, 3): (the safe next poses, their command, their parent's
+        index), with the plans' step checks (contact samples and the view wedge at the step's end)."""
+        c, e = self.cfg, self.env_cfg
+        frac = (np.arange(1, c.substeps + 1) / c.substeps) * e.control_period_s
+        need = e.robot_radius_m + c.contact_margin_m
+        n = len(poses)
+        w = np.tile(self.angular_rps, n)
+        x0, y0, t0 = (np.repeat(poses[:, i], NUM_ACTIONS)[:, None] for i in range(3))
+        sx, sy, _ = _unicycle(self.linear_mps, w[:, None], frac[None], x0, y0, t0)
+        world = np.stack([sx, sy], axis=-1)
+        ok = (self._lookup(world, 0.0, 0.0, 0.0) >= need).all(axis=1)  # world points: the identity pose
+        x1, y1, t1 = sx[:, -1], sy[:, -1], t0[:, 0] + w * e.control_period_s
+        cos, sin = np.cos(t1)[:, None], np.sin(t1)[:, None]
+        wx = x1[:, None] + cos * self._wedge_pts[:, 0] - sin * self._wedge_pts[:, 1]
+        wy = y1[:, None] + sin * self._wedge_pts[:, 0] + cos * self._wedge_pts[:, 1]
+        ok &= (self._lookup(np.stack([wx, wy], axis=-1), 0.0, 0.0, 0.0) > self._wedge_tolerance).all(axis=1)
+        command = np.tile(np.arange(NUM_ACTIONS), n)
+        parent = np.repeat(np.arange(n), NUM_ACTIONS)
+        return np.stack([x1, y1, t1], axis=1)[ok], command[ok], parent[ok]
+
+    @staticmethod
+    def _pose_cells(poses: np.ndarray, cell_m: float, heading_bins: int) -> np.ndarray:
+        """(N, 3) int64 (x cell, y cell, heading bin) of each pose: poses in one cell are merged."""
+        return np.stack([np.floor(poses[:, 0] / cell_m), np.floor(poses[:, 1] / cell_m),
+                         np.floor(poses[:, 2] / (2 * math.pi) * heading_bins) % heading_bins], axis=1).astype(np.int64)
+
     def survival_steps(self, x: float, y: float, yaw: float, horizon: int = 60, beam: int = 300,
                        cell_m: float = 0.05, heading_deg: float = 10.0) -> np.ndarray:
         """(5,) the most steps the robot survives from pose (x, y, yaw) after each first command,
@@ -269,40 +296,17 @@ class CommandExpert:
         plans. Poses are merged per (cell_m, heading_deg) cell; at most ``beam`` per first command
         are kept at each depth (a seeded random sample), so it is a lower bound: the beam may miss a
         sequence. Finds trap starts, such as a dead end too narrow to turn around in."""
-        c, e = self.cfg, self.env_cfg
-        frac = (np.arange(1, c.substeps + 1) / c.substeps) * e.control_period_s
-        need = e.robot_radius_m + c.contact_margin_m
         heading_bins = max(1, round(360.0 / heading_deg))
         rng = np.random.default_rng(0)
-
-        def successors(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            """Every command from every pose: (safe next poses, their command, their parent's index)."""
-            n = len(poses)
-            w = np.tile(self.angular_rps, n)
-            x0, y0, t0 = (np.repeat(poses[:, i], NUM_ACTIONS)[:, None] for i in range(3))
-            sx, sy, _ = _unicycle(self.linear_mps, w[:, None], frac[None], x0, y0, t0)
-            world = np.stack([sx, sy], axis=-1)
-            ok = (self._lookup(world, 0.0, 0.0, 0.0) >= need).all(axis=1)  # world points: the identity pose
-            x1, y1, t1 = sx[:, -1], sy[:, -1], t0[:, 0] + w * e.control_period_s
-            cos, sin = np.cos(t1)[:, None], np.sin(t1)[:, None]
-            wx = x1[:, None] + cos * self._wedge_pts[:, 0] - sin * self._wedge_pts[:, 1]
-            wy = y1[:, None] + sin * self._wedge_pts[:, 0] + cos * self._wedge_pts[:, 1]
-            ok &= (self._lookup(np.stack([wx, wy], axis=-1), 0.0, 0.0, 0.0) > self._wedge_tolerance).all(axis=1)
-            command = np.tile(np.arange(NUM_ACTIONS), n)
-            parent = np.repeat(np.arange(n), NUM_ACTIONS)
-            return np.stack([x1, y1, t1], axis=1)[ok], command[ok], parent[ok]
-
         survived = np.zeros(NUM_ACTIONS, dtype=int)
-        poses, first, _ = successors(np.array([[x, y, yaw]], dtype=np.float64))
+        poses, first, _ = self._successors(np.array([[x, y, yaw]], dtype=np.float64))
         survived[first] = 1
         for depth in range(2, horizon + 1):
-            poses, _, parent = successors(poses)
+            poses, _, parent = self._successors(poses)
             first = first[parent]
             if len(poses) == 0:
                 break
-            cell = np.stack([np.floor(poses[:, 0] / cell_m), np.floor(poses[:, 1] / cell_m),
-                             np.floor(poses[:, 2] / (2 * math.pi) * heading_bins) % heading_bins,
-                             first], axis=1).astype(np.int64)
+            cell = np.concatenate([self._pose_cells(poses, cell_m, heading_bins), first[:, None]], axis=1)
             _, unique = np.unique(cell, axis=0, return_index=True)
             keep = []
             for a in np.unique(first[unique]):
@@ -312,6 +316,31 @@ class CommandExpert:
             poses, first = poses[keep_idx], first[keep_idx]
             survived[np.unique(first)] = depth
         return survived
+
+    def has_way_out(self, x: float, y: float, yaw: float, steps: int, beam: int = 48,
+                    cell_m: float = 0.05, heading_deg: float = 10.0) -> bool:
+        """Whether some command sequence from pose (x, y, yaw) stays safe for ``steps`` steps (the
+        plans' step checks). First the plans (one command, a turn, straight: enough in open space),
+        then, where none is safe that long, a beam search that keeps the ``beam`` most open poses
+        (clearance at the pose and 0.5 m ahead) at each depth: deterministic, and a lower bound (the
+        beam may miss a sequence), so a tight place can count as one with no way out."""
+        safe, _ = self.plan_scores(x, y, yaw)
+        if safe.max() >= steps:
+            return True
+        heading_bins = max(1, round(360.0 / heading_deg))
+        poses = np.array([[x, y, yaw]], dtype=np.float64)
+        for _ in range(steps):
+            poses, _, _ = self._successors(poses)
+            if len(poses) == 0:
+                return False
+            if len(poses) > beam:
+                _, unique = np.unique(self._pose_cells(poses, cell_m, heading_bins), axis=0, return_index=True)
+                poses = poses[unique]
+            if len(poses) > beam:
+                ahead = poses[:, :2] + 0.5 * np.stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])], axis=1)
+                openness = self._lookup(poses[:, :2], 0.0, 0.0, 0.0) + self._lookup(ahead, 0.0, 0.0, 0.0)
+                poses = poses[np.argsort(-openness, kind="stable")[:beam]]
+        return True
 
     def best_safe_steps(self, x: float, y: float, yaw: float) -> int:
         """Safe steps of the best plan from this pose (0: every plan fails at once)."""

@@ -36,6 +36,7 @@ from shared.config import (
     NUM_ACTIONS,
     PROCEDURAL_PREFIX,
     SPEED_TABLES,
+    TRAP_HORIZON_STEPS,
     EnvConfig,
     SensorConfig,
 )
@@ -92,6 +93,16 @@ class _Scene:
     _clearance: tuple[Any, np.ndarray] | None = None
     _canvas: Any = None
     _coverage: Any = None
+    _trap_expert: Any = None
+
+    def trap_expert(self, cfg: EnvConfig, sensor: SensorConfig) -> Any:
+        """The world's map expert at ``cfg``'s speeds (``shared.expert.expert.CommandExpert``): the
+        trap reward's (``EnvConfig.reward_trap_penalty``) judge of whether a pose has a way out."""
+        if self._trap_expert is None:
+            from shared.expert.expert import CommandExpert
+
+            self._trap_expert = CommandExpert(self.world, cfg, sensor)
+        return self._trap_expert
 
     @classmethod
     def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
@@ -199,6 +210,7 @@ class ExploreEnv(gym.Env):
         self._path_length = 0.0
         self._steps = 0
         self._random_start = False
+        self._trapped = False  # no way out from the pose (kept with reward_trap_penalty > 0 only)
         self._noise_seed: int | None = None  # drawn at each seeded reset
         self._unjitterable: set[tuple[str, int]] = set()  # (world, start) warned of: no clear jittered draw
 
@@ -255,6 +267,8 @@ class ExploreEnv(gym.Env):
             self.robot.set_pose(*pose)
             self._depth = self.camera.capture(self.data)
         x, y, yaw = pose
+        if self.env_config.reward_trap_penalty > 0:  # starting in a trap is not entering one
+            self._trapped = self._no_way_out(x, y, yaw)
         if self.env_config.reward_new_area_per_m2 > 0:  # the first view is the start's, not a reward
             self._scene.coverage().reset()
             self._scene.coverage().observe(x, y, yaw, self._depth)
@@ -293,20 +307,29 @@ class ExploreEnv(gym.Env):
         if cfg.reward_new_area_per_m2 > 0 and not terminated:
             new_area_m2 = self._scene.coverage().observe(x, y, yaw, self._depth)
             reward += cfg.reward_new_area_per_m2 * min(new_area_m2, NEW_AREA_CAP_M2)
+        if cfg.reward_trap_penalty > 0 and not terminated:
+            was_trapped, self._trapped = self._trapped, self._no_way_out(x, y, yaw)
+            if self._trapped and not was_trapped:  # charged once, on the step that enters
+                reward -= cfg.reward_trap_penalty
         return self._depth, float(reward), terminated, truncated, self._info(cause, min_depth)
+
+    def _no_way_out(self, x: float, y: float, yaw: float) -> bool:
+        expert = self._scene.trap_expert(self.env_config, self.sensor_config)
+        return not expert.has_way_out(x, y, yaw, TRAP_HORIZON_STEPS)
 
     def snapshot(self) -> tuple[Any, ...]:
         """The episode's state now (robot physics, step count, path, image, the floor seen for the
-        novelty reward): :meth:`restore` puts the episode back exactly there, so a planner can try
-        several commands from one pose (shared.learning.demos). Only within the episode and world it
-        was taken in; the sensor's noise draws (``SensorConfig.noise_std_m``) are not rewound."""
+        novelty reward, whether the pose has a way out for the trap reward): :meth:`restore` puts
+        the episode back exactly there, so a planner can try several commands from one pose
+        (shared.learning.demos). Only within the episode and world it was taken in; the sensor's
+        noise draws (``SensorConfig.noise_std_m``) are not rewound."""
         seen = self._scene.coverage().seen if self.env_config.reward_new_area_per_m2 > 0 else None
         return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
-                self._depth.copy(), tuple(self._trail), seen)
+                self._depth.copy(), tuple(self._trail), seen, self._trapped)
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
         """Return to a :meth:`snapshot` of the current episode."""
-        scene, state, self._steps, self._path_length, self._last_xy, depth, trail, seen = snapshot
+        scene, state, self._steps, self._path_length, self._last_xy, depth, trail, seen, self._trapped = snapshot
         if scene is not self._scene:
             raise EnvError("a snapshot can only be restored in the episode's own world")
         if seen is not None:

@@ -155,6 +155,27 @@ def test_survival_search_agrees_with_the_env_and_finds_the_dead_end_trap(capsys)
         assert "error" in capsys.readouterr().err
 
 
+def test_a_way_out_is_found_by_the_beam_where_no_plan_shape_reaches_and_not_in_the_dead_end():
+    from shared.config import TRAP_HORIZON_STEPS as H
+
+    train = EnvConfig(speed_table="train")
+    world = load_world("paper-indoor")
+    expert = CommandExpert(world, train, SMALL_SENSOR)
+    open_start, dead_end = world.starts[0], world.starts[5]
+    # Start 1: no plan (one command, a turn, straight) stays safe for H steps, a sequence does.
+    safe, _ = expert.plan_scores(open_start.x, open_start.y, open_start.yaw)
+    assert safe.max() < H
+    assert expert.has_way_out(open_start.x, open_start.y, open_start.yaw, H)
+    assert expert.survival_steps(open_start.x, open_start.y, open_start.yaw, horizon=H).max() == H
+    # Into start 6's dead end, straight ahead: a way out, then none, never again (no flicker).
+    x, y, yaw = dead_end.x, dead_end.y, dead_end.yaw
+    found = [expert.has_way_out(x + k * 0.1 * math.cos(yaw), y + k * 0.1 * math.sin(yaw), yaw, H)
+             for k in range(14)]
+    first_none = found.index(False)
+    assert 0 < first_none and not any(found[first_none:])
+    assert expert.has_way_out(x, y, yaw, H) == expert.has_way_out(x, y, yaw, H)  # deterministic
+
+
 def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_commands():
     from shared.config import ExploreConfig
     from shared.sim.env import ExploreEnv

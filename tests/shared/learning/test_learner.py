@@ -79,6 +79,16 @@ def test_a_novelty_paying_task_accepts_a_moves_bonus_up_to_its_cap_and_nothing_b
     assert core.received == 3
 
 
+def test_a_trap_charging_task_accepts_the_charged_move_over_the_wire_and_nothing_below_it():
+    core = LearnerCore(load_preset("smoke").with_overrides({"env.reward_trap_penalty": 50.0}), device="cpu")
+    for reward in (1.0, -49.0):
+        core.ingest(TransitionBatch.decode(_batch(reward=reward).encode()))
+    for reward in (-49.5, 1.5):
+        with pytest.raises(MessageError, match="pays -49 to 1 per move"):
+            core.ingest(_batch(reward=reward))
+    assert core.received == 2
+
+
 def test_per_actor_state_stays_bounded_whatever_ids_arrive():
     from shared.learning.learner import MAX_TRACKED_ACTORS
     from shared.learning.replay import MAX_OPEN_STREAMS

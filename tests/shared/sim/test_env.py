@@ -322,3 +322,51 @@ def test_the_novelty_reward_is_validated_and_bounds_what_a_learner_accepts():
     assert novelty.pays(rewards).tolist() == [True, True, True, False, False, True, False]
     assert not novelty.pays_for_a_move(-100.0)
     assert "1 to 11 per move" in novelty.describe_rewards()
+
+
+def test_the_trap_reward_charges_once_the_step_that_enters_a_place_with_no_way_out():
+    from shared.config import TRAP_HORIZON_STEPS
+
+    penalty = 50.0
+    env = ExploreEnv(world="paper-indoor", reward_trap_penalty=penalty, max_episode_steps=60)
+    plain = ExploreEnv(world="paper-indoor", max_episode_steps=60)
+    expert = env._scene.trap_expert(env.env_config, env.sensor_config)
+    # Start 6 (index 5) faces the dead end: straight ahead at the training speed it is entered
+    # steps before the wall, and the charge falls on the step whose pose has no way out left.
+    env.reset(seed=1, options={"start_index": 5})
+    plain.reset(seed=1, options={"start_index": 5})
+    way_out, rewards, snap = [True], [], None
+    for _ in range(60):
+        if not way_out[-1] and snap is None:
+            snap = env.snapshot()
+        _, reward, terminated, truncated, info = env.step(2)
+        _, plain_reward, plain_terminated, *_ = plain.step(2)
+        assert terminated == plain_terminated  # the term pays; it never moves the robot
+        rewards.append(reward)
+        if terminated:
+            assert reward == plain_reward == -100.0  # a collision pays r_ter alone
+            break
+        way_out.append(expert.has_way_out(*info["pose"], TRAP_HORIZON_STEPS))
+    entered = [k for k in range(1, len(way_out)) if way_out[k - 1] and not way_out[k]]
+    assert len(entered) == 1 and 1 < entered[0] < len(rewards) - 2  # well before the wall
+    charged = [k for k, r in enumerate(rewards[:-1]) if r != 1.0]
+    assert charged == [entered[0] - 1] and rewards[charged[0]] == 1.0 - penalty
+    # A snapshot inside the trap keeps it: replayed from there, no step is charged again.
+    env.restore(snap)
+    assert env.step(2)[1] == 1.0
+
+
+def test_the_trap_reward_is_validated_bounds_what_a_learner_accepts_and_stays_out_of_the_test():
+    from shared.config import ConfigError
+    from shared.evaluation.protocol import protocol_env_config
+
+    for bad in (-1.0, math.nan, 1001.0):
+        with pytest.raises(ConfigError, match="reward_trap_penalty"):
+            EnvConfig(reward_trap_penalty=bad)
+    trap = EnvConfig(reward_trap_penalty=50.0)
+    rewards = np.array([1.0, -49.0, -20.0, -49.01, 1.01, -100.0])
+    assert trap.pays(rewards).tolist() == [True, True, True, False, False, True]
+    assert EnvConfig().pays(rewards).tolist() == [True, False, False, False, False, True]
+    assert "-49 to 1 per move" in trap.describe_rewards()
+    # The protocol counts steps: it never pays for the trap's map checks.
+    assert protocol_env_config(trap, "paper-indoor", 200).reward_trap_penalty == 0.0
