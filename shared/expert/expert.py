@@ -360,7 +360,6 @@ class ExpertGuide:
         self.prob = float(prob)
         self.label_prob = float(label_prob)
         self.env = env
-        self._experts: dict[str, CommandExpert] = {}  # per world, built when first needed
         self.rng = np.random.default_rng(seed)
         # its own stream: labelling on or off leaves the episodes' draws as they were
         self.label_rng = np.random.default_rng(None if seed is None else seed + 1)
@@ -383,9 +382,5 @@ class ExpertGuide:
         return self._command(pose)
 
     def _command(self, pose: Sequence[float]) -> int:
-        world = self.env.world  # the world of the episode now playing (env.extra_worlds)
-        expert = self._experts.get(world.name)
-        if expert is None:
-            expert = self._experts[world.name] = CommandExpert(world, self.env.env_config, self.env.sensor_config)
-        x, y, yaw = pose
-        return expert.label(float(x), float(y), float(yaw))
+        x, y, yaw = pose  # the expert of the world now playing (env.extra_worlds), one per world
+        return self.env.map_expert().label(float(x), float(y), float(yaw))

@@ -93,16 +93,16 @@ class _Scene:
     _clearance: tuple[Any, np.ndarray] | None = None
     _canvas: Any = None
     _coverage: Any = None
-    _trap_expert: Any = None
+    _map_expert: Any = None
 
-    def trap_expert(self, cfg: EnvConfig, sensor: SensorConfig) -> Any:
-        """The world's map expert at ``cfg``'s speeds (``shared.expert.expert.CommandExpert``): the
-        trap reward's (``EnvConfig.reward_trap_penalty``) judge of whether a pose has a way out."""
-        if self._trap_expert is None:
+    def map_expert(self, cfg: EnvConfig, sensor: SensorConfig) -> Any:
+        """The world's map expert at ``cfg``'s speeds (``shared.expert.expert.CommandExpert``), built
+        once per world."""
+        if self._map_expert is None:
             from shared.expert.expert import CommandExpert
 
-            self._trap_expert = CommandExpert(self.world, cfg, sensor)
-        return self._trap_expert
+            self._map_expert = CommandExpert(self.world, cfg, sensor)
+        return self._map_expert
 
     @classmethod
     def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
@@ -313,9 +313,14 @@ class ExploreEnv(gym.Env):
                 reward -= cfg.reward_trap_penalty
         return self._depth, float(reward), terminated, truncated, self._info(cause, min_depth)
 
+    def map_expert(self) -> Any:
+        """The privileged map expert of the world now playing, at this env's speeds: the trap
+        reward's judge of a way out, and the guided episodes' and teacher labels' commands
+        (``shared.expert.expert.ExpertGuide``). Training only: it reads the map, never the image."""
+        return self._scene.map_expert(self.env_config, self.sensor_config)
+
     def _no_way_out(self, x: float, y: float, yaw: float) -> bool:
-        expert = self._scene.trap_expert(self.env_config, self.sensor_config)
-        return not expert.has_way_out(x, y, yaw, TRAP_HORIZON_STEPS)
+        return not self.map_expert().has_way_out(x, y, yaw, TRAP_HORIZON_STEPS)
 
     def snapshot(self) -> tuple[Any, ...]:
         """The episode's state now (robot physics, step count, path, image, the floor seen for the

@@ -330,7 +330,7 @@ def test_the_trap_reward_charges_once_the_step_that_enters_a_place_with_no_way_o
     penalty = 50.0
     env = ExploreEnv(world="paper-indoor", reward_trap_penalty=penalty, max_episode_steps=60)
     plain = ExploreEnv(world="paper-indoor", max_episode_steps=60)
-    expert = env._scene.trap_expert(env.env_config, env.sensor_config)
+    expert = env.map_expert()
     # Start 6 (index 5) faces the dead end: straight ahead at the training speed it is entered
     # steps before the wall, and the charge falls on the step whose pose has no way out left.
     env.reset(seed=1, options={"start_index": 5})
