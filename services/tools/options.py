@@ -262,6 +262,11 @@ def add_model_export_arguments(p: argparse.ArgumentParser) -> None:
                    help="several checkpoints (independently trained runs) become one Q-value ensemble instead "
                         "of a weights' mean: the greedy command is the argmax of their mean Q-values (as "
                         "`evaluate --ensemble`), labelled with the first one's update")
+    p.add_argument("--members", default=None, metavar="A,B,...",
+                   help="keep only these networks of the ensemble (the shipped one, an ensemble's file, or what "
+                        "--ensemble joined), in this order: each a member's label as the ensemble records it "
+                        "(R3@104000), that label without its update (R3) or its index (one: that network alone; "
+                        "`cogexplore model export pretrained --members R3 --out R3.safetensors`)")
     p.add_argument("--out", default=None, help="output .safetensors path (weights only, for torch)")
     p.add_argument("--onnx", default=None, metavar="F.onnx",
                    help="output ONNX path, instead of --out or beside it: the network for a robot computer "

@@ -698,6 +698,41 @@ def ensemble_models(models: Sequence[LoadedModel]) -> LoadedModel:
                                name="+".join(m.label for m in models))
 
 
+def ensemble_members(model: LoadedModel, picks: Sequence[str]) -> LoadedModel:
+    """The networks ``picks`` names out of an ensemble, in the order given (``model export
+    pretrained --members R3,X2``): each pick is a member's label as the ensemble records it
+    (``R3@104000``), that label without its update (``R3``) or the member's index. One pick gives
+    that network alone, several a smaller ensemble. CheckpointError when the model is one network,
+    a pick names no member or more than one, or the picks name a member twice."""
+    if not model.ensemble_of:
+        raise CheckpointError(f"{model.path} is one network, not an ensemble: --members picks networks out of an "
+                              "ensemble")
+    entries = model.ensemble_of
+    labels = [str(e["label"]) for e in entries]
+    chosen: list[int] = []
+    for pick in picks:
+        hits = [i for i, label in enumerate(labels) if pick in (label, label.rsplit("@", 1)[0])]
+        if not hits and pick.isdigit() and int(pick) < len(entries):
+            hits = [int(pick)]
+        if len(hits) != 1:
+            members = ", ".join(f"{i}: {label}" for i, label in enumerate(labels))
+            raise CheckpointError(f"--members {pick!r} names {'no' if not hits else 'more than one'} member of "
+                                  f"{model.path}: its members are {members}")
+        if hits[0] in chosen:
+            raise CheckpointError(f"--members names member {hits[0]} ({labels[hits[0]]}) twice")
+        chosen.append(hits[0])
+    if not chosen:
+        raise CheckpointError("--members names no member")
+    nets = [model.net.members[i] for i in chosen]
+    picked = tuple(entries[i] for i in chosen)
+    net = nets[0] if len(nets) == 1 else QEnsemble(nets).eval()
+    return dataclasses.replace(
+        model, net=net, policy_version=int(picked[0]["policy_version"]), fingerprint=architecture_fingerprint(net),
+        weights_sha256=weights_sha256(net), ensemble_of=picked if len(nets) > 1 else (),
+        averaged_from=tuple(picked[0].get("averaged_from", ())) if len(nets) == 1 else (),
+        name=str(picked[0]["label"]) if len(nets) == 1 else "+".join(labels[i] for i in chosen))
+
+
 def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
     """The element-wise mean of several loaded models' weights (one run's later checkpoints),
     labelled with the last one's file, update and run config; one model is returned as is."""

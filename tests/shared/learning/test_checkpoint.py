@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 
 import numpy as np
 import pytest
@@ -298,3 +299,47 @@ def test_an_ensemble_is_one_weights_file_that_plays_the_mean_and_refuses_a_forge
             load_model(bad)
     save_tensors_file(bad, tensors, {k: v for k, v in meta.items() if k != "digest"} | {"ensemble_of": "forged"})
     assert [e["source"] for e in load_model(bad).ensemble_of] == ["member 0", "member 1"]  # labels only
+
+
+def test_export_members_takes_networks_out_of_an_ensemble(tmp_path, capsys):
+    """``model export ENSEMBLE --members``: by label, by label without its update or by index, one
+    pick is that network alone (the same weights), several a smaller ensemble in the order given;
+    a pick that names no member, one named twice or a single network is a clear error."""
+    from services.cli import main
+    from shared.config import load_preset
+    from shared.learning.checkpoints import load_model
+    from shared.learning.learner import LearnerCore
+
+    base = load_preset("tiny").with_overrides({"replay.capacity": 500})
+    agents = [LearnerCore(base.with_overrides({"train.seed": s}), device="cpu").agent for s in (1, 2, 3)]
+    paths = [export_weights(tmp_path / f"{name}.safetensors", a.online, 100 * (i + 1))
+             for i, (name, a) in enumerate(zip(("A", "B", "C"), agents))]
+    ens = tmp_path / "ens.safetensors"
+    assert main(["model", "export", *map(str, paths), "--ensemble", "--out", str(ens)]) == 0
+    capsys.readouterr()
+
+    one = tmp_path / "b.safetensors"
+    assert main(["model", "export", str(ens), "--members", "B", "--out", str(one)]) == 0
+    assert json.loads(capsys.readouterr().out)["policy_version"] == 200
+    b = load_model(one)
+    assert not isinstance(b.net, QEnsemble) and b.weights_sha256 == load_model(paths[1]).weights_sha256
+
+    two = tmp_path / "ca.safetensors"
+    assert main(["model", "export", str(ens), "--members", "C@300, 0", "--out", str(two)]) == 0
+    capsys.readouterr()
+    ca = load_model(two)
+    assert isinstance(ca.net, QEnsemble) and [e["label"] for e in ca.ensemble_of] == ["C@300", "A@100"]
+    assert [e["weights_sha256"] for e in ca.ensemble_of] == [load_model(paths[i]).weights_sha256 for i in (2, 0)]
+    depth = np.random.default_rng(0).random((2, 30, 40)).astype(np.float32) * 4
+    from shared.learning.model import InferenceRunner
+
+    want = np.mean([agents[i].q_values(depth) for i in (2, 0)], axis=0)
+    np.testing.assert_allclose(InferenceRunner(ca.net).q_values(depth), want, rtol=1e-5, atol=1e-6)
+
+    for members, message in (("D", "names no member.*0: A@100, 1: B@200, 2: C@300"), ("A,0", "twice"),
+                             ("7", "names no member")):
+        assert main(["model", "export", str(ens), "--members", members, "--out", str(tmp_path / "x.safetensors")]) == 2
+        assert re.search(message, capsys.readouterr().err), members
+    assert main(["model", "export", str(paths[0]), "--members", "A", "--out", str(tmp_path / "x.safetensors")]) == 2
+    assert "one network, not an ensemble" in capsys.readouterr().err
+    assert not (tmp_path / "x.safetensors").exists()
