@@ -730,7 +730,7 @@ def ensemble_members(model: LoadedModel, picks: Sequence[str]) -> LoadedModel:
         model, net=net, policy_version=int(picked[0]["policy_version"]), fingerprint=architecture_fingerprint(net),
         weights_sha256=weights_sha256(net), ensemble_of=picked if len(nets) > 1 else (),
         averaged_from=tuple(picked[0].get("averaged_from", ())) if len(nets) == 1 else (),
-        name=str(picked[0]["label"]) if len(nets) == 1 else "+".join(labels[i] for i in chosen))
+        name="+".join(labels[i] for i in chosen))
 
 
 def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
