@@ -161,10 +161,6 @@ def parse_world_list(text: str) -> tuple[str, ...]:
     return tuple(names)
 
 
-TRAP_HORIZON_STEPS = 16
-"""Steps a way out must stay safe for (``EnvConfig.reward_trap_penalty``): 2.6 m at the training
-speed, beyond the 1.4 m (11 decisions) by which the networks typically enter a place too late."""
-
 NEW_AREA_CAP_M2 = 4.0
 """The most newly seen floor (m^2) one step is paid for (``EnvConfig.reward_new_area_per_m2``): a
 turn of 0.6 rad in one 0.5 s step opens at most a 4.8 m^2 wedge of the 4 m, 57 degree view, and
@@ -207,12 +203,17 @@ class EnvConfig:
     reward_trap_penalty: float = 0.0
     """Foresight in the training reward: a collision-free step that takes the robot from a pose
     with a way out to one without pays r_move less this. "A way out": the privileged map expert
-    finds some command sequence that stays safe for ``TRAP_HORIZON_STEPS`` steps at the episode's
+    finds some command sequence that stays safe for ``trap_horizon_steps`` steps at the episode's
     speeds (``CommandExpert.has_way_out``; its check reads the world's map, the policy still reads
     only the depth image). The networks fail by entering a place with no way out a median of 11
     decisions before the wall (MODEL_CARD.md, "Where the gap is"), where r_ter, discounted by
     gamma = 0.85, weighs 17%; this charges the entry itself. Costs an actor about 2 ms a step. 0
     (the paper's reward) in every preset; a collision pays r_ter alone."""
+    trap_horizon_steps: int = 16
+    """Steps a way out must stay safe for (``reward_trap_penalty``; unused without it): 16 is 2.6 m
+    at the training speed, beyond the 1.4 m (11 decisions) by which the networks typically enter a
+    place too late. Longer finds traps further ahead and costs the actors more per step; the beam
+    search is a lower bound, so a longer horizon also calls more tight places traps."""
     start_index: int | None = None
     """Start pose index; None draws one of the world's starts uniformly each episode."""
     random_start_prob: float = 0.0
@@ -270,6 +271,9 @@ class EnvConfig:
                "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
         _check(_finite(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
                "reward_trap_penalty", self.reward_trap_penalty, "a number in [0, 1000]")
+        _check(isinstance(self.trap_horizon_steps, int) and not isinstance(self.trap_horizon_steps, bool)
+               and 1 <= self.trap_horizon_steps <= 100, s,
+               "trap_horizon_steps", self.trap_horizon_steps, "an integer in [1, 100]")
         _check(self.start_index is None or (isinstance(self.start_index, int) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
         _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
@@ -787,7 +791,7 @@ MUST_MATCH_FIELDS: tuple[str, ...] = (
     "model.action_history",
     "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
     "env.collision_distance_m", "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
-    "env.reward_trap_penalty",
+    "env.reward_trap_penalty", "env.trap_horizon_steps",
 )
 """The fields an actor's or the evaluator's configuration must share with its run's learner: what a
 depth image is (the sensor; its backend agrees to 2 cm, and noise is an actor's to add), the network

@@ -36,7 +36,6 @@ from shared.config import (
     NUM_ACTIONS,
     PROCEDURAL_PREFIX,
     SPEED_TABLES,
-    TRAP_HORIZON_STEPS,
     EnvConfig,
     SensorConfig,
 )
@@ -320,7 +319,7 @@ class ExploreEnv(gym.Env):
         return self._scene.map_expert(self.env_config, self.sensor_config)
 
     def _no_way_out(self, x: float, y: float, yaw: float) -> bool:
-        return not self.map_expert().has_way_out(x, y, yaw, TRAP_HORIZON_STEPS)
+        return not self.map_expert().has_way_out(x, y, yaw, self.env_config.trap_horizon_steps)
 
     def snapshot(self) -> tuple[Any, ...]:
         """The episode's state now (robot physics, step count, path, image, the floor seen for the

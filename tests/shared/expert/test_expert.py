@@ -156,9 +156,8 @@ def test_survival_search_agrees_with_the_env_and_finds_the_dead_end_trap(capsys)
 
 
 def test_a_way_out_is_found_by_the_beam_where_no_plan_shape_reaches_and_not_in_the_dead_end():
-    from shared.config import TRAP_HORIZON_STEPS as H
-
     train = EnvConfig(speed_table="train")
+    H = train.trap_horizon_steps
     world = load_world("paper-indoor")
     expert = CommandExpert(world, train, SMALL_SENSOR)
     open_start, dead_end = world.starts[0], world.starts[5]

@@ -325,8 +325,6 @@ def test_the_novelty_reward_is_validated_and_bounds_what_a_learner_accepts():
 
 
 def test_the_trap_reward_charges_once_the_step_that_enters_a_place_with_no_way_out():
-    from shared.config import TRAP_HORIZON_STEPS
-
     penalty = 50.0
     env = ExploreEnv(world="paper-indoor", reward_trap_penalty=penalty, max_episode_steps=60)
     plain = ExploreEnv(world="paper-indoor", max_episode_steps=60)
@@ -346,7 +344,7 @@ def test_the_trap_reward_charges_once_the_step_that_enters_a_place_with_no_way_o
         if terminated:
             assert reward == plain_reward == -100.0  # a collision pays r_ter alone
             break
-        way_out.append(expert.has_way_out(*info["pose"], TRAP_HORIZON_STEPS))
+        way_out.append(expert.has_way_out(*info["pose"], env.env_config.trap_horizon_steps))
     entered = [k for k in range(1, len(way_out)) if way_out[k - 1] and not way_out[k]]
     assert len(entered) == 1 and 1 < entered[0] < len(rewards) - 2  # well before the wall
     charged = [k for k, r in enumerate(rewards[:-1]) if r != 1.0]
@@ -354,6 +352,13 @@ def test_the_trap_reward_charges_once_the_step_that_enters_a_place_with_no_way_o
     # A snapshot inside the trap keeps it: replayed from there, no step is charged again.
     env.restore(snap)
     assert env.step(2)[1] == 1.0
+    # A longer horizon asks more of a way out, so the same drive is charged earlier (at 24 steps
+    # the start itself has none, and starting in a trap is never charged).
+    far = ExploreEnv(world="paper-indoor", reward_trap_penalty=penalty, trap_horizon_steps=20,
+                     max_episode_steps=60)
+    far.reset(seed=1, options={"start_index": 5})
+    far_rewards = [far.step(2)[1] for _ in range(charged[0] + 1)]
+    assert far_rewards.count(1.0 - penalty) == 1 and far_rewards.index(1.0 - penalty) < charged[0]
 
 
 def test_the_trap_reward_is_validated_bounds_what_a_learner_accepts_and_stays_out_of_the_test():
@@ -363,6 +368,9 @@ def test_the_trap_reward_is_validated_bounds_what_a_learner_accepts_and_stays_ou
     for bad in (-1.0, math.nan, 1001.0):
         with pytest.raises(ConfigError, match="reward_trap_penalty"):
             EnvConfig(reward_trap_penalty=bad)
+    for bad in (0, 101, 16.0, True):
+        with pytest.raises(ConfigError, match="trap_horizon_steps"):
+            EnvConfig(reward_trap_penalty=50.0, trap_horizon_steps=bad)
     trap = EnvConfig(reward_trap_penalty=50.0)
     rewards = np.array([1.0, -49.0, -20.0, -49.01, 1.01, -100.0])
     assert trap.pays(rewards).tolist() == [True, True, True, False, False, True]
