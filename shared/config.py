@@ -58,6 +58,8 @@ MAX_FRAME_STACK = 4
 """The most depth images a network may read per step (``ModelConfig.frame_stack``)."""
 MAX_SHIFT_AUGMENT_PX = 8
 """The largest random shift of a frame in the learner's batches (``DQNConfig.shift_augment_px``)."""
+MAX_QUANTILES = 200
+"""The most return quantiles per command a network may give (``ModelConfig.quantiles``)."""
 
 
 def mirror_action(action: Any) -> Any:
@@ -390,6 +392,15 @@ class ModelConfig:
     Replay rebuilds each stack from the episode chain and the policies remember their episode's
     images, so transitions on the wire stay one image each. 1 (the paper's one image) in every preset."""
 
+    quantiles: int = 0
+    """Return quantiles per command (QR-DQN, Dabney et al. 2018): fc3 gives each command N values,
+    the quantiles at (2i + 1) / 2N of its discounted return, trained with the quantile Huber loss
+    (``dqn.quantile_kappa``) towards the N quantiles of the target command's return. A policy acts
+    on their mean, the Q-value, so everything that plays a network plays this one unchanged. A
+    collision one step in five is one fifth of the quantiles, not a fifth of one mean: the
+    distribution keeps the rare -100 that a mean smears. 0: one Q-value per command (the paper's,
+    and every preset's). Not with ``dueling``."""
+
     def __post_init__(self) -> None:
         s = "model"
         for name in ("fc1", "fc2"):
@@ -408,6 +419,10 @@ class ModelConfig:
                "1 unless model.previous_action is on (the history is of previous commands)")
         _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
                f"one of {', '.join(DEPTH_ENCODINGS)}")
+        _check(type(self.quantiles) is int and (self.quantiles == 0 or 2 <= self.quantiles <= MAX_QUANTILES), s,
+               "quantiles", self.quantiles, f"0 (one Q-value per command) or an integer in [2, {MAX_QUANTILES}]")
+        _check(self.quantiles == 0 or not self.dueling, s, "quantiles", self.quantiles,
+               "0 with model.dueling (a quantile head has no value/advantage split)")
         _check(isinstance(self.frame_stack, int) and not isinstance(self.frame_stack, bool)
                and 1 <= self.frame_stack <= MAX_FRAME_STACK, s, "frame_stack", self.frame_stack,
                f"an integer in [1, {MAX_FRAME_STACK}]")
@@ -468,7 +483,11 @@ class DQNConfig:
     """n-step returns (the robust preset's 3; 5 scored no higher there: run M1, MODEL_CARD.md)."""
     loss: str = "mse"
     """'mse' (paper) or 'huber' (slope 1 beyond an error of 1: meant for rewards clipped to +-1; on
-    the unclipped -100 collision reward it fits close to a median and under-weights rare collisions)."""
+    the unclipped -100 collision reward it fits close to a median and under-weights rare collisions).
+    A ``model.quantiles`` network is trained with the quantile Huber loss instead, whatever this says."""
+    quantile_kappa: float = 1.0
+    """The quantile Huber loss's threshold (QR-DQN's kappa: 1): the error beyond which a quantile's
+    pull stops growing (``model.quantiles`` networks only)."""
     grad_clip_norm: float = 0.0
     """Clip the gradient's global norm to this value (0 = off)."""
     mirror_augment: bool = False
@@ -519,6 +538,8 @@ class DQNConfig:
         _check(type(self.n_step) is int and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
                "an integer in [1, 20]")
         _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
+        _check(_finite(self.quantile_kappa) and 0 < self.quantile_kappa <= 1000, s, "quantile_kappa",
+               self.quantile_kappa, "a number in (0, 1000]")
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
         _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
@@ -788,7 +809,7 @@ MUST_MATCH_FIELDS: tuple[str, ...] = (
     "sensor.width", "sensor.height", "sensor.hfov_deg", "sensor.vfov_deg", "sensor.max_range_m",
     "sensor.min_range_m", "sensor.mount_height_m", "sensor.mount_forward_m",
     "model.fc1", "model.fc2", "model.dueling", "model.depth_encoding", "model.previous_action",
-    "model.action_history",
+    "model.action_history", "model.quantiles",
     "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
     "env.collision_distance_m", "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
     "env.reward_trap_penalty", "env.trap_horizon_steps",

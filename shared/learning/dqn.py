@@ -10,7 +10,11 @@ With n = 1 this is the paper's y = r_ter on collision and r + gamma max Q(x', .;
 Double DQN takes the argmax with theta (eval mode) and the value with theta^-. theta^- is copied
 from theta every ``target_sync_every`` updates. The loss is the batch mean of (y - Q(x, a; theta))^2
 (the paper's L = 1/n sum_k (y_k - Q)^2), or the Huber loss, each weighted by importance weights
-under prioritised replay. Dropout is on in the online forward pass that is trained, and off when
+under prioritised replay. A ``model.quantiles`` network (QR-DQN, Dabney et al. 2018) learns N return
+quantiles per command instead: its target is the distribution y_j = sum gamma^k r_k + gamma^m
+theta_j(x', a*; theta^-) (the return alone after a collision), a* the Double-DQN argmax of the
+quantiles' means, and its loss the quantile Huber loss of the taken command's quantiles against
+those N samples. Dropout is on in the online forward pass that is trained, and off when
 computing targets (deterministic targets, as at test time).
 
 Learning-rate mapping from the paper's Caffe setup ("learning rate 0.0000001", momentum 0.99)
@@ -124,6 +128,38 @@ def td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.T
     return torch.where(terminated, returns, returns + discount * bootstrap)
 
 
+def quantile_td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.Tensor,
+                        next_quantiles_target: torch.Tensor, gamma: float,
+                        next_q_online: torch.Tensor | None = None) -> torch.Tensor:
+    """QR-DQN's target distribution (B, N): the n-step return plus gamma^m times each return
+    quantile (B, A, N) of theta^- at the next state's command, that command the argmax of the
+    online net's Q-values ``next_q_online`` (Double DQN) or else of theta^-'s own quantile means.
+    Rows with ``terminated`` are the return alone in every column."""
+    chooser = next_q_online if next_q_online is not None else next_quantiles_target.mean(dim=2)
+    best = chooser.argmax(dim=1)
+    bootstrap = next_quantiles_target[torch.arange(len(best), device=best.device), best]  # (B, N)
+    discount = torch.pow(torch.tensor(gamma, dtype=bootstrap.dtype, device=bootstrap.device),
+                         n_steps.to(bootstrap.dtype))
+    returns = n_step_returns(rewards.to(bootstrap.dtype), n_steps, gamma)
+    return torch.where(terminated[:, None], returns[:, None].expand_as(bootstrap),
+                       returns[:, None] + discount[:, None] * bootstrap)
+
+
+def quantile_huber_loss(quantiles: torch.Tensor, targets: torch.Tensor, kappa: float) -> torch.Tensor:
+    """Per-sample quantile Huber loss (B,) of predicted quantiles (B, N) at the midpoints
+    tau_i = (2i + 1) / 2N against target samples (B, M) (Dabney et al. 2018, eq. 10): for each pair,
+    |tau_i - 1{u < 0}| * Huber_kappa(u) / kappa with u = target_j - quantile_i, averaged over the
+    targets and summed over the quantiles. Its minimiser puts quantile i at the tau_i-quantile of
+    the targets."""
+    n = quantiles.shape[1]
+    tau = (torch.arange(n, dtype=quantiles.dtype, device=quantiles.device) + 0.5) / n
+    u = targets[:, None, :] - quantiles[:, :, None]  # (B, N, M)
+    huber = F.huber_loss(quantiles[:, :, None].expand_as(u), targets[:, None, :].expand_as(u),
+                         reduction="none", delta=kappa)
+    weight = (tau[None, :, None] - (u.detach() < 0).to(u.dtype)).abs()
+    return (weight * huber / kappa).mean(dim=2).sum(dim=1)
+
+
 def large_margin_loss(q_all: torch.Tensor, label: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
     """DQfD's large-margin loss (Hester et al. 2018): mean over samples of
     max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E), zero once the labelled command a_E (a
@@ -193,7 +229,7 @@ class PreparedBatch:
     """A TensorBatch, augmented, and its TD targets: all an update needs but the gradient step."""
 
     tb: TensorBatch
-    y: torch.Tensor
+    y: torch.Tensor  # (B,) TD targets, or (B, N) target return samples for a model.quantiles network
 
 
 class DQNAgent:
@@ -287,7 +323,8 @@ class DQNAgent:
         passes its copies, which no update writes to while it reads them)."""
         online = self.online if online is None else online
         target = self.target if target is None else target
-        next_q_target = target(tb.next_obs, tb.next_previous_action)
+        quantiles = self.model_cfg.quantiles > 0
+        next_q_target = (target.return_quantiles if quantiles else target)(tb.next_obs, tb.next_previous_action)
         next_q_online = None
         if self.cfg.double_dqn:
             was_training = online.training
@@ -296,8 +333,8 @@ class DQNAgent:
                 next_q_online = online(tb.next_obs, tb.next_previous_action)
             finally:
                 online.train(was_training)
-        return td_targets(tb.rewards, tb.n_steps, tb.terminated, next_q_target, self.cfg.gamma,
-                          next_q_online)
+        targets = quantile_td_targets if quantiles else td_targets
+        return targets(tb.rewards, tb.n_steps, tb.terminated, next_q_target, self.cfg.gamma, next_q_online)
 
     def draw_augmentation(self, batch: Batch | TensorBatch) -> Augmentation | None:
         """This update's mirror flips and pixel shifts for ``batch`` (None with neither
@@ -342,12 +379,17 @@ class DQNAgent:
         """The gradient step of :meth:`update` on a prepared batch (its targets already computed)."""
         tb, y = prepared.tb, prepared.y
         self.online.train()
-        q_all = self.online(tb.obs, tb.previous_action)
-        q = q_all.gather(1, tb.action[:, None]).squeeze(1)
-        if self.cfg.loss == "huber":
-            per_sample = F.smooth_l1_loss(q, y, reduction="none", beta=1.0)
+        if self.model_cfg.quantiles:
+            taken = self.online.return_quantiles(tb.obs, tb.previous_action)  # (B, A, N)
+            q_all = taken.mean(dim=2)
+            taken = taken[torch.arange(len(tb.action), device=taken.device), tb.action]  # (B, N)
+            per_sample = quantile_huber_loss(taken, y, self.cfg.quantile_kappa)
+            q, y = taken.mean(dim=1), y.mean(dim=1)  # the Q-value and its target, for the metrics
         else:
-            per_sample = (q - y).square()
+            q_all = self.online(tb.obs, tb.previous_action)
+            q = q_all.gather(1, tb.action[:, None]).squeeze(1)
+            per_sample = (F.smooth_l1_loss(q, y, reduction="none", beta=1.0) if self.cfg.loss == "huber"
+                          else (q - y).square())
         loss = (per_sample * tb.weights).mean()
         label_metrics: dict[str, float] = {}
         if tb.expert_action is not None and self.cfg.demo_weight > 0:

@@ -14,7 +14,8 @@ Layers (``ConvTrunk`` is the conv stack of the authors' supervised model, IROS 2
     conv3 64 @ 5x5 (pad 2) + ReLU + 2x2 max-pool    -> 64 x 15 x 20   ("pool3", the paper's 64 x 20 x 15)
     fc1 (ModelConfig.fc1, default 512) + ReLU + dropout
     fc2 (ModelConfig.fc2, default 256) + ReLU + dropout
-    fc3 5 (one Q-value per moving command), or a dueling value/advantage head
+    fc3 5 (one Q-value per moving command; 5 x N return quantiles with ModelConfig.quantiles),
+        or a dueling value/advantage head
 
 Speed on CPU (``cogexplore bench learner``): three things, all in this module, matter on the
 2-core dev VM. Measured as the share of the in-process fp32 matmul peak that a batch-32 Double-DQN
@@ -288,7 +289,7 @@ class QNetwork(nn.Module):
             self.value = nn.Linear(cfg.fc2, 1)
             self.advantage = nn.Linear(cfg.fc2, NUM_ACTIONS)
         else:
-            self.fc3 = nn.Linear(cfg.fc2, NUM_ACTIONS)
+            self.fc3 = nn.Linear(cfg.fc2, NUM_ACTIONS * max(1, cfg.quantiles))
         self.to(memory_format=torch.channels_last)
 
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
@@ -303,7 +304,20 @@ class QNetwork(nn.Module):
         return pool3.float()
 
     def head(self, pool3: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
-        """pool3 activations (and the previous commands, see the class) -> (B, 5) Q-values."""
+        """pool3 activations (and the previous commands, see the class) -> (B, 5) Q-values (a
+        ``model.quantiles`` network's: the mean of each command's return quantiles)."""
+        out = self.head_outputs(pool3, previous_action)
+        return out if out.dim() == 2 else out.mean(dim=2)
+
+    def return_quantiles(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        """(B, 5, N) return quantiles of preprocessed input x for a ``model.quantiles`` network
+        (what its learner trains; ``forward`` gives their mean)."""
+        if not self.model_cfg.quantiles:
+            raise ModelError("return_quantiles needs a model.quantiles network; this one gives Q-values")
+        return self.head_outputs(self.features(x), previous_action)
+
+    def head_outputs(self, pool3: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
+        """What the head computes: (B, 5) Q-values, or (B, 5, N) return quantiles."""
         # flatten in NCHW order whatever the memory format, so fc1 weights are format-independent
         h = self.fc1(torch.flatten(pool3.contiguous(), 1))
         if self.previous_action_fc is not None:
@@ -314,7 +328,8 @@ class QNetwork(nn.Module):
         if self.model_cfg.dueling:
             adv = self.advantage(h)
             return self.value(h) + adv - adv.mean(dim=1, keepdim=True)
-        return self.fc3(h)
+        out = self.fc3(h)
+        return out.unflatten(-1, (NUM_ACTIONS, self.model_cfg.quantiles)) if self.model_cfg.quantiles else out
 
     def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
         return self.head(self.features(x, float32=float32), previous_action)
@@ -435,6 +450,7 @@ class _FusedMembers:
         self.depth_encoding = members[0].model_cfg.depth_encoding
         self.action_history = most_commands_read(members)
         self.dueling = members[0].model_cfg.dueling
+        self.quantiles = members[0].model_cfg.quantiles
         with torch.no_grad():
             def cat(name: str) -> torch.Tensor:
                 return torch.cat([m.get_parameter(name) for m in members])
@@ -487,6 +503,8 @@ class _FusedMembers:
             q = linear("value", h) + adv - adv.mean(dim=2, keepdim=True)
         else:
             q = linear("fc3", h)
+            if self.quantiles:
+                q = q.unflatten(-1, (NUM_ACTIONS, self.quantiles)).mean(-1)
         return q.mean(0)
 
 

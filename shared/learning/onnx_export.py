@@ -84,7 +84,8 @@ class _ExportGraph(nn.Module):
         if net.model_cfg.dueling:
             advantage = net.advantage(h)
             return net.value(h) + advantage - advantage.mean(dim=1, keepdim=True)
-        return net.fc3(h)
+        quantiles = net.model_cfg.quantiles
+        return net.fc3(h).unflatten(-1, (NUM_ACTIONS, quantiles)).mean(-1) if quantiles else net.fc3(h)
 
 
 def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, label: str | None = None,
