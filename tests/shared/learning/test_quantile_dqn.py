@@ -92,7 +92,8 @@ def test_a_quantile_network_acts_fuses_and_exports_on_the_mean_of_its_quantiles(
 
 
 def test_a_pipelined_learner_trains_a_quantile_network_and_repeats_exactly():
-    """The learner service's core (replay, the TD-target thread, checkpoints' state) with quantiles."""
+    """The learner service's core (replay, the TD-target thread) with quantiles; its state restores
+    a fresh agent exactly (what a checkpoint saves)."""
     cfg = load_preset("smoke").with_overrides({"model.quantiles": 8, "model.dueling": False,
                                                "train.warmup_transitions": 16, "replay.capacity": 256,
                                                "dqn.mirror_augment": True})
@@ -114,6 +115,10 @@ def test_a_pipelined_learner_trains_a_quantile_network_and_repeats_exactly():
             weights.append(core.agent.online.state_dict())
             assert not torch.equal(weights[-1]["fc3.weight"], start["fc3.weight"])
             assert weights[-1]["fc3.weight"].shape == (5 * 8, cfg.model.fc2)
+            restored = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu")
+            restored.load_state_tensors(*core.agent.state_tensors())
+            depth = rng.uniform(0.3, 4.0, (3, 30, 40)).astype(np.float32)
+            assert np.array_equal(restored.q_values(depth, [0, 1, 2]), core.agent.q_values(depth, [0, 1, 2]))
         finally:
             core.close()
     assert all(torch.equal(weights[0][n], weights[1][n]) for n in weights[0])
@@ -127,5 +132,9 @@ def test_a_pipelined_learner_trains_a_quantile_network_and_repeats_exactly():
 def test_bad_quantile_settings_are_refused_naming_the_field(fields, bad):
     with pytest.raises(ConfigError, match=bad):
         ModelConfig(**fields)
+
+
+@pytest.mark.parametrize("kappa", [0.0, -1.0, float("nan"), 1001.0])
+def test_a_bad_quantile_kappa_is_refused(kappa):
     with pytest.raises(ConfigError, match="quantile_kappa"):
-        DQNConfig(quantile_kappa=0.0)
+        DQNConfig(quantile_kappa=kappa)
