@@ -122,10 +122,15 @@ def td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.T
         bootstrap = next_q_target.gather(1, best).squeeze(1)
     else:
         bootstrap = next_q_target.max(dim=1).values
-    discount = torch.pow(torch.tensor(gamma, dtype=bootstrap.dtype, device=bootstrap.device),
-                         n_steps.to(bootstrap.dtype))
-    returns = n_step_returns(rewards.to(bootstrap.dtype), n_steps, gamma)
+    returns, discount = _return_and_discount(rewards, n_steps, gamma, bootstrap)
     return torch.where(terminated, returns, returns + discount * bootstrap)
+
+
+def _return_and_discount(rewards: torch.Tensor, n_steps: torch.Tensor, gamma: float,
+                         like: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Each chain's n-step return and gamma^m (B,), in ``like``'s dtype and device."""
+    discount = torch.pow(torch.tensor(gamma, dtype=like.dtype, device=like.device), n_steps.to(like.dtype))
+    return n_step_returns(rewards.to(like.dtype), n_steps, gamma), discount
 
 
 def quantile_td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated: torch.Tensor,
@@ -138,9 +143,7 @@ def quantile_td_targets(rewards: torch.Tensor, n_steps: torch.Tensor, terminated
     chooser = next_q_online if next_q_online is not None else next_quantiles_target.mean(dim=2)
     best = chooser.argmax(dim=1)
     bootstrap = next_quantiles_target[torch.arange(len(best), device=best.device), best]  # (B, N)
-    discount = torch.pow(torch.tensor(gamma, dtype=bootstrap.dtype, device=bootstrap.device),
-                         n_steps.to(bootstrap.dtype))
-    returns = n_step_returns(rewards.to(bootstrap.dtype), n_steps, gamma)
+    returns, discount = _return_and_discount(rewards, n_steps, gamma, bootstrap)
     return torch.where(terminated[:, None], returns[:, None].expand_as(bootstrap),
                        returns[:, None] + discount[:, None] * bootstrap)
 
@@ -154,8 +157,7 @@ def quantile_huber_loss(quantiles: torch.Tensor, targets: torch.Tensor, kappa: f
     n = quantiles.shape[1]
     tau = (torch.arange(n, dtype=quantiles.dtype, device=quantiles.device) + 0.5) / n
     u = targets[:, None, :] - quantiles[:, :, None]  # (B, N, M)
-    huber = F.huber_loss(quantiles[:, :, None].expand_as(u), targets[:, None, :].expand_as(u),
-                         reduction="none", delta=kappa)
+    huber = F.huber_loss(u, torch.zeros_like(u), reduction="none", delta=kappa)
     weight = (tau[None, :, None] - (u.detach() < 0).to(u.dtype)).abs()
     return (weight * huber / kappa).mean(dim=2).sum(dim=1)
 

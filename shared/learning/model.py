@@ -258,6 +258,12 @@ class ConvTrunk(nn.Module):
         return F.relu(F.max_pool2d(self.conv3(x), 2), inplace=True)
 
 
+def command_values(fc3_out: torch.Tensor, quantiles: int) -> torch.Tensor:
+    """(..., 5) Q-values from fc3's output: itself, or for a ``model.quantiles`` network (..., 5 * N)
+    the mean of each command's N return quantiles."""
+    return fc3_out.unflatten(-1, (NUM_ACTIONS, quantiles)).mean(-1) if quantiles else fc3_out
+
+
 class QNetwork(nn.Module):
     """Depth image -> 5 Q-values (left, half-left, straight, half-right, right).
 
@@ -502,9 +508,7 @@ class _FusedMembers:
             adv = linear("advantage", h)
             q = linear("value", h) + adv - adv.mean(dim=2, keepdim=True)
         else:
-            q = linear("fc3", h)
-            if self.quantiles:
-                q = q.unflatten(-1, (NUM_ACTIONS, self.quantiles)).mean(-1)
+            q = command_values(linear("fc3", h), self.quantiles)
         return q.mean(0)
 
 

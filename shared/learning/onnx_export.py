@@ -31,7 +31,7 @@ from shared.config import NUM_ACTIONS, load_preset
 from shared.depth import range_gate
 from shared.evaluation.setup import setup_evaluation
 from shared.learning.checkpoints import LoadedModel, weights_sha256
-from shared.learning.model import QEnsemble, QNetwork, most_commands_read, preprocess_depth
+from shared.learning.model import QEnsemble, QNetwork, command_values, most_commands_read, preprocess_depth
 from shared.learning.onnx_format import (
     DEPTH_INPUT,
     MATCH_TOLERANCE,
@@ -84,8 +84,7 @@ class _ExportGraph(nn.Module):
         if net.model_cfg.dueling:
             advantage = net.advantage(h)
             return net.value(h) + advantage - advantage.mean(dim=1, keepdim=True)
-        quantiles = net.model_cfg.quantiles
-        return net.fc3(h).unflatten(-1, (NUM_ACTIONS, quantiles)).mean(-1) if quantiles else net.fc3(h)
+        return command_values(net.fc3(h), net.model_cfg.quantiles)
 
 
 def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, label: str | None = None,
