@@ -368,11 +368,12 @@ class QEnsemble(nn.Module):
     (``frame_stack``): the ensemble takes that many, each member the newest of them. It is never
     trained: a learner trains one QNetwork.
 
-    Without autograd (acting, evaluation) and when every member has one model config, the members
-    run as one network: conv1 with every member's filters, conv2 and conv3 as grouped convolutions,
-    the fc layers as batched matrix products (:class:`_FusedMembers`). Same Q-values to float
-    rounding, and one pass instead of one per member: a single image's latency grows far less than
-    the member count.
+    Without autograd (acting, evaluation) the members that share a model config run as one network:
+    conv1 with every member's filters, conv2 and conv3 as grouped convolutions, the fc layers as
+    batched matrix products (:class:`_FusedMembers`). Members of different heads (scalar and
+    quantile, say) form one such group per config, and the ensemble is the member-weighted mean of
+    the groups. Same Q-values to float rounding, and one pass per config instead of one per member: a
+    single image's latency grows far less than the member count.
     """
 
     def __init__(self, members: Any):
@@ -395,7 +396,7 @@ class QEnsemble(nn.Module):
         self.sensor_cfg = flat[0].sensor_cfg
         # what the ensemble is fed: the most images any member reads (each member reads the newest of them)
         self.model_cfg = dataclasses.replace(flat[0].model_cfg, frame_stack=most_images_read(flat))
-        self._fused: _FusedMembers | None = None
+        self._fused: list[_FusedMembers] | None = None  # one per model config, built on first use
 
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
         """Every member's pool3, stacked along the channels: (B, 64 * members, H/8, W/8)."""
@@ -405,9 +406,9 @@ class QEnsemble(nn.Module):
     def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
         self._check_input(x)
         if not torch.is_grad_enabled() and self._fusable(float32):
-            if self._fused is None or not self._fused.matches(self.members):
-                self._fused = _FusedMembers(self.members)
-            return self._fused(x, previous_action)
+            if self._fused is None or not all(group.matches() for group in self._fused):
+                self._fused = [_FusedMembers(group) for group in _fusable_groups(self.members)]
+            return sum(group(x, previous_action) * len(group.members) for group in self._fused) / len(self.members)
         return torch.stack([m(_images_for(m, x), previous_action, float32=float32) for m in self.members]).mean(0)
 
     def _check_input(self, x: torch.Tensor) -> None:
@@ -415,9 +416,7 @@ class QEnsemble(nn.Module):
                              "the ensemble takes the most images a member reads; use preprocess_depth")
 
     def _fusable(self, float32: bool) -> bool:
-        first = _fused_config(self.members[0].model_cfg)
-        return (all(_fused_config(m.model_cfg) == first for m in self.members)
-                and (float32 or all(m.conv_autocast is None for m in self.members))
+        return ((float32 or all(m.conv_autocast is None for m in self.members))
                 and not any(m.training and m.model_cfg.dropout > 0 for m in self.members))
 
 
@@ -445,12 +444,22 @@ def _fused_config(cfg: ModelConfig) -> ModelConfig:
     return dataclasses.replace(cfg, action_history=1, frame_stack=1)
 
 
+def _fusable_groups(members: Iterable[QNetwork]) -> list[list[QNetwork]]:
+    """An ensemble's members grouped by what they must share to run fused (``_fused_config``), in
+    order of first appearance."""
+    groups: dict[ModelConfig, list[QNetwork]] = {}
+    for m in members:
+        groups.setdefault(_fused_config(m.model_cfg), []).append(m)
+    return list(groups.values())
+
+
 class _FusedMembers:
     """An ensemble's members of one model config (but the command history and images read) as one network (see
     :class:`QEnsemble`): their weights stacked once, re-stacked when any member's weights change
-    (``matches``)."""
+    (``matches``). Called, it returns the mean of its members' Q-values."""
 
-    def __init__(self, members: nn.ModuleList):
+    def __init__(self, members: list[QNetwork]):
+        self.members = members
         self.key = self._key(members)
         self.groups = len(members)
         self.depth_encoding = members[0].model_cfg.depth_encoding
@@ -464,8 +473,8 @@ class _FusedMembers:
             def stack(name: str) -> torch.Tensor:
                 return torch.stack([m.get_parameter(name) for m in members])
 
-            images = most_images_read(members)  # conv1 of a member that reads fewer: zero weights on the older
-            conv1 = torch.cat([F.pad(m.trunk.conv1.weight, (0, 0, 0, 0, 0, images - m.trunk.conv1.in_channels))
+            self.images = most_images_read(members)  # conv1 of a member that reads fewer: zero weights on the older
+            conv1 = torch.cat([F.pad(m.trunk.conv1.weight, (0, 0, 0, 0, 0, self.images - m.trunk.conv1.in_channels))
                                for m in members])
             self.convs = [(w.contiguous(memory_format=torch.channels_last), cat(f"trunk.{c}.bias"))
                           for c, w in (("conv1", conv1), ("conv2", cat("trunk.conv2.weight")),
@@ -480,14 +489,16 @@ class _FusedMembers:
                                     if members[0].previous_action_fc is not None else None)
 
     @staticmethod
-    def _key(members: nn.ModuleList) -> tuple:
-        return tuple((p.data_ptr(), p._version, p.dtype) for p in members.parameters())
+    def _key(members: list[QNetwork]) -> tuple:
+        return tuple((p.data_ptr(), p._version, p.dtype) for m in members for p in m.parameters())
 
-    def matches(self, members: nn.ModuleList) -> bool:
-        return self._key(members) == self.key
+    def matches(self) -> bool:
+        """Whether the stacked weights are still the members' (none loaded or trained in place since)."""
+        return self._key(self.members) == self.key
 
     def __call__(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
-        h = encode_depth(x, self.depth_encoding)
+        # the ensemble's input holds the most images any member reads; this group reads the newest of them
+        h = encode_depth(x if x.shape[1] == self.images else x[:, :self.images], self.depth_encoding)
         for i, (w, b) in enumerate(self.convs):
             h = F.conv2d(h, w, b, padding=CONV_KERNEL // 2, groups=1 if i == 0 else self.groups)
             h = F.relu(F.max_pool2d(h, 2), inplace=True)  # pool before ReLU, as ConvTrunk

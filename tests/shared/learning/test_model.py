@@ -1,5 +1,7 @@
 """Q-network: shapes, preprocessing, dropout, pool-before-ReLU equivalence, supervised sibling."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import torch
@@ -293,19 +295,30 @@ def test_networks_of_different_command_histories_still_run_fused():
         with torch.inference_mode():
             fused = ensemble(x, previous)
             mean = torch.stack([n(x, previous) for n in nets]).mean(0)
-        assert ensemble._fused is not None and ensemble._fused.action_history == 4
+        assert ensemble._fused is not None and [g.action_history for g in ensemble._fused] == [4]
         torch.testing.assert_close(fused, mean, rtol=1e-5, atol=1e-5)
 
 
-def test_an_ensemble_of_different_fc_layers_still_plays_the_mean():
+def test_an_ensemble_of_different_heads_plays_the_member_mean_one_fused_group_per_head():
+    """Scalar and quantile heads, different fc widths, one and three images: each config runs as one
+    network and the ensemble is the mean over members, not over groups."""
     torch.manual_seed(0)
-    nets = [QNetwork(SMALL, TINY).eval(), QNetwork(ModelConfig(fc1=16, fc2=8), TINY).eval()]
-    x = preprocess_depth(np.full((2, 30, 40), 2.0, np.float32))
-    ensemble = QEnsemble(nets)
+    quantile = ModelConfig(fc1=32, fc2=16, previous_action=True, quantiles=8)
+    nets = [QNetwork(cfg, TINY).eval() for cfg in
+            (SMALL, quantile, ModelConfig(fc1=16, fc2=8), SMALL, dataclasses.replace(quantile, frame_stack=3))]
+    x = preprocess_depth(np.random.default_rng(1).uniform(0.3, 4.0, (2, 3, 30, 40)).astype(np.float32))
+    ensemble = QEnsemble(nets).eval()
     with torch.inference_mode():
-        q = ensemble(x)
-        torch.testing.assert_close(q, (nets[0](x) + nets[1](x)) / 2)
-    assert ensemble._fused is None  # one network after the other
+        fused = ensemble(x, [1, 3])
+    assert [len(g.members) for g in ensemble._fused] == [2, 2, 1]
+    mean = torch.stack([n(x[:, :n.model_cfg.frame_stack], [1, 3]) for n in nets]).mean(0).detach()
+    torch.testing.assert_close(fused, mean, rtol=1e-5, atol=1e-5)
+    with torch.enable_grad():  # one network after the other
+        torch.testing.assert_close(ensemble(x, [1, 3]).detach(), mean, rtol=1e-5, atol=1e-5)
+    with torch.no_grad():  # new weights in one group's member reach its fused copy
+        nets[4].fc1.bias.add_(1.0)
+        torch.testing.assert_close(ensemble(x, [1, 3]),
+                                   torch.stack([n(x[:, :n.model_cfg.frame_stack], [1, 3]) for n in nets]).mean(0))
 
 
 
