@@ -93,6 +93,34 @@ def add_protocol_arguments(parser: argparse.ArgumentParser, default: str = DEFAU
                        help="Gaussian depth noise of S m at every distance, instead of the set's (0: none)")
 
 
+def _cpu_threads(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a thread count (0 or more)")
+    return value
+
+
+def add_cpu_threads_argument(parser: argparse.ArgumentParser) -> None:
+    """``--threads`` of a command that plays policies one image at a time (``evaluate``, ``model select``)."""
+    parser.add_argument("--threads", type=_cpu_threads, default=1, metavar="N",
+                        help="torch CPU threads (default 1, as the services' actors and evaluator: a policy "
+                             "steps one image at a time, and processes that each take every core wait on one "
+                             "another, so two evaluations side by side, or one beside `cogexplore up`'s learner, "
+                             "run several times slower; 0: torch's default, every core, a fifth faster on an "
+                             "otherwise idle machine)")
+
+
+def apply_cpu_threads(threads: int) -> None:
+    """Give torch ``threads`` CPU threads for this process (0: leave torch's default)."""
+    if threads:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
 def protocol_from_args(args: argparse.Namespace) -> ProtocolConfig:
     """The protocol of ``add_protocol_arguments``' options."""
     return protocol_named(args.protocol).overridden(

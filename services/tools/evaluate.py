@@ -43,7 +43,7 @@ from typing import Any
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
-from services.options import protocol_from_args
+from services.options import apply_cpu_threads, protocol_from_args
 from services.process import stop_event_on_signals
 from services.viz.rerun import (
     evaluate_recorded,
@@ -132,6 +132,7 @@ def _json_path(path: str, world: str, several: bool) -> Path:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     """``cogexplore evaluate``: returns a process exit status."""
+    apply_cpu_threads(args.threads)
     recorder = None  # only with --rerun-serve, which takes one world
     done: list[tuple[EvalSetup, EvalResults]] = []
     _check_live_options(args)

@@ -72,8 +72,10 @@ def run_export(args: argparse.Namespace) -> int:
 
 
 def run_select(args: argparse.Namespace) -> int:
-    from services.options import protocol_from_args
+    from services.options import apply_cpu_threads, protocol_from_args
     from services.tools.selection import SelectOptions, select
+
+    apply_cpu_threads(args.threads)
 
     opts = SelectOptions(run=Path(args.run), out=Path(args.out), window=args.window, stride=args.stride,
                          first_end=args.first, last_end=args.last, gate_world=args.gate_world,

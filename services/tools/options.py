@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 
 from services.options import (
+    add_cpu_threads_argument,
     add_protocol_arguments,
     add_runs_dir_argument,
     add_tensorboard_argument,
@@ -85,6 +86,7 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
     live.add_argument("--rerun-serve-seconds", type=float, default=None, metavar="S",
                       help="with --rerun-serve: stop serving S seconds after the evaluation (scripts, tests)")
     parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
+    add_cpu_threads_argument(parser)
     parser.add_argument("--preset", default=None,
                         help="config preset for a baseline's sensor and env (default: the checkpoint's config, "
                              "else paper)")
@@ -313,6 +315,7 @@ def add_model_select_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"moving steps per episode at most (default {PAPER_MAX_STEPS})")
     p.add_argument("--half", action="store_true", help="store float16")
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
+    add_cpu_threads_argument(p)
     p.add_argument("--seed", type=int, default=SELECTION_SEED,
                    help=f"seed of the gate and validation episodes' start draws and sensor noise (default "
                         f"{SELECTION_SEED}: not the test's {TEST_SEED}, so no window is chosen on the draws `evaluate` "

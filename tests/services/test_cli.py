@@ -49,6 +49,30 @@ def test_a_bad_input_is_one_line_and_exit_status_2(argv: list[str], message: str
     assert err.startswith(message) and err.count("\n") == 1 and "Traceback" not in err
 
 
+def test_evaluate_and_model_select_play_on_one_cpu_thread_unless_told(capsys) -> None:
+    """A policy steps one image at a time: two evaluations that each take every core (or one beside
+    a learner) wait on one another, so both commands default to one torch thread; 0 keeps torch's."""
+    import torch
+
+    from services.cli import build_parser
+
+    assert build_parser().parse_args(["model", "select", "runs/r", "--out", "x.safetensors"]).threads == 1
+    before = torch.get_num_threads()
+    try:
+        for argv, threads in (([], 1), (["--threads", "0"], 2)):
+            torch.set_num_threads(2)
+            assert main(["evaluate", "--policy", "reactive", "--episodes-per-start", "1", "--max-steps", "3",
+                         "--protocol", "paper", "--quiet", *argv]) == 0
+            assert torch.get_num_threads() == threads, argv
+        assert '"episodes": 12' in capsys.readouterr().out
+    finally:
+        torch.set_num_threads(before)
+    with pytest.raises(SystemExit) as stop:
+        main(["evaluate", "--threads", "two"])
+    assert stop.value.code == 2
+    assert "--threads: 'two' is not a thread count" in capsys.readouterr().err
+
+
 def test_the_installed_command_prints_its_tree_quickly_and_names_every_command():
     proc = subprocess.run([sys.executable, "-m", "services.cli", "--help"], cwd=REPO, capture_output=True, text=True,
                           timeout=60)
