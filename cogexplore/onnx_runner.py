@@ -43,7 +43,8 @@ class OnnxPolicy(CameraPolicy):
 
     Made by :func:`load_onnx_policy`; ``observation``, ``q_values``, ``act``, ``decide``, ``reset``,
     ``previous_command``, ``twist``, ``label``, ``sensor`` and ``control_period_s`` behave as
-    :class:`cogexplore.Policy`'s. Not thread-safe: it remembers the previous commands."""
+    :class:`cogexplore.Policy`'s. Not thread-safe: it remembers the previous commands (and, for a
+    network that reads several images, the images it acted on)."""
 
     def __init__(self, session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path):
         self.info: OnnxPolicyInfo = info
@@ -57,6 +58,8 @@ class OnnxPolicy(CameraPolicy):
         self._history_input = len(shape) == 2  # (B, K) the last K commands, or (B,) the last one
         self._history = int(shape[1]) if self._history_input else 1
         self._previous_commands: tuple[int, ...] = ()  # most recent first
+        self._images = info.model.frame_stack  # images per step the graph reads
+        self._previous_images: tuple[np.ndarray, ...] = ()  # observations acted on, most recent first
 
     @property
     def label(self) -> str:
@@ -71,22 +74,31 @@ class OnnxPolicy(CameraPolicy):
     def q_values(self, depth_m: Any) -> np.ndarray:
         """(5,) float32 Q-values of the commands for this image and the previous command;
         changes nothing (the next :meth:`act` still sees the same previous command)."""
+        return self._q_values(self.observation(depth_m))
+
+    def _q_values(self, observation: np.ndarray) -> np.ndarray:
         missing = (NO_PREVIOUS_ACTION,) * (self._history - len(self._previous_commands))
         previous = np.array([self._previous_commands + missing], dtype=np.int64)  # (1, K)
-        feed = {DEPTH_INPUT: self.observation(depth_m)[None, None],
+        # the replay's stacks: this image, the ones before it, the oldest repeated at an episode's start
+        images = (observation, *self._previous_images)
+        images += images[-1:] * (self._images - len(images))
+        feed = {DEPTH_INPUT: np.stack(images)[None],
                 PREVIOUS_ACTION_INPUT: previous if self._history_input else previous[:, 0]}
         return self._session.run([Q_OUTPUT], feed)[0][0]
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
-        q = self.q_values(depth_m)
+        observation = self.observation(depth_m)
+        q = self._q_values(observation)
         # np.argmax takes the first maximum: ties go to the lowest index, as GreedyPolicy's
         command = int(np.argmax(q))
         self._previous_commands = (command, *self._previous_commands[:self._history - 1])
+        self._previous_images = (observation, *self._previous_images)[:self._images - 1]
         return command, q
 
     def reset(self) -> None:
-        """A new episode: no previous command."""
+        """A new episode: no previous command, no earlier images."""
         self._previous_commands = ()
+        self._previous_images = ()
 
     def __repr__(self) -> str:
         return (f"OnnxPolicy({self.label!r}, {self.sensor.width}x{self.sensor.height} px, "
@@ -132,7 +144,7 @@ def _check_signature(session: onnxruntime.InferenceSession, info: OnnxPolicyInfo
     history = got_in.get(PREVIOUS_ACTION_INPUT, (None, []))[1]
     if not (len(history) == 1 and isinstance(history[0], int) and max(2, reads) <= history[0] <= MAX_ACTION_HISTORY):
         history = [reads] if reads > 1 else []
-    want_in = {DEPTH_INPUT: ("tensor(float)", [1, s.height, s.width]),
+    want_in = {DEPTH_INPUT: ("tensor(float)", [info.model.frame_stack, s.height, s.width]),
                PREVIOUS_ACTION_INPUT: ("tensor(int64)", history)}
     got_out = {o.name: (o.type, list(o.shape[1:])) for o in session.get_outputs()}
     if got_in != want_in or got_out != {Q_OUTPUT: ("tensor(float)", [NUM_ACTIONS])}:

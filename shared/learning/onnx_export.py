@@ -51,9 +51,10 @@ CHECK_IMAGES_PER_COMMAND = 2
 
 class _ExportGraph(nn.Module):
     """``QNetwork.forward`` (or ``QEnsemble.forward``: the mean over its members) on explicit
-    tensors: metres in (``preprocess_depth``, the one place depth becomes network input), and the
-    previous command as an int64 index with -1 for none: (B,), or (B, K) for networks that read the
-    last K commands (``command_history``), most recent first.
+    tensors: metres in (``preprocess_depth``, the one place depth becomes network input), (B, N, H, W)
+    for networks that read the last N images (``model.frame_stack``; each member reads the newest it
+    takes), and the previous command as an int64 index with -1 for none: (B,), or (B, K) for networks
+    that read the last K commands (``command_history``), most recent first.
 
     Its head repeats ``QNetwork.head`` with the one-hot built by comparison with ``arange``, which
     traces to plain ops (``previous_action_input`` branches on values to validate them); the check
@@ -65,9 +66,9 @@ class _ExportGraph(nn.Module):
         self.register_buffer("commands", torch.arange(NUM_ACTIONS, dtype=torch.int64), persistent=False)
 
     def forward(self, depth_m: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
-        x = preprocess_depth(depth_m[:, 0])
+        x = preprocess_depth(depth_m)
         history = previous_action if previous_action.dim() == 2 else previous_action[:, None]
-        q = [self._member_q(net, x, history) for net in self.members]
+        q = [self._member_q(net, x[:, :net.model_cfg.frame_stack], history) for net in self.members]
         return q[0] if len(q) == 1 else torch.stack(q).mean(0)
 
     def _member_q(self, net: QNetwork, x: torch.Tensor, history: torch.Tensor) -> torch.Tensor:
@@ -110,12 +111,6 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
                              f"got {type(model).__name__}")
     if not isinstance(net, (QNetwork, QEnsemble)):
         raise OnnxModelError(f"only a Q-network exports to ONNX; {source} holds a {type(net).__name__}")
-    if net.model_cfg.frame_stack > 1:
-        # the ONNX contract is one image and the command history per step; a stack of images would
-        # need the runner to remember them too
-        raise OnnxModelError(f"{source} reads {net.model_cfg.frame_stack} images per step (model.frame_stack); "
-                             "the ONNX export takes networks that read one (play it with cogexplore drive "
-                             "or cogexplore.load_policy)")
     # a CPU float32 copy in eval mode: the caller's network (maybe on CUDA, maybe training) is left as it is
     net = copy.deepcopy(net).to("cpu", torch.float32).eval()
     # the camera itself, as setup_evaluation gives it: a run's training noise is no part of the model
@@ -159,10 +154,11 @@ def command_history(net: QNetwork | QEnsemble) -> int:
 
 
 def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
-    s = net.sensor_cfg
+    s, images = net.sensor_cfg, net.model_cfg.frame_stack
     history = command_history(net)
     previous_shape = (2,) if history == 1 else (2, history)
-    example = (torch.zeros(2, 1, s.height, s.width), torch.full(previous_shape, NO_PREVIOUS_ACTION, dtype=torch.int64))
+    example = (torch.zeros(2, images, s.height, s.width),
+               torch.full(previous_shape, NO_PREVIOUS_ACTION, dtype=torch.int64))
     buffer = io.BytesIO()
     batch = {0: "batch"}
     with warnings.catch_warnings():
@@ -180,8 +176,9 @@ def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
         proto.graph.input.append(onnx.helper.make_tensor_value_info(PREVIOUS_ACTION_INPUT, onnx.TensorProto.INT64,
                                                                     ["batch"]))  # history > 1 is always read
     proto.producer_name, proto.producer_version = "cogexplore", info.cogexplore_version
-    proto.doc_string = (f"cogexplore Q-network {info.label}: {DEPTH_INPUT} float32 (B, 1, {s.height}, {s.width}) "
-                        f"metres, range-gated, 0 = no return; {PREVIOUS_ACTION_INPUT} int64 "
+    proto.doc_string = (f"cogexplore Q-network {info.label}: {DEPTH_INPUT} float32 (B, {images}, {s.height}, "
+                        f"{s.width}) metres, {'newest first, ' if images > 1 else ''}range-gated, 0 = no return; "
+                        f"{PREVIOUS_ACTION_INPUT} int64 "
                         f"{'(B,)' if history == 1 else f'(B, {history}), most recent first'}, -1 = none -> "
                         f"{Q_OUTPUT} float32 (B, {NUM_ACTIONS}); greedy command = argmax")
     onnx.helper.set_model_props(proto, {METADATA_KEY: info.to_json()})
@@ -190,13 +187,13 @@ def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
 
 
 def check_inputs(net: QNetwork | QEnsemble, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """Random range-gated depth images (B, 1, H, W) with no-return holes and one empty image, and
-    every previous command (-1..4) ``CHECK_IMAGES_PER_COMMAND`` times (B,), or as the first of (B, K)
-    random command histories (``command_history``): what an export is checked on."""
+    """Random range-gated depth images (B, N, H, W) (N: ``model.frame_stack``) with no-return holes and
+    one empty stack, and every previous command (-1..4) ``CHECK_IMAGES_PER_COMMAND`` times (B,), or as
+    the first of (B, K) random command histories (``command_history``): what an export is checked on."""
     s = net.sensor_cfg
     rng = np.random.default_rng(seed)
     commands = np.tile(np.arange(NO_PREVIOUS_ACTION, NUM_ACTIONS, dtype=np.int64), CHECK_IMAGES_PER_COMMAND)
-    depth = rng.uniform(0.0, 1.1 * s.max_range_m, (len(commands), 1, s.height, s.width))
+    depth = rng.uniform(0.0, 1.1 * s.max_range_m, (len(commands), net.model_cfg.frame_stack, s.height, s.width))
     depth[rng.random(depth.shape) < 0.2] = 0.0
     depth[0] = 0.0  # nothing in range at all
     history = command_history(net)
@@ -214,7 +211,7 @@ def q_difference(q: np.ndarray, reference: np.ndarray) -> float:
 def _check_against_torch(net: QNetwork | QEnsemble, data: bytes, path: Path) -> None:
     depth, previous = check_inputs(net)
     with torch.inference_mode():
-        reference = net(preprocess_depth(depth[:, 0]), previous).numpy()
+        reference = net(preprocess_depth(depth), previous).numpy()
     if not np.isfinite(reference).all():
         raise OnnxModelError(f"{path}: not written: the network's Q-values are not finite (diverged weights?)")
     session = onnxruntime.InferenceSession(data, providers=["CPUExecutionProvider"])

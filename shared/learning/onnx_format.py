@@ -5,7 +5,10 @@ This module imports neither torch nor onnx: a robot computer reads it with numpy
 
 The graph (opset 17, any batch size B)::
 
-    depth_m          float32 (B, 1, H, W)  metres at the network's size, range-gated, 0 = no return
+    depth_m          float32 (B, 1, H, W)  metres at the network's size, range-gated, 0 = no return;
+                             (B, N, H, W)  for networks that read the last N images
+                                           (``model.frame_stack``): newest first, an episode's
+                                           first image repeated until there are N
     previous_action  int64   (B,)          the previous command 0..4, -1 = none (an episode's start);
                              (B, K)        for networks that read the last K commands
                                            (``model.action_history``): most recent first

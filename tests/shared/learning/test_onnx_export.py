@@ -55,12 +55,33 @@ def shipped() -> LoadedModel:
 
 def _torch_q(net: QNetwork, depth: np.ndarray, previous: np.ndarray) -> np.ndarray:
     with torch.inference_mode():
-        return net(preprocess_depth(depth[:, 0]), previous).numpy()
+        return net(preprocess_depth(depth), previous).numpy()
 
 
 def _onnx_q(path: Path, depth: np.ndarray, previous: np.ndarray) -> np.ndarray:
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     return session.run(["q_values"], {"depth_m": depth, "previous_action": previous})[0]
+
+
+def _assert_the_runner_plays_as_the_torch_policy(path: Path, net: QNetwork | QEnsemble, seed: int) -> None:
+    """Two episodes of random images (the second from a later one, after a reset) played by the ONNX
+    runner and by ``GreedyPolicy``: the same commands, their Q-values to ``MATCH_TOLERANCE``, and
+    ``q_values`` changing nothing the next decision sees."""
+    from cogexplore.onnx_runner import load_onnx_policy
+    from shared.evaluation.policies import GreedyPolicy
+
+    s = net.sensor_cfg
+    runner, greedy = load_onnx_policy(path), GreedyPolicy(net)
+    images = np.random.default_rng(seed).uniform(0.3, 4.0, (7, s.height, s.width)).astype(np.float32)
+    for episode in range(2):
+        runner.reset()
+        greedy.reset()
+        for image in images[episode * 2:]:
+            asked = runner.q_values(image)
+            (ours, q), (theirs, q_torch) = runner.decide(image), greedy(image)
+            assert ours == theirs and q_difference(q[None], q_torch[None]) <= MATCH_TOLERANCE
+            np.testing.assert_array_equal(asked, q)
+        assert runner.previous_command == greedy.policy.previous_action
 
 
 @pytest.mark.parametrize("which", ["pretrained", "smoke", "ensemble"])
@@ -90,9 +111,6 @@ def test_the_export_gives_torchs_q_values_for_every_previous_command_and_batch(
 
 
 def test_networks_that_read_several_commands_export_a_history_input_and_the_runner_keeps_it(tmp_path: Path) -> None:
-    from cogexplore.onnx_runner import load_onnx_policy
-    from shared.evaluation.policies import GreedyPolicy
-
     torch.manual_seed(5)
     sensor = load_preset("fast-40x30").sensor
     # the last command only, and the last three: the file's input holds the most any member reads
@@ -109,15 +127,30 @@ def test_networks_that_read_several_commands_export_a_history_input_and_the_runn
     older[:, 2] = (older[:, 2] + 2) % NUM_ACTIONS
     assert not np.allclose(_onnx_q(path, depth, older), _onnx_q(path, depth, histories))
     # the runner remembers the commands it chose as the torch policy does, and forgets them on reset
-    runner, greedy = load_onnx_policy(path), GreedyPolicy(net)
-    images = np.random.default_rng(13).uniform(0.3, 4.0, (7, sensor.height, sensor.width)).astype(np.float32)
-    for episode in range(2):
-        runner.reset()
-        greedy.reset()
-        for image in images[episode:]:
-            (ours, q), (theirs, q_torch) = runner.decide(image), greedy(image)
-            assert ours == theirs and q_difference(q[None], q_torch[None]) <= MATCH_TOLERANCE
-        assert runner.previous_command == greedy.policy.previous_action
+    _assert_the_runner_plays_as_the_torch_policy(path, net, seed=13)
+
+
+def test_networks_that_read_several_images_export_a_stack_input_and_the_runner_remembers_them(
+        tmp_path: Path) -> None:
+    torch.manual_seed(6)
+    sensor = load_preset("fast-40x30").sensor
+    # one image and the last three: the file's input holds the most any member reads, each the newest
+    nets = [QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True, frame_stack=k, depth_encoding="inverse"),
+                     sensor) for k in (1, 3)]
+    with torch.no_grad():  # older images given weight, as training gives them (they start at zero)
+        nets[1].trunk.conv1.weight[:, 1:] += 0.2
+    net = QEnsemble(nets).eval()
+    path = export_onnx(net, tmp_path / "stack.onnx")
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert [i.shape[1:] for i in session.get_inputs() if i.name == "depth_m"] == [[3, sensor.height, sensor.width]]
+    depth, previous = check_inputs(net, seed=14)
+    assert depth.shape[1] == 3
+    assert q_difference(_onnx_q(path, depth, previous), _torch_q(net, depth, previous)) <= MATCH_TOLERANCE
+    older = depth.copy()
+    older[:, 2] = older[:, 1]  # the oldest image reaches the graph
+    assert not np.allclose(_onnx_q(path, older, previous), _onnx_q(path, depth, previous))
+    # the runner remembers the images it acted on as the torch policy does, and forgets them on reset
+    _assert_the_runner_plays_as_the_torch_policy(path, net, seed=15)
 
 
 def test_the_file_describes_its_network(shipped: LoadedModel, tmp_path: Path) -> None:
