@@ -104,7 +104,8 @@ def _cpu_threads(text: str) -> int:
 
 
 def add_cpu_threads_argument(parser: argparse.ArgumentParser) -> None:
-    """``--threads`` of a command that plays policies one image at a time (``evaluate``, ``model select``)."""
+    """``--threads`` of a command that plays policies one image at a time (``evaluate``, ``report``,
+    ``model select``)."""
     parser.add_argument("--threads", type=_cpu_threads, default=1, metavar="N",
                         help="torch CPU threads (default 1, as the services' actors and evaluator: a policy "
                              "steps one image at a time, and processes that each take every core wait on one "

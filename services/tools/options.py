@@ -116,6 +116,7 @@ def add_report_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=TEST_SEED,
                         help=f"seed of the episodes and the random baseline (default {TEST_SEED}: the test draws)")
     parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
+    add_cpu_threads_argument(parser)
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.add_argument("--protocol", nargs="+", choices=tuple(PROTOCOLS), default=list(REPORT_PROTOCOLS),
                         metavar="NAME", help="the test protocols of Table III, in order (default: "

@@ -540,6 +540,9 @@ def _baseline_setup(name: str, run_cfg: Any, model: LoadedModel | None, world: s
 
 def run_report(args: argparse.Namespace) -> int:
     """``cogexplore report``: returns a process exit status."""
+    from services.options import apply_cpu_threads
+
+    apply_cpu_threads(args.threads)
     report = build_report(args.run_dir, model=args.model, compare=args.compare, out_dir=args.out,
                           episodes_per_start=args.episodes_per_start, max_steps=args.max_steps,
                           world=args.world, probe_files=args.probe, seed=args.seed, device=args.device,

@@ -465,13 +465,13 @@ class Launcher:
         """Evaluate the final model (:meth:`final_model`) with the test protocol and write the report."""
         a = self.args
         model = str(self.final_model())
-        # the services have stopped: the evaluation has the machine to itself (--threads 0: every core)
+        # the services have stopped: evaluation and report have the machine to themselves (--threads 0: every core)
         evaluate = ["evaluate", "--checkpoint", model, "--episodes-per-start", str(a.final_episodes),
                     "--threads", "0", "--json", str(self.paths.stats / "final-eval.json"),
                     "--rrd", str(self.paths.recordings / "final-eval.rrd")]
         # the new model beside the shipped one (and the baselines, and the paper's figures)
         report = ["report", str(self.paths.root), "--model", model, "--episodes-per-start", str(a.final_episodes),
-                  "--compare", "pretrained"]
+                  "--compare", "pretrained", "--threads", "0"]
         for argv in (evaluate, report):
             code = _cli(argv)
             if code != 0:

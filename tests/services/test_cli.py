@@ -49,14 +49,16 @@ def test_a_bad_input_is_one_line_and_exit_status_2(argv: list[str], message: str
     assert err.startswith(message) and err.count("\n") == 1 and "Traceback" not in err
 
 
-def test_evaluate_and_model_select_play_on_one_cpu_thread_unless_told(capsys) -> None:
+def test_evaluate_report_and_model_select_play_on_one_cpu_thread_unless_told(capsys) -> None:
     """A policy steps one image at a time: two evaluations that each take every core (or one beside
-    a learner) wait on one another, so both commands default to one torch thread; 0 keeps torch's."""
+    a learner) wait on one another, so these commands default to one torch thread; 0 keeps torch's."""
     import torch
 
     from services.cli import build_parser
 
-    assert build_parser().parse_args(["model", "select", "runs/r", "--out", "x.safetensors"]).threads == 1
+    parser = build_parser()
+    assert parser.parse_args(["model", "select", "runs/r", "--out", "x.safetensors"]).threads == 1
+    assert parser.parse_args(["report", "runs/r"]).threads == 1
     before = torch.get_num_threads()
     try:
         for argv, threads in (([], 1), (["--threads", "0"], 2)):
