@@ -401,7 +401,7 @@ class QEnsemble(nn.Module):
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
         """Every member's pool3, stacked along the channels: (B, 64 * members, H/8, W/8)."""
         self._check_input(x)
-        return torch.cat([m.features(_images_for(m, x), float32=float32) for m in self.members], dim=1)
+        return torch.cat([m.features(newest_images(x, m.model_cfg.frame_stack), float32=float32) for m in self.members], dim=1)
 
     def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
         self._check_input(x)
@@ -409,7 +409,8 @@ class QEnsemble(nn.Module):
             if self._fused is None or not all(group.matches() for group in self._fused):
                 self._fused = [_FusedMembers(group) for group in _fusable_groups(self.members)]
             return sum(group(x, previous_action) * len(group.members) for group in self._fused) / len(self.members)
-        return torch.stack([m(_images_for(m, x), previous_action, float32=float32) for m in self.members]).mean(0)
+        return torch.stack([m(newest_images(x, m.model_cfg.frame_stack), previous_action, float32=float32)
+                            for m in self.members]).mean(0)
 
     def _check_input(self, x: torch.Tensor) -> None:
         _check_network_input(x, self.model_cfg.frame_stack, self.sensor_cfg,
@@ -426,9 +427,10 @@ def most_images_read(members: Iterable[QNetwork]) -> int:
     return max(m.model_cfg.frame_stack for m in members)
 
 
-def _images_for(net: QNetwork, x: torch.Tensor) -> torch.Tensor:
-    """The newest of an ensemble's input images that ``net`` reads."""
-    return x if x.shape[1] == net.model_cfg.frame_stack else x[:, :net.model_cfg.frame_stack]
+def newest_images(x: torch.Tensor, count: int) -> torch.Tensor:
+    """The newest ``count`` of a (B, N, H, W) stack of input images (newest first): what a network
+    that reads ``count`` images takes from an ensemble's input, which holds the most any member reads."""
+    return x[:, :count]  # a view, also when it is all of them (and no branch on a shape for the ONNX trace)
 
 
 def most_commands_read(members: Iterable[QNetwork]) -> int:
@@ -497,8 +499,7 @@ class _FusedMembers:
         return self._key(self.members) == self.key
 
     def __call__(self, x: torch.Tensor, previous_action: Any = None) -> torch.Tensor:
-        # the ensemble's input holds the most images any member reads; this group reads the newest of them
-        h = encode_depth(x if x.shape[1] == self.images else x[:, :self.images], self.depth_encoding)
+        h = encode_depth(newest_images(x, self.images), self.depth_encoding)
         for i, (w, b) in enumerate(self.convs):
             h = F.conv2d(h, w, b, padding=CONV_KERNEL // 2, groups=1 if i == 0 else self.groups)
             h = F.relu(F.max_pool2d(h, 2), inplace=True)  # pool before ReLU, as ConvTrunk

@@ -31,7 +31,14 @@ from shared.config import NUM_ACTIONS, load_preset
 from shared.depth import range_gate
 from shared.evaluation.setup import setup_evaluation
 from shared.learning.checkpoints import LoadedModel, weights_sha256
-from shared.learning.model import QEnsemble, QNetwork, command_values, most_commands_read, preprocess_depth
+from shared.learning.model import (
+    QEnsemble,
+    QNetwork,
+    command_values,
+    most_commands_read,
+    newest_images,
+    preprocess_depth,
+)
 from shared.learning.onnx_format import (
     DEPTH_INPUT,
     MATCH_TOLERANCE,
@@ -68,7 +75,7 @@ class _ExportGraph(nn.Module):
     def forward(self, depth_m: torch.Tensor, previous_action: torch.Tensor) -> torch.Tensor:
         x = preprocess_depth(depth_m)
         history = previous_action if previous_action.dim() == 2 else previous_action[:, None]
-        q = [self._member_q(net, x[:, :net.model_cfg.frame_stack], history) for net in self.members]
+        q = [self._member_q(net, newest_images(x, net.model_cfg.frame_stack), history) for net in self.members]
         return q[0] if len(q) == 1 else torch.stack(q).mean(0)
 
     def _member_q(self, net: QNetwork, x: torch.Tensor, history: torch.Tensor) -> torch.Tensor:
