@@ -2,10 +2,13 @@
 
 Everything is measured in one process, back to back: the paper network (fp32), a batch of 32
 with Double-DQN targets (three forward passes and one backward), one-image greedy inference as
-an actor runs it, and the machine's fp32 matmul peak. Times are the best of several repeats for
-the update, the forward and the peak alike, so that load from other processes on a shared
-machine depresses all three the same way and ``flop_utilization`` (achieved over peak) stays
-comparable; medians are reported too.
+an actor runs it, and the machine's fp32 matmul peak. ``--preset`` (and ``--set``) times a run
+configuration's update instead, the one ``cogexplore up`` would train (its image size, network,
+batch, bfloat16 convolutions where the CPU has them): its ``ms_per_update`` bounds the learner's
+updates per second on this machine (``flop_utilization`` stays against the fp32 peak, so bfloat16
+can pass 1). Times are the best of several repeats for the update, the forward and the peak
+alike, so that load from other processes on a shared machine depresses all three the same way
+and ``flop_utilization`` (achieved over peak) stays comparable; medians are reported too.
 
 The optimisations measured here live in the real code (shared/learning/model.py, shared/learning/dqn.py):
 channels-last convolutions, pooling before ReLU, and the glibc allocator setting that stops
@@ -29,7 +32,17 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.config import MAX_ACTION_HISTORY, DQNConfig, ModelConfig, SensorConfig
+from shared.config import (
+    DEFAULT_PRESET,
+    MAX_ACTION_HISTORY,
+    ConfigError,
+    DQNConfig,
+    ModelConfig,
+    RunConfig,
+    SensorConfig,
+    load_preset,
+    parse_override,
+)
 from shared.learning.dqn import DQNAgent, td_targets, update_flops
 from shared.learning.model import (
     InferenceRunner,
@@ -73,10 +86,12 @@ def matmul_peak_gflops(device: torch.device, repeats: int = 5) -> float:
     return 2 * n ** 3 / best / 1e9
 
 
-def synthetic_batch(sensor: SensorConfig, batch_size: int, seed: int = 0) -> Batch:
-    """A replay-format batch (uint16 mm frames, ~12% collisions)."""
+def synthetic_batch(sensor: SensorConfig, batch_size: int, seed: int = 0, frame_stack: int = 1) -> Batch:
+    """A replay-format batch (uint16 mm frames, ~12% collisions; ``frame_stack`` > 1: that many
+    frames per sample, as the replay samples them for ``model.frame_stack``)."""
     rng = np.random.default_rng(seed)
-    shape = (batch_size, sensor.height, sensor.width)
+    shape = (batch_size, sensor.height, sensor.width) if frame_stack == 1 else \
+        (batch_size, frame_stack, sensor.height, sensor.width)
     terminated = rng.random(batch_size) < 0.12
     return Batch(obs=rng.integers(300, 4000, shape).astype(np.uint16),
                  action=rng.integers(0, 5, batch_size).astype(np.int64),
@@ -118,17 +133,27 @@ def _plain_update_fn(agent: DQNAgent, batch: Batch) -> Callable[[], None]:
 
 
 def run(device: str = "auto", batch_size: int = 32, repeats: int = 8, forward_repeats: int = 60,
-        threads: int | None = None, baseline: bool = False, seed: int = 0) -> dict[str, Any]:
-    """Time the learner's hot paths; returns a JSON-ready dict (see the module docstring)."""
+        threads: int | None = None, baseline: bool = False, seed: int = 0,
+        config: RunConfig | None = None, preset: str | None = None) -> dict[str, Any]:
+    """Time the learner's hot paths; returns a JSON-ready dict (see the module docstring).
+    ``config``: time that run configuration's update (its sensor, network, batch and DQN options:
+    mirrored batches, bfloat16 convolutions, quantiles...) instead of the paper network's; ``preset``:
+    its name, for the result (None: the paper network)."""
+    if config is not None and baseline:
+        raise ConfigError("--baseline times the paper network's plain update only: leave out --preset and --set")
     allocator_tuned = reduce_allocator_page_faults()
     dev = resolve_device(device)
     if threads is not None:
         torch.set_num_threads(threads)
-    sensor, model = SensorConfig(), ModelConfig()
-    agent = DQNAgent(model, sensor, DQNConfig(double_dqn=True, batch_size=batch_size), device=dev,
-                     seed=seed)
-    batch = synthetic_batch(sensor, batch_size, seed)
-    flops = update_flops(agent.online, batch_size, double_dqn=True)
+    if config is None:
+        sensor, model, dqn = SensorConfig(), ModelConfig(), DQNConfig(double_dqn=True, batch_size=batch_size)
+    else:
+        sensor, model, dqn = config.sensor, config.model, config.dqn
+        batch_size = dqn.batch_size
+    agent = DQNAgent(model, sensor, dqn, device=dev, seed=seed)
+    batch = synthetic_batch(sensor, batch_size, seed, frame_stack=model.frame_stack)
+    flops = update_flops(agent.online, batch_size, double_dqn=dqn.double_dqn,
+                         conv_trainable=dqn.conv_lr_scale > 0)
     fwd_flops = sum(forward_flops(agent.online).values())
 
     peaks = [matmul_peak_gflops(dev)]
@@ -146,8 +171,11 @@ def run(device: str = "auto", batch_size: int = 32, repeats: int = 8, forward_re
         "torch": torch.__version__,
         "threads": torch.get_num_threads(),
         "allocator_tuned": allocator_tuned,
+        "preset": preset,
+        "image": [sensor.height, sensor.width],
         "batch_size": batch_size,
-        "double_dqn": True,
+        "double_dqn": dqn.double_dqn,
+        "conv_precision": str(agent.online.conv_autocast or torch.float32).removeprefix("torch."),
         "ms_per_update": best_update * 1e3,
         "ms_per_update_median": statistics.median(update_s) * 1e3,
         "forward_ms": best_forward * 1e3,
@@ -170,6 +198,9 @@ def run(device: str = "auto", batch_size: int = 32, repeats: int = 8, forward_re
 
 def run_command(args: argparse.Namespace) -> int:
     """``cogexplore bench learner``."""
-    result = run(device=args.device, repeats=args.repeats, threads=args.threads, baseline=args.baseline)
+    preset = args.preset or (DEFAULT_PRESET if args.overrides else None)
+    config = load_preset(preset).with_overrides(dict(parse_override(o) for o in args.overrides)) if preset else None
+    result = run(device=args.device, repeats=args.repeats, threads=args.threads, baseline=args.baseline,
+                 config=config, preset=preset)
     print(json.dumps(result, indent=2, default=float) if args.json else result)
     return 0

@@ -25,7 +25,13 @@ def add_learner_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     p.add_argument("--repeats", type=int, default=8, help="timed updates per variant (default 8)")
     p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
-    p.add_argument("--baseline", action="store_true", help="also time a plain PyTorch update")
+    p.add_argument("--baseline", action="store_true",
+                   help="also time a plain PyTorch update (the paper network only: not with --preset or --set)")
+    p.add_argument("--preset", default=None,
+                   help="time this preset's update (name or TOML path; e.g. robust-40x30, the shipped recipe) "
+                        "instead of the paper network's in float32")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                   help="override one config field of --preset (default preset: the shipped recipe's), repeatable")
     p.add_argument("--json", action="store_true", help="print JSON")
 
 

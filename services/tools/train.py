@@ -78,7 +78,7 @@ class _Training:
                     policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
                     updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
                     replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
-                    label_agreement=core.recent_label_agreement(train.log_every))
+                    label_agreement=core.recent_label_agreement(train.log_every), lr=core.agent.lr)
                 self.learner_log.write(row)
                 self.board.write_row(row)
             if core.updates % train.checkpoint_every == 0:

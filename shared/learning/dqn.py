@@ -284,6 +284,11 @@ class DQNAgent:
             return torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum, fused=True)
         return torch.optim.Adam(groups, lr=cfg.lr, fused=True)
 
+    @property
+    def lr(self) -> float:
+        """The fully connected layers' learning rate now (the first parameter group's)."""
+        return float(self.optimizer.param_groups[0]["lr"])
+
     def _set_lr(self, factor: float) -> None:
         # From the config, not from the groups: a restored optimizer state brings its own lr.
         for group in self.optimizer.param_groups:

@@ -78,6 +78,9 @@ class LearnerRow(_Row):
     """Share of the labelled samples (demonstrations, train.demos; expert labels,
     explore.expert_label_prob) whose greedy command is the labelled one, over the recent updates;
     None without labels."""
+    lr: float | None = _cell(".4g")
+    """The fully connected layers' learning rate at the newest update (dqn.lr, falling over
+    dqn.lr_decay_updates where set); None before the first update."""
 
 
 @dataclass(frozen=True)

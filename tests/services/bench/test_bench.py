@@ -1,7 +1,8 @@
-"""The benchmarks through the real CLI, small: `bench env`, `bench transport`, `bench system`."""
+"""The benchmarks through the real CLI, small: `bench env`, `bench learner`, `bench transport`, `bench system`."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import subprocess
@@ -9,6 +10,10 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from shared.config import load_preset
+from shared.learning.dqn import update_flops
+from shared.learning.model import QNetwork
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -30,6 +35,21 @@ def test_bench_env_json() -> None:
     assert out["physics_ms_p50"] > 0 and "expert_label_ms_p50" not in out
     taught = _bench("env", "--world", "box-room", "--steps", "20", "--no-pin", "--expert-labels", timeout_s=120)
     assert 0 < taught["expert_label_ms_p50"] <= taught["expert_label_ms_p90"]
+
+
+def test_bench_learner_times_the_update_of_the_preset_it_is_given() -> None:
+    smoke = load_preset("smoke")
+    out = _bench("learner", "--preset", "smoke", "--repeats", "1", timeout_s=120)
+    assert out["preset"] == "smoke" and out["image"] == [30, 40] and out["batch_size"] == smoke.dqn.batch_size
+    # smoke's small fc layers, not the paper network's: the FLOPs say which network was timed
+    net = QNetwork(smoke.model, smoke.sensor)
+    assert out["flops_per_update"] == update_flops(net, smoke.dqn.batch_size, double_dqn=smoke.dqn.double_dqn)
+    assert 0 < out["ms_per_update"] <= out["ms_per_update_median"] and out["achieved_gflops"] > 0
+    halved = _bench("learner", "--preset", "smoke", "--set", "dqn.batch_size=4", "--repeats", "1", timeout_s=120)
+    assert halved["batch_size"] == 4 and halved["flops_per_update"] == out["flops_per_update"] // 2
+    refused = subprocess.run([sys.executable, "-m", "services.cli", "bench", "learner", "--preset", "smoke",
+                              "--baseline"], cwd=REPO, capture_output=True, text=True, timeout=60, check=False)
+    assert refused.returncode == 2 and "--baseline times the paper network" in refused.stderr
 
 
 def test_bench_transport_json() -> None:
@@ -75,7 +95,8 @@ def test_bench_system_json(tmp_path: Path) -> None:
 @pytest.mark.timeout(400)
 def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path) -> None:
     out = _bench("system", "--compare-single-process", "--preset", "smoke", "--minutes", "0.4",
-                 "--episodes-per-start", "1", "--runs-dir", str(tmp_path), timeout_s=380)
+                 "--set", "dqn.lr_decay_updates=20", "--episodes-per-start", "1",
+                 "--runs-dir", str(tmp_path), timeout_s=380)
     for name in ("up", "single_process"):
         run = out[name]
         assert run["updates"] > 0 and run["transitions"] > 0
@@ -87,3 +108,8 @@ def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path
     assert ratios["updates_per_s"] == pytest.approx(out["up"]["updates_per_s"] / out["single_process"]["updates_per_s"])
     assert set(ratios) == {"updates_per_s", "env_steps_per_s", "robust_mean_steps", "paper_mean_steps"}
     assert (tmp_path / "up" / "checkpoints").is_dir() and (tmp_path / "single" / "checkpoints").is_dir()
+    # both trainers log the learning rate: smoke's 1e-3, falling to its tenth over 20 updates
+    for run in ("up", "single"):
+        with open(tmp_path / run / "stats" / "learner.csv", newline="") as f:
+            lrs = [float(r["lr"]) for r in csv.DictReader(f) if r["lr"]]
+        assert lrs == sorted(lrs, reverse=True) and lrs[0] <= 1e-3 and lrs[-1] == pytest.approx(1e-4), run

@@ -235,6 +235,7 @@ def test_learning_rates_fall_linearly_to_the_final_scale_and_resume_on_schedule(
     for _ in range(6):
         agent.update(make_batch())
         seen.append({g["name"]: g["lr"] for g in agent.optimizer.param_groups})
+        assert agent.lr == seen[-1]["fc"]  # what stats/learner.csv logs
     # the step that makes update u+1 runs at lr_factor(u)
     for u, lrs in enumerate(seen):
         f = lr_factor(u, 4, 0.25)
