@@ -144,6 +144,39 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         last_stats = last_flow = 0.0
         last_published = core.updates
         waiting_s = waiting_reported_s = 0.0  # time in passes with no update due: the learner waited for data
+
+        def publish_stats(now: float) -> None:
+            """One LearnerStats message and one learner.csv row (also TensorBoard's)."""
+            nonlocal last_stats, waiting_reported_s
+            waiting_share = min(1.0, (waiting_s - waiting_reported_s) / max(1e-9, now - max(last_stats, started)))
+            waiting_reported_s = waiting_s
+            loss, mean_q = core.recent()
+            agreement = core.recent_label_agreement()
+            lag = core.weight_lag()
+            live = len(actors.alive)
+            stats = LearnerStats(
+                learner_id=learner_id, updates=core.updates, policy_version=core.agent.policy_version,
+                replay_size=len(core.replay), transitions_received=core.received,
+                transitions_rejected=rejects.total, loss=loss, mean_q=mean_q,
+                updates_per_s=update_rate.rate(now), transitions_per_s=transition_rate.rate(now),
+                uptime_s=now - started, rejects=rejects.counts,
+                extra={"actors_alive": live, "dropped_nonfinite": core.dropped_nonfinite,
+                       LearnerStats.WAITING_SHARE: waiting_share,
+                       **({} if agreement is None else {"label_agreement": agreement}),
+                       "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
+                       **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[-24:]},  # the 24 heard last
+                       **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[-24:]}})
+            stats_pub.put(stats.encode())
+            row = LearnerRow(
+                time_s=now - started, update=core.updates, policy_version=core.agent.policy_version, loss=loss,
+                mean_q=mean_q, updates_per_s=stats.updates_per_s, transitions=core.received,
+                transitions_per_s=stats.transitions_per_s, replay_size=len(core.replay),
+                rejected=rejects.total, actors_alive=live, mean_weight_lag=stats.extra["mean_weight_lag"],
+                label_agreement=agreement, lr=core.agent.lr if core.updates else None)
+            stats_log.write(row)
+            board.write_row(row)
+            last_stats = now
+
         while not stop.is_set() and not core.done:
             pass_started = time.monotonic()
             # 1. data in
@@ -181,40 +214,15 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                                          learner_epoch=epoch).encode())
                 last_flow = now
             if now - last_stats >= stats_every_s:
-                waiting_share = min(1.0, (waiting_s - waiting_reported_s) / max(1e-9, now - max(last_stats, started)))
-                waiting_reported_s = waiting_s
-                loss, mean_q = core.recent()
-                agreement = core.recent_label_agreement()
-                lag = core.weight_lag()
-                live = len(actors.alive)
-                stats = LearnerStats(
-                    learner_id=learner_id, updates=core.updates, policy_version=core.agent.policy_version,
-                    replay_size=len(core.replay), transitions_received=core.received,
-                    transitions_rejected=rejects.total, loss=loss, mean_q=mean_q,
-                    updates_per_s=update_rate.rate(now), transitions_per_s=transition_rate.rate(now),
-                    uptime_s=now - started, rejects=rejects.counts,
-                    extra={"actors_alive": live, "dropped_nonfinite": core.dropped_nonfinite,
-                           LearnerStats.WAITING_SHARE: waiting_share,
-                           **({} if agreement is None else {"label_agreement": agreement}),
-                           "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
-                           **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[-24:]},  # the 24 heard last
-                           **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[-24:]}})
-                stats_pub.put(stats.encode())
-                row = LearnerRow(
-                    time_s=now - started, update=core.updates, policy_version=core.agent.policy_version, loss=loss,
-                    mean_q=mean_q, updates_per_s=stats.updates_per_s, transitions=core.received,
-                    transitions_per_s=stats.transitions_per_s, replay_size=len(core.replay),
-                    rejected=rejects.total, actors_alive=live, mean_weight_lag=stats.extra["mean_weight_lag"],
-                    label_agreement=agreement, lr=core.agent.lr if core.updates else None)
-                stats_log.write(row)
-                board.write_row(row)
-                last_stats = now
+                publish_stats(now)
             if not drained and not due:
                 time.sleep(0.005)  # idle: wait for data without spinning a core
             if not due:
                 waiting_s += time.monotonic() - pass_started
 
-        # Final: weights out (actors and evaluator see the last version), checkpoint.
+        # Final: the log's last row at the last update, weights out (actors and evaluator see the
+        # last version), checkpoint.
+        publish_stats(time.monotonic())
         sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
         save_checkpoint()
         time.sleep(0.2)  # let the sender thread hand the final weights to Zenoh

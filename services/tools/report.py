@@ -26,6 +26,7 @@ inlined while they stay small) and linked from ``report.md`` (the same sections,
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import logging
 import os
@@ -69,6 +70,7 @@ from shared.evaluation.results import (
 )
 from shared.evaluation.setup import EvalSetup, setup_evaluation
 from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
+from shared.learning.stats import TrainingSummary, summarize_learner_log
 
 log = logging.getLogger("cogexplore.report")
 
@@ -247,6 +249,19 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
 # ---------------------------------------------------------------------------------------------
 
 
+def training_line(t: TrainingSummary) -> str:
+    """One sentence on how much training the run had, from its learner log."""
+    parts = [f"Training: {t.updates} updates"]
+    if t.transitions is not None:
+        parts.append(f" from {t.transitions} transitions")
+    if t.learner_s:
+        parts.append(f" in {t.learner_s / 60:.1f} min of learner time ({t.updates_per_s:.1f} updates/s)")
+    if t.lr_first is not None and t.lr_last is not None:
+        parts.append(f"; learning rate {t.lr_first:.3g}" + (f" falling to {t.lr_last:.3g}" if t.lr_last != t.lr_first
+                                                             else ", constant"))
+    return "".join(parts) + f" (`stats/{LEARNER_LOG}`)."
+
+
 def build_report(run_dir: str | Path, *, model: str | Path | None = None, compare: Sequence[str | Path] = (),
                  out_dir: str | Path | None = None,
                  episodes_per_start: int = PAPER_EPISODES_PER_START, max_steps: int = PAPER_MAX_STEPS,
@@ -354,9 +369,13 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     report.figures += list(heatmaps.values()) + ([side_by_side] if side_by_side else [])
 
     # -- training curves --------------------------------------------------------------------
-    loss_png = None
+    loss_png = training = None
     learner_csv = run / "stats" / LEARNER_LOG
     if learner_csv.is_file():
+        try:
+            training = summarize_learner_log(learner_csv)
+        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+            notes.append(f"The training line could not be read from {learner_csv}: {exc}")
         try:
             loss_png = save_loss_curve_png(learner_csv, out / "loss.png", title=f"Training loss ({run.name})")
             report.figures.append(loss_png)
@@ -478,8 +497,10 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
         doc.append(Paragraph(f"![heatmaps]({rel(side_by_side)})"))
     if heatmaps:
         doc.append(Paragraph(" · ".join(f"[{n}]({rel(p)})" for n, p in heatmaps.items())))
-    doc += [Heading(2, "Fig. 5: training loss"),
-            Paragraph(f"![loss]({rel(loss_png)})" if loss_png else "_No loss curve: see the notes below._")]
+    doc.append(Heading(2, "Fig. 5: training loss"))
+    if training is not None:
+        doc.append(Paragraph(training_line(training)))
+    doc.append(Paragraph(f"![loss]({rel(loss_png)})" if loss_png else "_No loss curve: see the notes below._"))
     if eval_png is not None:
         doc += [Heading(3, "Evaluations during training"), Paragraph(f"![evaluations]({rel(eval_png)})"),
                 Table(("Policy version", "Mean moving steps", "Protocol", "Episodes per start", "Step cap",

@@ -58,6 +58,7 @@ class _Training:
         self.config_dict = cfg.to_dict()
         self.episodes = 0
         self.recent_lengths: list[int] = []
+        self.logged_update = core.updates
 
     def save(self) -> Path:
         return self.checkpoints.save(self.core.agent, replay=self.core.replay, config=self.config_dict,
@@ -72,17 +73,23 @@ class _Training:
             self.update_rate.add(1)
             self.bar.update(1)
             if core.updates % train.log_every == 0:
-                loss, mean_q = core.recent(train.log_every)
-                row = LearnerRow(
-                    time_s=time.monotonic() - self.started, update=core.updates,
-                    policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
-                    updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
-                    replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
-                    label_agreement=core.recent_label_agreement(train.log_every), lr=core.agent.lr)
-                self.learner_log.write(row)
-                self.board.write_row(row)
+                self.log_row()
             if core.updates % train.checkpoint_every == 0:
                 self.save()
+
+    def log_row(self) -> None:
+        """One ``learner.csv`` row (and TensorBoard's) over the last ``train.log_every`` updates."""
+        core, every = self.core, self.cfg.train.log_every
+        loss, mean_q = core.recent(every)
+        row = LearnerRow(
+            time_s=time.monotonic() - self.started, update=core.updates,
+            policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
+            updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
+            replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
+            label_agreement=core.recent_label_agreement(every), lr=core.agent.lr)
+        self.learner_log.write(row)
+        self.board.write_row(row)
+        self.logged_update = core.updates
 
     def end_episode(self, episode: Episode) -> None:
         info, epsilon = episode.info, episode.last_step.choice.epsilon
@@ -130,6 +137,8 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
         while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             if loop.step().last:
                 loop.begin_episode()
+        if core.updates != training.logged_update:  # the log ends at the last update, as the checkpoint does
+            training.log_row()
         final = training.save()
     env.close()
     return {"updates": core.updates, "env_steps": core.received, "episodes": training.episodes,

@@ -11,7 +11,6 @@ from one invocation: above 1, the system is faster or better.
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import shutil
@@ -23,6 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.errors import CogexploreError
+from shared.learning.stats import summarize_learner_log
 
 PROTOCOLS = ("robust", "paper")
 
@@ -43,18 +43,15 @@ def _cli(argv: list[str], log: Path) -> float:
 
 
 def _learner_totals(run_dir: Path) -> dict[str, float]:
-    """Updates and transitions at the last row of the run's learner.csv, and its time."""
+    """Updates and transitions at the last row of the run's learner.csv, and the learner's time."""
     path = run_dir / "stats" / "learner.csv"
     try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
+        training = summarize_learner_log(path)
     except OSError as exc:
         raise CompareError(f"no learner statistics in {run_dir}: {exc}") from None
-    if not rows:
+    if training is None or training.transitions is None or training.learner_s is None:
         raise CompareError(f"{path} has no rows: the run made no update")
-    last = rows[-1]
-    return {"updates": int(float(last["update"])), "transitions": int(float(last["transitions"])),
-            "learner_s": float(last["time_s"])}
+    return {"updates": training.updates, "transitions": training.transitions, "learner_s": training.learner_s}
 
 
 def _score(run_dir: Path, protocol: str, episodes_per_start: int, logs: Path) -> dict[str, float]:

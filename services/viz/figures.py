@@ -154,6 +154,8 @@ def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, S
             text = path.read_text()
         except FileNotFoundError:
             raise FigureError(f"loss log {path} does not exist") from None
+        except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, binary bytes
+            raise FigureError(f"loss log {path} cannot be read as text: {exc}") from None
         if path.suffix == ".csv":
             reader = csv.DictReader(text.splitlines())
             if not reader.fieldnames or not {"update", "loss"} <= set(reader.fieldnames):

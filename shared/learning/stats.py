@@ -117,6 +117,61 @@ def episode_row(episode: Any, *, env_step: int, update: int, time_s: float, expe
         path_length_m=info["path_length_m"], time_s=time_s, expert_guided=int(expert_guided), world=info["world"])
 
 
+@dataclass(frozen=True)
+class TrainingSummary:
+    """What a run's ``stats/learner.csv`` says of its training as a whole (:func:`summarize_learner_log`)."""
+
+    updates: int
+    """The last row's update."""
+    transitions: int | None
+    """Transitions received by then (None: no such column)."""
+    learner_s: float | None
+    """The learner's seconds, summed over its sessions (``time_s`` restarts at a resume; None: no such column)."""
+    lr_first: float | None
+    """The learning rate of the first row that logs one, and of the last (None: never logged)."""
+    lr_last: float | None
+
+    @property
+    def updates_per_s(self) -> float | None:
+        return self.updates / self.learner_s if self.learner_s else None
+
+
+def summarize_learner_log(path: Path) -> TrainingSummary | None:
+    """The training a learner log records; None where it has no readable row. Rows that do not
+    parse (a torn last line, a column an older run lacks) are skipped, not fatal."""
+
+    def number(row: dict[str, str | None], column: str, kind: type) -> Any:
+        try:
+            return kind(row.get(column) or "")
+        except ValueError:
+            return None
+
+    last: dict[str, str | None] | None = None
+    learner_s = session_s = 0.0
+    lr_first = lr_last = None
+    timed = False
+    with open(path, newline="") as fh:
+        for row in csv.DictReader(fh):
+            torn = any(value is None for column, value in row.items() if column is not None)  # cells missing
+            if torn or number(row, "update", int) is None:
+                continue
+            last = row
+            t = number(row, "time_s", float)
+            if t is not None:
+                timed = True
+                if t < session_s:  # a new session: the learner's clock restarted
+                    learner_s += session_s
+                session_s = t
+            lr = number(row, "lr", float)
+            if lr is not None:
+                lr_first = lr if lr_first is None else lr_first
+                lr_last = lr
+    if last is None:
+        return None
+    return TrainingSummary(updates=number(last, "update", int), transitions=number(last, "transitions", int),
+                           learner_s=learner_s + session_s if timed else None, lr_first=lr_first, lr_last=lr_last)
+
+
 RowT = TypeVar("RowT", bound=_Row)
 
 

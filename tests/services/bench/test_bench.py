@@ -11,6 +11,8 @@ from pathlib import Path
 
 import pytest
 
+from services.runs import RunPaths
+from services.up.launcher import checkpoint_updates
 from shared.config import load_preset
 from shared.learning.dqn import update_flops
 from shared.learning.model import QNetwork
@@ -108,7 +110,10 @@ def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path
     assert ratios["updates_per_s"] == pytest.approx(out["up"]["updates_per_s"] / out["single_process"]["updates_per_s"])
     assert set(ratios) == {"updates_per_s", "env_steps_per_s", "robust_mean_steps", "paper_mean_steps"}
     assert (tmp_path / "up" / "checkpoints").is_dir() and (tmp_path / "single" / "checkpoints").is_dir()
-    # both trainers log the learning rate: smoke's 1e-3, falling to its tenth over 20 updates
+    # both trainers' logs end at the update their final checkpoint holds, and log the learning
+    # rate: smoke's 1e-3, falling to its tenth over 20 updates
+    assert out["up"]["updates"] == checkpoint_updates(RunPaths(tmp_path / "up"))
+    assert out["single_process"]["updates"] == checkpoint_updates(RunPaths(tmp_path / "single"))
     for run in ("up", "single"):
         with open(tmp_path / run / "stats" / "learner.csv", newline="") as f:
             lrs = [float(r["lr"]) for r in csv.DictReader(f) if r["lr"]]

@@ -96,6 +96,8 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
     for model in ("exp@1000", "random", "reactive"):
         assert f"| {model} |" in text
     assert "| Count | exp@1000 |" in text and "Coverage (%)" in text
+    # how much training the run had, from its learner log (this one has neither time nor transitions)
+    assert "Training: 950 updates (`stats/learner.csv`)." in text
     for scene in [s.name for s in PROBE_SCENES] + ["user:door"]:
         assert f"| {scene} | exp@1000 |" in text
     assert "resized from 40x30 to 64x48" in text
@@ -324,6 +326,18 @@ def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
     assert "no checkpoint yet" in text and "learner.csv does not exist" in text
     assert "No checkpoint to probe" in text
     assert "| reactive |" in text and (run / "report" / "heatmaps.png").is_file()
+
+
+def test_a_garbled_learner_log_is_a_note_not_a_crash(tmp_path: Path) -> None:
+    run = tmp_path / "garbled"
+    (run / "stats").mkdir(parents=True)
+    (run / "config.toml").write_text(to_toml(small_config()))
+    (run / "stats" / "learner.csv").write_bytes(b"update,loss\n1,\x00\xff\xfe2\n")  # not text
+    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
+                          protocols=("paper",))
+    text = report.markdown.read_text()
+    assert "The training line could not be read" in text and "cannot be read as text" in text
+    assert "| reactive |" in text
 
 
 def report(argv: list[str]) -> int:

@@ -15,6 +15,7 @@ from shared.learning.stats import (
     LearnerRow,
     TensorBoardLog,
     scalars,
+    summarize_learner_log,
 )
 
 
@@ -46,6 +47,25 @@ def test_a_log_writes_its_header_once_across_reopening_and_formats_each_cell(tmp
     assert first["time_s"] == "1.235" and first["loss"] == "0.5" and first["mean_q"] == ""
     assert first["transitions_per_s"] == "" and first["label_agreement"] == "0.875"
     assert dict(zip(rows[0], rows[2]))["loss"] == "" and rows[2][1] == "100"
+
+
+def test_a_learner_log_sums_its_sessions_and_skips_what_does_not_parse(tmp_path: Path):
+    with CsvLog(tmp_path, LearnerRow) as log:  # a first session, 60 s to update 100
+        log.write(row(time_s=0.5, update=0, lr=None))
+        log.write(row(time_s=60.0, update=100, transitions=400, lr=5e-4))
+    with CsvLog(tmp_path, LearnerRow) as log:  # resumed: the clock restarts, 40 s more to update 180
+        log.write(row(time_s=40.0, update=180, transitions=720, lr=2e-4))
+    with open(tmp_path / "learner.csv", "a") as fh:
+        fh.write("41.0,19")  # a torn last line of a killed learner
+    t = summarize_learner_log(tmp_path / "learner.csv")
+    assert (t.updates, t.transitions, t.learner_s, t.lr_first, t.lr_last) == (180, 720, 100.0, 5e-4, 2e-4)
+    assert t.updates_per_s == pytest.approx(1.8)
+    # an older run's log: no time, no transitions, no learning rate
+    (tmp_path / "old.csv").write_text("update,loss\n0,\n50,2.5\n")
+    old = summarize_learner_log(tmp_path / "old.csv")
+    assert (old.updates, old.transitions, old.learner_s, old.lr_first, old.updates_per_s) == (50, None, None, None, None)
+    (tmp_path / "empty.csv").write_text("update,loss\n")
+    assert summarize_learner_log(tmp_path / "empty.csv") is None
 
 
 def test_a_record_needs_every_column():
