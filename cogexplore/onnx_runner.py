@@ -24,6 +24,7 @@ import onnxruntime
 
 from cogexplore._policy_io import CameraPolicy
 from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, SensorConfig
+from shared.depth import image_stack
 from shared.errors import PolicyError
 from shared.learning.onnx_format import (
     DEPTH_INPUT,
@@ -79,10 +80,7 @@ class OnnxPolicy(CameraPolicy):
     def _q_values(self, observation: np.ndarray) -> np.ndarray:
         missing = (NO_PREVIOUS_ACTION,) * (self._history - len(self._previous_commands))
         previous = np.array([self._previous_commands + missing], dtype=np.int64)  # (1, K)
-        # the replay's stacks: this image, the ones before it, the oldest repeated at an episode's start
-        images = (observation, *self._previous_images)
-        images += images[-1:] * (self._images - len(images))
-        feed = {DEPTH_INPUT: np.stack(images)[None],
+        feed = {DEPTH_INPUT: image_stack(observation, self._previous_images, self._images)[None],
                 PREVIOUS_ACTION_INPUT: previous if self._history_input else previous[:, 0]}
         return self._session.run([Q_OUTPUT], feed)[0][0]
 

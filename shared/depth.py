@@ -86,3 +86,10 @@ def resize_depth(depth_m: np.ndarray, height: int, width: int) -> np.ndarray:
     out = np.where(surface, blended, nearest)
     with np.errstate(divide="ignore"):
         return np.where(out > 0, 1.0 / out, 0.0).astype(np.float32)
+
+
+def image_stack(depth_m: np.ndarray, earlier: tuple[np.ndarray, ...], count: int) -> np.ndarray:
+    """(count, H, W): this image, then the ones acted on before it (most recent first), the oldest
+    repeated where an episode has fewer: the stacks the replay samples for ``model.frame_stack``."""
+    images = (depth_m, *earlier)[:count]
+    return np.stack(images + images[-1:] * (count - len(images)))

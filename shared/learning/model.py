@@ -401,7 +401,8 @@ class QEnsemble(nn.Module):
     def features(self, x: torch.Tensor, *, float32: bool = False) -> torch.Tensor:
         """Every member's pool3, stacked along the channels: (B, 64 * members, H/8, W/8)."""
         self._check_input(x)
-        return torch.cat([m.features(newest_images(x, m.model_cfg.frame_stack), float32=float32) for m in self.members], dim=1)
+        return torch.cat([m.features(newest_images(x, m.model_cfg.frame_stack), float32=float32)
+                          for m in self.members], dim=1)
 
     def forward(self, x: torch.Tensor, previous_action: Any = None, *, float32: bool = False) -> torch.Tensor:
         self._check_input(x)

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, ExploreConfig
+from shared.depth import image_stack
 from shared.errors import PolicyError  # defined torch-free, for the ONNX runner too
 from shared.learning.model import InferenceRunner, QNetwork
 
@@ -123,10 +124,7 @@ class EpsilonGreedyPolicy:
         history = np.array([self.previous_actions], dtype=np.int64) if self.previous_actions else None
         if self.frame_stack == 1:
             return self._runner.q_values(depth_m, history)
-        # the replay's stacks: this image, the ones before it, the oldest repeated at an episode's start
-        images = (depth_m, *self.previous_frames)
-        images += images[-1:] * (self.frame_stack - len(images))
-        return self._runner.q_values(np.stack(images)[None], history)[0]
+        return self._runner.q_values(image_stack(depth_m, self.previous_frames, self.frame_stack)[None], history)[0]
 
     def _q_values(self, depth_m: np.ndarray) -> np.ndarray:
         q = self.q_values(depth_m)
