@@ -51,6 +51,11 @@ SPEED_TABLES: dict[str, tuple[tuple[float, ...], float]] = {
 }
 ACTION_NAMES: tuple[str, ...] = ("left", "half-left", "straight", "half-right", "right")
 NUM_ACTIONS = len(ACTION_NAMES)
+FAILURE_STARTS_KEPT = 200
+"""Collisions an env remembers for ``EnvConfig.failure_start_prob`` (the newest; each with the poses
+before it)."""
+FAILURE_STARTS_BACK_MAX = 100
+"""The largest ``EnvConfig.failure_start_back_steps``."""
 MAX_ACTION_HISTORY = 8
 """The most previous commands a network may read (``ModelConfig.action_history``); replay and the
 policies keep this many, so any network of the range can learn from and act on them."""
@@ -227,6 +232,20 @@ class EnvConfig:
     random_start_clearance_m: float = 0.6
     """Least distance (m) from a random start to any obstacle (the collision threshold l_s is
     also checked on the first image)."""
+    failure_start_prob: float = 0.0
+    """Share of episodes (when no start index is fixed) that begin where an earlier episode of
+    this env went wrong: at the pose one of its last ``FAILURE_STARTS_KEPT`` collisions passed 1 to
+    ``failure_start_back_steps`` steps (drawn uniformly) before the collision, in that episode's
+    world, moved by the config's start jitter and checked clear as any start is (none clear: a
+    usual start instead). The networks fail by entering a place with no way out a median of 11
+    decisions before the wall (MODEL_CARD.md, "Where the gap is"); an episode from a random pose
+    meets such a decision rarely, and one from where the network last chose wrong meets it at
+    once, from a pose that is never the same twice. 0 (off) in every preset; drawn before
+    ``random_start_prob`` and ``extra_world_prob``."""
+    failure_start_back_steps: int = 20
+    """The most steps before a collision a failure start goes back (``failure_start_prob``;
+    unused without it): 20 is 3.2 m at the training speed, past the 1.4 m by which the networks
+    typically enter a place too late."""
     extra_worlds: str = ""
     """More training worlds, comma-separated: names as in ``world``, and
     'procedural:<first>-<last>' for a range of procedural seeds. An episode that does not fix its
@@ -282,6 +301,11 @@ class EnvConfig:
                self.random_start_prob, "a probability in [0, 1]")
         _check(_finite(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
                "random_start_clearance_m", self.random_start_clearance_m, "metres in (0, 5)")
+        _check(_finite(self.failure_start_prob) and 0 <= self.failure_start_prob <= 1, s, "failure_start_prob",
+               self.failure_start_prob, "a probability in [0, 1]")
+        _check(isinstance(self.failure_start_back_steps, int) and not isinstance(self.failure_start_back_steps, bool)
+               and 1 <= self.failure_start_back_steps <= FAILURE_STARTS_BACK_MAX, s, "failure_start_back_steps",
+               self.failure_start_back_steps, f"an integer in [1, {FAILURE_STARTS_BACK_MAX}]")
         _check(isinstance(self.extra_worlds, str), s, "extra_worlds", self.extra_worlds,
                "a comma-separated list of world names")
         try:

@@ -199,6 +199,7 @@ class Outbox:
             epsilon=episode.last_step.choice.epsilon, policy_version=self.policy_version,
             duration_s=time.monotonic() - episode.started_s,
             extra={"expert_guided": float(self.guide.active), "extra_world": float(info["world"] != self.main_world),
+                   "failure_start": float(info["failure_start"]),
                    EpisodeStats.HELD_S: self.held_s, EpisodeStats.REJECTED: float(self.rejects.total)})
         self.held_s = 0.0
         self.stats_publisher.put(stats.encode())

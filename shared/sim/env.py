@@ -20,6 +20,7 @@ per step, so ``render_fps`` is ``1 / control_period_s``.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import logging
 import math
@@ -32,6 +33,7 @@ import numpy as np
 
 from shared.config import (
     ACTION_NAMES,
+    FAILURE_STARTS_KEPT,
     NEW_AREA_CAP_M2,
     NUM_ACTIONS,
     PROCEDURAL_PREFIX,
@@ -51,6 +53,9 @@ START_DEPTH_MARGIN_M = 0.1
 """A drawn start (random or jittered) must see nothing nearer than the collision distance plus this."""
 START_DRAW_TRIES = 100
 """Draws of a jittered start before the reset gives up (``reset(options={"start_jitter": ...})``)."""
+FAILURE_START_TRIES = 20
+"""Draws of a failure start (a remembered collision, a step back from it, a jitter) before the reset
+starts the episode as it would without them (``EnvConfig.failure_start_prob``)."""
 log = logging.getLogger("cogexplore.env")
 
 
@@ -162,7 +167,9 @@ class ExploreEnv(gym.Env):
     ``start_jitter`` (None: the exact pose) always wins. A start with no clear draw under the
     config's jitter is played from its exact pose, with a warning (once per start), not an error.
     A random free start is never jittered, and a jitter of zero draws nothing, so the episodes are
-    those of an env without it.
+    those of an env without it. A failure start (``EnvConfig.failure_start_prob``: near a pose an
+    earlier episode passed before its collision, in its world) is drawn before both, with the
+    config's jitter; the info's ``random_start`` and ``failure_start`` say which an episode had.
     """
 
     metadata = {"render_modes": ["depth_array", "rgb_array"], "render_fps": 2}  # fps of the default 0.5 s period
@@ -209,6 +216,10 @@ class ExploreEnv(gym.Env):
         self._path_length = 0.0
         self._steps = 0
         self._random_start = False
+        self._failure_start_now = False
+        # The poses of the episode's last steps and the collisions kept with theirs (failure_start_prob).
+        self._recent_poses: collections.deque = collections.deque(maxlen=cfg.failure_start_back_steps + 1)
+        self._failures: collections.deque = collections.deque(maxlen=FAILURE_STARTS_KEPT)
         self._trapped = False  # no way out from the pose (kept with reward_trap_penalty > 0 only)
         self._noise_seed: int | None = None  # drawn at each seeded reset
         self._unjitterable: set[tuple[str, int]] = set()  # (world, start) warned of: no clear jittered draw
@@ -232,11 +243,16 @@ class ExploreEnv(gym.Env):
                 scene.camera.reseed(self._camera_seed(name))
         options = options or {}
         fixed = "start_index" in options or self.env_config.start_index is not None
-        scene = self._main_scene
-        extra = self._extra_world_names
-        if not fixed and extra and self.np_random.random() < self.env_config.extra_world_prob:
-            scene = self._extra_scene(extra[int(self.np_random.integers(len(extra)))]) or scene
-        self._scene = scene
+        pose = None  # a random free or failure start's pose (the robot is there, its image in self._depth)
+        if not fixed and self._failures and self.np_random.random() < self.env_config.failure_start_prob:
+            pose = self._failure_start()
+        self._failure_start_now = pose is not None
+        if pose is None:
+            scene = self._main_scene
+            extra = self._extra_world_names
+            if not fixed and extra and self.np_random.random() < self.env_config.extra_world_prob:
+                scene = self._extra_scene(extra[int(self.np_random.integers(len(extra)))]) or scene
+            self._scene = scene
         index = options.get("start_index", self.env_config.start_index)
         n_starts = len(self.world.starts)
         if index is None:
@@ -245,11 +261,10 @@ class ExploreEnv(gym.Env):
             raise EnvError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
         jitter, jitter_is_the_callers = self._episode_jitter(options)
-        pose = None  # a random free pose (it leaves the robot there and its image in self._depth)
-        if not fixed and self.env_config.random_start_prob > 0 and \
+        if pose is None and not fixed and self.env_config.random_start_prob > 0 and \
                 self.np_random.random() < self.env_config.random_start_prob:
             pose = self._random_free_pose()
-        self._random_start = pose is not None
+        self._random_start = pose is not None and not self._failure_start_now
         if pose is None and jitter is not None:
             try:
                 pose = self._jittered_start(int(index), *jitter)
@@ -274,6 +289,8 @@ class ExploreEnv(gym.Env):
         self._start_index = int(index)
         self._start_xy = self._last_xy = (x, y)
         self._trail = [(x, y)]
+        self._recent_poses.clear()
+        self._recent_poses.append((x, y, yaw))
         self._path_length = 0.0
         self._steps = 0
         return self._depth, self._info(None, min_valid_depth(self._depth))
@@ -297,12 +314,15 @@ class ExploreEnv(gym.Env):
         self._path_length += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         self._last_xy = (x, y)
         self._trail.append((x, y))
+        self._recent_poses.append((x, y, yaw))
 
         min_depth = min_valid_depth(self._depth)
         cause = "contact" if touched else ("depth" if min_depth < cfg.collision_distance_m else None)
         terminated = cause is not None
         truncated = not terminated and self._steps >= cfg.max_episode_steps
         reward = cfg.reward_collision if terminated else cfg.reward_move
+        if terminated and cfg.failure_start_prob > 0:
+            self._remember_failure()
         if cfg.reward_new_area_per_m2 > 0 and not terminated:
             new_area_m2 = self._scene.coverage().observe(x, y, yaw, self._depth)
             reward += cfg.reward_new_area_per_m2 * min(new_area_m2, NEW_AREA_CAP_M2)
@@ -428,12 +448,27 @@ class ExploreEnv(gym.Env):
         its first image is left in ``self._depth``."""
         cfg = self.env_config
         start = self.world.starts[index]
+        pose = self._clear_pose_near((start.x, start.y, start.yaw), jitter_m, jitter_deg, START_DRAW_TRIES)
+        if pose is not None:
+            return pose
+        raise EnvError(f"start {index + 1} of world {self.world.name!r}: none of {START_DRAW_TRIES} poses drawn "
+                       f"within ±{jitter_m:g} m and ±{jitter_deg:g}° of it keeps {cfg.robot_radius_m:g} m from "
+                       f"obstacles with nothing in view nearer than "
+                       f"{cfg.collision_distance_m + START_DEPTH_MARGIN_M:g} m")
+
+    def _clear_pose_near(self, base: tuple[float, float, float], jitter_m: float, jitter_deg: float,
+                         tries: int) -> tuple[float, float, float] | None:
+        """Move the robot to a pose drawn within ±jitter_m in x and y and ±jitter_deg in heading of
+        ``base`` that keeps the robot's radius from obstacles (map and contact) with nothing in view
+        nearer than the collision distance plus a margin; its first image is left in
+        ``self._depth``. None after ``tries`` draws (one, of the exact pose, without a jitter)."""
+        cfg = self.env_config
         grid, clearance = self._scene.clearance()
         half_yaw = math.radians(jitter_deg)
-        for _ in range(START_DRAW_TRIES):
+        for _ in range(tries if jitter_m > 0 or jitter_deg > 0 else 1):
             dx, dy = self.np_random.uniform(-jitter_m, jitter_m, 2)
-            pose = (float(start.x + dx), float(start.y + dy),
-                    float(start.yaw + self.np_random.uniform(-half_yaw, half_yaw)))
+            pose = (float(base[0] + dx), float(base[1] + dy),
+                    float(base[2] + self.np_random.uniform(-half_yaw, half_yaw)))
             ix, iy = grid.world_to_cell(pose[0], pose[1])
             if not grid.contains(ix, iy) or clearance[iy, ix] < cfg.robot_radius_m:
                 continue
@@ -444,10 +479,30 @@ class ExploreEnv(gym.Env):
             if min_valid_depth(depth) >= cfg.collision_distance_m + START_DEPTH_MARGIN_M:
                 self._depth = depth
                 return pose
-        raise EnvError(f"start {index + 1} of world {self.world.name!r}: none of {START_DRAW_TRIES} poses drawn "
-                       f"within ±{jitter_m:g} m and ±{jitter_deg:g}° of it keeps {cfg.robot_radius_m:g} m from "
-                       f"obstacles with nothing in view nearer than "
-                       f"{cfg.collision_distance_m + START_DEPTH_MARGIN_M:g} m")
+        return None
+
+    def _remember_failure(self) -> None:
+        """Keep the poses the episode passed before its collision (``failure_start_prob``)."""
+        before = tuple(self._recent_poses)[:-1]  # the last is the collision's own pose
+        if before:
+            self._failures.append((self.world.name, before))
+
+    def _failure_start(self) -> tuple[float, float, float] | None:
+        """Move the robot (and the episode's world) to a clear pose near one a remembered episode
+        passed 1 to ``failure_start_back_steps`` steps before its collision; None (the world
+        unchanged) when no draw is clear."""
+        cfg = self.env_config
+        jitter = _start_jitter((cfg.start_jitter_m, cfg.start_jitter_deg)) or (0.0, 0.0)
+        scene = self._scene
+        for _ in range(FAILURE_START_TRIES):  # a pose one step from the wall is often too near: draw again
+            world_name, before = self._failures[int(self.np_random.integers(len(self._failures)))]
+            base = before[-int(self.np_random.integers(1, len(before) + 1))]
+            self._scene = self._scenes[world_name]
+            pose = self._clear_pose_near(base, *jitter, tries=1)
+            if pose is not None:
+                return pose
+        self._scene = scene
+        return None
 
     def _info(self, cause: str | None, min_depth: float) -> dict[str, Any]:
         x, y, yaw = self.robot.pose()
@@ -456,6 +511,7 @@ class ExploreEnv(gym.Env):
             "world": self.world.name,
             "start_index": self._start_index,
             "random_start": self._random_start,
+            "failure_start": self._failure_start_now,
             "collision_cause": cause,
             "min_depth_m": min_depth,
             "distance_from_start_m": math.hypot(x - self._start_xy[0], y - self._start_xy[1]),
