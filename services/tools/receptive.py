@@ -11,6 +11,11 @@ For exactly ``8h`` rows we need ``2p - op = 7``, so ``p = 4, op = 1``. Equivalen
 output (``p = 0``) has ``8h + 7`` rows, and we keep rows ``4 .. 8h + 3``. The kernel of pool3
 cell ``(r, c)`` is then centred on pixel ``(8r + 3, 8c + 3)``, within half a pixel of the centre
 (``8r + 3.5``) of the 8 x 8 input block that the cell pools; an odd kernel cannot do better.
+
+An image whose sides are not multiples of 8 (the shipped 40 x 30: pool3 is 5 x 3, since each
+2 x 2 pooling drops an odd last row) has a margin of up to 7 rows or columns at its bottom and
+right that no pool3 cell's block covers. The map gives that margin its own least value, so it
+never enters the top 10 %.
 """
 
 from __future__ import annotations
@@ -105,7 +110,7 @@ def receptive_field(model: torch.nn.Module, depth_m: np.ndarray,
 
     Returns ``(map, mask, q_values, action)``: the upsampled channel-summed pool3 (H, W)
     float32, its top-``fraction`` mask (H, W) bool, the five Q-values and the greedy action.
-    ``model`` needs ``features(x) -> (1, C, H/8, W/8)`` and ``model(x) -> (1, A)``; it is run
+    ``model`` needs ``features(x) -> (1, C, H // 8, W // 8)`` and ``model(x) -> (1, A)``; it is run
     in eval mode (no dropout) and its training flag is restored. ``preprocess`` defaults to
     ``shared.learning.model.preprocess_depth``.
     """
@@ -134,10 +139,12 @@ def receptive_field(model: torch.nn.Module, depth_m: np.ndarray,
     finally:
         model.train(was_training)
     upsampled = upsample_pool3(pool3)[0]
-    if upsampled.shape != depth.shape:
+    if tuple(pool3.shape[-2:]) != (depth.shape[0] // UPSAMPLE_STRIDE, depth.shape[1] // UPSAMPLE_STRIDE):
         raise ReceptiveFieldError(
-            f"pool3 {tuple(pool3.shape)} upsamples to {upsampled.shape}, not the depth image's "
-            f"{depth.shape}: the network must downsample by exactly {UPSAMPLE_STRIDE}")
+            f"pool3 {tuple(pool3.shape)} does not map onto the depth image {depth.shape}: the network "
+            f"must downsample by {UPSAMPLE_STRIDE} (rounding down)")
+    margin = ((0, depth.shape[0] - upsampled.shape[0]), (0, depth.shape[1] - upsampled.shape[1]))
+    upsampled = np.pad(upsampled, margin, constant_values=upsampled.min())  # pixels no pool3 cell pools
     q_values = q[0].detach().cpu().numpy().astype(np.float64)
     mask = top_fraction_mask(upsampled, fraction)
     return upsampled.astype(np.float32), mask, q_values, int(np.argmax(q_values))

@@ -143,6 +143,26 @@ def test_receptive_field_of_real_qnetwork() -> None:
         np.testing.assert_allclose(rmap, upsample_pool3(net.features(x))[0], rtol=1e-5, atol=1e-5)
 
 
+def test_receptive_field_of_the_shipped_image_size_leaves_the_unpooled_margin_out() -> None:
+    """40 x 30 (the shipped recipe's image): pool3 is 3 x 5 and covers rows 0-23; rows 24-29, which
+    no pooling block reaches, are in the map at its least value and never in the top 10 %."""
+    from shared.learning.model import QNetwork, preprocess_depth
+
+    torch.manual_seed(0)
+    net = QNetwork(ModelConfig(depth_encoding="inverse", previous_action=True), SensorConfig(width=40, height=30))
+    depth = np.full((30, 40), 3.0, dtype=np.float32)
+    depth[:, 30:] = 0.8  # a near wall on the right
+    rmap, mask, q, action = receptive_field(net, depth)
+    assert rmap.shape == (30, 40) and mask.shape == (30, 40)
+    assert mask.sum() == 120  # 10 % of the whole image
+    assert not mask[24:].any() and (rmap[24:] == rmap.min()).all()
+    net.eval()
+    with torch.no_grad():
+        pooled = upsample_pool3(net.features(preprocess_depth(depth)))[0]
+    assert pooled.shape == (24, 40)
+    np.testing.assert_allclose(rmap[:24], pooled, rtol=1e-5, atol=1e-5)
+
+
 def test_receptive_field_rejects_batch() -> None:
     from shared.learning.model import QNetwork
 
