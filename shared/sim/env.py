@@ -314,15 +314,16 @@ class ExploreEnv(gym.Env):
         self._path_length += math.hypot(x - self._last_xy[0], y - self._last_xy[1])
         self._last_xy = (x, y)
         self._trail.append((x, y))
-        self._recent_poses.append((x, y, yaw))
 
         min_depth = min_valid_depth(self._depth)
         cause = "contact" if touched else ("depth" if min_depth < cfg.collision_distance_m else None)
         terminated = cause is not None
         truncated = not terminated and self._steps >= cfg.max_episode_steps
         reward = cfg.reward_collision if terminated else cfg.reward_move
-        if terminated and cfg.failure_start_prob > 0:
-            self._remember_failure()
+        if cfg.failure_start_prob > 0:  # off, the step keeps no poses
+            self._recent_poses.append((x, y, yaw))
+            if terminated:
+                self._remember_failure()
         if cfg.reward_new_area_per_m2 > 0 and not terminated:
             new_area_m2 = self._scene.coverage().observe(x, y, yaw, self._depth)
             reward += cfg.reward_new_area_per_m2 * min(new_area_m2, NEW_AREA_CAP_M2)
@@ -489,11 +490,10 @@ class ExploreEnv(gym.Env):
 
     def _failure_start(self) -> tuple[float, float, float] | None:
         """Move the robot (and the episode's world) to a clear pose near one a remembered episode
-        passed 1 to ``failure_start_back_steps`` steps before its collision; None (the world
-        unchanged) when no draw is clear."""
+        passed 1 to ``failure_start_back_steps`` steps before its collision; None when no draw is
+        clear (the caller then picks the episode's world as without failure starts)."""
         cfg = self.env_config
         jitter = _start_jitter((cfg.start_jitter_m, cfg.start_jitter_deg)) or (0.0, 0.0)
-        scene = self._scene
         for _ in range(FAILURE_START_TRIES):  # a pose one step from the wall is often too near: draw again
             world_name, before = self._failures[int(self.np_random.integers(len(self._failures)))]
             base = before[-int(self.np_random.integers(1, len(before) + 1))]
@@ -501,7 +501,6 @@ class ExploreEnv(gym.Env):
             pose = self._clear_pose_near(base, *jitter, tries=1)
             if pose is not None:
                 return pose
-        self._scene = scene
         return None
 
     def _info(self, cause: str | None, min_depth: float) -> dict[str, Any]:
