@@ -261,10 +261,11 @@ class ExploreEnv(gym.Env):
             raise EnvError(f"start_index {index!r} out of range [0, {n_starts})")
         start = self.world.starts[int(index)]
         jitter, jitter_is_the_callers = self._episode_jitter(options)
+        self._random_start = False
         if pose is None and not fixed and self.env_config.random_start_prob > 0 and \
                 self.np_random.random() < self.env_config.random_start_prob:
             pose = self._random_free_pose()
-        self._random_start = pose is not None and not self._failure_start_now
+            self._random_start = pose is not None
         if pose is None and jitter is not None:
             try:
                 pose = self._jittered_start(int(index), *jitter)
