@@ -91,7 +91,8 @@ COMMANDS: dict[str, Command | Group] = {
                           "worlds (writes the weights, <out>-windows.png and a resumable <out>-windows.jsonl)",
                           f"{TOOLS}:add_model_select_arguments", "services.tools.model:run_select"),
         "agreement": Command("how often models choose the map expert's command on the states a run's actors "
-                             "visited (the labels kept in its replay memory: explore.expert_label_prob); with the "
+                             "visited (the labels kept in its replay memory: explore.expert_label_prob), and a "
+                             "command with a way out where it marked them (explore.safe_label_prob); with the "
                              "majority command's and the actors' own agreement beside them",
                              f"{TOOLS}:add_model_agreement_arguments", "services.tools.model:run_agreement"),
     }),

@@ -18,6 +18,8 @@ from typing import Any, Mapping, get_type_hints
 
 import tomllib
 
+import numpy as np
+
 from shared.errors import CogexploreError
 
 PRESET_DIR = Path(__file__).with_name("presets")
@@ -71,6 +73,21 @@ def mirror_action(action: Any) -> Any:
     """The command for the left-right mirrored image (left <-> right, half-left <-> half-right);
     works on ints, numpy arrays and tensors."""
     return (NUM_ACTIONS - 1) - action
+
+
+ALL_COMMANDS_MASK = (1 << NUM_ACTIONS) - 1
+"""A bitmask of commands (bit a: command a) with every command set."""
+
+
+def commands_mask(flags: Any) -> int:
+    """The bitmask (bit a: command a) of a (5,) bool array."""
+    flags = np.asarray(flags, dtype=bool).reshape(NUM_ACTIONS)
+    return int((flags.astype(np.int64) << np.arange(NUM_ACTIONS)).sum())
+
+
+def mask_commands(masks: Any) -> np.ndarray:
+    """(..., 5) bool: the commands set in each bitmask of ``masks`` (integers in 0..31)."""
+    return (np.asarray(masks, dtype=np.int64)[..., None] >> np.arange(NUM_ACTIONS)) & 1 == 1
 
 
 @dataclass(frozen=True)
@@ -533,6 +550,14 @@ class DQNConfig:
     demo_weight: float = 1.0
     """Weight of the large-margin loss against the TD loss (DQfD: 1; 0: demonstrations only add
     TD targets and expert labels are ignored)."""
+    safe_margin: float = 1.0
+    """Safe-set margin loss on transitions the map expert marked with the commands that keep a way
+    out (``explore.safe_label_prob``): the best such command's Q-value should lead every command
+    without one by this much (one step's reward, ``env.reward_move``: 1)."""
+    safe_weight: float = 1.0
+    """Weight of the safe-set margin loss against the TD loss (0: the marks are ignored). The loss is
+    summed over a batch's marked samples and divided by the batch's size, so a marked sample weighs
+    what one TD sample does, however few the marks."""
     conv_precision: str = "float32"
     """Number format of the conv layers' arithmetic in the learner's updates (forward, backward and
     the TD targets' forwards): 'float32'; 'bfloat16' (mixed precision: weights, optimiser and the
@@ -575,6 +600,10 @@ class DQNConfig:
                "a number in [0, 100]")
         _check(_finite(self.demo_weight) and 0 <= self.demo_weight <= 100, s, "demo_weight", self.demo_weight,
                "a number in [0, 100]")
+        _check(_finite(self.safe_margin) and 0 <= self.safe_margin <= 100, s, "safe_margin", self.safe_margin,
+               "a number in [0, 100]")
+        _check(_finite(self.safe_weight) and 0 <= self.safe_weight <= 100, s, "safe_weight", self.safe_weight,
+               "a number in [0, 100]")
         _check(self.conv_precision in CONV_PRECISIONS, s, "conv_precision", self.conv_precision,
                f"one of {', '.join(CONV_PRECISIONS)}")
 
@@ -608,10 +637,22 @@ class ExploreConfig:
     itself reaches (DAgger's states, "learning by cheating"). Costs the actor the expert's plan,
     ~1.8 ms a labelled step. 0: no labels, the paper's DQN (and the shipped recipe: on the actors'
     states one depth image barely shows what this expert decides, MODEL_CARD.md run ET2)."""
+    safe_label_prob: float = 0.0
+    """Fraction of the actors' steps at which the privileged map expert marks, for the state the
+    network acted in, which of the five commands still has a way out: a plan starting with it that
+    stays safe for ``env.trap_horizon_steps`` steps (CommandExpert.safe_commands). A mark is sent
+    only where some commands have one and some have not; the learner adds a margin loss putting the
+    best marked command above every unmarked one (``dqn.safe_margin``, ``dqn.safe_weight``). Unlike
+    ``expert_label_prob`` it names no one command to copy, only the ones that enter a place with no
+    way out, for all five commands at once where the trap charge (``env.reward_trap_penalty``)
+    prices only the one taken. With the trap charge on, the expert's plans at the pose are already
+    computed, so the mark is nearly free; without it ~1.5 ms a marked step. 0: none (the paper's, and
+    every preset's: on the charged recipe it did not lift a network, MODEL_CARD.md run SM1)."""
 
     def __post_init__(self) -> None:
         s = "explore"
-        for name in ("eps_start", "eps_end", "apex_base", "expert_episode_prob", "expert_label_prob"):
+        for name in ("eps_start", "eps_end", "apex_base", "expert_episode_prob", "expert_label_prob",
+                     "safe_label_prob"):
             v = getattr(self, name)
             _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
         _check(type(self.eps_decay_steps) is int and self.eps_decay_steps >= 0, s,

@@ -33,6 +33,7 @@ class TransitionBatcher:
         self._versions: list[int] = []
         self._poses: list[tuple[float, float, float]] = []
         self._labels: list[int | None] = []
+        self._safe: list[int] = []
 
     def begin_episode(self, first_obs_m: np.ndarray, start_index: int) -> None:
         """Start a new episode (any unsent steps of the previous one are dropped)."""
@@ -45,8 +46,9 @@ class TransitionBatcher:
 
     def add(self, action: int, reward: float, next_obs_m: np.ndarray, terminated: bool,
             truncated: bool, policy_version: int, pose: tuple[float, float, float],
-            expert_action: int | None = None) -> TransitionBatch | None:
-        """``expert_action``: the expert's command in the obs this step acted in (None: no label)."""
+            expert_action: int | None = None, safe_commands: int = 0) -> TransitionBatch | None:
+        """``expert_action``: the expert's command in the obs this step acted in (None: no label);
+        ``safe_commands``: its safe-set bitmask there (0: no mark)."""
         if self._obs_mm is None:
             raise RuntimeError("begin_episode() must be called before add()")
         self._frames.append(self._obs_mm)
@@ -55,6 +57,7 @@ class TransitionBatcher:
         self._versions.append(int(policy_version))
         self._poses.append(pose)
         self._labels.append(expert_action)
+        self._safe.append(int(safe_commands))
         self._steps_in_episode += 1
         next_mm = depth_to_mm(next_obs_m)
         self._obs_mm = next_mm
@@ -73,10 +76,12 @@ class TransitionBatcher:
             start_index=self._start_index, actor_epoch=self.actor_epoch, depth=np.stack(self._frames),
             next_depth=None if terminated else next_mm, action=self._actions,
             reward=self._rewards, policy_version=self._versions, pose=self._poses,
-            terminated=terminated, truncated=truncated and not terminated, expert_action=self._labels)
+            terminated=terminated, truncated=truncated and not terminated, expert_action=self._labels,
+            safe_commands=self._safe)
         self._first_step = self._steps_in_episode
         self._clear()
         return batch
 
     def _clear(self) -> None:
-        self._frames, self._actions, self._rewards, self._versions, self._poses, self._labels = [], [], [], [], [], []
+        self._frames, self._actions, self._rewards, self._versions, self._poses = [], [], [], [], []
+        self._labels, self._safe = [], []

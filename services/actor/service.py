@@ -183,7 +183,8 @@ class Outbox:
     def on_step(self, step: Step) -> None:
         batch = self.batcher.add(step.action, step.reward, step.next_obs, step.terminated, step.truncated,
                                  self.policy_version, step.next_info["pose"],
-                                 self.guide.teacher_label(step.info["pose"]))
+                                 self.guide.teacher_label(step.info["pose"]),
+                                 self.guide.safe_label(step.info["pose"]))
         if batch is not None:
             self.publisher.put(batch.encode())
             self.gate.sent(batch.steps)
@@ -259,7 +260,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     env.share_extra_worlds(actor_index % num_actors, num_actors)  # a world costs ~0.2 s of CPU to build
     net = QNetwork(cfg.model, cfg.sensor).to(device).eval()  # it only acts: no dropout, no mode switch per step
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=seed + 7_919,
-                        label_prob=cfg.explore.expert_label_prob)
+                        label_prob=cfg.explore.expert_label_prob, safe_prob=cfg.explore.safe_label_prob)
     policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed,
                                  guide=guide, step_scale=num_actors)
     rejects = RejectCounter("weights message", log)

@@ -151,7 +151,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             waiting_share = min(1.0, (waiting_s - waiting_reported_s) / max(1e-9, now - max(last_stats, started)))
             waiting_reported_s = waiting_s
             loss, mean_q = core.recent()
-            agreement = core.recent_label_agreement()
+            agreement, safe_agreement = core.recent_label_agreement(), core.recent_safe_agreement()
             lag = core.weight_lag()
             live = len(actors.alive)
             stats = LearnerStats(
@@ -163,6 +163,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 extra={"actors_alive": live, "dropped_nonfinite": core.dropped_nonfinite,
                        LearnerStats.WAITING_SHARE: waiting_share,
                        **({} if agreement is None else {"label_agreement": agreement}),
+                       **({} if safe_agreement is None else {"safe_agreement": safe_agreement}),
                        "mean_weight_lag": (sum(lag.values()) / len(lag)) if lag else 0.0,
                        **{f"weight_lag.{a}": float(v) for a, v in list(lag.items())[-24:]},  # the 24 heard last
                        **{f"received.{a}": float(n) for a, n in list(core.received_by_actor.items())[-24:]}})
@@ -172,7 +173,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 mean_q=mean_q, updates_per_s=stats.updates_per_s, transitions=core.received,
                 transitions_per_s=stats.transitions_per_s, replay_size=len(core.replay),
                 rejected=rejects.total, actors_alive=live, mean_weight_lag=stats.extra["mean_weight_lag"],
-                label_agreement=agreement, lr=core.agent.lr if core.updates else None)
+                label_agreement=agreement, safe_agreement=safe_agreement, lr=core.agent.lr if core.updates else None)
             stats_log.write(row)
             board.write_row(row)
             last_stats = now

@@ -91,35 +91,70 @@ def run_select(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_agreement(args: argparse.Namespace) -> int:
-    """How often each model's command is the map expert's, on the labelled states kept in a run's
-    replay memory (a run trained with explore.expert_label_prob > 0)."""
+def _greedy(net: Any, memory: Any, states: Any, safe_marks: bool = False) -> Any:
+    """The network's greedy command at each of ``states`` (``memory.labelled``'s, re-read with the
+    network's frame stack)."""
     import numpy as np
 
-    from shared.config import ACTION_NAMES
-    from shared.expert.supervised import classification_metrics, predict
-    from shared.learning.checkpoints import load_model, load_replay, load_supervised_model
     from shared.learning.model import InferenceRunner
 
+    stack = net.model_cfg.frame_stack
+    seen = memory.labelled(stack, safe_marks=safe_marks) if stack > 1 else states
+    runner = InferenceRunner(net)
+    return np.concatenate([runner.q_values(seen.obs[i:i + 2048], seen.previous_action[i:i + 2048]).argmax(axis=1)
+                           for i in range(0, len(seen.action), 2048)])
+
+
+def run_agreement(args: argparse.Namespace) -> int:
+    """How often each model's command is the map expert's, on the labelled states kept in a run's
+    replay memory (a run trained with explore.expert_label_prob > 0), and how often it is one with a
+    way out on the states the expert marked (explore.safe_label_prob > 0)."""
+    import numpy as np
+
+    from shared.config import ACTION_NAMES, mask_commands
+    from shared.expert.supervised import classification_metrics, predict
+    from shared.learning.checkpoints import load_model, load_replay, load_supervised_model
+    from shared.learning.replay import ReplayError
+
     memory = load_replay(args.run)
-    states = memory.labelled()
+    sources = args.model or ["pretrained"]
+    nets = {source: load_model(source).net for source in sources}
+    report: dict[str, Any] = {"run": str(args.run)}
+    try:
+        marked = memory.labelled(safe_marks=True)
+    except ReplayError:
+        marked = None
+    if marked is not None:
+        safe = mask_commands(marked.safe_commands)  # (N, 5)
+        rows = np.arange(len(safe))
+        report["safe_marks"] = {
+            "marked_states": int(len(safe)),
+            "safe_share": {n: float(v) for n, v in zip(ACTION_NAMES, safe.mean(axis=0))},
+            "baselines": {"the actors' own commands": float(safe[rows, marked.action].mean()),
+                          **{f"always {n}": float(v) for n, v in zip(ACTION_NAMES, safe.mean(axis=0))}},
+            "models": {source: float(safe[rows, _greedy(net, memory, marked, True)].mean())
+                       for source, net in nets.items()}}
+        for source, share in report["safe_marks"]["models"].items():
+            print(f"{source}: keeps a way out on {share:.1%} of the marked states", file=sys.stderr)
+    try:
+        states = memory.labelled()
+    except ReplayError:
+        if marked is None:
+            raise ReplayError("no stored transition carries an expert label or a safe-set mark (the run trained "
+                              "with explore.expert_label_prob = explore.safe_label_prob = 0?)") from None
+        _print_json(report)
+        return 0
     label = states.expert_action
     counts = np.bincount(label, minlength=len(ACTION_NAMES))
     majority = int(counts.argmax())
-    report: dict[str, Any] = {
-        "run": str(args.run), "labelled_states": int(len(label)),
+    report.update({
+        "labelled_states": int(len(label)),
         "label_share": {n: float(c / len(label)) for n, c in zip(ACTION_NAMES, counts)},
         "baselines": {f"always {ACTION_NAMES[majority]}": float((label == majority).mean()),
                       "the actors' own commands": float((states.action == label).mean())},
-        "models": {}}
-    for source in args.model or ["pretrained"]:
-        net = load_model(source).net
-        stack = net.model_cfg.frame_stack
-        seen = memory.labelled(stack) if stack > 1 else states
-        runner = InferenceRunner(net)
-        greedy = np.concatenate([runner.q_values(seen.obs[i:i + 2048], seen.previous_action[i:i + 2048]).argmax(axis=1)
-                                 for i in range(0, len(label), 2048)])
-        report["models"][source] = classification_metrics(label, greedy)
+        "models": {}})
+    for source, net in nets.items():
+        report["models"][source] = classification_metrics(label, _greedy(net, memory, states))
     for source in args.supervised:
         report["models"][f"{source} (supervised)"] = classification_metrics(
             label, predict(load_supervised_model(source).net, states.obs))

@@ -280,7 +280,7 @@ def add_model_export_arguments(p: argparse.ArgumentParser) -> None:
 
 def add_model_agreement_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("run", help="run folder, its checkpoints directory or a checkpoint file whose replay memory was "
-                               "kept, from a run with explore.expert_label_prob > 0")
+                               "kept, from a run with explore.expert_label_prob or explore.safe_label_prob > 0")
     p.add_argument("--model", action="append", default=None, metavar="SOURCE",
                    help="a Q-network: checkpoint, run folder, weights export or `pretrained` (repeatable; "
                         "default: pretrained)")

@@ -67,7 +67,8 @@ class _Training:
     def on_step(self, step: Step) -> None:
         core, train = self.core, self.cfg.train
         core.add_transition("env", step.obs, step.action, step.reward, None if step.terminated else step.next_obs,
-                            step.terminated, step.truncated, self.guide.teacher_label(step.info["pose"]))
+                            step.terminated, step.truncated, self.guide.teacher_label(step.info["pose"]),
+                            self.guide.safe_label(step.info["pose"]))
         for _ in range(core.updates_due()):
             core.train_step()
             self.update_rate.add(1)
@@ -86,7 +87,8 @@ class _Training:
             policy_version=core.agent.policy_version, loss=loss, mean_q=mean_q,
             updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
             replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
-            label_agreement=core.recent_label_agreement(every), lr=core.agent.lr)
+            label_agreement=core.recent_label_agreement(every), safe_agreement=core.recent_safe_agreement(every),
+            lr=core.agent.lr)
         self.learner_log.write(row)
         self.board.write_row(row)
         self.logged_update = core.updates
@@ -123,7 +125,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
         rewind(paths.stats, EpisodeRow, core.updates)
     env = ExploreEnv(cfg.env, cfg.sensor)
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2,
-                        label_prob=cfg.explore.expert_label_prob)
+                        label_prob=cfg.explore.expert_label_prob, safe_prob=cfg.explore.safe_label_prob)
     policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=cfg.train.seed + 1,
                                  guide=guide)
     deadline = time.monotonic() + max_minutes * 60 if max_minutes else None

@@ -130,6 +130,8 @@ class ProgressFigures:
     """Seconds until ``--minutes`` stops the run (None: no time limit)."""
     label_agreement: float | None = None
     """Share of the learner's recent labelled samples whose greedy command is the label (None: no labels)."""
+    safe_agreement: float | None = None
+    """Share of the learner's recent safe-set marked samples whose greedy command keeps a way out (None: no marks)."""
 
 
 def limiter(f: ProgressFigures) -> str:
@@ -178,11 +180,13 @@ def eta(f: ProgressFigures) -> str:
 
 def progress_line(f: ProgressFigures) -> str:
     """The text beside the bar: limiter | env steps/s over the run | episodes | loss | [label agreement |]
+    [safe agreement |]
     actors | ETA."""
     env = f"{f.env_steps / f.env_s:.0f}" if f.env_s else "-"
     steps = f"{f.mean_steps:.1f}" if f.mean_steps is not None else "-"
     loss = f"{f.loss:.3g}" if f.loss is not None else "-"
     label = "" if f.label_agreement is None else f"label {f.label_agreement:.2f} | "
+    label += "" if f.safe_agreement is None else f"safe {f.safe_agreement:.2f} | "
     return (f"{limiter(f)} | env {env} st/s avg | ep {f.episodes} | steps/ep {steps} | loss {loss} | {label}"
             f"actors {f.actors_alive} | {eta(f)}")
 
@@ -197,6 +201,7 @@ class Progress:
     updates: int = 0
     loss: float | None = None
     label_agreement: float | None = None
+    safe_agreement: float | None = None
     transitions_received: int | None = None
     session_first_updates: int | None = None
     """The updates of this session's first learner report (a resumed run's starting point)."""
@@ -222,6 +227,7 @@ class Progress:
             self.transitions_received = stats.transitions_received
             self.loss = stats.loss if stats.loss is not None else self.loss
             self.label_agreement = stats.extra.get("label_agreement", self.label_agreement)
+            self.safe_agreement = stats.extra.get("safe_agreement", self.safe_agreement)
             share = stats.extra.get(LearnerStats.WAITING_SHARE)
             if share is not None:  # ~10 s of reports: one slow update does not flip the label
                 self.waiting.append(share)
@@ -258,7 +264,7 @@ class Progress:
                 episodes=self.episodes,
                 mean_steps=sum(self.recent_steps) / len(self.recent_steps) if self.recent_steps else None,
                 loss=self.loss, actors_alive=actors_alive, clock_s=time.time() if clock_s is None else clock_s,
-                label_agreement=self.label_agreement)
+                label_agreement=self.label_agreement, safe_agreement=self.safe_agreement)
 
 
 class Launcher:

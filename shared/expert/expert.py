@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from shared.config import NUM_ACTIONS, SPEED_TABLES, EnvConfig, SensorConfig
+from shared.config import NUM_ACTIONS, SPEED_TABLES, EnvConfig, SensorConfig, commands_mask
 from shared.errors import CogexploreError
 
 if TYPE_CHECKING:
@@ -123,6 +123,7 @@ class CommandExpert:
         angular, linear = SPEED_TABLES[self.env_cfg.speed_table]
         self.angular_rps = np.asarray(angular, dtype=np.float64)
         self.linear_mps = float(linear)
+        self._last_plans: tuple[tuple[float, float, float], tuple[np.ndarray, np.ndarray]] | None = None
         self._plans_relative()
         # Half the horizontal field of view: the outermost column's angle.
         self.half_fov_rad = float(np.abs(column_angles(self.sensor_cfg)).max())
@@ -228,7 +229,18 @@ class CommandExpert:
 
     def plan_scores(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
         """(safe steps (A, P) int, plan score (A, P)) of every plan from pose (x, y, yaw), grouped
-        by first command A."""
+        by first command A. The last pose's are kept (read-only): the trap charge asks at the pose a
+        step reaches, and the next step's safe-set mark asks at the same pose."""
+        key = (float(x), float(y), float(yaw))
+        if self._last_plans is not None and self._last_plans[0] == key:
+            return self._last_plans[1]
+        plans = self._plan_scores(*key)
+        for array in plans:
+            array.flags.writeable = False
+        self._last_plans = (key, plans)
+        return plans
+
+    def _plan_scores(self, x: float, y: float, yaw: float) -> tuple[np.ndarray, np.ndarray]:
         c, e = self.cfg, self.env_cfg
         contact_ok = (self._lookup(self._samples_rel, x, y, yaw)
                       >= e.robot_radius_m + c.contact_margin_m).all(axis=-1)  # (A, P, N)
@@ -241,6 +253,13 @@ class CommandExpert:
         space = np.where(safe > 0, (end_clear * counted).sum(-1) / np.maximum(safe, 1), 0.0)
         score = safe / c.horizon_steps + c.space_weight * space
         return safe, score
+
+    def safe_commands(self, x: float, y: float, yaw: float, steps: int) -> np.ndarray:
+        """(5,) bool: whether some plan starting with each command stays safe for ``steps`` steps
+        from pose (x, y, yaw), the command's own step included (the plans' shapes only: a lower
+        bound, so in a tight place every command can read False)."""
+        safe, _ = self.plan_scores(x, y, yaw)
+        return safe.max(axis=1) >= steps
 
     def free_ahead(self, x: float, y: float, yaw: float) -> np.ndarray:
         """(5,) free distance (m, up to view_range_m) straight ahead after each command's step,
@@ -353,8 +372,10 @@ class ExpertGuide:
     gives the expert's command in them; None in the others. Also draws which steps the expert
     labels as a teacher (``explore.expert_label_prob``, :meth:`teacher_label`). One per environment."""
 
-    def __init__(self, env: Any, prob: float, seed: int | None = None, *, label_prob: float = 0.0):
-        for name, p in (("expert episode probability", prob), ("expert label probability", label_prob)):
+    def __init__(self, env: Any, prob: float, seed: int | None = None, *, label_prob: float = 0.0,
+                 safe_prob: float = 0.0):
+        for name, p in (("expert episode probability", prob), ("expert label probability", label_prob),
+                        ("safe-set label probability", safe_prob)):
             if not (isinstance(p, (int, float)) and 0.0 <= p <= 1.0):
                 raise SupervisedError(f"{name} must be in [0, 1], got {p!r}")
         self.prob = float(prob)
@@ -363,6 +384,8 @@ class ExpertGuide:
         self.rng = np.random.default_rng(seed)
         # its own stream: labelling on or off leaves the episodes' draws as they were
         self.label_rng = np.random.default_rng(None if seed is None else seed + 1)
+        self.safe_prob = float(safe_prob)
+        self.safe_rng = np.random.default_rng(None if seed is None else seed + 2)
         self.active = False
 
     def begin_episode(self, episode: Any = None) -> bool:
@@ -380,6 +403,20 @@ class ExpertGuide:
         if self.label_prob <= 0 or self.label_rng.random() >= self.label_prob:
             return None
         return self._command(pose)
+
+    def safe_label(self, pose: Sequence[float]) -> int:
+        """For a ``safe_prob`` share of the calls, the bitmask (bit a: command a) of the commands with
+        a way out from ``pose``, the pose a decision was taken at (``CommandExpert.safe_commands``
+        over ``env.trap_horizon_steps``); 0 for the other calls and where every command or none has
+        one (nothing to tell apart)."""
+        if self.safe_prob <= 0 or self.safe_rng.random() >= self.safe_prob:
+            return 0
+        x, y, yaw = pose
+        safe = self.env.map_expert().safe_commands(float(x), float(y), float(yaw),
+                                                    self.env.env_config.trap_horizon_steps)
+        if safe.all() or not safe.any():
+            return 0
+        return commands_mask(safe)
 
     def _command(self, pose: Sequence[float]) -> int:
         x, y, yaw = pose  # the expert of the world now playing (env.extra_worlds), one per world

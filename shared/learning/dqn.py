@@ -50,7 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.config import DQNConfig, ModelConfig, SensorConfig, mirror_action
+from shared.config import DQNConfig, ModelConfig, SensorConfig, mask_commands, mirror_action
 from shared.errors import CogexploreError
 from shared.learning.model import (
     InferenceRunner,
@@ -162,17 +162,23 @@ def quantile_huber_loss(quantiles: torch.Tensor, targets: torch.Tensor, kappa: f
     return (weight * huber / kappa).mean(dim=2).sum(dim=1)
 
 
-def large_margin_loss(q_all: torch.Tensor, label: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
-    """DQfD's large-margin loss (Hester et al. 2018): mean over samples of
-    max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E), zero once the labelled command a_E (a
-    demonstration's, or the expert's) leads every other by ``margin``; and the share of samples whose
-    argmax already is a_E."""
-    penalty = torch.full_like(q_all, float(margin))
-    penalty.scatter_(1, label[:, None], 0.0)
-    q_label = q_all.gather(1, label[:, None]).squeeze(1)
-    loss = ((q_all + penalty).max(dim=1).values - q_label).mean()
-    agreement = float((q_all.detach().argmax(dim=1) == label).float().mean())
+def set_margin_loss(q_all: torch.Tensor, allowed: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
+    """Mean over samples of max(0, max_{a not allowed} Q(s, a) + margin - max_{a allowed} Q(s, a)):
+    zero once the best allowed command (``allowed``: (B, A) bool, each row with some allowed and
+    some not) leads every other by ``margin``; and the share of samples whose argmax is allowed.
+    With one allowed command a_E this is DQfD's large-margin loss (Hester et al. 2018),
+    max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)."""
+    best_allowed = q_all.masked_fill(~allowed, float("-inf")).max(dim=1).values
+    best_other = q_all.masked_fill(allowed, float("-inf")).max(dim=1).values
+    loss = F.relu(best_other + float(margin) - best_allowed).mean()
+    agreement = float(allowed.gather(1, q_all.detach().argmax(dim=1, keepdim=True)).float().mean())
     return loss, agreement
+
+
+def large_margin_loss(q_all: torch.Tensor, label: torch.Tensor, margin: float) -> tuple[torch.Tensor, float]:
+    """DQfD's large-margin loss: :func:`set_margin_loss` with the labelled command (a
+    demonstration's, or the expert's) the one allowed; the share is of argmaxes that are the label."""
+    return set_margin_loss(q_all, F.one_hot(label, q_all.shape[1]).bool(), margin)
 
 
 @dataclass
@@ -190,6 +196,7 @@ class TensorBatch:
     next_previous_action: torch.Tensor  # (B, J) int64
     demo: torch.Tensor | None = None  # (B,) bool: demonstration samples (never mirrored)
     expert_action: torch.Tensor | None = None  # (B,) int64 labelled command (large-margin loss), -1: none
+    safe: torch.Tensor | None = None  # (B, A) bool commands with a way out (safe-set margin loss); no row: none
 
 
 def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
@@ -204,7 +211,9 @@ def mirror_batch(tb: TensorBatch, flip: torch.Tensor) -> TensorBatch:
     return dataclasses.replace(tb, obs=mirror_images(tb.obs, flip), next_obs=mirror_images(tb.next_obs, flip),
                                action=mirror(tb.action), previous_action=mirror(tb.previous_action),
                                next_previous_action=mirror(tb.next_previous_action),
-                               expert_action=None if tb.expert_action is None else mirror(tb.expert_action))
+                               expert_action=None if tb.expert_action is None else mirror(tb.expert_action),
+                               safe=None if tb.safe is None else
+                               torch.where(flip[:, None], tb.safe.flip(dims=[1]), tb.safe))
 
 
 @dataclass(frozen=True)
@@ -319,6 +328,8 @@ class DQNAgent:
             demo=None if batch.demo is None else torch.as_tensor(batch.demo, dtype=torch.bool, device=dev),
             expert_action=None if batch.expert_action is None or not (batch.expert_action >= 0).any() else
             torch.as_tensor(batch.expert_action, dtype=torch.int64, device=dev),
+            safe=None if batch.safe_commands is None or not batch.safe_commands.any() else
+            torch.as_tensor(mask_commands(batch.safe_commands), device=dev),
         )
 
     # ------------------------------------------------------------------ update
@@ -405,6 +416,13 @@ class DQNAgent:
                                                        self.cfg.demo_margin)
             loss = loss + self.cfg.demo_weight * margin_loss
             label_metrics = {"label_margin_loss": float(margin_loss.detach()), "label_agreement": agreement}
+        if tb.safe is not None and self.cfg.safe_weight > 0:
+            # only where the mark tells commands apart: all-safe and none-safe rows carry no contrast
+            marked = tb.safe.any(dim=1) & ~tb.safe.all(dim=1)
+            if bool(marked.any()):
+                safe_loss, agreement = set_margin_loss(q_all[marked], tb.safe[marked], self.cfg.safe_margin)
+                loss = loss + self.cfg.safe_weight * safe_loss * (marked.float().mean())
+                label_metrics.update(safe_margin_loss=float(safe_loss.detach()), safe_agreement=agreement)
         if not torch.isfinite(loss):
             # The offenders: a sample whose own loss is not finite, or so large that it alone can
             # overflow the batch mean (a Huber loss stays finite where the squared error does not).

@@ -90,19 +90,22 @@ class LearnerCore:
         self._max_depth_mm = math.ceil(cfg.sensor.max_range_m * 1000)
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
         self._label_window: collections.deque = collections.deque(maxlen=1000)  # label_agreement
+        self._safe_window: collections.deque = collections.deque(maxlen=1000)  # safe_agreement
         self._last_metrics: dict[str, Any] = {}
 
     # -- data in ---------------------------------------------------------------------------
     def add_transition(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
                        next_obs: np.ndarray | None, terminated: bool, truncated: bool,
-                       expert_action: int | None = None) -> None:
+                       expert_action: int | None = None, safe_commands: int = 0) -> None:
         """Store one transition (ReplayError for a reward this task does not pay: one finite but huge
         reward, stored, would make every TD target it reaches huge). ``expert_action``: the expert's
-        command in ``obs`` (``explore.expert_label_prob``), None: no label."""
+        command in ``obs`` (``explore.expert_label_prob``), None: no label; ``safe_commands``: its
+        safe-set bitmask there (``explore.safe_label_prob``), 0: no mark."""
         if not self.cfg.env.pays(reward):
             raise ReplayError(f"reward {reward!r} is not one this task pays "
                               f"(it pays {self.cfg.env.describe_rewards()})")
-        self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated, expert_action=expert_action)
+        self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated, expert_action=expert_action,
+                        safe_commands=safe_commands)
         self.received += 1
 
     def ingest(self, batch: TransitionBatch) -> int:
@@ -117,10 +120,12 @@ class LearnerCore:
         stream = (batch.actor_id, batch.actor_epoch, batch.episode)
         last = batch.steps - 1
         labels = batch.expert_labels()
+        marks = np.zeros(batch.steps, np.uint8) if batch.safe_commands is None else batch.safe_commands
         for i in range(batch.steps):
             self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
                                 batch.next_depth(i), batch.terminated and i == last,
-                                batch.truncated and i == last, None if labels[i] < 0 else int(labels[i]))
+                                batch.truncated and i == last, None if labels[i] < 0 else int(labels[i]),
+                                int(marks[i]))
         record = self._record(batch.actor_id, batch.actor_epoch)
         record.received += batch.steps
         record.version = int(batch.policy_version[-1])  # its newest: a restarted learner's weights are lower
@@ -209,6 +214,8 @@ class LearnerCore:
         self._window.append((metrics["loss"], metrics["q_mean"]))
         if "label_agreement" in metrics:
             self._label_window.append(metrics["label_agreement"])
+        if "safe_agreement" in metrics:
+            self._safe_window.append(metrics["safe_agreement"])
         self._last_metrics = metrics
         return metrics
 
@@ -245,6 +252,13 @@ class LearnerCore:
         if not self._label_window:
             return None
         return float(np.mean(list(self._label_window)[-n:]))
+
+    def recent_safe_agreement(self, n: int = 100) -> float | None:
+        """Share of the safe-set marked samples whose greedy command has a way out, over the last
+        ``n`` updates (None without marks)."""
+        if not self._safe_window:
+            return None
+        return float(np.mean(list(self._safe_window)[-n:]))
 
     def weight_lag(self) -> dict[str, int]:
         """Versions between the learner's weights and those each actor's newest transitions used."""

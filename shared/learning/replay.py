@@ -37,7 +37,7 @@ from typing import Any, Hashable
 
 import numpy as np
 
-from shared.config import MAX_ACTION_HISTORY, MAX_FRAME_STACK, NUM_ACTIONS, ReplayConfig
+from shared.config import ALL_COMMANDS_MASK, MAX_ACTION_HISTORY, MAX_FRAME_STACK, NUM_ACTIONS, ReplayConfig
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 
@@ -73,6 +73,7 @@ class Batch:
     indices: np.ndarray  # (B,) int64 transition ids, for update_priorities
     demo: np.ndarray | None = None  # (B,) bool: from a demonstration (shared.learning.demos); None: none are
     expert_action: np.ndarray | None = None  # (B,) int64 labelled command (large-margin loss), -1: none; None: none
+    safe_commands: np.ndarray | None = None  # (B,) uint8 safe-set bitmask (safe-set margin loss), 0: none; None: none
 
     def __len__(self) -> int:
         return int(self.action.shape[0])
@@ -91,7 +92,9 @@ def concat_batches(batch: Batch, demo_batch: Batch) -> Batch:
                            np.ones(len(demo_batch), bool)])
     label = np.concatenate([np.full(len(batch), -1, np.int64) if batch.expert_action is None else batch.expert_action,
                             demo_batch.action])
-    return Batch(**joined, demo=demo, expert_action=label)
+    marks = None if batch.safe_commands is None else \
+        np.concatenate([batch.safe_commands, np.zeros(len(demo_batch), np.uint8)])
+    return Batch(**joined, demo=demo, expert_action=label, safe_commands=marks)
 
 
 class SumTree:
@@ -162,6 +165,7 @@ class ReplayMemory:
         self._reward = np.zeros(n, dtype=np.float32)
         self._action = np.zeros(n, dtype=np.uint8)
         self._expert_action = np.full(n, -1, dtype=np.int8)  # the expert's command in obs, -1: none
+        self._safe_commands = np.zeros(n, dtype=np.uint8)  # its safe-set bitmask in obs, 0: none
         self._previous_action = np.full((n, MAX_ACTION_HISTORY), -1, dtype=np.int8)  # most recent first
         self._terminated = np.zeros(n, dtype=bool)
         self._truncated = np.zeros(n, dtype=bool)
@@ -187,6 +191,7 @@ class ReplayMemory:
     def nbytes(self) -> int:
         arrays = (self._frames, self._frame_id, self._frame_refs, self._tid, self._obs_fid,
                   self._next_fid, self._next_tid, self._prev_tid, self._reward, self._action, self._expert_action,
+                  self._safe_commands,
                   self._previous_action,
                   self._terminated, self._truncated, self._valid)
         tree = self._tree.tree.nbytes if self._tree is not None else 0
@@ -233,7 +238,7 @@ class ReplayMemory:
     # ------------------------------------------------------------------ adding
     def add(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
             next_obs: np.ndarray | None, terminated: bool, truncated: bool = False, *,
-            expert_action: int | None = None) -> int:
+            expert_action: int | None = None, safe_commands: int = 0) -> int:
         """Store one transition of stream ``stream_id``; returns its transition id.
 
         ``obs``/``next_obs`` are (H, W) float metres or uint16 millimetres. ``obs=None`` means
@@ -247,6 +252,8 @@ class ReplayMemory:
         if expert_action is not None and not (isinstance(expert_action, (int, np.integer))
                                               and 0 <= int(expert_action) < NUM_ACTIONS):
             raise ReplayError(f"expert_action must be None or an integer in [0, {NUM_ACTIONS}), got {expert_action!r}")
+        if not (isinstance(safe_commands, (int, np.integer)) and 0 <= int(safe_commands) <= ALL_COMMANDS_MASK):
+            raise ReplayError(f"safe_commands must be a bitmask in [0, {ALL_COMMANDS_MASK}], got {safe_commands!r}")
         if not np.isfinite(reward):
             raise ReplayError(f"reward must be finite, got {reward!r}")
         if terminated and truncated:
@@ -286,6 +293,7 @@ class ReplayMemory:
         self._reward[slot] = reward
         self._action[slot] = int(action)
         self._expert_action[slot] = -1 if expert_action is None else int(expert_action)
+        self._safe_commands[slot] = int(safe_commands)
         prev_slot = prev_tid % self.capacity
         if prev_tid >= 0 and self._tid[prev_slot] == prev_tid:
             self._previous_action[slot] = self._history_after(prev_slot)
@@ -360,15 +368,17 @@ class ReplayMemory:
             weights = np.ones(batch_size, dtype=np.float32)
         return self._gather(slots, n_step, weights, frames)
 
-    def labelled(self, frames: int = 1) -> Batch:
-        """Every stored transition the expert labelled (``explore.expert_label_prob``), oldest first, as a
-        one-step Batch whose ``expert_action`` holds the labels: the states a run's actors visited, for
-        measuring how far a network (or anything) agrees with the expert there."""
+    def labelled(self, frames: int = 1, *, safe_marks: bool = False) -> Batch:
+        """Every stored transition the expert labelled (``explore.expert_label_prob``; with ``safe_marks``,
+        every one it marked with its safe set, ``explore.safe_label_prob``), oldest first, as a one-step
+        Batch whose ``expert_action`` (``safe_commands``) holds them: the states a run's actors visited,
+        for measuring how far a network (or anything) agrees with the expert there."""
         _check_frames(frames)
-        slots = np.flatnonzero(self._valid & (self._expert_action >= 0))
+        slots = np.flatnonzero(self._valid & ((self._safe_commands > 0) if safe_marks else (self._expert_action >= 0)))
         if slots.size == 0:
-            raise ReplayError("no stored transition carries an expert label (the run trained with "
-                              "explore.expert_label_prob = 0?)")
+            raise ReplayError("no stored transition carries " + (
+                "a safe-set mark (the run trained with explore.safe_label_prob = 0?)" if safe_marks else
+                "an expert label (the run trained with explore.expert_label_prob = 0?)"))
         slots = slots[np.argsort(self._tid[slots])]
         return self._gather(slots, 1, np.ones(slots.size, np.float32), frames)
 
@@ -433,7 +443,8 @@ class ReplayMemory:
                      next_previous_action=self._history_after(last),
                      weights=weights,
                      indices=self._tid[slots].copy(),
-                     expert_action=self._expert_action[slots].astype(np.int64))
+                     expert_action=self._expert_action[slots].astype(np.int64),
+                     safe_commands=self._safe_commands[slots].copy())
 
     def _obs_stack(self, slots: np.ndarray, frames: int) -> np.ndarray:
         """(B, frames) frame ids: each slot's obs, then its predecessors' obs, most recent first; where
@@ -492,7 +503,8 @@ class ReplayMemory:
             "frame_refs": self._frame_refs, "tid": self._tid, "obs_fid": self._obs_fid,
             "next_fid": self._next_fid, "next_tid": self._next_tid, "prev_tid": self._prev_tid,
             "reward": self._reward,
-            "action": self._action, "expert_action": self._expert_action, "previous_action": self._previous_action,
+            "action": self._action, "expert_action": self._expert_action,
+            "safe_commands": self._safe_commands, "previous_action": self._previous_action,
             "terminated": self._terminated, "truncated": self._truncated,
             "valid": self._valid,
         }
@@ -534,6 +546,10 @@ class ReplayMemory:
             self._expert_action[...] = arrays.get("expert_action", -1)  # before labels: none
             if ((self._expert_action < -1) | (self._expert_action >= NUM_ACTIONS)).any():
                 raise ValueError(f"an expert label outside -1..{NUM_ACTIONS - 1}")
+            marks = np.asarray(arrays.get("safe_commands", 0))  # before marks: none
+            if ((marks < 0) | (marks > ALL_COMMANDS_MASK)).any():
+                raise ValueError(f"a safe-set mark outside 0..{ALL_COMMANDS_MASK}")
+            self._safe_commands[...] = marks
             if self._tree is not None:
                 self._tree.tree[...] = arrays["tree"]
         except (KeyError, ValueError) as exc:

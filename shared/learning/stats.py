@@ -81,6 +81,10 @@ class LearnerRow(_Row):
     lr: float | None = _cell(".4g")
     """The fully connected layers' learning rate at the newest update (dqn.lr, falling over
     dqn.lr_decay_updates where set); None before the first update."""
+    safe_agreement: float | None = _cell(".3f")
+    """Share of the samples the map expert marked with the commands that keep a way out
+    (explore.safe_label_prob) whose greedy command is one of them, over the recent updates; None
+    without marks. Last: a log begun before it was kept reads its rows as before."""
 
 
 @dataclass(frozen=True)

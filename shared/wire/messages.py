@@ -20,6 +20,9 @@ actor within ONE episode (a batch never spans two episodes), every frame sent on
     pose[i]           (x, y, yaw) after action i            float32 (T, 3)
     expert_action[i]  the map expert's command in obs i     uint8 (T,) or None: NO_EXPERT_LABEL
                       (explore.expert_label_prob)           where it named none; None: no labels
+    safe_commands[i]  bitmask (bit a: command a) of the     uint8 (T,) or None: 0 where it marked
+                      commands with a way out from obs i    none; None: no marks
+                      (explore.safe_label_prob)
     terminated        the LAST transition ended in a collision (no bootstrap)
     truncated         the LAST transition hit the step cap (bootstrap from next_depth_mm)
 
@@ -46,15 +49,16 @@ from typing import Any, ClassVar, Mapping, Sequence, TypeVar
 import msgpack
 import numpy as np
 
-from shared.config import NUM_ACTIONS, ConfigError, EnvConfig, RunConfig, from_dict
+from shared.config import ALL_COMMANDS_MASK, NUM_ACTIONS, ConfigError, EnvConfig, RunConfig, from_dict
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
 from shared.wire.keys import KeyExprError, validate_name
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """Bumped on any incompatible change of a message layout; a receiver rejects other versions.
 2: learner and actor epochs (weights versions are (learner epoch, update); flow credit per actor
-process). 3: transitions carry the expert's labels (``TransitionBatch.expert_action``)."""
+process). 3: transitions carry the expert's labels (``TransitionBatch.expert_action``). 4: and its
+safe-set marks (``TransitionBatch.safe_commands``)."""
 NO_EXPERT_LABEL = 255
 """``TransitionBatch.expert_action`` of a transition the expert did not label."""
 
@@ -406,6 +410,9 @@ class TransitionBatch(Message):
     truncated: bool = False
     expert_action: np.ndarray | None = field(default=None, metadata={"wire": _WIRE_ARRAY})
     """The map expert's command in each transition's obs (``NO_EXPERT_LABEL``: none); None: no labels."""
+    safe_commands: np.ndarray | None = field(default=None, metadata={"wire": _WIRE_ARRAY})
+    """Bitmask of the commands the map expert found a way out after, per transition's obs (0: no
+    mark); None: no marks."""
 
     def __post_init__(self) -> None:
         _set(self, "actor_id", _chunk(self.actor_id, "actor_id"))
@@ -443,6 +450,11 @@ class TransitionBatch(Message):
             if ((label >= NUM_ACTIONS) & (label != NO_EXPERT_LABEL)).any():
                 raise MessageError(RANGE, f"expert_action holds {sorted(set(label.tolist()))}: commands are "
                                           f"0-{NUM_ACTIONS - 1}, {NO_EXPERT_LABEL} is no label")
+        if self.safe_commands is not None:
+            marks = _array(self.safe_commands, "safe_commands", "uint8", (t,))
+            if (marks > ALL_COMMANDS_MASK).any():
+                raise MessageError(RANGE, f"safe_commands holds {int(marks.max())}: a bitmask of "
+                                          f"{NUM_ACTIONS} commands is at most {ALL_COMMANDS_MASK}")
 
     @property
     def steps(self) -> int:
@@ -510,10 +522,12 @@ class TransitionBatch(Message):
                    action: Sequence[int], reward: Sequence[float], policy_version: Sequence[int],
                    pose: Sequence[Sequence[float]], terminated: bool = False,
                    truncated: bool = False, actor_epoch: int = 0,
-                   expert_action: Sequence[int | None] | None = None) -> "TransitionBatch":
+                   expert_action: Sequence[int | None] | None = None,
+                   safe_commands: Sequence[int] | None = None) -> "TransitionBatch":
         """Build from per-step lists. Float depth is taken as metres and converted to mm;
         uint16 depth is taken as mm already. ``expert_action``: the expert's command per step
-        (None where it named none); None, or None at every step: no labels."""
+        (None where it named none); None, or None at every step: no labels. ``safe_commands``: the
+        expert's safe-set bitmask per step (0: no mark); None, or 0 at every step: no marks."""
 
         def frames(x: Any) -> np.ndarray:
             x = np.asarray(x)
@@ -522,6 +536,8 @@ class TransitionBatch(Message):
         action_list = [int(a) for a in action]
         if any(not 0 <= a < NUM_ACTIONS for a in action_list):
             raise MessageError(RANGE, f"actions {action_list} must be in [0, {NUM_ACTIONS - 1}]")
+        if safe_commands is not None and any(not 0 <= int(m) <= ALL_COMMANDS_MASK for m in safe_commands):
+            raise MessageError(RANGE, f"safe_commands {list(safe_commands)} must be bitmasks in [0, {ALL_COMMANDS_MASK}]")
         return cls(actor_id=actor_id, episode=episode, first_step=first_step,
                    start_index=start_index, actor_epoch=actor_epoch, depth_mm=frames(depth),
                    next_depth_mm=None if next_depth is None else frames(next_depth),
@@ -531,7 +547,9 @@ class TransitionBatch(Message):
                    pose=np.asarray(pose, dtype=np.float32).reshape(-1, 3),
                    terminated=terminated, truncated=truncated,
                    expert_action=None if expert_action is None or all(a is None for a in expert_action) else
-                   np.asarray([NO_EXPERT_LABEL if a is None else int(a) for a in expert_action], dtype=np.uint8))
+                   np.asarray([NO_EXPERT_LABEL if a is None else int(a) for a in expert_action], dtype=np.uint8),
+                   safe_commands=None if safe_commands is None or not any(safe_commands) else
+                   np.asarray(safe_commands, dtype=np.uint8))
 
 
 def shape_fingerprint(named_shapes: Mapping[str, Sequence[int]],

@@ -22,7 +22,7 @@ from shared.learning.stats import (
 def row(**changes) -> LearnerRow:
     values = dict(time_s=1.23456, update=50, policy_version=50, loss=0.5, mean_q=None, updates_per_s=2.0,
                   transitions=700, transitions_per_s=None, replay_size=700, rejected=0, actors_alive=1,
-                  mean_weight_lag=0.0, label_agreement=0.875, lr=5e-4)
+                  mean_weight_lag=0.0, label_agreement=0.875, lr=5e-4, safe_agreement=0.75)
     values.update(changes)
     return LearnerRow(**values)
 
@@ -30,7 +30,7 @@ def row(**changes) -> LearnerRow:
 def test_columns_are_the_fields_in_order_and_return_keeps_its_name():
     assert LearnerRow.columns() == ("time_s", "update", "policy_version", "loss", "mean_q", "updates_per_s",
                                     "transitions", "transitions_per_s", "replay_size", "rejected", "actors_alive",
-                                    "mean_weight_lag", "label_agreement", "lr")
+                                    "mean_weight_lag", "label_agreement", "lr", "safe_agreement")
     assert EpisodeRow.columns()[5] == "return" and "episode_return" not in EpisodeRow.columns()
 
 
@@ -82,7 +82,7 @@ def test_rows_become_scalars_tagged_by_file_and_column_at_their_step_column(tmp_
         board.write("eval", {"mean_steps": 12.5, "collisions": {"depth": 3}, "world": "box-room", "none": None}, 20)
     got = tensorboard_scalars(tmp_path / "tb" / "learner").tags
     numeric = {"time_s", "policy_version", "loss", "mean_q", "updates_per_s", "transitions", "replay_size",
-               "rejected", "actors_alive", "mean_weight_lag", "label_agreement", "lr"}
+               "rejected", "actors_alive", "mean_weight_lag", "label_agreement", "safe_agreement", "lr"}
     assert set(got) == {f"learner/{c}" for c in numeric} | {"eval/mean_steps", "eval/collisions/depth"}
     assert got["learner/loss"] == [(10, 0.5), (20, 0.25)]
     assert got["learner/mean_q"] == [(10, 2.5)]  # None at update 20: no point
