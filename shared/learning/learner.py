@@ -89,8 +89,8 @@ class LearnerCore:
         """Transitions removed from replay because an update on them had a non-finite loss."""
         self._max_depth_mm = math.ceil(cfg.sensor.max_range_m * 1000)
         self._window: collections.deque = collections.deque(maxlen=1000)  # (loss, q_mean)
-        self._label_window: collections.deque = collections.deque(maxlen=1000)  # label_agreement
-        self._safe_window: collections.deque = collections.deque(maxlen=1000)  # safe_agreement
+        self._agreement_windows: dict[str, collections.deque] = {
+            name: collections.deque(maxlen=1000) for name in ("label_agreement", "safe_agreement")}
         self._last_metrics: dict[str, Any] = {}
 
     # -- data in ---------------------------------------------------------------------------
@@ -212,10 +212,9 @@ class LearnerCore:
             n_replay = self._replay_rows(batch)
             self.replay.update_priorities(batch.indices[:n_replay], metrics["td_errors"][:n_replay])
         self._window.append((metrics["loss"], metrics["q_mean"]))
-        if "label_agreement" in metrics:
-            self._label_window.append(metrics["label_agreement"])
-        if "safe_agreement" in metrics:
-            self._safe_window.append(metrics["safe_agreement"])
+        for name, window in self._agreement_windows.items():
+            if name in metrics:
+                window.append(metrics[name])
         self._last_metrics = metrics
         return metrics
 
@@ -249,16 +248,16 @@ class LearnerCore:
     def recent_label_agreement(self, n: int = 100) -> float | None:
         """Share of labelled samples (demonstrations, expert labels) whose greedy command was the
         labelled one, over the last ``n`` updates (None without labels)."""
-        if not self._label_window:
-            return None
-        return float(np.mean(list(self._label_window)[-n:]))
+        return self._recent_agreement("label_agreement", n)
 
     def recent_safe_agreement(self, n: int = 100) -> float | None:
         """Share of the safe-set marked samples whose greedy command has a way out, over the last
         ``n`` updates (None without marks)."""
-        if not self._safe_window:
-            return None
-        return float(np.mean(list(self._safe_window)[-n:]))
+        return self._recent_agreement("safe_agreement", n)
+
+    def _recent_agreement(self, name: str, n: int) -> float | None:
+        window = self._agreement_windows[name]
+        return float(np.mean(list(window)[-n:])) if window else None
 
     def weight_lag(self) -> dict[str, int]:
         """Versions between the learner's weights and those each actor's newest transitions used."""
