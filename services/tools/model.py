@@ -127,11 +127,12 @@ def run_agreement(args: argparse.Namespace) -> int:
     if marked is not None:
         safe = mask_commands(marked.safe_commands)  # (N, 5)
         rows = np.arange(len(safe))
+        share = {n: float(v) for n, v in zip(ACTION_NAMES, safe.mean(axis=0))}  # also "always <command>"'s score
         report["safe_marks"] = {
             "marked_states": int(len(safe)),
-            "safe_share": {n: float(v) for n, v in zip(ACTION_NAMES, safe.mean(axis=0))},
+            "safe_share": share,
             "baselines": {"the actors' own commands": float(safe[rows, marked.action].mean()),
-                          **{f"always {n}": float(v) for n, v in zip(ACTION_NAMES, safe.mean(axis=0))}},
+                          **{f"always {n}": v for n, v in share.items()}},
             "models": {source: float(safe[rows, _greedy(net, memory, marked, True)].mean())
                        for source, net in nets.items()}}
         for source, share in report["safe_marks"]["models"].items():
