@@ -218,7 +218,8 @@ def test_forged_credit_is_ignored_and_a_restarted_actor_starts_from_nothing(syst
             while not stop.wait(0.05):
                 s.put(KEYS.flow, forged)
 
-    threading.Thread(target=forge, daemon=True).start()
+    forger = threading.Thread(target=forge, daemon=True)
+    forger.start()
     try:
         started = time.monotonic()
         while time.monotonic() - started < 10:
@@ -227,6 +228,7 @@ def test_forged_credit_is_ignored_and_a_restarted_actor_starts_from_nothing(syst
             time.sleep(0.5)
     finally:
         stop.set()
+        forger.join(10)  # its session closed: no forged credit overlaps the restart below
     before = system.wait(lambda st: received(st, "actor-1") > 100, 120, "actor-1 with a count to lose")
     system.procs["actor-1"].send_signal(signal.SIGKILL)
     system.procs["actor-1"].wait(10)

@@ -294,12 +294,14 @@ def run_small_actor(router: str, rerun_url: str | None, max_steps: int, every: i
             while not done.wait(0.1):
                 session.put(RunKeys("live").flow, credit)
 
-        threading.Thread(target=speak_as_the_learner, daemon=True).start()
+        speaker = threading.Thread(target=speak_as_the_learner, daemon=True)
+        speaker.start()
         try:
             return run_actor(cfg, "live", "a-1", settings, threading.Event(), max_steps=max_steps, seed=3,
                              rerun_url=rerun_url, rerun_every_episodes=every, rerun_image_every=2)
         finally:
             done.set()
+            speaker.join()  # before the session closes: a put on a closing session raises in the thread
 
 
 def test_actor_lets_the_expert_drive_the_drawn_episodes(router: str) -> None:
