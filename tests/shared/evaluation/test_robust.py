@@ -5,6 +5,7 @@ and noise of zero that is the paper's protocol exactly (real env, real MuJoCo, t
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -26,19 +27,24 @@ ROBUST = PROTOCOLS["robust"]
 
 
 class Recorder:
-    """A policy that records the first image of every episode and otherwise acts as ``inner``."""
+    """A policy that records the first image and pose of every episode and otherwise acts as
+    ``inner``. It reads the pose (``reads_pose``), so the protocol hands it each step's info."""
+
+    reads_pose = True
 
     def __init__(self, inner):
         self.inner = inner
         self.firsts: list[np.ndarray] = []
+        self.first_poses: list[tuple[float, float, float]] = []
         self._new = True
 
     def reset(self) -> None:
         self._new = True
 
-    def __call__(self, depth_m: np.ndarray):
+    def __call__(self, depth_m: np.ndarray, info):
         if self._new:
             self.firsts.append(depth_m.copy())
+            self.first_poses.append(tuple(info["pose"]))
             self._new = False
         return self.inner(depth_m)
 
@@ -64,19 +70,35 @@ def test_the_same_seed_gives_two_policies_the_same_starts_and_noise() -> None:
         policy = Recorder(inner)
         results = evaluate_policy(policy, world="box-room", sensor_cfg=SENSOR, starts=[0, 3], episodes_per_start=3,
                                   max_steps=6, seed=5, progress=False, protocol=ROBUST)
-        runs[name] = (results, policy.firsts)
-    (circling, firsts_a), (reactive, firsts_b) = runs["circling"], runs["reactive"]
+        runs[name] = (results, policy)
+    (circling, recorder_a), (reactive, recorder_b) = runs["circling"], runs["reactive"]
     assert [e.steps for e in circling.episodes] != [e.steps for e in reactive.episodes]  # two policies indeed
     starts_a = [e.trajectory_xy[0] for e in circling.episodes]
     assert starts_a == [e.trajectory_xy[0] for e in reactive.episodes]
-    # The first image depends on the drawn pose (heading included) and on the noise: the same, bit for bit.
-    assert len(firsts_a) == 6 and all(np.array_equal(a, b) for a, b in zip(firsts_a, firsts_b, strict=True))
+    # The whole start pose, heading included, and the first image, noise included: the same, bit for bit.
+    assert len(recorder_a.first_poses) == 6 and recorder_a.first_poses == recorder_b.first_poses
+    assert all(np.array_equal(a, b) for a, b in zip(recorder_a.firsts, recorder_b.firsts, strict=True))
     # Each start's episodes are different draws within the jitter, around the named pose.
     env = ExploreEnv(world="box-room", sensor=SENSOR)
-    for e, xy in zip(circling.episodes, starts_a, strict=True):
+    turns_deg = []
+    for e, (x, y, yaw) in zip(circling.episodes, recorder_a.first_poses, strict=True):
         named = env.world.starts[e.start_index]
-        assert max(abs(xy[0] - named.x), abs(xy[1] - named.y)) <= ROBUST.start_jitter_m
+        assert (x, y) == e.trajectory_xy[0]
+        assert max(abs(x - named.x), abs(y - named.y)) <= ROBUST.start_jitter_m
+        turns_deg.append(math.degrees(math.remainder(yaw - named.yaw, math.tau)))
+    assert max(abs(t) for t in turns_deg) <= ROBUST.start_jitter_deg + 1e-9 and len(set(turns_deg)) == 6
     assert len(set(starts_a[:3])) == 3 and len(set(starts_a[3:])) == 3
+    # The noise reached the camera: each first image differs from a noise-free capture at its pose by
+    # the Kinect's sigma at that depth (z-scores of spread 1), not by nothing.
+    kinect = DepthCamera(env.model, ROBUST.sensor(SENSOR), seed=0)
+    z_scores = []
+    for first, pose in zip(recorder_a.firsts, recorder_a.first_poses, strict=True):
+        env.robot.set_pose(*pose)
+        clean = env.camera.capture(env.data)
+        keep = (clean > 0.5) & (clean < 3.8)  # away from the range gate, where noise can drop a return
+        z_scores.append((first[keep] - clean[keep]) / kinect.noise_std_m(clean[keep]))
+    z = np.concatenate(z_scores)
+    assert z.size > 500 and abs(z.mean()) < 0.1 and z.std() == pytest.approx(1.0, abs=0.1)
     env.close()
     # The same seed repeats the run exactly; another seed draws other starts.
     again = evaluate_policy(lambda d: (0, None), world="box-room", sensor_cfg=SENSOR, starts=[0, 3],
@@ -136,8 +158,8 @@ def test_a_jittered_start_never_touches_or_faces_an_obstacle_too_near() -> None:
             assert max(abs(x - named.x), abs(y - named.y)) <= 0.8
             assert robot_gap_m(env) > 0 and not env.robot.touching_obstacle()
             assert min_valid_depth(obs) >= cfg.collision_distance_m + START_DEPTH_MARGIN_M
-            assert info["min_depth_m"] == min_valid_depth(obs) and info["start_index"] == start
-            # Its first step from there is an ordinary step (no collision at the start itself).
+            assert info["start_index"] == start
+            # Each draw began a new episode: its first step counts from 1, whatever the last episode took.
             assert env.step(2)[4]["step"] == 1
     assert len(poses) == 4 * 30
     # The draw is the seed's: the same seed, the same pose.
