@@ -321,7 +321,7 @@ class Experiment:
         if reached < 1:
             raise ExperimentError(f"the DRL run stopped before its first update; see {run / 'logs'}")
         path = self.out / "models" / f"drl-{updates}.safetensors"
-        export_weights(path, model.net, model.policy_version)
+        export_weights(path, model.net, model.policy_version, run_config=model.run_config)
         return {"file": str(path), "checkpoint": str(model.path), "updates": reached,
                 "policy_version": model.policy_version, "stopped_early": reached < updates}
 

@@ -64,7 +64,8 @@ def run_export(args: argparse.Namespace) -> int:
             extra["ensemble_of"] = list(loaded.ensemble_of)
         if card:
             extra["card"] = card
-        out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half, extra=extra or None)
+        out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half,
+                             run_config=loaded.run_config, extra=extra or None)
         report.update(out=str(out), bytes=out.stat().st_size, half=args.half)
     _print_json({**report, "policy_version": loaded.policy_version, "source": str(loaded.path),
                  "averaged": max(1, len(loaded.averaged_from)), "ensemble": len(loaded.ensemble_of)})

@@ -362,7 +362,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
         per_world = {w: mean_steps(setup_evaluation("greedy", world=w, model=model, device=o.device), w, TEST_SEED)
                      for w in o.test_worlds}
         selection["test"] = {"mean": sum(per_world.values()) / len(per_world), "per_world": per_world}
-    out = export_weights(o.out, model.net, model.policy_version, half=o.half,
+    out = export_weights(o.out, model.net, model.policy_version, half=o.half, run_config=model.run_config,
                          extra={"averaged_from": list(model.averaged_from), "selection": selection})
     run_dir = o.run.parent if o.run.name == "checkpoints" else o.run
     clock = wall_minutes(run_dir / "stats" / "learner.csv")

@@ -362,18 +362,22 @@ class CheckpointManager:
 
 # --------------------------------------------------------------------------- weights-only export
 def export_weights(path: Path | str, net: QNetwork | QEnsemble, policy_version: int = 0, *, half: bool = False,
-                   extra: Mapping[str, Any] | None = None) -> Path:
+                   run_config: RunConfig | None = None, extra: Mapping[str, Any] | None = None) -> Path:
     """Write the network's weights, architecture and policy version (for deployment).
 
     A :class:`QEnsemble` is written as one file: every member's weights (``members.<i>.``) and, in
     ``members``, every member's model config. ``half`` stores float16 (half the bytes; loading
     casts back to float32, and the greedy action is what matters, not the last bits of a Q-value).
+    ``run_config``, the config of the run the weights come from, is kept so that the export is
+    evaluated in that run's world and robot as its checkpoints are (without it: the paper preset's).
     ``extra`` is JSON-able metadata kept beside the weights (e.g. a model card)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
             "fingerprint": architecture_fingerprint(net),
             "model": asdict(net.model_cfg), "sensor": asdict(net.sensor_cfg), **dict(extra or {})}
+    if run_config is not None:
+        meta["run_config"] = run_config.to_dict()
     if isinstance(net, QEnsemble):
         meta["members"] = [asdict(m.model_cfg) for m in net.members]
     tensors = weights_to_tensors(net)
@@ -674,8 +678,22 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
         errors.append(str(exc))
         raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
     return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
-                       weights_sha256(net), None, averaged_from=_averaged_from(meta),
+                       weights_sha256(net), _exported_run_config(path, meta), averaged_from=_averaged_from(meta),
                        ensemble_of=_ensemble_of(meta, net))
+
+
+def _exported_run_config(path: Path, meta: Mapping[str, Any]) -> RunConfig | None:
+    """The run config an export keeps (``export_weights(run_config=...)``), checked as a
+    checkpoint's is; None for an export without one (the shipped models, older exports)."""
+    stored = meta.get("run_config")
+    if stored is None:
+        return None
+    if not isinstance(stored, dict):
+        raise CheckpointError(f"{path}: its stored run config is not a table of sections")
+    try:
+        return from_dict(stored)
+    except ConfigError as exc:
+        raise CheckpointError(f"{path}: its stored run config is invalid: {exc}") from None
 
 
 def ensemble_models(models: Sequence[LoadedModel]) -> LoadedModel:

@@ -6,6 +6,7 @@ checkpoint writer; one real run of ten updates (smoke preset) finishes in betwee
 from __future__ import annotations
 
 import argparse
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -19,6 +20,7 @@ from services.runs import RunPaths, save_config
 from services.up.launcher import Launcher, checkpoint_updates, resume_line
 from services.up.options import add_up_arguments
 from shared.config import load_preset
+from shared.evaluation import PROTOCOLS
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore
 
@@ -127,6 +129,19 @@ def test_the_final_model_is_the_mean_of_the_last_checkpoints(tmp_path: Path) -> 
     for name, tensor in weights_to_tensors(mean.net).items():
         torch.testing.assert_close(tensor, (last_two[0][name] + last_two[1][name]) / 2)
     assert mean.weights_sha256 != load_model(paths.root).weights_sha256
+
+    # The run's end as `up` plays it: that mean evaluated under the test protocol, then the report
+    # with it beside the shipped model under both protocols.
+    ending = Launcher(launcher_args(tmp_path, "--resume", "--final-average", "2", "--final-episodes", "1"))
+    assert ending.final_report() == 0
+    final = json.loads((paths.stats / "final-eval.json").read_text())["meta"]
+    assert final["weights_sha256"] == mean.weights_sha256 and final["protocol"] == PROTOCOLS["robust"].to_dict()
+    assert (paths.recordings / "final-eval.rrd").is_file()
+    text = (paths.report / "report.md").read_text()
+    robust_at, paper_at = text.index("## Table III, robust protocol"), text.index("## Table III, paper protocol")
+    for section in (text[robust_at:paper_at], text[paper_at:]):
+        assert f"| Count | {RUN}-mean2@30 |" in section and "|  | drl@" in section
+    assert "robust reused: [final-eval.json]" in text  # the report took the evaluation above, not another
 
     # More than there are: all three. One: the run folder (its latest checkpoint) as it is.
     three = Launcher(launcher_args(tmp_path, "--resume", "--final-average", "4")).final_model()

@@ -343,3 +343,41 @@ def test_export_members_takes_networks_out_of_an_ensemble(tmp_path, capsys):
     assert main(["model", "export", str(paths[0]), "--members", "A", "--out", str(tmp_path / "x.safetensors")]) == 2
     assert "one network, not an ensemble" in capsys.readouterr().err
     assert not (tmp_path / "x.safetensors").exists()
+
+
+def test_an_export_keeps_its_runs_config_so_it_plays_in_that_runs_world(tmp_path, capsys):
+    """``model export`` of a run's checkpoints (the mean `up` evaluates, a `model select` choice)
+    keeps the run's config, so `evaluate` plays it in the run's world and robot as it plays the
+    checkpoints; an export without one (the shipped models) has none; a forged one is refused."""
+    from services.cli import main
+    from shared.config import load_preset
+    from shared.evaluation.setup import setup_evaluation
+    from shared.learning.checkpoints import (CheckpointManager, load_model, load_tensors_file,
+                                             save_tensors_file)
+    from shared.learning.learner import LearnerCore
+
+    cfg = load_preset("tiny").with_overrides({"replay.capacity": 500, "env.world": "corridor",
+                                              "env.collision_distance_m": 0.5})
+    manager = CheckpointManager(tmp_path / "checkpoints", keep=5)
+    for seed, updates in enumerate((10, 20)):
+        core = LearnerCore(cfg.with_overrides({"train.seed": seed}), device="cpu")
+        core.agent.update_count = core.agent.policy_version = updates
+        manager.save(core.agent, config=cfg.to_dict())
+    out = tmp_path / "mean.safetensors"
+    assert main(["model", "export", *map(str, manager.checkpoints()), "--out", str(out)]) == 0
+    capsys.readouterr()
+    mean = load_model(out)
+    assert mean.run_config == load_model(manager.checkpoints()[-1]).run_config
+    setup = setup_evaluation("greedy", model=mean, device="cpu")
+    assert setup.world == "corridor" and setup.env_cfg.collision_distance_m == 0.5
+    plain = export_weights(tmp_path / "plain.safetensors", mean.net, 20)
+    assert load_model(plain).run_config is None
+    assert setup_evaluation("greedy", model=load_model(plain), device="cpu").world == "paper-indoor"
+
+    tensors, meta = load_tensors_file(out, "cogexplore-weights")
+    bad = tmp_path / "forged.safetensors"
+    for forged, message in (("corridor", "not a table of sections"),
+                            ({**meta["run_config"], "env": {"collision_distance_m": -1}}, "run config is invalid")):
+        save_tensors_file(bad, tensors, {k: v for k, v in meta.items() if k != "digest"} | {"run_config": forged})
+        with pytest.raises(CheckpointError, match=message):
+            load_model(bad)
