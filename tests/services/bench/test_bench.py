@@ -14,6 +14,8 @@ import pytest
 from services.runs import RunPaths
 from services.up.launcher import checkpoint_updates
 from shared.config import load_preset
+from shared.evaluation import PROTOCOLS
+from shared.evaluation.results import load_results
 from shared.learning.dqn import update_flops
 from shared.learning.model import QNetwork
 
@@ -99,16 +101,25 @@ def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path
     out = _bench("system", "--compare-single-process", "--preset", "smoke", "--minutes", "0.4",
                  "--set", "dqn.lr_decay_updates=20", "--episodes-per-start", "1",
                  "--runs-dir", str(tmp_path), timeout_s=380)
-    for name in ("up", "single_process"):
+    for name, run_dir in (("up", "up"), ("single_process", "single")):
         run = out[name]
         assert run["updates"] > 0 and run["transitions"] > 0
         assert 0.4 * 60 <= run["wall_s"] < 0.4 * 60 + 120  # the time limit, then its stop and checkpoint
         assert run["updates_per_s"] == pytest.approx(run["updates"] / run["wall_s"])
+        assert run["env_steps_per_s"] == pytest.approx(run["transitions"] / run["wall_s"])
         for protocol in ("robust", "paper"):
+            # each score is its own protocol's evaluation of this run's model, as its JSON records
+            played = load_results(tmp_path / f"{run_dir}-{protocol}.json")
+            assert played.meta["protocol"] == PROTOCOLS[protocol].to_dict()
+            assert run[protocol]["mean_steps"] == pytest.approx(played.summary["overall"]["mean_steps"])
             assert 0 <= run[protocol]["worst_start_steps"] <= run[protocol]["mean_steps"] <= 200
-    ratios = out["ratios_up_over_single"]
-    assert ratios["updates_per_s"] == pytest.approx(out["up"]["updates_per_s"] / out["single_process"]["updates_per_s"])
-    assert set(ratios) == {"updates_per_s", "env_steps_per_s", "robust_mean_steps", "paper_mean_steps"}
+    up, single, ratios = out["up"], out["single_process"], out["ratios_up_over_single"]
+    pairs = {"updates_per_s": (up["updates_per_s"], single["updates_per_s"]),
+             "env_steps_per_s": (up["env_steps_per_s"], single["env_steps_per_s"]),
+             **{f"{p}_mean_steps": (up[p]["mean_steps"], single[p]["mean_steps"]) for p in ("robust", "paper")}}
+    assert set(ratios) == set(pairs)
+    for key, (a, b) in pairs.items():  # up over single, each its own quantity; None where single's is 0
+        assert ratios[key] == (pytest.approx(a / b) if b else None), key
     assert (tmp_path / "up" / "checkpoints").is_dir() and (tmp_path / "single" / "checkpoints").is_dir()
     # both trainers' logs end at the update their final checkpoint holds, and log the learning
     # rate: smoke's 1e-3, falling to its tenth over 20 updates

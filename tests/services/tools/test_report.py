@@ -113,6 +113,7 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
     assert "| paper: DRL-40000 | Tai & Liu 2016, Table III |  |  | 92.6 |" in beside
     assert "| paper: SL |" in beside and "| reactive | this report |" in beside
     # Results were evaluated with the requested protocol and saved for next time.
+    means = {}
     for protocol, paths in report.results.items():
         assert list(paths) == ["exp@1000", "random", "reactive"]
         for model, path in paths.items():
@@ -120,6 +121,17 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
             assert doc["meta"]["episodes_per_start"] == 1 and doc["meta"]["max_steps"] == 5
             assert doc["meta"]["protocol"] == PROTOCOLS[protocol].to_dict()
             assert len(doc["episodes"]) == 4, model
+            means[protocol, model] = doc["summary"]["overall"]["mean_steps"]
+    # Each protocol's tables show that protocol's results: its Table III's "All" column and its
+    # column beside the paper's figures.
+    sections = {"robust": text[robust_at:paper_at], "paper": text[paper_at:text.index("## Beside the paper's")]}
+    for (protocol, model), mean in means.items():
+        count_row = re.search(rf"^\| (?:Count)? *\| {re.escape(model)} \|.*\| \**([\d.]+)\** \|$",
+                              sections[protocol], re.M)
+        assert count_row and float(count_row.group(1)) == pytest.approx(mean, abs=0.05), (protocol, model)
+    for model in ("exp@1000", "random", "reactive"):
+        assert f"| {model} | this report | {means['robust', model]:.1f} | {means['paper', model]:.1f} |" in beside
+    assert any(means["robust", m] != means["paper", m] for m in ("exp@1000", "random", "reactive"))
 
     # A second report reuses every result instead of evaluating again.
     def stamps(r):

@@ -189,13 +189,13 @@ def test_select_draws_its_episodes_from_its_own_seed_not_the_tests(tmp_path: Pat
     assert summary["chosen"]["end_update"] == meta["selection"]["end_update"]
     assert meta["selection"]["seed"] == SELECTION_SEED
 
-    def played(seed: int) -> list[float]:
+    def played(seed: int, protocol: str = "robust") -> list[float]:
         gates = []
         for p in sorted((run / "checkpoints").glob("ckpt-*.safetensors")):
             setup = setup_evaluation("greedy", world="paper-indoor", model=load_model(p), device="cpu")
             gates.append(evaluate_policy(setup.policy_fn, world="paper-indoor", sensor_cfg=setup.sensor_cfg,
                                          env_cfg=setup.env_cfg, episodes_per_start=1, max_steps=60, seed=seed,
-                                         progress=False, protocol=PROTOCOLS["robust"]).summary["overall"]["mean_steps"])
+                                         progress=False, protocol=PROTOCOLS[protocol]).summary["overall"]["mean_steps"])
         return gates
 
     ours, the_tests = played(SELECTION_SEED), played(TEST_SEED)
@@ -208,6 +208,14 @@ def test_select_draws_its_episodes_from_its_own_seed_not_the_tests(tmp_path: Pat
     rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
     assert not any(line.endswith("(cached)") for line in lines)
     assert [r["score"]["gate"] for r in rows if r["protocol"]["seed"] == TEST_SEED] == pytest.approx(the_tests)
+    # --protocol paper plays the exact starts without noise: its own scores, cached apart, recorded
+    exact = played(SELECTION_SEED, "paper")
+    assert exact != ours
+    select(dataclasses.replace(opts, protocol=PROTOCOLS["paper"]), echo=lines.append)
+    rows = [json.loads(line) for line in out.with_name("best-windows.jsonl").read_text().splitlines()]
+    paper = PROTOCOLS["paper"].to_dict()
+    assert [r["score"]["gate"] for r in rows if r["protocol"]["protocol"] == paper] == pytest.approx(exact)
+    assert load_exported_weights(out)[1]["selection"]["protocol"] == paper
 
 
 def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -> None:

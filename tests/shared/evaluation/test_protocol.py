@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from rerun.chunk import RrdReader
+from rrd_checks import recorded_protocol
 
 from services.cli import main
 from services.viz.rerun import evaluate_recorded
@@ -62,15 +63,6 @@ def verify_rrd(path: Path) -> None:
     proc = subprocess.run([str(RERUN_CLI), "rrd", "verify", str(path)], capture_output=True, text=True,
                           env=env, timeout=60)
     assert proc.returncode == 0, proc.stderr + proc.stdout
-
-
-def recorded_protocol(path: Path) -> dict:
-    """The recording's ``protocol`` property (what ``EvalRecorder.log_evaluation`` sends)."""
-    for chunk in RrdReader(path).stream().to_chunks():
-        if chunk.entity_path == "/__properties/protocol":
-            row = chunk.to_record_batch().to_pylist()[0]
-            return {k: v[0] for k, v in row.items() if k != "rerun.controls.RowId"}
-    raise AssertionError(f"{path} has no protocol property")
 
 
 def entities(path: Path) -> dict[str, int]:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from rrd_checks import recorded_protocol
 from sim_checks import robot_gap_m
 
 from services.cli import main
@@ -214,14 +215,16 @@ def test_evaluate_records_the_protocol_and_refuses_its_noise_as_an_override(tmp_
                        (["--protocol", "paper", "--start-jitter-m", "0.1", "--start-jitter-deg", "5",
                          "--sensor-noise-m", "0.02"],
                         ProtocolConfig("custom", start_jitter_m=0.1, start_jitter_deg=5.0, sensor_noise_std_m=0.02))):
-        out = tmp_path / "r.json"
-        assert main(["evaluate", *common, *argv, "--json", str(out)]) == 0
+        out, rrd = tmp_path / f"{want.name}.json", tmp_path / f"{want.name}.rrd"
+        assert main(["evaluate", *common, *argv, "--json", str(out), "--rrd", str(rrd)]) == 0
         printed = capsys.readouterr().out
         doc = json.loads(out.read_text())
         assert doc["meta"]["protocol"] == want.to_dict() and load_results(out).protocol == want
+        assert recorded_protocol(rrd) == pytest.approx(want.to_dict())  # the recording says it too
         assert doc["meta"]["sensor"]["noise_std_m"] == want.sensor_noise_std_m
         assert f"protocol {want.describe()}" in printed
-        assert json.loads(printed.strip().splitlines()[-2])["protocol"] == want.name
+        summary_line = next(line for line in printed.splitlines() if line.startswith("{"))
+        assert json.loads(summary_line)["protocol"] == want.name
     assert main(["evaluate", *common, "--set", "sensor.noise_std_m=0.02"]) == 2
     assert "the test protocol sets the sensor's noise" in capsys.readouterr().err
     assert main(["evaluate", *common, "--set", "env.start_jitter_m=0.1"]) == 2  # training's jitter, not the test's
