@@ -652,12 +652,7 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
             errors.append(str(exc))
     if ckpt is not None:
         meta = ckpt.agent_meta
-        run_config = None
-        if ckpt.config:
-            try:
-                run_config = from_dict(ckpt.config)
-            except ConfigError as exc:
-                raise CheckpointError(f"{ckpt.path}: its stored run config is invalid: {exc}") from None
+        run_config = _stored_run_config(ckpt.path, ckpt.config or None)
         try:
             model_cfg = run_config.model if "model" not in meta else _stored_config(meta["model"], "model")
             sensor_cfg = run_config.sensor if "sensor" not in meta else _stored_config(meta["sensor"], "sensor")
@@ -678,14 +673,14 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
         errors.append(str(exc))
         raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
     return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
-                       weights_sha256(net), _exported_run_config(path, meta), averaged_from=_averaged_from(meta),
+                       weights_sha256(net), _stored_run_config(path, meta.get("run_config")),
+                       averaged_from=_averaged_from(meta),
                        ensemble_of=_ensemble_of(meta, net))
 
 
-def _exported_run_config(path: Path, meta: Mapping[str, Any]) -> RunConfig | None:
-    """The run config an export keeps (``export_weights(run_config=...)``), checked as a
-    checkpoint's is; None for an export without one (the shipped models, older exports)."""
-    stored = meta.get("run_config")
+def _stored_run_config(path: Path, stored: Any) -> RunConfig | None:
+    """The run config a checkpoint or an export (``export_weights(run_config=...)``) keeps, checked;
+    None for a file without one (the shipped models, older exports)."""
     if stored is None:
         return None
     if not isinstance(stored, dict):
