@@ -37,6 +37,11 @@ def _check(cond: bool, section: str, name: str, value: Any, allowed: str) -> Non
         raise ConfigError(f"[{section}] {name} = {value!r} is invalid: {allowed}")
 
 
+def _whole(x: Any) -> bool:
+    """An integer, and not a bool (TOML's ``true`` is Python's 1)."""
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
 def _finite(x: Any) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
 
@@ -134,7 +139,7 @@ class SensorConfig:
         s = "sensor"
         for name in ("width", "height"):
             v = getattr(self, name)
-            _check(isinstance(v, int) and not isinstance(v, bool) and 8 <= v <= 1024, s, name, v,
+            _check(_whole(v) and 8 <= v <= 1024, s, name, v,
                    "an integer in [8, 1024]")
         for name in ("hfov_deg", "vfov_deg"):
             v = getattr(self, name)
@@ -298,7 +303,7 @@ class EnvConfig:
                    f"a whole multiple of physics_timestep_s ({self.physics_timestep_s})")
         _check(_finite(self.robot_radius_m) and 0.05 <= self.robot_radius_m <= 1.0, s,
                "robot_radius_m", self.robot_radius_m, "metres in [0.05, 1]")
-        _check(isinstance(self.max_episode_steps, int) and self.max_episode_steps >= 1, s,
+        _check(_whole(self.max_episode_steps) and self.max_episode_steps >= 1, s,
                "max_episode_steps", self.max_episode_steps, "an integer >= 1")
         _check(_finite(self.collision_distance_m) and 0 < self.collision_distance_m < 10, s,
                "collision_distance_m", self.collision_distance_m, "metres in (0, 10)")
@@ -309,10 +314,10 @@ class EnvConfig:
                "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
         _check(_finite(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
                "reward_trap_penalty", self.reward_trap_penalty, "a number in [0, 1000]")
-        _check(isinstance(self.trap_horizon_steps, int) and not isinstance(self.trap_horizon_steps, bool)
+        _check(_whole(self.trap_horizon_steps)
                and 1 <= self.trap_horizon_steps <= 100, s,
                "trap_horizon_steps", self.trap_horizon_steps, "an integer in [1, 100]")
-        _check(self.start_index is None or (isinstance(self.start_index, int) and self.start_index >= 0),
+        _check(self.start_index is None or (_whole(self.start_index) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
         _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
                self.random_start_prob, "a probability in [0, 1]")
@@ -320,7 +325,7 @@ class EnvConfig:
                "random_start_clearance_m", self.random_start_clearance_m, "metres in (0, 5)")
         _check(_finite(self.failure_start_prob) and 0 <= self.failure_start_prob <= 1, s, "failure_start_prob",
                self.failure_start_prob, "a probability in [0, 1]")
-        _check(isinstance(self.failure_start_back_steps, int) and not isinstance(self.failure_start_back_steps, bool)
+        _check(_whole(self.failure_start_back_steps)
                and 1 <= self.failure_start_back_steps <= FAILURE_STARTS_BACK_MAX, s, "failure_start_back_steps",
                self.failure_start_back_steps, f"an integer in [1, {FAILURE_STARTS_BACK_MAX}]")
         _check(isinstance(self.extra_worlds, str), s, "extra_worlds", self.extra_worlds,
@@ -446,25 +451,25 @@ class ModelConfig:
         s = "model"
         for name in ("fc1", "fc2"):
             v = getattr(self, name)
-            _check(isinstance(v, int) and not isinstance(v, bool) and 1 <= v <= 8192, s, name, v,
+            _check(_whole(v) and 1 <= v <= 8192, s, name, v,
                    "an integer in [1, 8192]")
         _check(_finite(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
                "a probability in [0, 1)")
         _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
         _check(isinstance(self.previous_action, bool), s, "previous_action", self.previous_action,
                "true or false")
-        _check(isinstance(self.action_history, int) and not isinstance(self.action_history, bool)
+        _check(_whole(self.action_history)
                and 1 <= self.action_history <= MAX_ACTION_HISTORY, s, "action_history", self.action_history,
                f"an integer in [1, {MAX_ACTION_HISTORY}]")
         _check(self.action_history == 1 or self.previous_action, s, "action_history", self.action_history,
                "1 unless model.previous_action is on (the history is of previous commands)")
         _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
                f"one of {', '.join(DEPTH_ENCODINGS)}")
-        _check(type(self.quantiles) is int and (self.quantiles == 0 or 2 <= self.quantiles <= MAX_QUANTILES), s,
+        _check(_whole(self.quantiles) and (self.quantiles == 0 or 2 <= self.quantiles <= MAX_QUANTILES), s,
                "quantiles", self.quantiles, f"0 (one Q-value per command) or an integer in [2, {MAX_QUANTILES}]")
         _check(self.quantiles == 0 or not self.dueling, s, "quantiles", self.quantiles,
                "0 with model.dueling (a quantile head has no value/advantage split)")
-        _check(isinstance(self.frame_stack, int) and not isinstance(self.frame_stack, bool)
+        _check(_whole(self.frame_stack)
                and 1 <= self.frame_stack <= MAX_FRAME_STACK, s, "frame_stack", self.frame_stack,
                f"an integer in [1, {MAX_FRAME_STACK}]")
 
@@ -484,7 +489,7 @@ class ReplayConfig:
 
     def __post_init__(self) -> None:
         s = "replay"
-        _check(isinstance(self.capacity, int) and not isinstance(self.capacity, bool)
+        _check(_whole(self.capacity)
                and 2 <= self.capacity <= 10_000_000, s, "capacity", self.capacity,
                "an integer in [2, 10000000]")
         _check(isinstance(self.prioritized, bool), s, "prioritized", self.prioritized, "true or false")
@@ -568,23 +573,23 @@ class DQNConfig:
 
     def __post_init__(self) -> None:
         s = "dqn"
-        _check(type(self.batch_size) is int and 1 <= self.batch_size <= 4096, s, "batch_size",
+        _check(_whole(self.batch_size) and 1 <= self.batch_size <= 4096, s, "batch_size",
                self.batch_size, "an integer in [1, 4096]")
         _check(_finite(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
-        _check(type(self.target_sync_every) is int and self.target_sync_every >= 1, s,
+        _check(_whole(self.target_sync_every) and self.target_sync_every >= 1, s,
                "target_sync_every", self.target_sync_every, "an integer >= 1")
         _check(self.optimizer in ("sgd", "adam"), s, "optimizer", self.optimizer, "'sgd' or 'adam'")
         _check(_finite(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
         _check(_finite(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
                self.conv_lr_scale, "a number in [0, 10] (0 freezes the conv layers)")
-        _check(type(self.lr_decay_updates) is int and self.lr_decay_updates >= 0, s, "lr_decay_updates",
+        _check(_whole(self.lr_decay_updates) and self.lr_decay_updates >= 0, s, "lr_decay_updates",
                self.lr_decay_updates, "an integer >= 0 (0: constant learning rate)")
         _check(_finite(self.lr_final_scale) and 0 < self.lr_final_scale <= 1, s, "lr_final_scale",
                self.lr_final_scale, "a number in (0, 1]")
         _check(_finite(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
                "a number in [0, 1)")
         _check(isinstance(self.double_dqn, bool), s, "double_dqn", self.double_dqn, "true or false")
-        _check(type(self.n_step) is int and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
+        _check(_whole(self.n_step) and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
                "an integer in [1, 20]")
         _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
         _check(_finite(self.quantile_kappa) and 0 < self.quantile_kappa <= 1000, s, "quantile_kappa",
@@ -592,9 +597,9 @@ class DQNConfig:
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
         _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
-        _check(type(self.shift_augment_px) is int and 0 <= self.shift_augment_px <= MAX_SHIFT_AUGMENT_PX, s,
+        _check(_whole(self.shift_augment_px) and 0 <= self.shift_augment_px <= MAX_SHIFT_AUGMENT_PX, s,
                "shift_augment_px", self.shift_augment_px, f"an integer in [0, {MAX_SHIFT_AUGMENT_PX}]")
-        _check(type(self.demo_batch) is int and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
+        _check(_whole(self.demo_batch) and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
                "an integer in [0, 4096]")
         _check(_finite(self.demo_margin) and 0 <= self.demo_margin <= 100, s, "demo_margin", self.demo_margin,
                "a number in [0, 100]")
@@ -655,7 +660,7 @@ class ExploreConfig:
                      "safe_label_prob"):
             v = getattr(self, name)
             _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
-        _check(type(self.eps_decay_steps) is int and self.eps_decay_steps >= 0, s,
+        _check(_whole(self.eps_decay_steps) and self.eps_decay_steps >= 0, s,
                "eps_decay_steps", self.eps_decay_steps, "an integer >= 0")
         _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
         _check(_finite(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
@@ -706,7 +711,7 @@ class TrainConfig:
         for name in ("total_updates", "warmup_transitions", "checkpoint_every", "keep_checkpoints", "log_every",
                      "seed"):
             v = getattr(self, name)
-            _check(isinstance(v, int) and not isinstance(v, bool) and v >= 0, s, name, v,
+            _check(_whole(v) and v >= 0, s, name, v,
                    "an integer >= 0")
         _check(self.keep_checkpoints >= 1, s, "keep_checkpoints", self.keep_checkpoints, "an integer >= 1")
         _check(self.checkpoint_every >= 1 and self.log_every >= 1, s, "checkpoint_every/log_every",
@@ -782,7 +787,7 @@ def _section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: s
     for name, value in data.items():
         hint = hints[name]
         # TOML has no None and no int/float distinction the user cares about.
-        if hint in (float, "float") and isinstance(value, int) and not isinstance(value, bool):
+        if hint in (float, "float") and _whole(value):
             value = float(value)
         if value == "none" and "None" in str(hint):
             value = None
@@ -870,13 +875,19 @@ def parse_override(text: str) -> tuple[str, Any]:
 # What every process of a run must share with its learner
 # ---------------------------------------------------------------------------
 
+ROBOT_FIELDS: tuple[str, ...] = (
+    "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
+    "env.collision_distance_m",
+)
+"""The robot a network was trained to drive: its moves and what counts as a collision. Networks
+joined into one model (an ensemble, a mean of weights) must share it; their rewards may differ."""
+
 MUST_MATCH_FIELDS: tuple[str, ...] = (
     "sensor.width", "sensor.height", "sensor.hfov_deg", "sensor.vfov_deg", "sensor.max_range_m",
     "sensor.min_range_m", "sensor.mount_height_m", "sensor.mount_forward_m",
     "model.fc1", "model.fc2", "model.dueling", "model.depth_encoding", "model.previous_action",
     "model.action_history", "model.quantiles",
-    "env.speed_table", "env.control_period_s", "env.physics_timestep_s", "env.robot_radius_m",
-    "env.collision_distance_m", "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
+    *ROBOT_FIELDS, "env.reward_move", "env.reward_collision", "env.reward_new_area_per_m2",
     "env.reward_trap_penalty", "env.trap_horizon_steps",
 )
 """The fields an actor's or the evaluator's configuration must share with its run's learner: what a

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from shared.config import EnvConfig, SensorConfig, config_differences, load_preset, parse_override
+from shared.config import EnvConfig, SensorConfig, load_preset, parse_override
 from shared.errors import CogexploreError
 from shared.evaluation import (
     BASELINE_POLICIES,
@@ -72,17 +72,7 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     if ensemble and policy != "greedy":
         raise EvaluateError(f"an ensemble plays the greedy policy, not {policy}")
     members = tuple(m if isinstance(m, LoadedModel) else load_model(m, device) for m in ensemble)
-    for member in members:
-        # The episodes run in the checkpoint's environment: a member trained for another robot
-        # (speeds, control period, collision rule) would be scored on moves it never made.
-        if model is not None and model.run_config is not None and member.run_config is not None:
-            env_differences = [d for d in config_differences(member.run_config, model.run_config)
-                               if d[0].startswith("env.")]
-            if env_differences:
-                name, theirs, mine = env_differences[0]
-                raise EvaluateError(f"ensemble member {member.path} was trained with {name} = {theirs!r}, "
-                                    f"the checkpoint with {mine!r}: an ensemble's models must share the robot")
-    if members and model is not None:
+    if members and model is not None:  # the episodes run in the checkpoint's environment: one robot
         model = ensemble_models([model, *members])
     if model is not None and (policy == "sl") != (model.kind == "supervised"):
         raise EvaluateError(f"{model.path} is a {model.kind} file: the sl policy takes a supervised model "

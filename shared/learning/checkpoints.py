@@ -59,7 +59,16 @@ import safetensors.torch
 import torch
 from safetensors import SafetensorError
 
-from shared.config import ConfigError, ModelConfig, ReplayConfig, RunConfig, SensorConfig, from_dict
+from shared.config import (
+    ROBOT_FIELDS,
+    ConfigError,
+    ModelConfig,
+    ReplayConfig,
+    RunConfig,
+    SensorConfig,
+    config_differences,
+    from_dict,
+)
 from shared.errors import CogexploreError
 from shared.learning.dqn import DQNAgent, DQNError
 from shared.learning.model import (
@@ -691,16 +700,33 @@ def _stored_run_config(path: Path, stored: Any) -> RunConfig | None:
         raise CheckpointError(f"{path}: its stored run config is invalid: {exc}") from None
 
 
+def _require_same_robot(models: Sequence[LoadedModel], what: str) -> None:
+    """CheckpointError when two of ``models`` were trained for different robots
+    (:data:`~shared.config.ROBOT_FIELDS`: speeds, control period, collision rule). A joined model plays
+    in its first (an ensemble) or last (a mean) model's environment, and another robot's network would
+    be scored on moves it never made. Models without a stored run config (the shipped ones) are not
+    compared."""
+    known = [m for m in models if m.run_config is not None]
+    for other in known[1:]:
+        robot_differences = [d for d in config_differences(other.run_config, known[0].run_config)
+                             if d[0] in ROBOT_FIELDS]
+        if robot_differences:
+            name, theirs, first = robot_differences[0]
+            raise CheckpointError(f"cannot make {what}: {other.path} was trained with {name} = {theirs!r}, "
+                                  f"{known[0].path} with {first!r}; its models must share the robot")
+
+
 def ensemble_models(models: Sequence[LoadedModel]) -> LoadedModel:
     """A Q-value ensemble (:class:`QEnsemble`) of several loaded models, labelled ``a@v+b@w``, with
     the first model's file, update and run config; one model is returned as is. An ensemble among
-    them joins with all its networks. CheckpointError when one is not a Q-network or the networks
-    read different cameras."""
+    them joins with all its networks. CheckpointError when one is not a Q-network, the networks
+    read different cameras or were trained for different robots."""
     if not models:
         raise CheckpointError("an ensemble needs at least one model")
     if len(models) == 1:
         return models[0]
     first = models[0]
+    _require_same_robot(models, "an ensemble")
     try:  # QEnsemble refuses what is not a Q-network (a supervised model) and another camera
         net = QEnsemble([m.net for m in models])
     except ModelError as exc:
@@ -748,11 +774,13 @@ def ensemble_members(model: LoadedModel, picks: Sequence[str]) -> LoadedModel:
 
 def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
     """The element-wise mean of several loaded models' weights (one run's later checkpoints),
-    labelled with the last one's file, update and run config; one model is returned as is."""
+    labelled with the last one's file, update and run config; one model is returned as is.
+    CheckpointError when their networks differ or they were trained for different robots."""
     if len(models) == 1:
         return models[0]
     if not models:
         raise CheckpointError("nothing to average")
+    _require_same_robot(models, "a mean")
     last = models[-1]
     net = copy.deepcopy(last.net)
     try:

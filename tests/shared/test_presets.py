@@ -80,6 +80,9 @@ def test_robust_preset_is_fast_40x30_trained_under_the_robust_protocols_conditio
     ("train", "replay_ratio", 0.0, "replay_ratio"),
     ("sensor", "width", 4, "width"),
     ("env", "start_jitter_m", 2.0, "start_jitter_m"), ("env", "start_jitter_deg", 90, "start_jitter_deg"),
+    # TOML's true is Python's 1: a count or an index is never a switch (one-step episodes, start 0)
+    ("env", "max_episode_steps", True, "max_episode_steps"), ("env", "start_index", False, "start_index"),
+    ("dqn", "batch_size", True, "batch_size"), ("train", "total_updates", True, "total_updates"),
 ])
 def test_bad_values_in_a_preset_file_are_rejected(tmp_path, section, field, value, match):
     path = tmp_path / "bad.toml"

@@ -381,3 +381,33 @@ def test_an_export_keeps_its_runs_config_so_it_plays_in_that_runs_world(tmp_path
         save_tensors_file(bad, tensors, {k: v for k, v in meta.items() if k != "digest"} | {"run_config": forged})
         with pytest.raises(CheckpointError, match=message):
             load_model(bad)
+
+
+def test_models_trained_for_different_robots_are_not_joined(tmp_path, capsys):
+    """An ensemble plays in its first model's environment and a mean in its last's: a network trained
+    for another robot (here a slower control period) would be scored on moves it never made. Other
+    rewards are allowed (the card's ensembles with a trap charge)."""
+    from services.cli import main
+    from shared.config import load_preset
+    from shared.evaluation.setup import setup_evaluation
+    from shared.learning.checkpoints import CheckpointManager, load_model
+    from shared.learning.learner import LearnerCore
+
+    base = load_preset("tiny").with_overrides({"replay.capacity": 500})
+    files = {}
+    for name, overrides in (("base", {}), ("slow", {"env.control_period_s": 1.0}),
+                            ("charged", {"env.reward_trap_penalty": 5.0})):
+        cfg = base.with_overrides(overrides)
+        manager = CheckpointManager(tmp_path / name, keep=5)
+        manager.save(LearnerCore(cfg, device="cpu").agent, config=cfg.to_dict())
+        files[name] = str(manager.checkpoints()[-1])
+    for argv in (["--ensemble"], []):  # an ensemble, a mean
+        assert main(["model", "export", files["base"], files["slow"], *argv, "--out", str(tmp_path / "x.safetensors")]) == 2
+        err = capsys.readouterr().err
+        assert "env.control_period_s = 1.0" in err and "must share the robot" in err, err
+        assert not (tmp_path / "x.safetensors").exists()
+    with pytest.raises(CheckpointError, match="env.control_period_s"):
+        setup_evaluation("greedy", checkpoint=files["base"], ensemble=(files["slow"],), device="cpu")
+    assert main(["model", "export", files["base"], files["charged"], "--ensemble",
+                 "--out", str(tmp_path / "two.safetensors")]) == 0
+    assert len(load_model(tmp_path / "two.safetensors").ensemble_of) == 2
