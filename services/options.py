@@ -5,8 +5,11 @@ every command that runs the protocol (``evaluate``, the evaluator, ``experiment`
 from __future__ import annotations
 
 import argparse
+import math
 import os
+from collections.abc import Callable
 
+from services.bus import DEFAULT_ROUTER_WAIT_S, ENV_ROUTER_WAIT, parse_seconds
 from services.runs import CONFIG_FILE
 from shared.config import DEFAULT_PRESET
 from shared.evaluation import (
@@ -24,6 +27,51 @@ DEFAULT_CONFIG_WAIT_S = 120.0
 """How long an actor or evaluator without --preset waits for its learner's configuration."""
 
 
+def seconds_argument(text: str) -> float:
+    """argparse ``type`` of a time to wait: finite seconds, 0 or more (NaN would wait forever)."""
+    try:
+        return parse_seconds(text, "")
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text!r}") from None
+
+
+def positive_number_argument(text: str) -> float:
+    """argparse ``type`` of a duration that must pass: a finite number > 0 (minutes, a window, a period)."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
+    return value
+
+
+def whole_number_argument(minimum: int) -> Callable[[str], int]:
+    """argparse ``type`` of a whole number >= ``minimum``."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            value = minimum - 1
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be a whole number >= {minimum}, got {text!r}")
+        return value
+
+    parse.__name__ = f"whole number >= {minimum}"
+    return parse
+
+
+count_argument = whole_number_argument(1)
+"""argparse ``type`` of a count of at least one (episodes, updates between evaluations, steps)."""
+
+
+def add_router_wait_argument(group: argparse._ArgumentGroup | argparse.ArgumentParser) -> None:
+    """--router-wait: how long a process that joins a router retries while none answers."""
+    group.add_argument("--router-wait", type=seconds_argument, default=None, metavar="SECONDS",
+                       help=f"keep retrying this long while no router answers, as when it starts beside this "
+                            f"process (env {ENV_ROUTER_WAIT}; default {DEFAULT_ROUTER_WAIT_S:.0f}; 0: fail at once)")
+
+
 def add_log_level_argument(parser: argparse.ArgumentParser) -> None:
     """--log-level of a long-running service."""
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=("DEBUG", "INFO", "WARNING", "ERROR"),
@@ -32,7 +80,7 @@ def add_log_level_argument(parser: argparse.ArgumentParser) -> None:
 
 def add_runs_dir_argument(parser: argparse.ArgumentParser) -> None:
     """--runs-dir: the folder that holds runs/<run>/, for every command that writes or reads a run."""
-    parser.add_argument("--runs-dir", default=os.environ.get(ENV_RUNS_DIR, "runs"), metavar="DIR",
+    parser.add_argument("--runs-dir", default=os.environ.get(ENV_RUNS_DIR) or "runs", metavar="DIR",
                         help=f"the folder holding the run folders, runs/<run>/ (env {ENV_RUNS_DIR}; "
                              "default: runs)")
 
@@ -48,7 +96,7 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = Tru
     """--run, --preset, --set, --runs-dir, --tensorboard, --device and the Zenoh endpoint options;
     ``from_learner`` (actors, the evaluator): the config defaults to the learner's, and --config-wait."""
     env = os.environ
-    parser.add_argument("--run", default=env.get(ENV_RUN, "default"),
+    parser.add_argument("--run", default=env.get(ENV_RUN) or "default",
                         help=f"run name: Zenoh namespace and runs/<run>/ folder (env {ENV_RUN}; default: default)")
     if preset:
         default = ("the run's configuration, asked of its learner; a preset named is checked against it and "
@@ -59,15 +107,16 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = Tru
         parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                             help="override one config field, e.g. --set dqn.lr=3e-4 (repeatable)")
     if preset and from_learner:
-        parser.add_argument("--config-wait", type=float, default=DEFAULT_CONFIG_WAIT_S, metavar="SECONDS",
+        parser.add_argument("--config-wait", type=seconds_argument, default=DEFAULT_CONFIG_WAIT_S, metavar="SECONDS",
                             help=f"without --preset: how long to wait for the learner to answer with the run's "
                                  f"configuration (default {DEFAULT_CONFIG_WAIT_S:.0f})")
     add_runs_dir_argument(parser)
     add_tensorboard_argument(parser)
     add_log_level_argument(parser)
-    parser.add_argument("--device", default=env.get(ENV_DEVICE),
+    parser.add_argument("--device", default=env.get(ENV_DEVICE) or None,
                         help=f"torch device: auto, cpu, cuda, cuda:N (env {ENV_DEVICE}; default: the config's)")
-    z = parser.add_argument_group("Zenoh", "endpoints (env COGEXPLORE_ZENOH_CONNECT/LISTEN/MODE/CONFIG)")
+    z = parser.add_argument_group("Zenoh", "endpoints (env COGEXPLORE_ZENOH_CONNECT/LISTEN/MODE/CONFIG; an option "
+                                           "given here wins over its variable)")
     z.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                    help="router endpoint to connect to, e.g. tcp/10.0.0.5:7447 (repeatable; default "
                         "tcp/127.0.0.1:7447)")
@@ -77,6 +126,7 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = Tru
     z.add_argument("--zenoh-config", default=None, metavar="JSON5",
                    help="a Zenoh JSON5 config file (the options above override it); default: the run's "
                         "credentials, runs/<run>/secure/<role>.json5, where they exist")
+    add_router_wait_argument(z)
 
 
 def add_protocol_arguments(parser: argparse.ArgumentParser, default: str = DEFAULT_PROTOCOL) -> None:
@@ -93,20 +143,10 @@ def add_protocol_arguments(parser: argparse.ArgumentParser, default: str = DEFAU
                        help="Gaussian depth noise of S m at every distance, instead of the set's (0: none)")
 
 
-def _cpu_threads(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        value = -1
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a thread count (0 or more)")
-    return value
-
-
 def add_cpu_threads_argument(parser: argparse.ArgumentParser) -> None:
     """``--threads`` of a command that plays policies one image at a time (``evaluate``, ``report``,
     ``model select``)."""
-    parser.add_argument("--threads", type=_cpu_threads, default=1, metavar="N",
+    parser.add_argument("--threads", type=whole_number_argument(0), default=1, metavar="N",
                         help="torch CPU threads (default 1, as the services' actors and evaluator: a policy "
                              "steps one image at a time, and processes that each take every core wait on one "
                              "another, so two evaluations side by side, or one beside `cogexplore up`'s learner, "

@@ -71,15 +71,21 @@ def run_paths(args: argparse.Namespace) -> RunPaths:
 
 
 def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
-                   run_config: RunConfig | None = None) -> RunConfig:
+                   run_config: RunConfig | None = None, *, own_device: bool = False) -> RunConfig:
     """--preset if given, else ``run_config`` (the run's, from its learner), else the run's saved
-    config, else :data:`~shared.config.DEFAULT_PRESET`; then --set and --device."""
+    config, else :data:`~shared.config.DEFAULT_PRESET`; then --set and --device.
+
+    ``own_device`` (actors, the evaluator): the base's ``train.device`` reads ``auto`` (the CPU for
+    them) unless --set or --device name one. A run's config names its learner's device (``up --device
+    cuda`` saves it), and an actor on another machine may have no GPU."""
     if args.preset is not None:
         cfg = load_preset(args.preset)
     elif run_config is not None:
         cfg = run_config
     else:
         cfg = load_preset(str(paths.config) if paths is not None and paths.config.exists() else DEFAULT_PRESET)
+    if own_device:
+        cfg = cfg.with_overrides({"train.device": "auto"})
     overrides = dict(parse_override(o) for o in getattr(args, "overrides", []) or [])
     if getattr(args, "device", None):
         overrides["train.device"] = args.device

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.options import add_service_arguments
+from services.options import add_service_arguments, count_argument
 from services.viz import ENV_RERUN_URL
 
 ENV_RERUN_EVERY_EPISODES = "COGEXPLORE_RERUN_EVERY_EPISODES"
@@ -21,10 +21,11 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--actor-index", type=int, default=None,
                         help="index i of this actor among --num-actors (per-actor epsilon, seed); default: "
                              "derived from the actor id, so scaled replicas differ")
-    parser.add_argument("--num-actors", type=int, default=int(os.environ.get("COGEXPLORE_NUM_ACTORS", "1")),
+    # A string default goes through the type: a bad env value is an option error, not a traceback.
+    parser.add_argument("--num-actors", type=count_argument, default=os.environ.get("COGEXPLORE_NUM_ACTORS") or "1",
                         help="number of actors N, for per-actor epsilon (env COGEXPLORE_NUM_ACTORS; default 1)")
-    parser.add_argument("--batch-steps", type=int, default=16, help="transitions per published batch")
-    parser.add_argument("--max-steps", type=int, default=None, help="stop after this many env steps")
+    parser.add_argument("--batch-steps", type=count_argument, default=16, help="transitions per published batch")
+    parser.add_argument("--max-steps", type=count_argument, default=None, help="stop after this many env steps")
     parser.add_argument("--nice", type=int, default=DEFAULT_NICENESS, metavar="N",
                         help=f"lower this process's CPU priority by N, 0-19 (default {DEFAULT_NICENESS}): where it "
                              "shares cores with the learner (`up` on one machine) the learner goes first, which "
@@ -35,7 +36,6 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
                            f"rerun+http://127.0.0.1:9876/proxy (env {ENV_RERUN_URL}; default: none); a viewer "
                            "that does not answer is skipped")
     live.add_argument("--rerun-every-episodes", type=int, metavar="N",
-                      # A string default goes through type=int: a bad env value is an option error.
                       default=os.environ.get(ENV_RERUN_EVERY_EPISODES) or str(DEFAULT_RERUN_EVERY_EPISODES),
                       help=f"stream every N-th episode (env {ENV_RERUN_EVERY_EPISODES}; default "
                            f"{DEFAULT_RERUN_EVERY_EPISODES})")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus.options import ROS2_FORMATS
+from services.options import positive_number_argument
 
 
 def add_env_arguments(p: argparse.ArgumentParser) -> None:
@@ -36,7 +37,8 @@ def add_learner_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_transport_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--seconds", type=float, default=5.0, help="duration of each measurement (default 5)")
+    p.add_argument("--seconds", type=positive_number_argument, default=5.0,
+                   help="duration of each measurement (default 5)")
     p.add_argument("--batch-steps", type=int, default=16, help="transitions per batch (default 16)")
     p.add_argument("--height", type=int, default=120, help="image height (default 120)")
     p.add_argument("--width", type=int, default=160, help="image width (default 160)")

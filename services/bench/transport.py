@@ -163,7 +163,7 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
 def run(seconds: float = 3.0, *, batch_steps: int = 16, height: int = 120, width: int = 160,
         processes: bool = True) -> dict[str, Any]:
     """Codec-only and loopback-router throughput for one batch shape (see the module doc)."""
-    if seconds <= 0:
+    if not seconds > 0:
         raise ConfigError(f"--seconds must be > 0, got {seconds}")
     batch = make_batch(batch_steps, height, width)
     wire_bytes = len(batch.encode())

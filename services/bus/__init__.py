@@ -1,6 +1,11 @@
 """The Zenoh bus every process of a run meets on: sessions and the router (``session``), the
 newest-weights follower of the actors and the evaluator (``follower``). This file holds only where
-the bus is by default, so that command-line options can name it without importing Zenoh."""
+the bus is by default and how long to wait for it, so that command-line options can name them without
+importing Zenoh."""
+
+import math
+
+from shared.errors import CogexploreError
 
 MODES: tuple[str, ...] = ("peer", "client", "router")
 DEFAULT_ROUTER_PORT = 7447
@@ -12,7 +17,22 @@ ENV_CONNECT = "COGEXPLORE_ZENOH_CONNECT"
 ENV_LISTEN = "COGEXPLORE_ZENOH_LISTEN"
 ENV_CONFIG = "COGEXPLORE_ZENOH_CONFIG"
 ENV_MODE = "COGEXPLORE_ZENOH_MODE"
+ENV_ROUTER_WAIT = "COGEXPLORE_ZENOH_ROUTER_WAIT_S"
+DEFAULT_ROUTER_WAIT_S = 30.0
+"""How long a service retries while no router answers: it may start before its router does."""
 ZENOHD_DIR = "/secure"
 """Where docker-compose.yml mounts a run's security folder in the router's container."""
 ROLES: tuple[str, ...] = ("learner", "actor", "evaluator", "viewer")
 """The roles a run's sessions take, one user each (services.bus.security)."""
+
+
+def parse_seconds(value: object, what: str) -> float:
+    """A time to wait in seconds, finite and 0 or more (a string is read as a number); CogexploreError
+    naming ``what`` otherwise (a NaN would never time out, a negative one always has)."""
+    try:
+        seconds = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        seconds = math.nan
+    if isinstance(value, bool) or not math.isfinite(seconds) or seconds < 0:
+        raise CogexploreError(f"{what} must be a number of seconds >= 0, got {value!r}")
+    return seconds

@@ -7,7 +7,7 @@ import argparse
 import os
 
 from services.bus import ENV_CONNECT, ROLES, ZENOHD_DIR
-from services.options import add_log_level_argument
+from services.options import add_log_level_argument, add_router_wait_argument, whole_number_argument
 
 
 def add_secure_init_arguments(p: argparse.ArgumentParser) -> None:
@@ -49,7 +49,8 @@ def add_ros2_arguments(p: argparse.ArgumentParser) -> None:
                    help="rmw_zenoh: ROS 2 nodes on the Zenoh RMW (ROS 2 Jazzy and later; key "
                         "<domain>/<topic>/<type>/<hash>, attachments, liveliness tokens); ros2dds: a DDS robot "
                         "behind zenoh-bridge-ros2dds (plain <namespace>/<topic> keys). Default rmw_zenoh")
-    r.add_argument("--domain-id", type=int, default=int(os.environ.get("ROS_DOMAIN_ID", "0") or 0), metavar="N",
+    # A string default goes through the type: a bad ROS_DOMAIN_ID is an option error, not a traceback.
+    r.add_argument("--domain-id", type=whole_number_argument(0), default=os.environ.get("ROS_DOMAIN_ID") or "0", metavar="N",
                    help="the ROS 2 domain (rmw_zenoh; env ROS_DOMAIN_ID; default 0)")
     r.add_argument("--namespace", default="/", metavar="NS",
                    help="the robot's ROS 2 namespace, e.g. /tb4 (default /). With ros2dds, the bridge's own "
@@ -67,4 +68,5 @@ def add_ros2_arguments(p: argparse.ArgumentParser) -> None:
                    help="router endpoint, e.g. tcp/192.168.1.10:7447 (repeatable; default tcp/127.0.0.1:7447: "
                         "the rmw_zenoh router, rmw_zenohd, or the bridge, on this machine)")
     z.add_argument("--zenoh-config", default=None, metavar="JSON5", help="a Zenoh JSON5 config file (TLS, credentials)")
+    add_router_wait_argument(z)
     add_log_level_argument(p)

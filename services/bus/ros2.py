@@ -253,6 +253,11 @@ class Ros2Node:
 
 def ros2_settings(args: argparse.Namespace) -> ZenohSettings:
     """``--connect`` / ``--zenoh-config`` of ``drive``, ``sim-robot`` and ``bench drive``: a client of the robot's router (rmw_zenohd, the bridge, or a plain zenohd)."""
-    connect = parse_endpoints(args.connect, "--connect") if args.connect else ()
-    return ZenohSettings.from_env(mode="client", **({"connect": connect} if connect else {}),
-                                  **({"config_file": args.zenoh_config} if args.zenoh_config else {}))
+    overrides: dict[str, object] = {}
+    if args.connect:
+        overrides["connect"] = parse_endpoints(args.connect, "--connect")
+    if args.zenoh_config:
+        overrides["config_file"] = args.zenoh_config
+    if getattr(args, "router_wait", None) is not None:
+        overrides["router_wait_s"] = args.router_wait
+    return ZenohSettings.from_env(mode="client", overrides=overrides)

@@ -16,7 +16,7 @@ import time
 
 import zenoh
 
-from services.bus.session import TransportError, ZenohSettings, open_session, query_latest
+from services.bus.session import TransportError, ZenohSettings, open_service_session, query_latest
 from services.runs import RunPaths, resolve_config
 from shared.config import ConfigError, ConfigMismatchError, RunConfig, require_same_run
 from shared.wire.keys import RunKeys
@@ -47,7 +47,7 @@ def fetch_run_config(settings: ZenohSettings, keys: RunKeys, wait_s: float) -> R
     started = time.monotonic()
     log.info("asking the learner of run %r for the run's configuration (%s; waiting up to %.0f s)",
              keys.run, keys.config, wait_s)
-    with open_session(settings, wait_s=30.0) as session:
+    with open_service_session(settings) as session:
         said = started
         while True:
             message = ask_run_config(session, keys)
@@ -87,7 +87,7 @@ class RunConfigCheck:
 
     def _run(self, settings: ZenohSettings, stop: threading.Event) -> None:
         try:
-            with open_session(settings, wait_s=30.0) as session:
+            with open_service_session(settings) as session:
                 self._check(session, stop)
         except TransportError:
             pass  # no router: the service's own session says so
@@ -124,14 +124,15 @@ def join_run_config(args: argparse.Namespace, paths: RunPaths, settings: ZenohSe
                     who: str) -> tuple[RunConfig, RunConfigCheck | None]:
     """The configuration an actor or the evaluator runs with, and the check to start once its session
     is open: with ``--preset``, that preset (and ``--set``), checked against the learner's later;
-    without, the learner's (waiting ``--config-wait`` seconds for it) with ``--set`` over it, checked now."""
+    without, the learner's (waiting ``--config-wait`` seconds for it) with ``--set`` over it, checked now.
+    Its ``train.device`` is the process's own (``resolve_config(own_device=True)``)."""
     keys = RunKeys(args.run)
     if args.preset is not None:
-        cfg = resolve_config(args, paths)
+        cfg = resolve_config(args, paths, own_device=True)
         return cfg, RunConfigCheck(keys, cfg, who)
     message = fetch_run_config(settings, keys, args.config_wait)
     run_cfg = message.run_config
-    cfg = resolve_config(args, paths, run_cfg)
+    cfg = resolve_config(args, paths, run_cfg, own_device=True)
     require_same_run(cfg, run_cfg, who=who, source=_source(message, keys),
                      hint="leave that field to the run (drop its --set)")
     log.info("using the run's configuration (%s)", _source(message, keys))

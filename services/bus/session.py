@@ -36,11 +36,14 @@ import zenoh
 from services.bus import (
     DEFAULT_CONNECT,
     DEFAULT_ROUTER_LISTEN,
+    DEFAULT_ROUTER_WAIT_S,
     ENV_CONFIG,
     ENV_CONNECT,
     ENV_LISTEN,
     ENV_MODE,
+    ENV_ROUTER_WAIT,
     MODES,
+    parse_seconds,
 )
 from services.bus.security import PATH_KEYS, SecureFiles
 from services.runs import run_paths
@@ -101,6 +104,9 @@ class ZenohSettings:
     """Endpoints to listen on (routers; peers that accept connections)."""
     config_file: str | None = None
     """A Zenoh JSON5 config file (TLS, credentials, ...); explicit fields override it."""
+    router_wait_s: float = DEFAULT_ROUTER_WAIT_S
+    """How long a service keeps retrying while no router answers (``open_service_session``): its
+    router may still be starting; 0 fails at once."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
@@ -111,10 +117,16 @@ class ZenohSettings:
             raise TransportConfigError(f"config_file must be a path, got {self.config_file!r}")
         if self.config_file is not None:
             object.__setattr__(self, "config_file", str(self.config_file))
+        try:
+            object.__setattr__(self, "router_wait_s", parse_seconds(self.router_wait_s, f"the router wait (--router-wait, {ENV_ROUTER_WAIT})"))
+        except CogexploreError as exc:
+            raise TransportConfigError(str(exc)) from None
 
     @classmethod
-    def from_env(cls, environ: Mapping[str, str] | None = None, **defaults: object) -> "ZenohSettings":
-        """Settings from ``COGEXPLORE_ZENOH_{MODE,CONNECT,LISTEN,CONFIG}`` over ``defaults``.
+    def from_env(cls, environ: Mapping[str, str] | None = None, *, overrides: Mapping[str, object] | None = None,
+                 **defaults: object) -> "ZenohSettings":
+        """Settings from ``COGEXPLORE_ZENOH_{MODE,CONNECT,LISTEN,CONFIG,ROUTER_WAIT_S}`` over ``defaults``,
+        and ``overrides`` (a command line's options) over both.
 
         Endpoint lists are comma-separated. Empty variables count as unset.
         """
@@ -128,6 +140,9 @@ class ZenohSettings:
             values["listen"] = parse_endpoints(env[ENV_LISTEN], ENV_LISTEN)
         if env.get(ENV_CONFIG, "").strip():
             values["config_file"] = env[ENV_CONFIG].strip()
+        if env.get(ENV_ROUTER_WAIT, "").strip():
+            values["router_wait_s"] = env[ENV_ROUTER_WAIT].strip()
+        values.update(overrides or {})
         return cls(**values)  # type: ignore[arg-type]
 
     @property
@@ -220,6 +235,12 @@ def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0) 
             if remaining <= 0:
                 raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {exc}") from None
             time.sleep(min(0.2, remaining))
+
+
+def open_service_session(settings: ZenohSettings) -> zenoh.Session:
+    """A service's session: :func:`open_session`, retrying ``settings.router_wait_s`` while no router
+    answers (``--router-wait``)."""
+    return open_session(settings, wait_s=settings.router_wait_s)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -423,7 +444,9 @@ def zenoh_settings(args: argparse.Namespace, role: str | None = None) -> ZenohSe
         overrides["mode"] = args.zenoh_mode
     if args.zenoh_config:
         overrides["config_file"] = args.zenoh_config
-    settings = ZenohSettings.from_env(**overrides)
+    if getattr(args, "router_wait", None) is not None:
+        overrides["router_wait_s"] = args.router_wait
+    settings = ZenohSettings.from_env(overrides=overrides)
     if settings.config_file is None and role is not None:
         found = SecureFiles(run_paths(args).secure).config(role)
         if found.is_file():

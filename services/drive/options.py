@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus.options import add_ros2_arguments
+from services.options import positive_number_argument
 
 
 def add_drive_arguments(p: argparse.ArgumentParser) -> None:
@@ -16,11 +17,11 @@ def add_drive_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="torch device for --checkpoint: auto, cpu, cuda (default auto)")
     p.add_argument("--speed-table", choices=("test", "train"), default="test",
                    help="the commands' speeds: the paper's test table (the protocol's) or its train table (default test)")
-    p.add_argument("--watchdog", type=float, default=0.5, metavar="SECONDS",
+    p.add_argument("--watchdog", type=positive_number_argument, default=0.5, metavar="SECONDS",
                    help="stop (zero twist) when no valid image has come for this long (default 0.5)")
     p.add_argument("--collision-distance", type=float, default=None, metavar="METRES",
                    help="stop when the nearest valid depth is below this (default: the task's, 0.55)")
-    p.add_argument("--control-period", type=float, default=None, metavar="SECONDS",
+    p.add_argument("--control-period", type=positive_number_argument, default=None, metavar="SECONDS",
                    help="at most one command per period (default: the policy's, 0.5)")
     p.add_argument("--lockstep", action="store_true",
                    help="one command per image, however fast they come (with `sim-robot --lockstep`)")

@@ -19,11 +19,10 @@ from typing import Any
 import zenoh
 
 from services.bus.ros2 import Ros2Node, ros2_settings
-from services.bus.session import open_session
+from services.bus.session import open_service_session
 from services.drive.controller import Decision, DriveConfig, DriveController
 from services.process import setup_logging, stop_event_on_signals
 from shared.config import EnvConfig
-from shared.errors import CogexploreError
 from shared.ros2.formats import make_format, qualify
 from shared.ros2.messages import IMAGE, TWIST, encode_twist
 from shared.wire.keys import RobotKeys
@@ -118,8 +117,6 @@ class DriveNode:
 
 def run_drive_command(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
-    if args.watchdog <= 0:
-        raise CogexploreError(f"--watchdog must be > 0 seconds, got {args.watchdog}")
     policy = load_drive_policy(args)
     recorder = None
     if args.rerun_connect or args.rrd:
@@ -129,7 +126,7 @@ def run_drive_command(args: argparse.Namespace) -> int:
     stop = stop_event_on_signals()
     settings = ros2_settings(args)
     try:
-        with open_session(settings, wait_s=30.0) as session:
+        with open_service_session(settings) as session:
             node = DriveNode(session, args, policy, recorder)
             atexit.register(node.stop_at_exit)  # an exception on the way out still stops the robot
             log.info("driving %s with %s (%s, %s speeds, watchdog %.2f s) on %s", args.robot, policy.label,

@@ -50,7 +50,7 @@ from services.bus.session import (
     TransportError,
     ZenohSettings,
     declare_alive,
-    open_session,
+    open_service_session,
     put_reliable,
     zenoh_settings,
 )
@@ -108,7 +108,7 @@ class EvaluatorService:
                  every_updates: int = DEFAULT_EVERY_UPDATES, episodes_per_start: int = CHEAP_EPISODES_PER_START,
                  max_steps: int = PAPER_MAX_STEPS, world: str | None = None, image_every: int = DEFAULT_IMAGE_EVERY,
                  record: bool = True, seed: int = TEST_SEED, device: str = "cpu", query_timeout_s: float = 2.0,
-                 connect_wait_s: float = 30.0, rerun_url: str | None = None, tensorboard: Path | None = None,
+                 rerun_url: str | None = None, tensorboard: Path | None = None,
                  protocol: ProtocolConfig = PROTOCOLS[DEFAULT_PROTOCOL]):
         for name, value in (("every_updates", every_updates), ("episodes_per_start", episodes_per_start),
                             ("max_steps", max_steps), ("image_every", image_every)):
@@ -132,7 +132,6 @@ class EvaluatorService:
         self.viewer = ViewerLink(rerun_url, what="streaming evaluations") if rerun_url else None
         self.seed = seed
         self.query_timeout_s = query_timeout_s
-        self.connect_wait_s = connect_wait_s
         self.device = resolve_device(device)
         self.net = QNetwork(cfg.model, cfg.sensor).to(self.device).eval()
         self.fingerprint = architecture_fingerprint(self.net)
@@ -224,7 +223,7 @@ class EvaluatorService:
     def run(self, stop: threading.Event, once: bool = False, wait_weights_s: float = 60.0) -> int:
         """Evaluate until ``stop`` is set (or, with ``once``, the latest weights once). Returns
         a process exit status: 0, or 1 when ``once`` found no weights within ``wait_weights_s``."""
-        with open_session(self.settings, wait_s=self.connect_wait_s) as session, \
+        with open_service_session(self.settings) as session, \
                 self.weights.following(session, self.keys, self.query_timeout_s):
             # Announced once subscribed: whoever sees the token can publish weights to us.
             token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))

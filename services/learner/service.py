@@ -26,7 +26,7 @@ from services.bus.session import (
     LivelinessWatch,
     declare_alive,
     declare_reliable_publisher,
-    open_session,
+    open_service_session,
     serve_latest,
     subscribe_messages,
     zenoh_settings,
@@ -124,7 +124,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         except queue.Full:
             rejects.reject(MessageError("oversize", "learner inbox full"), key)
 
-    with open_session(settings, wait_s=30.0) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
+    with open_service_session(settings) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
             TensorBoardLog(tensorboard) as board:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(session, keys.weights))

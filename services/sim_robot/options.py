@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus.options import DEFAULT_ODOM_TOPIC, add_ros2_arguments
+from services.options import positive_number_argument
 
 
 def add_sim_robot_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,7 +20,7 @@ def add_sim_robot_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lockstep", action="store_true",
                    help="one control period per cmd_vel, as fast as commands come (a zero twist advances nothing "
                         "and repeats the image); default: real time, holding the last command")
-    p.add_argument("--cmd-timeout", type=float, default=0.5, metavar="SECONDS",
+    p.add_argument("--cmd-timeout", type=positive_number_argument, default=0.5, metavar="SECONDS",
                    help="real time: stop when no cmd_vel has come for this long, as a TurtleBot base does (default 0.5)")
     p.add_argument("--odom-topic", default=DEFAULT_ODOM_TOPIC, metavar="TOPIC",
                    help=f"nav_msgs/msg/Odometry topic (default {DEFAULT_ODOM_TOPIC})")

@@ -22,13 +22,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import math
 import queue
 import threading
 import time
 
 from services.bus.ros2 import Ros2Node, ros2_settings
-from services.bus.session import open_session
+from services.bus.session import open_service_session
 from services.process import setup_logging, stop_event_on_signals
 from shared.config import DEFAULT_PRESET, load_preset
 from shared.errors import CogexploreError
@@ -180,11 +179,9 @@ class SimRobot:
 
 def run_sim_robot_command(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
-    if not (math.isfinite(args.cmd_timeout) and args.cmd_timeout > 0):
-        raise CogexploreError(f"--cmd-timeout must be > 0 seconds, got {args.cmd_timeout}")
     stop = stop_event_on_signals()
     settings = ros2_settings(args)
-    with open_session(settings, wait_s=30.0) as session:
+    with open_service_session(settings) as session:
         robot = SimRobot(session, args)
         log.info("sim-robot %s in %s from start %d (%s, %s, %s)", args.robot, robot.env.world.name, args.start,
                  args.ros2_format, args.encoding, "lock step" if args.lockstep else "real time")

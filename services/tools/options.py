@@ -11,6 +11,7 @@ from services.options import (
     add_protocol_arguments,
     add_runs_dir_argument,
     add_tensorboard_argument,
+    positive_number_argument,
 )
 from shared.config import SPEED_TABLES
 from shared.evaluation import (
@@ -190,14 +191,16 @@ def add_pretrain_arguments(parser: argparse.ArgumentParser) -> None:
 def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     # train has one mode, one process; the flag stays so that older scripts keep working
     parser.add_argument("--single-process", action="store_true", help=argparse.SUPPRESS)
-    parser.add_argument("--preset", default="paper", help="preset name or TOML path (default: paper)")
+    parser.add_argument("--preset", default=None,
+                        help="preset name or TOML path (default: the run's config.toml where --run names one that "
+                             "exists, so that it trains on with its own recipe; else paper)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                         help="override one config field (repeatable)")
     parser.add_argument("--run", default=None, help="run name (default: train-<date>-<time>)")
     add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="auto, cpu, cuda, cuda:N")
     parser.add_argument("--updates", type=int, default=None, help="override train.total_updates")
-    parser.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
+    parser.add_argument("--minutes", type=positive_number_argument, default=None, help="stop after this many minutes")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_tensorboard_argument(parser)
 

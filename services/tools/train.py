@@ -147,13 +147,20 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
             "checkpoint": str(final), "seconds": time.monotonic() - training.started}
 
 
+def train_config(args: argparse.Namespace, paths: RunPaths) -> RunConfig:
+    """``--preset``, else the run's saved config.toml (a run trains on with its own recipe), else the
+    paper's preset; then ``--set``, ``--device`` and ``--updates``."""
+    if args.preset is None and not paths.config.exists():
+        args = argparse.Namespace(**{**vars(args), "preset": "paper"})
+    cfg = resolve_config(args, paths)
+    return cfg.with_overrides({"train.total_updates": args.updates}) if args.updates is not None else cfg
+
+
 def run_train_command(args: argparse.Namespace) -> int:
     run = args.run or time.strftime("train-%Y%m%d-%H%M%S")
     validate_name(run, "run name")
     paths = RunPaths(Path(args.runs_dir) / run)
-    cfg = resolve_config(args, paths)  # a bad preset or --set fails here, before the run folder exists
-    if args.updates is not None:
-        cfg = cfg.with_overrides({"train.total_updates": args.updates})
+    cfg = train_config(args, paths)  # a bad preset or --set fails here, before the run folder exists
     setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
                                   max_minutes=args.minutes, tensorboard=args.tensorboard)

@@ -4,7 +4,13 @@ from __future__ import annotations
 
 import argparse
 
-from services.options import add_runs_dir_argument, add_tensorboard_argument
+from services.options import (
+    add_runs_dir_argument,
+    add_tensorboard_argument,
+    count_argument,
+    positive_number_argument,
+    seconds_argument,
+)
 from shared.config import DEFAULT_PRESET
 
 
@@ -17,7 +23,7 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override one config field (repeatable)")
     limit = parser.add_mutually_exclusive_group()
     limit.add_argument("--updates", type=int, default=None, help="stop after this many learner updates")
-    limit.add_argument("--minutes", type=float, default=None, help="stop after this many minutes")
+    limit.add_argument("--minutes", type=positive_number_argument, default=None, help="stop after this many minutes")
     parser.add_argument("--run", default=None, help="run name (default: run-<date>-<time>)")
     again = parser.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true",
@@ -39,9 +45,9 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
                              "machine's hostname and each --host): needed to listen beyond loopback")
     parser.add_argument("--host", action="append", default=[], metavar="NAME",
                         help="with --tls: another name or address other machines reach this one by (repeatable)")
-    parser.add_argument("--eval-every", type=int, default=1000, help="evaluator: updates between evaluations")
+    parser.add_argument("--eval-every", type=count_argument, default=1000, help="evaluator: updates between evaluations")
     parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
-    parser.add_argument("--final-episodes", type=int, default=10,
+    parser.add_argument("--final-episodes", type=count_argument, default=10,
                         help="episodes per start in the final evaluation (paper: 10)")
     parser.add_argument("--final-average", type=int, default=4, metavar="K",
                         help="the final evaluation and report play the mean of the last K checkpoints' weights, "
@@ -58,8 +64,8 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
 def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--actors", type=int, default=None,
                         help="actor processes (default: 1; with --compare-single-process 2, as `up`)")
-    parser.add_argument("--seconds", type=float, default=60.0, help="measurement window (default: 60)")
-    parser.add_argument("--warmup-s", type=float, default=5.0,
+    parser.add_argument("--seconds", type=positive_number_argument, default=60.0, help="measurement window (default: 60)")
+    parser.add_argument("--warmup-s", type=seconds_argument, default=5.0,
                         help="seconds to wait once the system is in its steady state (default: 5)")
     parser.add_argument("--preset", default=None,
                         help=f"preset name or TOML path (default: fast; with --compare-single-process {DEFAULT_PRESET}, "
@@ -72,14 +78,14 @@ def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
                          help="run `cogexplore up` (with --actors) and then `cogexplore train`, each for --minutes, and "
                               "print both runs' updates/s, env steps/s and scores under both protocols, and their "
                               "ratios (services/up/compare.py)")
-    compare.add_argument("--minutes", type=float, default=5.0,
+    compare.add_argument("--minutes", type=positive_number_argument, default=5.0,
                          help="with --compare-single-process: wall time of each run (default 5)")
-    compare.add_argument("--episodes-per-start", type=int, default=2,
+    compare.add_argument("--episodes-per-start", type=count_argument, default=2,
                          help="with --compare-single-process: test episodes per start for each score (default 2)")
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
     parser.add_argument("--learner-threads", type=int, default=None,
                         help="OMP_NUM_THREADS for the started processes (default: inherited)")
-    parser.add_argument("--startup-timeout-s", type=float, default=600.0,
+    parser.add_argument("--startup-timeout-s", type=positive_number_argument, default=600.0,
                         help="give up if the system is not in its steady state in this time (default: 600)")
     parser.add_argument("--runs-dir", default=None,
                         help="keep the run folder (logs, stats) here; default: a temporary folder, removed")

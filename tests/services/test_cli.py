@@ -72,7 +72,47 @@ def test_evaluate_report_and_model_select_play_on_one_cpu_thread_unless_told(cap
     with pytest.raises(SystemExit) as stop:
         main(["evaluate", "--threads", "two"])
     assert stop.value.code == 2
-    assert "--threads: 'two' is not a thread count" in capsys.readouterr().err
+    assert "--threads: must be a whole number >= 0, got 'two'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [
+    ["up", "--minutes", "nan"], ["up", "--minutes", "0"], ["up", "--eval-every", "0"], ["up", "--final-episodes", "0"],
+    ["train", "--minutes", "-1"], ["evaluator", "--wait-weights", "nan"], ["evaluator", "--episodes-per-start", "0"],
+    ["evaluator", "--query-timeout", "0"], ["actor", "--batch-steps", "0"], ["actor", "--config-wait", "nan"],
+    ["drive", "--control-period", "-1"], ["drive", "--watchdog", "nan"], ["sim-robot", "--cmd-timeout", "inf"],
+    ["bench", "system", "--seconds", "nan"], ["bench", "transport", "--seconds", "nan"],
+])
+def test_a_count_or_time_that_cannot_be_one_is_refused_before_anything_starts(argv: list[str], capsys) -> None:
+    # a NaN deadline never passes (`up --minutes nan` trained on, `--config-wait nan` waited forever),
+    # and `--eval-every 0` left the run without its evaluator
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and f"argument {argv[-2]}: must be " in err and repr(argv[-1]) in err, err
+
+
+def test_a_bad_environment_value_is_an_option_error_of_its_command_not_of_every_command(monkeypatch, capsys) -> None:
+    import importlib.metadata
+
+    monkeypatch.setenv("COGEXPLORE_NUM_ACTORS", "two")
+    monkeypatch.setenv("ROS_DOMAIN_ID", "abc")
+    with pytest.raises(SystemExit) as stop:  # the parser of every command is built: none may fail then
+        main(["--version"])
+    assert stop.value.code == 0 and importlib.metadata.version("cogexplore") in capsys.readouterr().out
+    for argv, option in ((["actor"], "--num-actors"), (["drive"], "--domain-id")):
+        with pytest.raises(SystemExit) as stop:
+            main(argv)
+        err = capsys.readouterr().err
+        assert stop.value.code == 2 and f"argument {option}: " in err and "Traceback" not in err, err
+
+
+def test_an_empty_environment_variable_counts_as_unset(monkeypatch) -> None:
+    from services.cli import build_parser
+
+    for name in ("COGEXPLORE_RUN", "COGEXPLORE_RUNS_DIR", "COGEXPLORE_DEVICE", "COGEXPLORE_NUM_ACTORS"):
+        monkeypatch.setenv(name, "")  # what docker compose passes for `${VAR:-}`
+    args = build_parser().parse_args(["actor"])
+    assert (args.run, args.runs_dir, args.device, args.num_actors) == ("default", "runs", None, 1)
 
 
 def test_the_installed_command_prints_its_tree_quickly_and_names_every_command():
@@ -130,7 +170,8 @@ def test_every_command_that_plays_test_episodes_draws_them_from_the_test_seed() 
 @pytest.mark.parametrize("argv,message", [
     (["actor", "--connect", "not-an-endpoint"], "--connect endpoint 'not-an-endpoint' is invalid"),
     (["learner", "--zenoh-config", "/no/such/zenoh.json5"], "Zenoh config file /no/such/zenoh.json5 does not exist"),
-    (["actor", "--connect", "tcp/127.0.0.1:9"], "cannot open a Zenoh session"),  # no router there (after 30 s)
+    # no router there: the service retries --router-wait seconds (30 by default), then says so
+    (["actor", "--connect", "tcp/127.0.0.1:9", "--router-wait", "1"], "cannot open a Zenoh session"),
 ])
 def test_a_service_that_cannot_join_says_why_in_one_line(argv: list[str], message: str, tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-m", "services.cli", *argv, "--runs-dir", str(tmp_path)], cwd=REPO,

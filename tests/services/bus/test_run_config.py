@@ -117,3 +117,24 @@ def test_one_default_preset_for_up_and_the_services(tmp_path: Path, monkeypatch)
         assert parse(add, []).preset is None
     monkeypatch.setenv("COGEXPLORE_PRESET", "paper")
     assert parse(add_actor_arguments, []).preset == "paper"
+
+
+def test_an_actors_device_is_its_own_not_its_learners(router: str, tmp_path: Path, monkeypatch) -> None:
+    """`up --device cuda` saves the learner's device in the run's config, and the learner announces it:
+    an actor (here, or on a machine without a GPU) still acts where it is told, else on the CPU."""
+    from shared.config import to_toml
+
+    monkeypatch.delenv("COGEXPLORE_DEVICE", raising=False)
+    settings = ZenohSettings(connect=(router,))
+    on_gpu = load_preset("smoke").with_overrides({"train.device": "cuda"})
+    payload = RunConfigMessage(learner_id="learner", config=on_gpu).encode()
+    run_file = tmp_path / "config.toml"
+    run_file.write_text(to_toml(on_gpu))
+    with open_session(settings) as session:
+        queryable = serve_latest(session, KEYS.config, lambda: payload)  # noqa: F841
+        time.sleep(0.2)
+        for extra, device in (((), "auto"), (("--device", "cpu"), "cpu"), (("--set", "train.device=cpu"), "cpu"),
+                              (("--preset", str(run_file)), "auto"), (("--preset", str(run_file), "--device", "cpu"), "cpu")):
+            cfg, _ = join_run_config(actor_args(router, tmp_path, *extra), RunPaths(tmp_path / RUN), settings, "this actor")
+            assert cfg.train.device == device, extra
+            assert cfg.with_overrides({"train.device": "cuda"}) == on_gpu  # the rest is the run's

@@ -154,6 +154,60 @@ def test_a_service_finds_its_runs_credentials_unless_told_others(tmp_path: Path,
     assert zenoh_settings(parser.parse_args(argv), "actor").config_file == str(other)
 
 
+def test_an_option_on_the_command_line_wins_over_its_environment_variable(monkeypatch) -> None:
+    import argparse
+
+    from services.actor.options import add_actor_arguments
+    from services.bus.options import add_ros2_arguments
+    from services.bus.ros2 import ros2_settings
+    from services.bus.session import zenoh_settings
+
+    # what docker-compose.yml sets in every container; a user's `--connect` must still be obeyed
+    monkeypatch.setenv("COGEXPLORE_ZENOH_CONNECT", "tcp/10.9.9.9:7447")
+    monkeypatch.setenv("COGEXPLORE_ZENOH_MODE", "peer")
+    monkeypatch.setenv("COGEXPLORE_ZENOH_ROUTER_WAIT_S", "5")
+    monkeypatch.delenv("COGEXPLORE_ZENOH_CONFIG", raising=False)
+    service, ros2 = argparse.ArgumentParser(), argparse.ArgumentParser()
+    add_actor_arguments(service)
+    add_ros2_arguments(ros2)
+    for parser, settings_of in ((service, zenoh_settings), (ros2, ros2_settings)):
+        from_env = settings_of(parser.parse_args([]))
+        assert from_env.connect == ("tcp/10.9.9.9:7447",) and from_env.mode == "peer"
+        assert from_env.router_wait_s == 5.0
+        given = settings_of(parser.parse_args(["--connect", "tcp/192.168.1.10:7447", "--router-wait", "0.5"]))
+        assert given.connect == ("tcp/192.168.1.10:7447",) and given.router_wait_s == 0.5
+    assert zenoh_settings(service.parse_args(["--zenoh-mode", "client"])).mode == "client"
+    monkeypatch.delenv("COGEXPLORE_ZENOH_MODE")
+    assert ros2_settings(ros2.parse_args([])).mode == "client"  # the robot's router: a client by default
+
+
+@pytest.mark.parametrize("value", ["nan", "-1", "inf", "soon"])
+def test_a_router_wait_that_is_not_a_time_is_refused(value: str, monkeypatch, capsys) -> None:
+    import argparse
+
+    from services.options import add_service_arguments
+
+    parser = argparse.ArgumentParser(prog="cogexplore actor")
+    add_service_arguments(parser)
+    with pytest.raises(SystemExit) as exit_info:
+        parser.parse_args(["--router-wait", value])
+    assert exit_info.value.code == 2 and "argument --router-wait: " in capsys.readouterr().err
+    monkeypatch.setenv("COGEXPLORE_ZENOH_ROUTER_WAIT_S", value)  # a NaN would never stop waiting
+    with pytest.raises(TransportConfigError, match="COGEXPLORE_ZENOH_ROUTER_WAIT_S"):
+        ZenohSettings.from_env()
+
+
+def test_a_service_waits_for_its_router_as_long_as_it_is_told() -> None:
+    from services.bus.session import open_service_session
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    assert ZenohSettings().router_wait_s == 30.0  # started beside its router, a service gives it time
+    started = time.monotonic()
+    with pytest.raises(TransportError, match="cannot open a Zenoh session"):
+        open_service_session(ZenohSettings(connect=(endpoint,), router_wait_s=1.0))
+    assert 1.0 <= time.monotonic() - started < 15.0  # the 30 s default would not end here
+
+
 def test_client_without_router_fails_clearly_and_can_wait_for_one() -> None:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     settings = ZenohSettings(mode="client", connect=(endpoint,))

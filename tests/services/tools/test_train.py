@@ -134,3 +134,27 @@ def test_train_writes_its_rows_as_tensorboard_scalars_too(tmp_path: Path, tensor
 
     assert main([*common, "--updates", "10", "--run", "off", "--no-tensorboard"]) == 0
     assert (tmp_path / "off" / "stats" / "learner.csv").is_file() and not (tmp_path / "off" / "tb").exists()
+
+
+
+def test_train_on_an_existing_run_keeps_its_recipe_unless_told_another(tmp_path: Path, capsys):
+    """`cogexplore train --run R` on a run that exists trains on with R's config.toml (it used to take
+    the paper preset and overwrite R's recipe); a new run's default stays the paper's."""
+    from services.cli import build_parser, main
+    from services.runs import RunPaths
+    from services.tools.train import train_config
+    from shared.config import load_preset
+
+    common = ["--runs-dir", str(tmp_path), "--quiet"]
+    assert main(["train", "--preset", "tiny", "--updates", "20", "--run", "r", "--set", "train.warmup_transitions=64",
+                 *common]) == 0
+    run = RunPaths(tmp_path / "r")
+    recipe = load_preset(run.config)
+    assert main(["train", "--run", "r", "--updates", "30", *common]) == 0
+    assert "'updates': 30" in capsys.readouterr().out  # on from update 20, with the run's tiny network
+    assert load_preset(run.config) == recipe.with_overrides({"train.total_updates": 30})
+    parser = build_parser()
+    assert train_config(parser.parse_args(["train", "--run", "new", *common]), RunPaths(tmp_path / "new")) \
+        == load_preset("paper")
+    told = parser.parse_args(["train", "--run", "r", "--preset", "smoke", *common])
+    assert train_config(told, run) == load_preset("smoke")
