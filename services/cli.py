@@ -166,7 +166,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         return 130
     except CogexploreError as exc:
-        print(f"cogexplore {args._command}: error: {exc}", file=sys.stderr)
+        # one line even where a library's message has several (MuJoCo's compiler names the element below)
+        message = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+        print(f"cogexplore {args._command}: error: {message}", file=sys.stderr)
         return 2
 
 

@@ -4,11 +4,15 @@ options (``--preset``, ``--set``, ``--device``) and the folder's saved ``config.
 from __future__ import annotations
 
 import argparse
+import fcntl
 import os
+import socket
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 from shared.config import DEFAULT_PRESET, RunConfig, load_preset, parse_override, to_toml
+from shared.errors import CogexploreError
 from shared.wire.keys import validate_name
 
 CONFIG_FILE = "config.toml"
@@ -65,6 +69,40 @@ class RunPaths:
         return self
 
 
+class RunInUseError(CogexploreError):
+    """Another process already holds the run in the role asked for (two `up`, two learners)."""
+
+
+class RunLock:
+    """An exclusive hold on a run for one role (``up``, ``learner``): ``<runs>/.<run>.<role>.lock``, a
+    lock the system drops when the process ends however it ends. Two learners writing one run's
+    checkpoints, or two `up` starting one run, would corrupt it. Beside the run's folder, not in it,
+    so that `up --fresh` can move the folder aside while holding it. Released by :meth:`release` or
+    when the object goes."""
+
+    def __init__(self, paths: RunPaths, role: str):
+        self.path = paths.root.parent / f".{paths.root.name}.{role}.lock"
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file: IO[str] | None = open(self.path, "a+")
+        try:
+            fcntl.flock(self._file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self._file.seek(0)
+            holder = self._file.read().strip() or "another process"
+            self.release()
+            raise RunInUseError(f"run {paths.root.name!r} is in use: its {role} is {holder} "
+                                f"({self.path}); stop that one first") from None
+        self._file.seek(0)
+        self._file.truncate()
+        self._file.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
+        self._file.flush()
+
+    def release(self) -> None:
+        if self._file is not None:
+            self._file.close()  # closing drops the lock
+            self._file = None
+
+
 def run_paths(args: argparse.Namespace) -> RunPaths:
     validate_name(args.run, "run name")
     return RunPaths(Path(args.runs_dir) / args.run)
@@ -83,7 +121,8 @@ def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
     elif run_config is not None:
         cfg = run_config
     else:
-        cfg = load_preset(str(paths.config) if paths is not None and paths.config.exists() else DEFAULT_PRESET)
+        saved = paths is not None and paths.config.exists()
+        cfg = load_preset(paths.config, complete=True) if saved else load_preset(DEFAULT_PRESET)
     if own_device:
         cfg = cfg.with_overrides({"train.device": "auto"})
     overrides = dict(parse_override(o) for o in getattr(args, "overrides", []) or [])

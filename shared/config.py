@@ -37,7 +37,7 @@ def _check(cond: bool, section: str, name: str, value: Any, allowed: str) -> Non
         raise ConfigError(f"[{section}] {name} = {value!r} is invalid: {allowed}")
 
 
-def _whole(x: Any) -> bool:
+def is_whole(x: Any) -> bool:
     """An integer, and not a bool (TOML's ``true`` is Python's 1)."""
     return isinstance(x, int) and not isinstance(x, bool)
 
@@ -139,7 +139,7 @@ class SensorConfig:
         s = "sensor"
         for name in ("width", "height"):
             v = getattr(self, name)
-            _check(_whole(v) and 8 <= v <= 1024, s, name, v,
+            _check(is_whole(v) and 8 <= v <= 1024, s, name, v,
                    "an integer in [8, 1024]")
         for name in ("hfov_deg", "vfov_deg"):
             v = getattr(self, name)
@@ -163,6 +163,12 @@ class SensorConfig:
 
 PROCEDURAL_PREFIX = "procedural:"
 """World names ``procedural:<seed>`` are generated layouts (shared.sim.world.procedural_world)."""
+
+
+def is_procedural_seed(text: str) -> bool:
+    """Whether ``text`` is a procedural world's seed: decimal digits, at most 18 (a seed of
+    thousands of digits is no layout, and Python refuses to read one)."""
+    return text.isascii() and text.isdigit() and len(text) <= 18
 MAX_WORLD_LIST = 10_000
 """Most world names ``parse_world_list`` expands a list to."""
 
@@ -176,9 +182,9 @@ def parse_world_list(text: str) -> tuple[str, ...]:
             continue
         procedural = part.startswith(PROCEDURAL_PREFIX)
         first, dash, last = part.removeprefix(PROCEDURAL_PREFIX).partition("-")
-        if procedural and not all(t.isascii() and t.isdigit() for t in ((first, last) if dash else (first,))):
+        if procedural and not all(is_procedural_seed(t) for t in ((first, last) if dash else (first,))):
             raise ConfigError(f"{part!r}: use 'procedural:<seed>' or 'procedural:<first>-<last>', "
-                             "seeds integers >= 0")
+                             "seeds integers from 0 to 18 digits")
         if procedural and dash:
             if int(last) < int(first):
                 raise ConfigError(f"{part!r}: the last seed is below the first")
@@ -303,7 +309,7 @@ class EnvConfig:
                    f"a whole multiple of physics_timestep_s ({self.physics_timestep_s})")
         _check(_finite(self.robot_radius_m) and 0.05 <= self.robot_radius_m <= 1.0, s,
                "robot_radius_m", self.robot_radius_m, "metres in [0.05, 1]")
-        _check(_whole(self.max_episode_steps) and self.max_episode_steps >= 1, s,
+        _check(is_whole(self.max_episode_steps) and self.max_episode_steps >= 1, s,
                "max_episode_steps", self.max_episode_steps, "an integer >= 1")
         _check(_finite(self.collision_distance_m) and 0 < self.collision_distance_m < 10, s,
                "collision_distance_m", self.collision_distance_m, "metres in (0, 10)")
@@ -314,10 +320,10 @@ class EnvConfig:
                "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
         _check(_finite(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
                "reward_trap_penalty", self.reward_trap_penalty, "a number in [0, 1000]")
-        _check(_whole(self.trap_horizon_steps)
+        _check(is_whole(self.trap_horizon_steps)
                and 1 <= self.trap_horizon_steps <= 100, s,
                "trap_horizon_steps", self.trap_horizon_steps, "an integer in [1, 100]")
-        _check(self.start_index is None or (_whole(self.start_index) and self.start_index >= 0),
+        _check(self.start_index is None or (is_whole(self.start_index) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
         _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
                self.random_start_prob, "a probability in [0, 1]")
@@ -325,7 +331,7 @@ class EnvConfig:
                "random_start_clearance_m", self.random_start_clearance_m, "metres in (0, 5)")
         _check(_finite(self.failure_start_prob) and 0 <= self.failure_start_prob <= 1, s, "failure_start_prob",
                self.failure_start_prob, "a probability in [0, 1]")
-        _check(_whole(self.failure_start_back_steps)
+        _check(is_whole(self.failure_start_back_steps)
                and 1 <= self.failure_start_back_steps <= FAILURE_STARTS_BACK_MAX, s, "failure_start_back_steps",
                self.failure_start_back_steps, f"an integer in [1, {FAILURE_STARTS_BACK_MAX}]")
         _check(isinstance(self.extra_worlds, str), s, "extra_worlds", self.extra_worlds,
@@ -451,25 +457,25 @@ class ModelConfig:
         s = "model"
         for name in ("fc1", "fc2"):
             v = getattr(self, name)
-            _check(_whole(v) and 1 <= v <= 8192, s, name, v,
+            _check(is_whole(v) and 1 <= v <= 8192, s, name, v,
                    "an integer in [1, 8192]")
         _check(_finite(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
                "a probability in [0, 1)")
         _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
         _check(isinstance(self.previous_action, bool), s, "previous_action", self.previous_action,
                "true or false")
-        _check(_whole(self.action_history)
+        _check(is_whole(self.action_history)
                and 1 <= self.action_history <= MAX_ACTION_HISTORY, s, "action_history", self.action_history,
                f"an integer in [1, {MAX_ACTION_HISTORY}]")
         _check(self.action_history == 1 or self.previous_action, s, "action_history", self.action_history,
                "1 unless model.previous_action is on (the history is of previous commands)")
         _check(self.depth_encoding in DEPTH_ENCODINGS, s, "depth_encoding", self.depth_encoding,
                f"one of {', '.join(DEPTH_ENCODINGS)}")
-        _check(_whole(self.quantiles) and (self.quantiles == 0 or 2 <= self.quantiles <= MAX_QUANTILES), s,
+        _check(is_whole(self.quantiles) and (self.quantiles == 0 or 2 <= self.quantiles <= MAX_QUANTILES), s,
                "quantiles", self.quantiles, f"0 (one Q-value per command) or an integer in [2, {MAX_QUANTILES}]")
         _check(self.quantiles == 0 or not self.dueling, s, "quantiles", self.quantiles,
                "0 with model.dueling (a quantile head has no value/advantage split)")
-        _check(_whole(self.frame_stack)
+        _check(is_whole(self.frame_stack)
                and 1 <= self.frame_stack <= MAX_FRAME_STACK, s, "frame_stack", self.frame_stack,
                f"an integer in [1, {MAX_FRAME_STACK}]")
 
@@ -489,7 +495,7 @@ class ReplayConfig:
 
     def __post_init__(self) -> None:
         s = "replay"
-        _check(_whole(self.capacity)
+        _check(is_whole(self.capacity)
                and 2 <= self.capacity <= 10_000_000, s, "capacity", self.capacity,
                "an integer in [2, 10000000]")
         _check(isinstance(self.prioritized, bool), s, "prioritized", self.prioritized, "true or false")
@@ -573,23 +579,23 @@ class DQNConfig:
 
     def __post_init__(self) -> None:
         s = "dqn"
-        _check(_whole(self.batch_size) and 1 <= self.batch_size <= 4096, s, "batch_size",
+        _check(is_whole(self.batch_size) and 1 <= self.batch_size <= 4096, s, "batch_size",
                self.batch_size, "an integer in [1, 4096]")
         _check(_finite(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
-        _check(_whole(self.target_sync_every) and self.target_sync_every >= 1, s,
+        _check(is_whole(self.target_sync_every) and self.target_sync_every >= 1, s,
                "target_sync_every", self.target_sync_every, "an integer >= 1")
         _check(self.optimizer in ("sgd", "adam"), s, "optimizer", self.optimizer, "'sgd' or 'adam'")
         _check(_finite(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
         _check(_finite(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
                self.conv_lr_scale, "a number in [0, 10] (0 freezes the conv layers)")
-        _check(_whole(self.lr_decay_updates) and self.lr_decay_updates >= 0, s, "lr_decay_updates",
+        _check(is_whole(self.lr_decay_updates) and self.lr_decay_updates >= 0, s, "lr_decay_updates",
                self.lr_decay_updates, "an integer >= 0 (0: constant learning rate)")
         _check(_finite(self.lr_final_scale) and 0 < self.lr_final_scale <= 1, s, "lr_final_scale",
                self.lr_final_scale, "a number in (0, 1]")
         _check(_finite(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
                "a number in [0, 1)")
         _check(isinstance(self.double_dqn, bool), s, "double_dqn", self.double_dqn, "true or false")
-        _check(_whole(self.n_step) and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
+        _check(is_whole(self.n_step) and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
                "an integer in [1, 20]")
         _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
         _check(_finite(self.quantile_kappa) and 0 < self.quantile_kappa <= 1000, s, "quantile_kappa",
@@ -597,9 +603,9 @@ class DQNConfig:
         _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
         _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
-        _check(_whole(self.shift_augment_px) and 0 <= self.shift_augment_px <= MAX_SHIFT_AUGMENT_PX, s,
+        _check(is_whole(self.shift_augment_px) and 0 <= self.shift_augment_px <= MAX_SHIFT_AUGMENT_PX, s,
                "shift_augment_px", self.shift_augment_px, f"an integer in [0, {MAX_SHIFT_AUGMENT_PX}]")
-        _check(_whole(self.demo_batch) and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
+        _check(is_whole(self.demo_batch) and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
                "an integer in [0, 4096]")
         _check(_finite(self.demo_margin) and 0 <= self.demo_margin <= 100, s, "demo_margin", self.demo_margin,
                "a number in [0, 100]")
@@ -660,7 +666,7 @@ class ExploreConfig:
                      "safe_label_prob"):
             v = getattr(self, name)
             _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
-        _check(_whole(self.eps_decay_steps) and self.eps_decay_steps >= 0, s,
+        _check(is_whole(self.eps_decay_steps) and self.eps_decay_steps >= 0, s,
                "eps_decay_steps", self.eps_decay_steps, "an integer >= 0")
         _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
         _check(_finite(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
@@ -711,7 +717,7 @@ class TrainConfig:
         for name in ("total_updates", "warmup_transitions", "checkpoint_every", "keep_checkpoints", "log_every",
                      "seed"):
             v = getattr(self, name)
-            _check(_whole(v) and v >= 0, s, name, v,
+            _check(is_whole(v) and v >= 0, s, name, v,
                    "an integer >= 0")
         _check(self.keep_checkpoints >= 1, s, "keep_checkpoints", self.keep_checkpoints, "an integer >= 1")
         _check(self.checkpoint_every >= 1 and self.log_every >= 1, s, "checkpoint_every/log_every",
@@ -787,7 +793,7 @@ def _section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: s
     for name, value in data.items():
         hint = hints[name]
         # TOML has no None and no int/float distinction the user cares about.
-        if hint in (float, "float") and _whole(value):
+        if hint in (float, "float") and is_whole(value):
             value = float(value)
         if value == "none" and "None" in str(hint):
             value = None
@@ -819,8 +825,10 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.toml"))
 
 
-def load_preset(name_or_path: str | Path) -> RunConfig:
-    """Load a preset by name (``paper``, ``fast``, ...) or from a TOML file path."""
+def load_preset(name_or_path: str | Path, *, complete: bool = False) -> RunConfig:
+    """Load a preset by name (``paper``, ``fast``, ...) or from a TOML file path. ``complete`` (a
+    run's saved ``config.toml``, which names every section): a missing section is an error, not its
+    defaults; such a file was cut short."""
     path = Path(name_or_path)
     if not path.suffix:
         path = PRESET_DIR / f"{name_or_path}.toml"
@@ -830,8 +838,15 @@ def load_preset(name_or_path: str | Path) -> RunConfig:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
         raise ConfigError(f"preset file {path} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"preset file {path} is not valid TOML: {exc}") from None
+    except OSError as exc:  # a folder, no permission
+        raise ConfigError(f"preset file {path} cannot be read: {exc.strerror or exc}") from None
+    except (ValueError, RecursionError) as exc:  # bad TOML, bad UTF-8, nesting deep enough to exhaust the parser
+        reason = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
+        raise ConfigError(f"preset file {path} is not valid TOML: {reason}") from None
+    missing = [name for name in _SECTIONS if name not in data] if complete else []
+    if missing:
+        raise ConfigError(f"{path} lacks section(s) {missing}: cut short? A run's saved config names every "
+                          "section; restore it, or start the run over")
     try:
         return from_dict(data)
     except ConfigError as exc:
@@ -866,7 +881,7 @@ def parse_override(text: str) -> tuple[str, Any]:
         raise ConfigError(f"override {text!r} must look like section.field=value")
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
+    except (tomllib.TOMLDecodeError, RecursionError):  # not a TOML value: the text itself
         value = raw
     return key.strip(), value
 

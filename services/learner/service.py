@@ -32,7 +32,7 @@ from services.bus.session import (
     zenoh_settings,
 )
 from services.process import setup_logging, stop_event_on_signals
-from services.runs import RunPaths, resolve_config, run_paths, save_config
+from services.runs import RunLock, RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointManager
 from shared.learning.learner import LearnerCore, RateMeter, resume_from
@@ -98,6 +98,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     """The learner loop. Returns final counters. ``tensorboard``: a folder for its rows as TensorBoard events;
     ``pipeline``: TD targets one update ahead on a second thread (LearnerCore)."""
     keys = RunKeys(run)
+    lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
     epoch = new_epoch()  # this process: its weights outrank every earlier learner's, whatever their update
     core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline)

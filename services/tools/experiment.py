@@ -66,6 +66,7 @@ from shared.evaluation import (
     PROTOCOLS,
     ProtocolConfig,
 )
+from shared.jsontext import read_json_file
 
 log = logging.getLogger("cogexplore.experiment")
 
@@ -138,11 +139,14 @@ class ExperimentState:
                                      "options": options.fixed(), "stages": {}}
         if path.is_file():
             try:
-                old = json.loads(path.read_text())
-            except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-                raise ExperimentError(f"{path} is not valid JSON ({exc}): move it away to start afresh") from None
-            if old.get("format") != STATE_FORMAT or old.get("version") != STATE_VERSION:
-                raise ExperimentError(f"{path} is not a {STATE_FORMAT} v{STATE_VERSION} state file")
+                old = read_json_file(path, "state file", ExperimentError)
+            except ExperimentError as exc:
+                raise ExperimentError(f"{exc}: move it away to start afresh") from None
+            if not (isinstance(old, dict) and old.get("format") == STATE_FORMAT and old.get("version") == STATE_VERSION
+                    and isinstance(old.get("options"), dict) and isinstance(old.get("stages"), dict)
+                    and all(isinstance(v, dict) for v in old["stages"].values())):
+                raise ExperimentError(f"{path} is not a {STATE_FORMAT} v{STATE_VERSION} state file: move it away "
+                                      "to start afresh")
             # State files from before the protocol was an option were evaluated under the paper's.
             old["options"].setdefault("protocol", PROTOCOLS["paper"].to_dict())
             differ = sorted(k for k in FIXED_OPTIONS if old["options"].get(k) != self.data["options"][k])

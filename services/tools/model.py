@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.config import ConfigError, parse_world_list
+from shared.jsontext import read_json_file
 
 
 def run_summary(args: argparse.Namespace) -> int:
@@ -44,10 +45,7 @@ def run_export(args: argparse.Namespace) -> int:
         loaded = ensemble_members(loaded, [m.strip() for m in args.members.split(",")])
     card = {}
     if args.card:
-        try:
-            card = json.loads(Path(args.card).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise ConfigError(f"--card {args.card}: {exc}") from None
+        card = read_json_file(args.card, "--card", ConfigError, allow_nan=False)  # the file's metadata is JSON
         if not isinstance(card, dict):
             raise ConfigError(f"--card {args.card} must hold a JSON object")
     report: dict[str, Any] = {}

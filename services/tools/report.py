@@ -29,6 +29,7 @@ import argparse
 import csv
 import json
 import logging
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +49,7 @@ from services.tools.document import (
     markdown,
 )
 from services.tools.options import REPORT_PROTOCOLS
+from shared.config import is_whole
 from shared.errors import CogexploreError
 from shared.evaluation import (
     PAPER_BASELINE_STEPS,
@@ -70,6 +72,7 @@ from shared.evaluation.results import (
 )
 from shared.evaluation.setup import EvalSetup, setup_evaluation
 from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
+from shared.jsontext import parse_json
 from shared.learning.stats import TrainingSummary, summarize_learner_log
 
 log = logging.getLogger("cogexplore.report")
@@ -163,17 +166,38 @@ def _unique(name: str, taken: set[str]) -> str:
 # ---------------------------------------------------------------------------------------------
 
 
+def _eval_row(line: str) -> dict[str, Any] | None:
+    """One row of ``eval.jsonl`` if it is one the evaluator could have written, else None."""
+    try:
+        row = parse_json(line, "an eval.jsonl row", allow_nan=False)
+    except CogexploreError:
+        return None
+
+    def count(value: Any, least: int) -> bool:
+        return is_whole(value) and value >= least
+
+    if not (isinstance(row, dict) and count(row.get("policy_version"), 0) and isinstance(row.get("summary"), dict)):
+        return None
+    mean_steps = row["summary"].get("mean_steps")
+    if not (isinstance(mean_steps, (int, float)) and not isinstance(mean_steps, bool)
+            and math.isfinite(mean_steps) and mean_steps >= 0):  # JSON's 1e999 reads as infinity
+        return None
+    if not all(row.get(k) is None or count(row[k], 1) for k in ("episodes_per_start", "max_steps")):
+        return None
+    return row if isinstance(row.get("protocol", "paper"), str) else None
+
+
 def load_eval_log(path: Path) -> list[dict[str, Any]]:
-    """The evaluator service's ``eval.jsonl`` rows (bad lines skipped), sorted by version."""
-    rows = []
-    for line in path.read_text(errors="replace").splitlines():  # a damaged line is skipped like a bad one
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if (isinstance(row, dict) and isinstance(row.get("policy_version"), int)
-                and isinstance(row.get("summary"), dict)):
-            rows.append(row)
+    """The evaluator service's ``eval.jsonl`` rows, sorted by version; a damaged or forged row (not
+    JSON, NaN, a negative version, a count that is not one) is skipped with a warning."""
+    rows, skipped = [], 0
+    for line in path.read_text(errors="replace").splitlines():
+        if line.strip():
+            row = _eval_row(line)
+            rows += [row] if row is not None else []
+            skipped += row is None
+    if skipped:
+        log.warning("%s: %d row(s) skipped: not an evaluation the evaluator writes", path, skipped)
     return sorted(rows, key=lambda r: r["policy_version"])
 
 
@@ -300,7 +324,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     out.mkdir(parents=True, exist_ok=True)
     report = Report(markdown=out / "report.md", html=out / "report.html")
     notes = report.notes
-    run_cfg = load_preset(str(run / "config.toml")) if (run / "config.toml").is_file() else None
+    run_cfg = load_preset(run / "config.toml", complete=True) if (run / "config.toml").is_file() else None
 
     for f in probe_files:  # refuse a bad probe before spending minutes on evaluations
         try:

@@ -23,7 +23,7 @@ from typing import Any
 from tqdm import tqdm
 
 from services.process import setup_logging, stop_event_on_signals
-from services.runs import RunPaths, resolve_config, save_config
+from services.runs import RunLock, RunPaths, resolve_config, save_config
 from shared.config import RunConfig
 from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager
@@ -115,6 +115,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     """Train until ``total_updates`` (or ``max_minutes``, or ``stop``); returns a summary. ``tensorboard``:
     the rows also as TensorBoard events in ``tb/train``."""
     stop = stop or threading.Event()
+    lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
     save_config(cfg, paths)
     core = LearnerCore(cfg, device=cfg.train.device)

@@ -49,7 +49,7 @@ from services.bus.session import (
     subscribe_messages,
 )
 from services.process import setup_logging
-from services.runs import RunPaths, resolve_config, save_config
+from services.runs import RunLock, RunPaths, resolve_config, save_config
 from shared.config import ConfigError
 from shared.errors import CogexploreError
 from shared.learning.stats import LearnerRow
@@ -277,6 +277,19 @@ class Launcher:
         self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
         if getattr(args, "resume", False) and not self.paths.root.exists():
             raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
+        self.lock = RunLock(self.paths, "up")  # before anything in the run folder is touched, --fresh included
+        try:
+            self._prepare_folder()
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        """Let go of the run (another `up` may start it); :meth:`execute` does at its end."""
+        self.lock.release()
+
+    def _prepare_folder(self) -> None:
+        args = self.args
         moved_to = move_aside(self.paths.root) if getattr(args, "fresh", False) and self.paths.root.exists() else None
         # checked before the run folder exists: a refused start leaves nothing behind
         make_tls = getattr(args, "tls", False)
@@ -371,6 +384,7 @@ class Launcher:
             bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True, disable=a.quiet,
                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} upd [{elapsed}{postfix}]")
             reason = "done"
+            evaluator_gone = False
             try:
                 while True:
                     if stop.is_set():
@@ -382,10 +396,23 @@ class Launcher:
                     learner = next(c for c in self.children if c.role == "learner")
                     if learner.process.poll() is not None:
                         reason = "done" if learner.process.returncode == 0 else "failed: learner"
+                        reached = checkpoint_updates(self.paths) or 0
+                        if reason == "done" and reached < cfg_updates:  # stopped by someone else
+                            print(f"run {self.run!r}: its learner stopped at update {reached} of {cfg_updates}",
+                                  file=sys.stderr)
+                            reason = "failed: learner"
                         break
                     if not self._alive("router"):
                         reason = "failed: router"
                         break
+                    if not self._alive("actor"):  # the learner would wait for transitions forever
+                        reason = "failed: actor-0"
+                        break
+                    evaluator = [c for c in self.children if c.role == "evaluator"]
+                    if evaluator and not evaluator_gone and evaluator[0].process.poll() is not None:
+                        evaluator_gone = True  # its figures are a curve; the final evaluation is up's own
+                        bar.write(f"the evaluator stopped (exit {evaluator[0].process.returncode}): training goes "
+                                  f"on without its curve; see {evaluator[0].logfile}", file=sys.stderr)
                     stop.wait(1.0)
                     figures = progress.figures(len(actors.alive))
                     if deadline is not None:
@@ -404,6 +431,12 @@ class Launcher:
         return self.config.train.total_updates
 
     def execute(self) -> int:
+        try:
+            return self._execute()
+        finally:
+            self.close()
+
+    def _execute(self) -> int:
         a = self.args
         overrides = {"train.total_updates": a.updates} if a.updates else {}
         self.config = resolve_config(a, self.paths)
@@ -446,9 +479,12 @@ class Launcher:
             who = reason.split(": ", 1)[1]
             print(f"see {self.paths.logs / (who + '.log')}", file=sys.stderr)
             return 1
-        if not a.no_report:
-            return self.final_report()
-        return 0
+        if a.no_report:
+            return 0
+        if checkpoint_updates(self.paths) is None:
+            print(f"run {self.run!r} has no checkpoint yet: no final evaluation or report", file=sys.stderr)
+            return 130 if reason == "interrupted" else 1
+        return self.final_report()
 
     def final_model(self) -> Path:
         """What the final evaluation and report play: the mean of the run's last ``--final-average``
@@ -490,7 +526,7 @@ class Launcher:
 def _cli(argv: list[str], stdout: int | None = None) -> int:
     """Run ``cogexplore ARGV`` in a child process (offline: no Rerun analytics); its exit status."""
     return subprocess.run([sys.executable, "-m", "services.cli", *argv], check=False, stdout=stdout,
-                          env=dict(os.environ, RERUN_ANALYTICS="0")).returncode
+                          env=dict(os.environ, RERUN_ANALYTICS="0"), preexec_fn=_die_with_parent).returncode
 
 
 class RunStateError(CogexploreError):

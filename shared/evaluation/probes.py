@@ -28,6 +28,7 @@ import numpy as np
 from shared.config import SensorConfig
 from shared.depth import MM_PER_M, resize_depth
 from shared.errors import CogexploreError
+from shared.jsontext import read_json_file
 
 PROBE_DIR = Path(__file__).resolve().with_name("probe_scenes")
 """Where the stored probe scenes live (``shared/evaluation/probe_scenes/``)."""
@@ -131,13 +132,13 @@ def load_probes(directory: str | Path = PROBE_DIR, sensor_cfg: SensorConfig | No
         raise ProbeError(f"no probe scenes in {d} (regenerate them: python -m shared.evaluation.probes)")
     probes = []
     for meta_path in metas:
+        meta = read_json_file(meta_path, "probe description", ProbeError)
         try:
-            meta = json.loads(meta_path.read_text())
             pose = meta["pose"]
             scene = ProbeScene(meta["name"], float(pose["x"]), float(pose["y"]), float(pose["yaw"]),
                                meta.get("description", ""), meta.get("world", PROBE_WORLD))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-            raise ProbeError(f"{meta_path}: not a probe description ({exc})") from None
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ProbeError(f"{meta_path}: not a probe description ({exc!r})") from None
         stored = meta.get("sensor", {})
         if (stored.get("width"), stored.get("height")) == (cfg.width, cfg.height) and \
                 (d / f"{scene.name}.npy").exists():
@@ -184,7 +185,7 @@ def load_probe_image(path: str | Path, sensor_cfg: SensorConfig | None = None,
             with Image.open(p) as img:
                 mode = img.mode
                 arr = np.array(img)
-        except (UnidentifiedImageError, OSError) as exc:
+        except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as exc:
             raise ProbeError(f"{p}: not a readable PNG ({exc})") from None
         if arr.ndim == 3:
             raise ProbeError(f"{p}: a {mode} colour image; expected a single-channel 16-bit depth PNG in millimetres")
@@ -195,7 +196,7 @@ def load_probe_image(path: str | Path, sensor_cfg: SensorConfig | None = None,
         raise ProbeError(f"{p}: unknown probe format {suffix!r}; use a 16-bit PNG in millimetres or a .npy in metres")
     if depth.ndim == 3 and depth.shape[-1] == 1:
         depth = depth[..., 0]
-    if depth.ndim != 2:
+    if depth.ndim != 2 or depth.size == 0:
         raise ProbeError(f"{p}: shape {depth.shape}; expected one (H, W) depth image")
     if np.isnan(depth).any():
         raise ProbeError(f"{p}: {int(np.isnan(depth).sum())} NaN pixels; mark missing returns with 0, not NaN")

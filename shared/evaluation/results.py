@@ -46,6 +46,7 @@ import numpy as np
 from shared.config import ConfigError
 from shared.errors import CogexploreError
 from shared.evaluation import ProtocolConfig
+from shared.jsontext import parse_json, read_json_file
 
 SCHEMA_ID = "cogexplore.eval-results/2"
 _SCHEMA_WITHOUT_PROTOCOL = "cogexplore.eval-results/1"
@@ -258,12 +259,11 @@ def slug(name: str) -> str:
 def load_results(path: str | Path) -> EvalResults:
     """Read and validate a results JSON file."""
     p = Path(path)
+    if not p.exists():
+        raise ResultsError(f"results file {p} does not exist")
+    document = read_json_file(p, "results file", ResultsError)
     try:
-        text = p.read_text()
-    except FileNotFoundError:
-        raise ResultsError(f"results file {p} does not exist") from None
-    try:
-        return validate_results_json(text)
+        return validate_results_json(document)
     except ResultsError as exc:
         raise ResultsError(f"{p}: {exc}") from None
 
@@ -300,10 +300,7 @@ def validate_results_json(data: str | bytes | Mapping[str, Any]) -> EvalResults:
     """Check a results document (JSON text or the parsed object) against the schema and
     return it as :class:`EvalResults`; a :class:`ResultsError` names the first problem."""
     if isinstance(data, (str, bytes)):
-        try:
-            data = json.loads(data)
-        except json.JSONDecodeError as exc:
-            raise ResultsError(f"not valid JSON: {exc}") from None
+        data = parse_json(data, "the document", ResultsError)
     if not isinstance(data, Mapping):
         raise ResultsError(f"a results document must be a JSON object, got {type(data).__name__}")
     want = {"schema", "meta", "episodes", "summary"}

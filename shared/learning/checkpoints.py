@@ -68,8 +68,10 @@ from shared.config import (
     SensorConfig,
     config_differences,
     from_dict,
+    is_whole,
 )
 from shared.errors import CogexploreError
+from shared.jsontext import parse_json
 from shared.learning.dqn import DQNAgent, DQNError
 from shared.learning.model import (
     MAX_ENSEMBLE_MEMBERS,
@@ -160,10 +162,9 @@ def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
                               f"{exc}") from None
     if raw is None:
         raise CheckpointError(f"{path} has no cogexplore metadata: not a {fmt} file")
-    try:
-        meta = json.loads(raw)
-    except json.JSONDecodeError as exc:
-        raise CheckpointError(f"{path}: metadata is not valid JSON ({exc})") from None
+    meta = parse_json(raw, f"{path}: its metadata", CheckpointError)
+    if not isinstance(meta, dict):
+        raise CheckpointError(f"{path}: its metadata is not a table")
     if meta.get("format") != fmt:
         raise CheckpointError(f"{path} is a {meta.get('format')!r} file, expected {fmt!r}")
     if meta.get("version") != VERSION:
@@ -212,21 +213,25 @@ class Checkpoint:
         """Load the agent's state (and the replay memory, when given and saved) exactly."""
         try:
             agent.load_state_tensors(self.tensors, self.agent_meta)
-        except (DQNError, ModelError, KeyError, ValueError) as exc:
-            raise CheckpointError(f"{self.path} does not fit this agent: {exc}") from None
+        except (DQNError, ModelError, KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
+            raise CheckpointError(f"{self.path} does not fit this agent: {exc!r}") from None
         if replay is not None:
-            if self.replay_path is None:
-                raise CheckpointError(f"{self.path} was saved without its replay memory")
-            if not self.replay_path.exists():
-                raise CheckpointError(f"{self.path}'s replay memory was not kept ({self.replay_path.name}: only "
-                                      "the newest checkpoints keep theirs)")
-            arrays, meta = load_tensors_file(self.replay_path, FORMAT + "-replay", framework="numpy")
-            if meta.get("digest") != self.replay_digest:
-                raise CheckpointError(f"{self.replay_path} belongs to another checkpoint")
-            try:
-                replay.load_state_dict(arrays, meta["replay"])
-            except (ReplayError, KeyError) as exc:
-                raise CheckpointError(f"{self.replay_path} does not fit this replay memory: {exc}") from None
+            self.restore_replay(replay)
+
+    def restore_replay(self, replay: ReplayMemory) -> None:
+        """Load the replay memory saved with this checkpoint into ``replay``."""
+        if self.replay_path is None:
+            raise CheckpointError(f"{self.path} was saved without its replay memory")
+        if not self.replay_path.exists():
+            raise CheckpointError(f"{self.path}'s replay memory was not kept ({self.replay_path.name}: only "
+                                  "the newest checkpoints keep theirs)")
+        arrays, meta = load_tensors_file(self.replay_path, FORMAT + "-replay", framework="numpy")
+        if meta.get("digest") != self.replay_digest:
+            raise CheckpointError(f"{self.replay_path} belongs to another checkpoint")
+        try:
+            replay.load_state_dict(arrays, meta["replay"])
+        except (ReplayError, KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{self.replay_path} does not fit this replay memory: {exc}") from None
 
 
 def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory | None = None,
@@ -244,7 +249,7 @@ def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory |
     if replay is not None:
         arrays, rmeta = replay.state_dict()
         rdigest = _digest(arrays)
-        rpath = path.with_name(path.name.replace(".safetensors", f".replay-{rdigest[:12]}.safetensors"))
+        rpath = path.with_name(_replay_name(path, rdigest))
         tmp = rpath.with_name(f".{rpath.name}.tmp-{os.getpid()}")
         safetensors.numpy.save_file(
             {k: np.ascontiguousarray(v) for k, v in arrays.items()}, tmp,
@@ -267,11 +272,33 @@ def load_checkpoint(path: Path | str) -> Checkpoint:
     """Read and verify one checkpoint file; raises CheckpointError if partial or corrupt."""
     path = Path(path)
     tensors, meta = load_tensors_file(path, FORMAT)
-    rinfo = meta.get("replay")
-    return Checkpoint(path=path, tensors=tensors, agent_meta=meta["agent"], config=meta.get("config"),
-                      extra=meta.get("extra") or {},
+    agent, config, extra = meta.get("agent"), meta.get("config"), meta.get("extra") or {}
+    if not (isinstance(agent, dict) and all(is_whole(agent.get(k)) and agent[k] >= 0
+                                            for k in ("update_count", "policy_version"))):
+        raise CheckpointError(f"{path}: its agent state is not a table with whole update_count and policy_version")
+    if not (config is None or isinstance(config, dict)) or not isinstance(extra, dict):
+        raise CheckpointError(f"{path}: its config and extra must be tables")
+    rinfo = _replay_info(path, meta)
+    return Checkpoint(path=path, tensors=tensors, agent_meta=agent, config=config, extra=extra,
                       replay_path=path.with_name(rinfo["file"]) if rinfo else None,
                       replay_digest=rinfo["digest"] if rinfo else None)
+
+
+def _replay_name(checkpoint: Path, digest: str) -> str:
+    """The name of a checkpoint's replay memory file, beside it."""
+    return checkpoint.name.replace(".safetensors", f".replay-{digest[:12]}.safetensors")
+
+
+def _replay_info(path: Path, meta: Mapping[str, Any]) -> dict[str, str] | None:
+    """A checkpoint's note of its replay memory file (None: saved without one), checked: a forged
+    one may name no other file than a replay memory beside it."""
+    rinfo = meta.get("replay")
+    if rinfo is None:
+        return None
+    if not (isinstance(rinfo, dict) and isinstance(rinfo.get("digest"), str)
+            and rinfo.get("file") == _replay_name(path, rinfo["digest"])):
+        raise CheckpointError(f"{path}: its replay entry does not name a replay memory file and digest")
+    return rinfo
 
 
 @dataclass
@@ -327,7 +354,7 @@ class CheckpointManager:
         live_replays = set()
         for p in self.checkpoints()[-self.keep_replays:]:
             try:
-                rinfo = _read_meta(p, FORMAT).get("replay")
+                rinfo = _replay_info(p, _read_meta(p, FORMAT))
             except CheckpointError:
                 continue  # unreadable: its replay is useless too
             if rinfo:
@@ -681,7 +708,10 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
     except CheckpointError as exc:
         errors.append(str(exc))
         raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
-    return LoadedModel(net, path, "weights", int(meta.get("policy_version", 0)), architecture_fingerprint(net),
+    policy_version = meta.get("policy_version", 0)
+    if not (is_whole(policy_version) and policy_version >= 0):
+        raise CheckpointError(f"{path}: policy_version {policy_version!r} is not a whole number >= 0")
+    return LoadedModel(net, path, "weights", policy_version, architecture_fingerprint(net),
                        weights_sha256(net), _stored_run_config(path, meta.get("run_config")),
                        averaged_from=_averaged_from(meta),
                        ensemble_of=_ensemble_of(meta, net))
@@ -751,7 +781,7 @@ def ensemble_members(model: LoadedModel, picks: Sequence[str]) -> LoadedModel:
     chosen: list[int] = []
     for pick in picks:
         hits = [i for i, label in enumerate(labels) if pick in (label, label.rsplit("@", 1)[0])]
-        if not hits and pick.isdigit() and int(pick) < len(entries):
+        if not hits and pick.isascii() and pick.isdigit() and len(pick) <= 3 and int(pick) < len(entries):
             hits = [int(pick)]
         if len(hits) != 1:
             members = ", ".join(f"{i}: {label}" for i, label in enumerate(labels))

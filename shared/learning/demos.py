@@ -44,6 +44,7 @@ import numpy as np
 from shared.config import NUM_ACTIONS, ReplayConfig
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
+from shared.jsontext import parse_json
 from shared.rollout import Rollout, Step
 
 if TYPE_CHECKING:
@@ -234,11 +235,12 @@ def load_demonstrations(path: str | Path, frame_shape: tuple[int, int] | None = 
         raise DemoError(f"{path}: no such demonstration file") from None
     except (OSError, ValueError, EOFError) as exc:  # not an npz, damaged, or object arrays
         raise DemoError(f"{path} is not a readable demonstration file: {exc}") from None
-    try:
-        meta = json.loads(arrays["meta"].tobytes().decode())
-        entries = meta["demos"]
-    except (KeyError, TypeError, ValueError, UnicodeDecodeError) as exc:
-        raise DemoError(f"{path}: missing or damaged metadata ({exc})") from None
+    if "meta" not in arrays:
+        raise DemoError(f"{path}: no metadata: not a demonstration file")
+    meta = parse_json(arrays["meta"].tobytes(), f"{path}: its metadata", DemoError)
+    entries = meta.get("demos") if isinstance(meta, dict) else None
+    if not (isinstance(entries, list) and all(isinstance(e, dict) for e in entries)):
+        raise DemoError(f"{path}: damaged metadata: no list of demonstrations")
     if meta.get("format") != DEMO_FORMAT or meta.get("version") != VERSION:
         raise DemoError(f"{path}: format {meta.get('format')!r} version {meta.get('version')!r}, "
                         f"expected {DEMO_FORMAT!r} version {VERSION}")

@@ -286,7 +286,9 @@ class RateMeter:
 
 
 def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
-    """Restore the newest checkpoint that loads (agent, and replay when it was saved)."""
+    """Restore the newest checkpoint that loads (agent, and replay when it was saved); False when
+    there is none. CheckpointError when it does not fit ``core``: starting afresh there would train
+    another network into the run's checkpoints and prune its work away."""
     checkpoint = checkpoints.load_latest()
     for reason in checkpoints.skipped:
         log.warning("skipped a checkpoint: %s", reason)
@@ -297,10 +299,17 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
         log.warning("%s's replay memory was not kept (only the newest checkpoints keep theirs): resuming with "
                     "an empty replay memory", checkpoint.path.name)
     try:
-        checkpoint.restore(core.agent, core.replay if with_replay else None)
+        checkpoint.restore(core.agent)
     except CheckpointError as exc:
-        log.error("cannot resume from %s: %s; starting fresh", checkpoint.path, exc)
-        return False
+        raise CheckpointError(f"cannot resume: {exc}. Its run was trained with another network or optimiser: "
+                              "train it with its own config (drop --preset and --set), or start it over "
+                              "(up --fresh, or another --run)") from None
+    if with_replay:
+        try:
+            checkpoint.restore_replay(core.replay)
+        except CheckpointError as exc:
+            raise CheckpointError(f"cannot resume: {exc}. Move that file away to resume with an empty replay "
+                                  "memory") from None
     core.received = int(checkpoint.extra.get("transitions_received", len(core.replay)))
     purged = core.purge_out_of_bounds()
     if purged:

@@ -22,7 +22,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from shared.config import PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig
+from shared.config import PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig, is_procedural_seed
 from shared.errors import CogexploreError
 from shared.sim import maps
 from shared.sim.robot import FLOOR_GEOM, ROBOT_BODY, Robot, build_model
@@ -710,8 +710,9 @@ def _cached_world(name: str) -> World:
     if name in BUILTIN_WORLDS:
         return BUILTIN_WORLDS[name]()
     seed_text = name[len(PROCEDURAL_PREFIX):]
-    if not (seed_text.isascii() and seed_text.isdigit()):
-        raise WorldError(f"world {name!r}: the seed after '{PROCEDURAL_PREFIX}' must be an integer >= 0")
+    if not is_procedural_seed(seed_text):
+        raise WorldError(f"world {name[:40]!r}: the seed after '{PROCEDURAL_PREFIX}' must be an integer >= 0 "
+                         "of at most 18 digits")
     return procedural_world(int(seed_text))
 
 

@@ -179,3 +179,11 @@ def test_a_service_that_cannot_join_says_why_in_one_line(argv: list[str], messag
     last = proc.stderr.strip().splitlines()[-1]
     assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
     assert last.startswith(f"cogexplore {argv[0]}: error: ") and message in last, last
+
+
+def test_a_world_file_mujoco_cannot_compile_is_one_line_naming_the_element(tmp_path: Path, capsys) -> None:
+    world = tmp_path / "broken.xml"
+    world.write_text('<mujoco><worldbody><geom name="wall" type="box" size="1 -1 1"/></worldbody></mujoco>')
+    assert main(["evaluate", "--policy", "random", "--world", str(world), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore evaluate: error: ") and err.count("\n") == 1 and "wall" in err, err

@@ -22,6 +22,7 @@ from shared.learning.checkpoints import (
     load_model,
     pretrained_path,
 )
+from shared.errors import CogexploreError
 from shared.learning.dqn import DQNAgent
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -54,6 +55,21 @@ def test_model_export_half_precision_keeps_the_greedy_policy(tmp_path: Path, cap
         q_full, q_half = full(depth), half(depth)
     assert torch.allclose(q_full, q_half, atol=1e-2 * q_full.abs().max().item() + 1e-4)
     assert (q_full.argmax(1) == q_half.argmax(1)).float().mean() >= 0.95
+
+    # a card is stored as standard JSON, which has no NaN: refused before anything is written
+    out = tmp_path / "nan.safetensors"
+    for text in ('{"accuracy": NaN}', '{"n": 1e999}', "[" * 100_000):
+        card.write_text(text)
+        assert main(["model", "export", str(tmp_path / "run"), "--out", str(out), "--card", str(card)]) == 2
+        assert "--card" in capsys.readouterr().err and not out.exists()
+    # and an export whose policy version was forged is no model
+    from shared.learning.checkpoints import load_model, load_tensors_file, save_tensors_file
+
+    tensors, meta = load_tensors_file(outs[False], "cogexplore-weights")
+    for version in ("abc", -12345, 1.7):
+        save_tensors_file(out, tensors, {k: v for k, v in meta.items() if k != "digest"} | {"policy_version": version})
+        with pytest.raises(CogexploreError, match="policy_version"):
+            load_model(out)
 
 
 def test_model_export_averages_several_checkpoints(tmp_path: Path, capsys) -> None:

@@ -162,3 +162,15 @@ def test_checkpoint_list_and_options_are_validated(tmp_path, capsys):
         assert main([*TINY, "--out", str(tmp_path / "y"), "--checkpoints", "20", *seen]) == 2
         assert "never trained on" in capsys.readouterr().err
     assert not (tmp_path / "y" / "state.json").exists()
+
+
+@pytest.mark.parametrize("state", ["[]", '{"format": "cogexplore-experiment", "version": 1}', "\xff",
+                                   '{"format": "cogexplore-experiment", "version": 1, "options": {}, "stages": []}'])
+def test_a_damaged_state_file_is_one_line_and_left_as_it_is(state: str, tmp_path, capsys):
+    out = tmp_path / "exp"
+    out.mkdir()
+    (out / "state.json").write_bytes(state.encode("latin-1"))
+    assert cli(["experiment", "paper", "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore experiment: error: ") and "move it away to start afresh" in err
+    assert err.count("\n") == 1 and (out / "state.json").read_bytes() == state.encode("latin-1")

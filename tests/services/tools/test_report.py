@@ -327,6 +327,20 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     assert older.eval_curve[1].protocol == "paper"
 
 
+def test_an_eval_log_row_the_evaluator_could_not_have_written_is_skipped(tmp_path: Path, caplog) -> None:
+    good = {"policy_version": 1000, "protocol": "robust", "episodes_per_start": 1, "max_steps": 200,
+            "summary": {"mean_steps": 42.5}}
+    bad = [{**good, "summary": {}}, {**good, "summary": {"mean_steps": "abc"}}, {**good, "policy_version": -7},
+           {**good, "episodes_per_start": "x"}, {**good, "max_steps": 0}, {**good, "protocol": 3}]
+    lines = [json.dumps(good), *map(json.dumps, bad), json.dumps(good).replace("42.5", "NaN"),
+             json.dumps(good).replace("42.5", "1e999"), "[" * 100_000, '{"policy_ver']
+    path = tmp_path / "eval.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    with caplog.at_level("WARNING", logger="cogexplore.report"):
+        assert load_eval_log(path) == [good]
+    assert "10 row(s) skipped" in caplog.text
+
+
 def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
     run = tmp_path / "fresh"
     run.mkdir()

@@ -134,6 +134,7 @@ def test_the_final_model_is_the_mean_of_the_last_checkpoints(tmp_path: Path) -> 
     # with it beside the shipped model under both protocols.
     ending = Launcher(launcher_args(tmp_path, "--resume", "--final-average", "2", "--final-episodes", "1"))
     assert ending.final_report() == 0
+    ending.close()
     final = json.loads((paths.stats / "final-eval.json").read_text())["meta"]
     assert final["weights_sha256"] == mean.weights_sha256 and final["protocol"] == PROTOCOLS["robust"].to_dict()
     assert (paths.recordings / "final-eval.rrd").is_file()
@@ -148,3 +149,82 @@ def test_the_final_model_is_the_mean_of_the_last_checkpoints(tmp_path: Path) -> 
     assert three.name == f"{RUN}-mean3.safetensors" and len(load_model(three).averaged_from) == 3
     assert Launcher(launcher_args(tmp_path, "--resume", "--final-average", "1")).final_model() == paths.root
     assert main(UP + ["--runs-dir", str(tmp_path), "--final-average", "0"]) == 2
+
+
+def test_a_run_is_started_by_one_up_and_trained_by_one_learner_at_a_time(tmp_path: Path, capsys) -> None:
+    paths = run_at(tmp_path, updates=10, total_updates=20)
+    holder = Launcher(launcher_args(tmp_path))  # an `up` of the run, as long as it lives
+    try:
+        for flags in ([], ["--fresh"]):  # --fresh would move the folder away under the running learner
+            assert main(UP + ["--runs-dir", str(tmp_path), *flags]) == 2
+            err = capsys.readouterr().err
+            assert f"run {RUN!r} is in use: its up is pid " in err and err.count("\n") == 1, err
+        assert not list(tmp_path.glob(f"{RUN}.old-*")) and checkpoint_updates(paths) == 10
+    finally:
+        holder.close()
+    from services.runs import RunInUseError, RunLock
+
+    learner = RunLock(paths, "learner")  # a learner service of the run, or `cogexplore train`
+    try:
+        with pytest.raises(RunInUseError, match="its learner is pid"):
+            RunLock(paths, "learner")
+        assert main(["train", "--run", RUN, "--runs-dir", str(tmp_path), "--quiet"]) == 2
+        assert "is in use" in capsys.readouterr().err and checkpoint_updates(paths) == 10
+    finally:
+        learner.release()
+    RunLock(paths, "learner").release()  # free again once let go
+
+
+def test_a_run_whose_config_was_cut_short_or_does_not_fit_its_checkpoints_is_refused(tmp_path: Path, capsys) -> None:
+    paths = run_at(tmp_path, updates=10, total_updates=20)
+    whole = paths.config.read_text()
+    paths.config.write_text(whole[:whole.index("[dqn]")])  # cut at a section: what remains parses
+    assert main(UP + ["--runs-dir", str(tmp_path)]) == 2
+    assert "lacks section(s) ['dqn', 'explore', 'train']" in capsys.readouterr().err
+    assert paths.config.read_text() == whole[:whole.index("[dqn]")]  # not overwritten with defaults
+    # a learner given another network does not start the run over in its checkpoints folder
+    from shared.learning.checkpoints import CheckpointError
+    from shared.learning.learner import resume_from
+
+    other = LearnerCore(load_preset("smoke").with_overrides({"model.fc1": 48}), device="cpu")
+    with pytest.raises(CheckpointError, match="cannot resume: .*another network or optimiser"):
+        resume_from(CheckpointManager(paths.checkpoints), other)
+    assert checkpoint_updates(paths) == 10
+
+
+@pytest.mark.timeout(240)
+@pytest.mark.parametrize("who", ["actor", "learner"])
+def test_up_ends_failed_when_its_actors_die_or_its_learner_is_stopped_early(who: str, tmp_path: Path) -> None:
+    """All actors gone, the learner would wait forever; a learner stopped by someone else before its
+    last update is no finished run: neither is 'done', nor goes on to a final report of it."""
+    import os
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--run", RUN, "--actors", "1", "--preset",
+                             "smoke", "--updates", "1000000", "--runs-dir", str(tmp_path), "--quiet",
+                             "--no-tensorboard", "--no-evaluator"],
+                            cwd=REPO, env=ENV, stderr=subprocess.PIPE, text=True)
+    try:
+        paths = RunPaths(tmp_path / RUN)
+        deadline = time.monotonic() + 120
+        while checkpoint_updates(paths) is None and time.monotonic() < deadline:  # training
+            time.sleep(1.0)
+        pids = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
+                and f"{who}\0" in _cmdline(p) and str(tmp_path) in _cmdline(p)]
+        assert pids, f"no {who} process found"
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL if who == "actor" else signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 1, err[-2000:]
+    expected = "ended: failed: actor-0" if who == "actor" else "its learner stopped at update"
+    assert expected in err and "report:" not in err, err[-2000:]
+
+
+def _cmdline(proc_dir: Path) -> str:
+    try:
+        return (proc_dir / "cmdline").read_text()
+    except OSError:
+        return ""

@@ -145,7 +145,7 @@ def test_validation_names_the_problem(mutate, match: str) -> None:
 
 
 def test_validation_rejects_bad_text(tmp_path) -> None:
-    with pytest.raises(ResultsError, match="not valid JSON"):
+    with pytest.raises(ResultsError, match="is not readable JSON"):
         validate_results_json("{nope")
     with pytest.raises(ResultsError, match="does not exist"):
         load_results(tmp_path / "missing.json")

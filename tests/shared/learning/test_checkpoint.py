@@ -411,3 +411,42 @@ def test_models_trained_for_different_robots_are_not_joined(tmp_path, capsys):
     assert main(["model", "export", files["base"], files["charged"], "--ensemble",
                  "--out", str(tmp_path / "two.safetensors")]) == 0
     assert len(load_model(tmp_path / "two.safetensors").ensemble_of) == 2
+
+
+def test_a_checkpoint_with_forged_metadata_is_skipped_not_a_crash(tmp_path):
+    """The tensors' digest does not cover the metadata: a file whose metadata was damaged or forged
+    (a list, a missing agent, a replay entry naming another file, a version that is no count) is a
+    CheckpointError; a run resumes from the newest good checkpoint and the learner's pruning goes on."""
+    import safetensors.torch
+
+    from shared.config import load_preset
+    from shared.learning.checkpoints import (CheckpointManager, load_checkpoint, load_model, load_tensors_file,
+                                             save_tensors_file)
+    from shared.learning.learner import LearnerCore
+
+    cfg = load_preset("tiny").with_overrides({"replay.capacity": 500})
+    core = LearnerCore(cfg, device="cpu")
+    manager = CheckpointManager(tmp_path / "checkpoints", keep=5)
+    core.agent.update_count = 10
+    good = manager.save(core.agent, config=cfg.to_dict())
+    tensors, meta = load_tensors_file(good, "cogexplore-checkpoint")
+    meta = {k: v for k, v in meta.items() if k != "digest"}
+    forged = manager.path_for(20)
+    agent = meta["agent"]
+    for changed in ({"agent": None}, {"agent": []}, {"agent": {**agent, "update_count": "20"}},
+                    {"agent": {**agent, "policy_version": -1}}, {"replay": 5},
+                    {"replay": {"file": "../../config.toml", "digest": "0" * 12}}, {"extra": [1]}):
+        save_tensors_file(forged, tensors, meta | changed)
+        with pytest.raises(CheckpointError):
+            load_checkpoint(forged)
+    for raw in ("[]", "[" * 100_000, '{"format": ' + "9" * 5000 + "}"):
+        safetensors.torch.save_file(tensors, forged, metadata={"cogexplore": raw})
+        with pytest.raises(CheckpointError):
+            load_checkpoint(forged)
+        with pytest.raises(CheckpointError):
+            load_model(forged)
+    (manager.directory / "latest").write_text(forged.name + "\n")
+    resumed = manager.load_latest()
+    assert resumed is not None and resumed.path == good and any(forged.name in s for s in manager.skipped)
+    core.agent.update_count = 30
+    assert manager.save(core.agent, config=cfg.to_dict()).name == "ckpt-000000030.safetensors"  # pruning reads it too

@@ -1,0 +1,97 @@
+"""Files a user hands in, read as untrusted input: whatever is malformed is one clear error of the
+reader's own class, never a traceback (tests/services/test_cli.py checks the one line)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shared.errors import CogexploreError
+from shared.jsontext import parse_json, read_json_file
+
+DEEP = "[" * 100_000  # exhausts the parser's recursion
+HUGE_INT = '{"n": ' + "9" * 5000 + "}"  # beyond Python's 4300-digit limit
+
+
+@pytest.mark.parametrize("data,reason", [
+    (b"\xff", "can't decode byte 0xff"), ("{", "Expecting property name"), (DEEP, "nested too deeply"),
+    (HUGE_INT, "4300 digits"),
+])
+def test_malformed_json_is_one_error_naming_what_it_was(data: str | bytes, reason: str) -> None:
+    with pytest.raises(CogexploreError, match=rf"^the card is not readable JSON: .*{reason}"):
+        parse_json(data, "the card")
+
+
+def test_nan_and_infinity_are_refused_where_json_must_be_standard(tmp_path: Path) -> None:
+    assert parse_json('{"x": 1.5}', "x", allow_nan=False) == {"x": 1.5}
+    assert np.isnan(parse_json('{"x": NaN}', "x")["x"])  # where Python's own files may hold them
+    for text in ('{"x": NaN}', '{"x": -Infinity}', '{"x": 1e999}'):
+        with pytest.raises(CogexploreError, match="not readable JSON"):
+            parse_json(text, "x", allow_nan=False)
+    folder = tmp_path / "dir.json"
+    folder.mkdir()
+    with pytest.raises(CogexploreError, match=r"dir.json cannot be read"):
+        read_json_file(folder, "results file")
+
+
+def _write(path: Path, data: str | bytes) -> Path:
+    path.write_bytes(data if isinstance(data, bytes) else data.encode())
+    return path
+
+
+@pytest.mark.parametrize("data", [b"\xff\xfe", DEEP, HUGE_INT, "[]", '{"schema": 1}'])
+def test_a_stray_json_file_is_not_results_and_report_looks_past_it(data: str | bytes, tmp_path: Path) -> None:
+    from services.tools.report import find_results
+    from shared.evaluation.results import ResultsError, load_results
+
+    stray = _write(tmp_path / "a-stray.json", data)
+    with pytest.raises(ResultsError):
+        load_results(stray)
+    (tmp_path / "b-folder.json").mkdir()
+    assert find_results([tmp_path], {"policy": "greedy"}) is None  # skipped, not a crash
+
+
+@pytest.mark.parametrize("data", [b"x = \xff", "x = " + "[" * 100_000, "[env]\nmax_episode_steps = true\n"])
+def test_a_broken_preset_file_is_a_config_error(data: str | bytes, tmp_path: Path) -> None:
+    from shared.config import ConfigError, load_preset
+
+    with pytest.raises(ConfigError, match="bad.toml"):
+        load_preset(_write(tmp_path / "bad.toml", data))
+    (tmp_path / "folder.toml").mkdir()
+    with pytest.raises(ConfigError, match="cannot be read"):
+        load_preset(tmp_path / "folder.toml")
+
+
+def test_a_demonstration_file_with_forged_metadata_is_refused(tmp_path: Path) -> None:
+    from shared.learning.demos import DemoError, load_demonstrations
+
+    for meta in ({"format": "cogexplore-demos", "version": 1, "demos": 5}, [1, 2], "[" * 100_000):
+        text = meta if isinstance(meta, str) else json.dumps(meta)
+        path = tmp_path / "demos.npz"
+        np.savez(path, meta=np.frombuffer(text.encode(), dtype=np.uint8))
+        with pytest.raises(DemoError, match="metadata"):
+            load_demonstrations(path)
+
+
+def test_a_probe_image_that_holds_no_image_is_refused(tmp_path: Path) -> None:
+    from shared.evaluation.probes import ProbeError, load_probe_image
+
+    for shape in ((0, 0), (5, 0)):
+        np.save(tmp_path / "empty.npy", np.zeros(shape))
+        with pytest.raises(ProbeError, match="expected one"):
+            load_probe_image(tmp_path / "empty.npy")
+
+
+def test_a_procedural_seed_of_thousands_of_digits_is_a_clear_error() -> None:
+    from shared.config import ConfigError, parse_world_list
+    from shared.sim.world import WorldError, load_world
+
+    seed = "9" * 5000
+    with pytest.raises(WorldError, match="at most 18 digits"):
+        load_world(f"procedural:{seed}")
+    with pytest.raises(ConfigError, match="18 digits"):
+        parse_world_list(f"procedural:1-{seed}")
+    assert parse_world_list("procedural:7") == ("procedural:7",)
