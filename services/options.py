@@ -113,8 +113,9 @@ def add_service_arguments(parser: argparse.ArgumentParser, *, preset: bool = Tru
     add_runs_dir_argument(parser)
     add_tensorboard_argument(parser)
     add_log_level_argument(parser)
+    device_default = "the CPU, whatever the run's learner uses" if from_learner else "the config's"
     parser.add_argument("--device", default=env.get(ENV_DEVICE) or None,
-                        help=f"torch device: auto, cpu, cuda, cuda:N (env {ENV_DEVICE}; default: the config's)")
+                        help=f"torch device: auto, cpu, cuda, cuda:N (env {ENV_DEVICE}; default: {device_default})")
     z = parser.add_argument_group("Zenoh", "endpoints (env COGEXPLORE_ZENOH_CONNECT/LISTEN/MODE/CONFIG; an option "
                                            "given here wins over its variable)")
     z.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",

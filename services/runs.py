@@ -82,16 +82,22 @@ class RunLock:
 
     def __init__(self, paths: RunPaths, role: str):
         self.path = paths.root.parent / f".{paths.root.name}.{role}.lock"
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file: IO[str] | None = open(self.path, "a+")
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._file: IO[str] | None = open(self.path, "a+")
+        except OSError as exc:
+            raise RunInUseError(f"cannot hold run {paths.root.name!r}: {self.path}: {exc.strerror or exc}") from None
         try:
             fcntl.flock(self._file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
+        except OSError as exc:
             self._file.seek(0)
             holder = self._file.read().strip() or "another process"
             self.release()
-            raise RunInUseError(f"run {paths.root.name!r} is in use: its {role} is {holder} "
-                                f"({self.path}); stop that one first") from None
+            if isinstance(exc, BlockingIOError):
+                raise RunInUseError(f"run {paths.root.name!r} is in use: its {role} is {holder} "
+                                    f"({self.path}); stop that one first") from None
+            raise RunInUseError(f"cannot hold run {paths.root.name!r}: {self.path}: {exc.strerror or exc} "
+                                "(a file system without locks?)") from None
         self._file.seek(0)
         self._file.truncate()
         self._file.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
@@ -109,9 +115,10 @@ def run_paths(args: argparse.Namespace) -> RunPaths:
 
 
 def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
-                   run_config: RunConfig | None = None, *, own_device: bool = False) -> RunConfig:
+                   run_config: RunConfig | None = None, *, own_device: bool = False,
+                   default_preset: str = DEFAULT_PRESET) -> RunConfig:
     """--preset if given, else ``run_config`` (the run's, from its learner), else the run's saved
-    config, else :data:`~shared.config.DEFAULT_PRESET`; then --set and --device.
+    config, else ``default_preset`` (:data:`~shared.config.DEFAULT_PRESET`); then --set and --device.
 
     ``own_device`` (actors, the evaluator): the base's ``train.device`` reads ``auto`` (the CPU for
     them) unless --set or --device name one. A run's config names its learner's device (``up --device
@@ -122,7 +129,7 @@ def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
         cfg = run_config
     else:
         saved = paths is not None and paths.config.exists()
-        cfg = load_preset(paths.config, complete=True) if saved else load_preset(DEFAULT_PRESET)
+        cfg = load_preset(paths.config, complete=True) if saved else load_preset(default_preset)
     if own_device:
         cfg = cfg.with_overrides({"train.device": "auto"})
     overrides = dict(parse_override(o) for o in getattr(args, "overrides", []) or [])

@@ -38,12 +38,18 @@ def _check(cond: bool, section: str, name: str, value: Any, allowed: str) -> Non
 
 
 def is_whole(x: Any) -> bool:
-    """An integer, and not a bool (TOML's ``true`` is Python's 1)."""
-    return isinstance(x, int) and not isinstance(x, bool)
+    """An integer (numpy's too), and not a bool (TOML's ``true`` is Python's 1)."""
+    return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
 
 
-def _finite(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+def is_finite_number(x: Any) -> bool:
+    """A finite int or float (numpy's too), not a bool; an integer too large for a float is not one."""
+    if not isinstance(x, (int, float, np.integer, np.floating)) or isinstance(x, (bool, np.bool_)):
+        return False
+    try:
+        return math.isfinite(x)
+    except OverflowError:  # an int of hundreds of digits
+        return False
 
 
 # ---------------------------------------------------------------------------
@@ -143,21 +149,21 @@ class SensorConfig:
                    "an integer in [8, 1024]")
         for name in ("hfov_deg", "vfov_deg"):
             v = getattr(self, name)
-            _check(_finite(v) and 1.0 <= v <= 170.0, s, name, v, "degrees in [1, 170]")
-        _check(_finite(self.max_range_m) and 0.1 <= self.max_range_m <= 100, s, "max_range_m",
+            _check(is_finite_number(v) and 1.0 <= v <= 170.0, s, name, v, "degrees in [1, 170]")
+        _check(is_finite_number(self.max_range_m) and 0.1 <= self.max_range_m <= 100, s, "max_range_m",
                self.max_range_m, "metres in [0.1, 100]")
-        _check(_finite(self.min_range_m) and 0 <= self.min_range_m < self.max_range_m, s,
+        _check(is_finite_number(self.min_range_m) and 0 <= self.min_range_m < self.max_range_m, s,
                "min_range_m", self.min_range_m, "metres in [0, max_range_m)")
-        _check(_finite(self.mount_height_m) and 0.01 <= self.mount_height_m <= 3.0, s,
+        _check(is_finite_number(self.mount_height_m) and 0.01 <= self.mount_height_m <= 3.0, s,
                "mount_height_m", self.mount_height_m, "metres in [0.01, 3]")
-        _check(_finite(self.mount_forward_m) and abs(self.mount_forward_m) <= 1.0, s,
+        _check(is_finite_number(self.mount_forward_m) and abs(self.mount_forward_m) <= 1.0, s,
                "mount_forward_m", self.mount_forward_m, "metres in [-1, 1]")
         _check(self.backend in ("raycast", "gl"), s, "backend", self.backend, "'raycast' or 'gl'")
-        _check(_finite(self.noise_std_m) and 0 <= self.noise_std_m <= 1.0, s, "noise_std_m",
+        _check(is_finite_number(self.noise_std_m) and 0 <= self.noise_std_m <= 1.0, s, "noise_std_m",
                self.noise_std_m, "metres in [0, 1]")
-        _check(_finite(self.noise_quadratic_per_m) and 0 <= self.noise_quadratic_per_m <= 1.0, s,
+        _check(is_finite_number(self.noise_quadratic_per_m) and 0 <= self.noise_quadratic_per_m <= 1.0, s,
                "noise_quadratic_per_m", self.noise_quadratic_per_m, "a number in [0, 1] (metres per m^2)")
-        _check(_finite(self.dropout_prob) and 0 <= self.dropout_prob < 1.0, s, "dropout_prob",
+        _check(is_finite_number(self.dropout_prob) and 0 <= self.dropout_prob < 1.0, s, "dropout_prob",
                self.dropout_prob, "a probability in [0, 1)")
 
 
@@ -169,6 +175,8 @@ def is_procedural_seed(text: str) -> bool:
     """Whether ``text`` is a procedural world's seed: decimal digits, at most 18 (a seed of
     thousands of digits is no layout, and Python refuses to read one)."""
     return text.isascii() and text.isdigit() and len(text) <= 18
+
+
 MAX_WORLD_LIST = 10_000
 """Most world names ``parse_world_list`` expands a list to."""
 
@@ -299,37 +307,37 @@ class EnvConfig:
                "a world name or MJCF path")
         _check(self.speed_table in SPEED_TABLES, s, "speed_table", self.speed_table,
                f"one of {sorted(SPEED_TABLES)}")
-        _check(_finite(self.physics_timestep_s) and 1e-4 <= self.physics_timestep_s <= 0.05, s,
+        _check(is_finite_number(self.physics_timestep_s) and 1e-4 <= self.physics_timestep_s <= 0.05, s,
                "physics_timestep_s", self.physics_timestep_s, "seconds in [1e-4, 0.05]")
-        _check(_finite(self.control_period_s) and 0.01 <= self.control_period_s <= 5.0, s,
+        _check(is_finite_number(self.control_period_s) and 0.01 <= self.control_period_s <= 5.0, s,
                "control_period_s", self.control_period_s, "seconds in [0.01, 5]")
-        if _finite(self.control_period_s) and _finite(self.physics_timestep_s):
+        if is_finite_number(self.control_period_s) and is_finite_number(self.physics_timestep_s):
             ratio = self.control_period_s / self.physics_timestep_s
             _check(abs(ratio - round(ratio)) < 1e-6, s, "control_period_s", self.control_period_s,
                    f"a whole multiple of physics_timestep_s ({self.physics_timestep_s})")
-        _check(_finite(self.robot_radius_m) and 0.05 <= self.robot_radius_m <= 1.0, s,
+        _check(is_finite_number(self.robot_radius_m) and 0.05 <= self.robot_radius_m <= 1.0, s,
                "robot_radius_m", self.robot_radius_m, "metres in [0.05, 1]")
         _check(is_whole(self.max_episode_steps) and self.max_episode_steps >= 1, s,
                "max_episode_steps", self.max_episode_steps, "an integer >= 1")
-        _check(_finite(self.collision_distance_m) and 0 < self.collision_distance_m < 10, s,
+        _check(is_finite_number(self.collision_distance_m) and 0 < self.collision_distance_m < 10, s,
                "collision_distance_m", self.collision_distance_m, "metres in (0, 10)")
-        _check(_finite(self.reward_move), s, "reward_move", self.reward_move, "a finite number")
-        _check(_finite(self.reward_collision), s, "reward_collision", self.reward_collision,
+        _check(is_finite_number(self.reward_move), s, "reward_move", self.reward_move, "a finite number")
+        _check(is_finite_number(self.reward_collision), s, "reward_collision", self.reward_collision,
                "a finite number")
-        _check(_finite(self.reward_new_area_per_m2) and 0 <= self.reward_new_area_per_m2 <= 100, s,
+        _check(is_finite_number(self.reward_new_area_per_m2) and 0 <= self.reward_new_area_per_m2 <= 100, s,
                "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
-        _check(_finite(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
+        _check(is_finite_number(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
                "reward_trap_penalty", self.reward_trap_penalty, "a number in [0, 1000]")
         _check(is_whole(self.trap_horizon_steps)
                and 1 <= self.trap_horizon_steps <= 100, s,
                "trap_horizon_steps", self.trap_horizon_steps, "an integer in [1, 100]")
         _check(self.start_index is None or (is_whole(self.start_index) and self.start_index >= 0),
                s, "start_index", self.start_index, "None or an integer >= 0")
-        _check(_finite(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
+        _check(is_finite_number(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
                self.random_start_prob, "a probability in [0, 1]")
-        _check(_finite(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
+        _check(is_finite_number(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
                "random_start_clearance_m", self.random_start_clearance_m, "metres in (0, 5)")
-        _check(_finite(self.failure_start_prob) and 0 <= self.failure_start_prob <= 1, s, "failure_start_prob",
+        _check(is_finite_number(self.failure_start_prob) and 0 <= self.failure_start_prob <= 1, s, "failure_start_prob",
                self.failure_start_prob, "a probability in [0, 1]")
         _check(is_whole(self.failure_start_back_steps)
                and 1 <= self.failure_start_back_steps <= FAILURE_STARTS_BACK_MAX, s, "failure_start_back_steps",
@@ -340,13 +348,13 @@ class EnvConfig:
             names = parse_world_list(self.extra_worlds)
         except ValueError as exc:
             raise ConfigError(f"env.extra_worlds = {self.extra_worlds!r} is invalid: {exc}") from None
-        _check(_finite(self.extra_world_prob) and 0 <= self.extra_world_prob <= 1, s, "extra_world_prob",
+        _check(is_finite_number(self.extra_world_prob) and 0 <= self.extra_world_prob <= 1, s, "extra_world_prob",
                self.extra_world_prob, "a probability in [0, 1]")
         _check(self.extra_world_prob == 0 or names, s, "extra_world_prob", self.extra_world_prob,
                "0 while env.extra_worlds is empty")
-        _check(_finite(self.start_jitter_m) and 0 <= self.start_jitter_m <= 1, s, "start_jitter_m",
+        _check(is_finite_number(self.start_jitter_m) and 0 <= self.start_jitter_m <= 1, s, "start_jitter_m",
                self.start_jitter_m, "metres in [0, 1]")
-        _check(_finite(self.start_jitter_deg) and 0 <= self.start_jitter_deg <= 45, s, "start_jitter_deg",
+        _check(is_finite_number(self.start_jitter_deg) and 0 <= self.start_jitter_deg <= 45, s, "start_jitter_deg",
                self.start_jitter_deg, "degrees in [0, 45]")
 
     @property
@@ -459,7 +467,7 @@ class ModelConfig:
             v = getattr(self, name)
             _check(is_whole(v) and 1 <= v <= 8192, s, name, v,
                    "an integer in [1, 8192]")
-        _check(_finite(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
+        _check(is_finite_number(self.dropout) and 0 <= self.dropout < 1, s, "dropout", self.dropout,
                "a probability in [0, 1)")
         _check(isinstance(self.dueling, bool), s, "dueling", self.dueling, "true or false")
         _check(isinstance(self.previous_action, bool), s, "previous_action", self.previous_action,
@@ -499,9 +507,9 @@ class ReplayConfig:
                and 2 <= self.capacity <= 10_000_000, s, "capacity", self.capacity,
                "an integer in [2, 10000000]")
         _check(isinstance(self.prioritized, bool), s, "prioritized", self.prioritized, "true or false")
-        _check(_finite(self.priority_alpha) and 0 <= self.priority_alpha <= 1, s, "priority_alpha",
+        _check(is_finite_number(self.priority_alpha) and 0 <= self.priority_alpha <= 1, s, "priority_alpha",
                self.priority_alpha, "a number in [0, 1]")
-        _check(_finite(self.priority_beta) and 0 <= self.priority_beta <= 1, s, "priority_beta",
+        _check(is_finite_number(self.priority_beta) and 0 <= self.priority_beta <= 1, s, "priority_beta",
                self.priority_beta, "a number in [0, 1]")
 
 
@@ -581,39 +589,39 @@ class DQNConfig:
         s = "dqn"
         _check(is_whole(self.batch_size) and 1 <= self.batch_size <= 4096, s, "batch_size",
                self.batch_size, "an integer in [1, 4096]")
-        _check(_finite(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
+        _check(is_finite_number(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
         _check(is_whole(self.target_sync_every) and self.target_sync_every >= 1, s,
                "target_sync_every", self.target_sync_every, "an integer >= 1")
         _check(self.optimizer in ("sgd", "adam"), s, "optimizer", self.optimizer, "'sgd' or 'adam'")
-        _check(_finite(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
-        _check(_finite(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
+        _check(is_finite_number(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
+        _check(is_finite_number(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
                self.conv_lr_scale, "a number in [0, 10] (0 freezes the conv layers)")
         _check(is_whole(self.lr_decay_updates) and self.lr_decay_updates >= 0, s, "lr_decay_updates",
                self.lr_decay_updates, "an integer >= 0 (0: constant learning rate)")
-        _check(_finite(self.lr_final_scale) and 0 < self.lr_final_scale <= 1, s, "lr_final_scale",
+        _check(is_finite_number(self.lr_final_scale) and 0 < self.lr_final_scale <= 1, s, "lr_final_scale",
                self.lr_final_scale, "a number in (0, 1]")
-        _check(_finite(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
+        _check(is_finite_number(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
                "a number in [0, 1)")
         _check(isinstance(self.double_dqn, bool), s, "double_dqn", self.double_dqn, "true or false")
         _check(is_whole(self.n_step) and 1 <= self.n_step <= 20, s, "n_step", self.n_step,
                "an integer in [1, 20]")
         _check(self.loss in ("mse", "huber"), s, "loss", self.loss, "'mse' or 'huber'")
-        _check(_finite(self.quantile_kappa) and 0 < self.quantile_kappa <= 1000, s, "quantile_kappa",
+        _check(is_finite_number(self.quantile_kappa) and 0 < self.quantile_kappa <= 1000, s, "quantile_kappa",
                self.quantile_kappa, "a number in (0, 1000]")
-        _check(_finite(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
+        _check(is_finite_number(self.grad_clip_norm) and self.grad_clip_norm >= 0, s, "grad_clip_norm",
                self.grad_clip_norm, "a number >= 0")
         _check(isinstance(self.mirror_augment, bool), s, "mirror_augment", self.mirror_augment, "true or false")
         _check(is_whole(self.shift_augment_px) and 0 <= self.shift_augment_px <= MAX_SHIFT_AUGMENT_PX, s,
                "shift_augment_px", self.shift_augment_px, f"an integer in [0, {MAX_SHIFT_AUGMENT_PX}]")
         _check(is_whole(self.demo_batch) and 0 <= self.demo_batch <= 4096, s, "demo_batch", self.demo_batch,
                "an integer in [0, 4096]")
-        _check(_finite(self.demo_margin) and 0 <= self.demo_margin <= 100, s, "demo_margin", self.demo_margin,
+        _check(is_finite_number(self.demo_margin) and 0 <= self.demo_margin <= 100, s, "demo_margin", self.demo_margin,
                "a number in [0, 100]")
-        _check(_finite(self.demo_weight) and 0 <= self.demo_weight <= 100, s, "demo_weight", self.demo_weight,
+        _check(is_finite_number(self.demo_weight) and 0 <= self.demo_weight <= 100, s, "demo_weight", self.demo_weight,
                "a number in [0, 100]")
-        _check(_finite(self.safe_margin) and 0 <= self.safe_margin <= 100, s, "safe_margin", self.safe_margin,
+        _check(is_finite_number(self.safe_margin) and 0 <= self.safe_margin <= 100, s, "safe_margin", self.safe_margin,
                "a number in [0, 100]")
-        _check(_finite(self.safe_weight) and 0 <= self.safe_weight <= 100, s, "safe_weight", self.safe_weight,
+        _check(is_finite_number(self.safe_weight) and 0 <= self.safe_weight <= 100, s, "safe_weight", self.safe_weight,
                "a number in [0, 100]")
         _check(self.conv_precision in CONV_PRECISIONS, s, "conv_precision", self.conv_precision,
                f"one of {', '.join(CONV_PRECISIONS)}")
@@ -665,11 +673,11 @@ class ExploreConfig:
         for name in ("eps_start", "eps_end", "apex_base", "expert_episode_prob", "expert_label_prob",
                      "safe_label_prob"):
             v = getattr(self, name)
-            _check(_finite(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
+            _check(is_finite_number(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
         _check(is_whole(self.eps_decay_steps) and self.eps_decay_steps >= 0, s,
                "eps_decay_steps", self.eps_decay_steps, "an integer >= 0")
         _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
-        _check(_finite(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
+        _check(is_finite_number(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
                "a number >= 0")
 
 
@@ -722,7 +730,7 @@ class TrainConfig:
         _check(self.keep_checkpoints >= 1, s, "keep_checkpoints", self.keep_checkpoints, "an integer >= 1")
         _check(self.checkpoint_every >= 1 and self.log_every >= 1, s, "checkpoint_every/log_every",
                (self.checkpoint_every, self.log_every), "integers >= 1")
-        _check(_finite(self.replay_ratio) and 0 < self.replay_ratio <= 64, s, "replay_ratio",
+        _check(is_finite_number(self.replay_ratio) and 0 < self.replay_ratio <= 64, s, "replay_ratio",
                self.replay_ratio, "a number in (0, 64]")
         _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda")
                or self.device.startswith("cuda:")), s, "device", self.device,

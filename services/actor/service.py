@@ -342,8 +342,6 @@ def run_actor_command(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     settings = zenoh_settings(args, "actor")
     log.info("actor %s joining run %r via %s", actor_id, args.run, settings.describe())
-    if args.num_actors < 1:
-        raise ConfigError(f"--num-actors must be >= 1, got {args.num_actors}")
     for option, value in (("--rerun-every-episodes", args.rerun_every_episodes),
                           ("--rerun-image-every", args.rerun_image_every)):
         if value < 1:

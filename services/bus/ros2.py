@@ -25,7 +25,7 @@ from typing import Self
 
 import zenoh
 
-from services.bus.session import ZenohSettings, parse_endpoints
+from services.bus.session import ZenohSettings, cli_overrides
 from shared.ros2.formats import (
     NodeInfo,
     PublisherInfo,
@@ -253,11 +253,4 @@ class Ros2Node:
 
 def ros2_settings(args: argparse.Namespace) -> ZenohSettings:
     """``--connect`` / ``--zenoh-config`` of ``drive``, ``sim-robot`` and ``bench drive``: a client of the robot's router (rmw_zenohd, the bridge, or a plain zenohd)."""
-    overrides: dict[str, object] = {}
-    if args.connect:
-        overrides["connect"] = parse_endpoints(args.connect, "--connect")
-    if args.zenoh_config:
-        overrides["config_file"] = args.zenoh_config
-    if getattr(args, "router_wait", None) is not None:
-        overrides["router_wait_s"] = args.router_wait
-    return ZenohSettings.from_env(mode="client", overrides=overrides)
+    return ZenohSettings.from_env(mode="client", overrides=cli_overrides(args))

@@ -174,7 +174,7 @@ class SecureFiles:
         """What ``init`` recorded: the run, whether TLS, the router's names."""
         try:
             return json.loads(self.credentials.read_text())["meta"]
-        except (OSError, ValueError, KeyError, TypeError) as exc:
+        except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
             raise SecurityError(f"{self.credentials} is missing or unreadable ({exc}): run "
                                 f"`cogexplore secure init {self.root}`") from None
 

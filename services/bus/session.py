@@ -430,23 +430,28 @@ def run_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *, config_file: st
     return 0
 
 
+def cli_overrides(args: argparse.Namespace) -> dict[str, object]:
+    """The ``ZenohSettings`` fields a command line's Zenoh options set (those it has and were given)."""
+    overrides: dict[str, object] = {}
+    if getattr(args, "connect", None):
+        overrides["connect"] = parse_endpoints(args.connect, "--connect")
+    if getattr(args, "listen", None):
+        overrides["listen"] = parse_endpoints(args.listen, "--listen")
+    if getattr(args, "zenoh_mode", None):
+        overrides["mode"] = args.zenoh_mode
+    if getattr(args, "zenoh_config", None):
+        overrides["config_file"] = args.zenoh_config
+    if getattr(args, "router_wait", None) is not None:
+        overrides["router_wait_s"] = args.router_wait
+    return overrides
+
+
 def zenoh_settings(args: argparse.Namespace, role: str | None = None) -> ZenohSettings:
     """Environment variables first, command-line options over them. With a config file from neither, a
     process of ``role`` takes its run's credentials where the run folder holds them
     (``<runs-dir>/<run>/secure/<role>.json5``: what ``up`` writes, or a ``secure export`` bundle put
     there on another machine)."""
-    overrides: dict[str, object] = {}
-    if args.connect:
-        overrides["connect"] = parse_endpoints(args.connect, "--connect")
-    if args.listen:
-        overrides["listen"] = parse_endpoints(args.listen, "--listen")
-    if args.zenoh_mode:
-        overrides["mode"] = args.zenoh_mode
-    if args.zenoh_config:
-        overrides["config_file"] = args.zenoh_config
-    if getattr(args, "router_wait", None) is not None:
-        overrides["router_wait_s"] = args.router_wait
-    settings = ZenohSettings.from_env(overrides=overrides)
+    settings = ZenohSettings.from_env(overrides=cli_overrides(args))
     if settings.config_file is None and role is not None:
         found = SecureFiles(run_paths(args).secure).config(role)
         if found.is_file():

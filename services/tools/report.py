@@ -29,7 +29,6 @@ import argparse
 import csv
 import json
 import logging
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -49,7 +48,7 @@ from services.tools.document import (
     markdown,
 )
 from services.tools.options import REPORT_PROTOCOLS
-from shared.config import is_whole
+from shared.config import is_finite_number, is_whole
 from shared.errors import CogexploreError
 from shared.evaluation import (
     PAPER_BASELINE_STEPS,
@@ -71,8 +70,8 @@ from shared.evaluation.results import (
     table_markdown,
 )
 from shared.evaluation.setup import EvalSetup, setup_evaluation
-from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
 from shared.jsontext import parse_json
+from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
 from shared.learning.stats import TrainingSummary, summarize_learner_log
 
 log = logging.getLogger("cogexplore.report")
@@ -176,11 +175,11 @@ def _eval_row(line: str) -> dict[str, Any] | None:
     def count(value: Any, least: int) -> bool:
         return is_whole(value) and value >= least
 
-    if not (isinstance(row, dict) and count(row.get("policy_version"), 0) and isinstance(row.get("summary"), dict)):
+    if not (isinstance(row, dict) and count(row.get("policy_version"), 0) and row["policy_version"] < 2**63
+            and isinstance(row.get("summary"), dict)):
         return None
     mean_steps = row["summary"].get("mean_steps")
-    if not (isinstance(mean_steps, (int, float)) and not isinstance(mean_steps, bool)
-            and math.isfinite(mean_steps) and mean_steps >= 0):  # JSON's 1e999 reads as infinity
+    if not (is_finite_number(mean_steps) and mean_steps >= 0):
         return None
     if not all(row.get(k) is None or count(row[k], 1) for k in ("episodes_per_start", "max_steps")):
         return None

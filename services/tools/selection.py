@@ -39,6 +39,7 @@ import numpy as np
 
 from shared.errors import CogexploreError
 from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, SELECTION_SEED, TEST_SEED, ProtocolConfig
+from shared.jsontext import parse_json
 
 log = logging.getLogger("cogexplore.select")
 
@@ -257,9 +258,9 @@ def _load_cache(path: Path, key: dict[str, Any]) -> dict[str, WindowScore]:
     cache: dict[str, WindowScore] = {}
     if not path.is_file():
         return cache
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
         try:
-            d = json.loads(line)
+            d = parse_json(line, "the line", SelectionError)
             if d.get("protocol") != key:
                 continue
             score = WindowScore.from_json(d["score"])

@@ -151,9 +151,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
 def train_config(args: argparse.Namespace, paths: RunPaths) -> RunConfig:
     """``--preset``, else the run's saved config.toml (a run trains on with its own recipe), else the
     paper's preset; then ``--set``, ``--device`` and ``--updates``."""
-    if args.preset is None and not paths.config.exists():
-        args = argparse.Namespace(**{**vars(args), "preset": "paper"})
-    cfg = resolve_config(args, paths)
+    cfg = resolve_config(args, paths, default_preset="paper")
     return cfg.with_overrides({"train.total_updates": args.updates}) if args.updates is not None else cfg
 
 

@@ -50,7 +50,6 @@ from services.bus.session import (
 )
 from services.process import setup_logging
 from services.runs import RunLock, RunPaths, resolve_config, save_config
-from shared.config import ConfigError
 from shared.errors import CogexploreError
 from shared.learning.stats import LearnerRow
 from shared.wire.keys import RunKeys, validate_name
@@ -405,8 +404,9 @@ class Launcher:
                     if not self._alive("router"):
                         reason = "failed: router"
                         break
-                    if not self._alive("actor"):  # the learner would wait for transitions forever
-                        reason = "failed: actor-0"
+                    if not self._alive("actor") and not actors.alive:  # none here, none joined from elsewhere
+                        last = max((c for c in self.children if c.role == "actor"), key=lambda c: c.process.returncode)
+                        reason = f"failed: {last.name}"  # the learner would wait for transitions forever
                         break
                     evaluator = [c for c in self.children if c.role == "evaluator"]
                     if evaluator and not evaluator_gone and evaluator[0].process.poll() is not None:
@@ -619,8 +619,4 @@ def secure_files(root: Path, run: str, tls: bool, *, make_tls: bool = False, hos
 
 def run_up_command(args: argparse.Namespace) -> int:
     setup_logging("WARNING")
-    if args.actors < 1:
-        raise ConfigError(f"--actors must be >= 1, got {args.actors}")
-    if args.final_average < 1:
-        raise ConfigError(f"--final-average must be >= 1 (1: the last checkpoint alone), got {args.final_average}")
     return Launcher(args).execute()

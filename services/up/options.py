@@ -15,7 +15,7 @@ from shared.config import DEFAULT_PRESET
 
 
 def add_up_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--actors", type=int, default=2, help="actor processes (default: 2)")
+    parser.add_argument("--actors", type=count_argument, default=2, help="actor processes (default: 2)")
     parser.add_argument("--preset", default=None,
                         help=f"preset name or TOML path (default: the run's config.toml if it exists, else "
                              f"{DEFAULT_PRESET}, the shipped model's recipe)")
@@ -49,7 +49,7 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
     parser.add_argument("--final-episodes", type=count_argument, default=10,
                         help="episodes per start in the final evaluation (paper: 10)")
-    parser.add_argument("--final-average", type=int, default=4, metavar="K",
+    parser.add_argument("--final-average", type=count_argument, default=4, metavar="K",
                         help="the final evaluation and report play the mean of the last K checkpoints' weights, "
                              "exported as RUN/<run>-meanK.safetensors (default 4: a DQN's greedy policy swings "
                              "from one checkpoint to the next; 1: the last checkpoint alone); the run keeps at "

@@ -13,7 +13,6 @@ state and no GUI backend, so it is safe in services and threads.
 from __future__ import annotations
 
 import csv
-import json
 import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -22,6 +21,7 @@ import numpy as np
 
 from shared.errors import CogexploreError
 from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of
+from shared.jsontext import parse_json
 from shared.sim.maps import (
     OccupancyGrid,
     draw_map,
@@ -162,13 +162,10 @@ def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, S
                 raise FigureError(f"{path}: the CSV header must name 'update' and 'loss', got {reader.fieldnames}")
             updates, losses = _rows_to_arrays(reader, source)
             return _finite_sorted(updates, losses, source)
-        try:
-            if path.suffix == ".jsonl":
-                log = [json.loads(line) for line in text.splitlines() if line.strip()]
-            else:
-                log = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise FigureError(f"{path}: not valid JSON: {exc}") from None
+        if path.suffix == ".jsonl":
+            log = [parse_json(line, str(path), FigureError) for line in text.splitlines() if line.strip()]
+        else:
+            log = parse_json(text, str(path), FigureError)
     if isinstance(log, Mapping):
         if "update" not in log or "loss" not in log:
             raise FigureError(f"{source}: a column object needs 'update' and 'loss', has {sorted(log)}")

@@ -137,9 +137,9 @@ def load_probes(directory: str | Path = PROBE_DIR, sensor_cfg: SensorConfig | No
             pose = meta["pose"]
             scene = ProbeScene(meta["name"], float(pose["x"]), float(pose["y"]), float(pose["yaw"]),
                                meta.get("description", ""), meta.get("world", PROBE_WORLD))
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ProbeError(f"{meta_path}: not a probe description ({exc!r})") from None
-        stored = meta.get("sensor", {})
+        stored = meta.get("sensor") if isinstance(meta.get("sensor"), dict) else {}
         if (stored.get("width"), stored.get("height")) == (cfg.width, cfg.height) and \
                 (d / f"{scene.name}.npy").exists():
             depth, notes = load_probe_image(d / f"{scene.name}.npy", cfg)

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from shared.config import ACTION_NAMES, EnvConfig, SensorConfig
+from shared.config import ACTION_NAMES, EnvConfig, SensorConfig, is_whole
 from shared.evaluation import (
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
@@ -30,7 +30,7 @@ from shared.evaluation import (
     TEST_SEED,
     ProtocolConfig,
 )
-from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError, _is_int
+from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.world import load_world
 
@@ -60,7 +60,7 @@ def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> E
 
 
 def _check_action(action: Any) -> int:
-    if not (_is_int(action) and 0 <= int(action) < len(ACTION_NAMES)):
+    if not (is_whole(action) and 0 <= int(action) < len(ACTION_NAMES)):
         raise ResultsError(f"policy_fn returned action {action!r}; expected an index in 0..{len(ACTION_NAMES) - 1}")
     return int(action)
 
@@ -136,9 +136,9 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
     ``begin_episode`` / ``log_step`` / ``end_episode``. Deterministic for a deterministic policy.
     ``stop``: when set, the run ends within one step with :class:`EvaluationCancelled`.
     """
-    if not (_is_int(episodes_per_start) and episodes_per_start >= 1):
+    if not (is_whole(episodes_per_start) and episodes_per_start >= 1):
         raise ResultsError(f"episodes_per_start must be an integer >= 1, got {episodes_per_start!r}")
-    if not (_is_int(max_steps) and max_steps >= 1):
+    if not (is_whole(max_steps) and max_steps >= 1):
         raise ResultsError(f"max_steps must be an integer >= 1, got {max_steps!r}")
     env = make_env()
     try:

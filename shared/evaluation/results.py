@@ -43,7 +43,7 @@ from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from shared.config import ConfigError
+from shared.config import ConfigError, is_finite_number, is_whole
 from shared.errors import CogexploreError
 from shared.evaluation import ProtocolConfig
 from shared.jsontext import parse_json, read_json_file
@@ -61,15 +61,6 @@ class ResultsError(CogexploreError):
 # ---------------------------------------------------------------------------
 # The per-episode record
 # ---------------------------------------------------------------------------
-
-
-def _is_int(v: Any) -> bool:
-    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
-
-
-def _is_num(v: Any) -> bool:
-    return (isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
-            and math.isfinite(float(v)))
 
 
 @dataclass(frozen=True)
@@ -124,14 +115,14 @@ def _check_episode(d: Mapping[str, Any], where: str) -> None:
             raise ResultsError(f"{where}.{key}: expected {want}, got {d[key]!r}")
 
     for key in ("start_index", "episode", "steps"):
-        need(_is_int(d[key]) and d[key] >= 0, key, "an integer >= 0")
+        need(is_whole(d[key]) and d[key] >= 0, key, "an integer >= 0")
     for key in ("terminated", "truncated"):
         need(isinstance(d[key], (bool, np.bool_)), key, "true or false")
     need(d["collision_cause"] is None or d["collision_cause"] in COLLISION_CAUSES, "collision_cause",
          f"null or one of {list(COLLISION_CAUSES)}")
     for key in ("distance_m", "path_length_m", "coverage_m2"):
-        need(_is_num(d[key]) and d[key] >= 0, key, "a finite number >= 0")
-    need(_is_num(d["coverage_fraction"]) and 0 <= d["coverage_fraction"] <= 1 + 1e-9, "coverage_fraction",
+        need(is_finite_number(d[key]) and d[key] >= 0, key, "a finite number >= 0")
+    need(is_finite_number(d["coverage_fraction"]) and 0 <= d["coverage_fraction"] <= 1 + 1e-9, "coverage_fraction",
          "a number in [0, 1]")
     if d["terminated"] and d["truncated"]:
         raise ResultsError(f"{where}: an episode cannot be both terminated (collision) and truncated (cap)")
@@ -142,7 +133,7 @@ def _check_episode(d: Mapping[str, Any], where: str) -> None:
     if not isinstance(traj, (list, tuple)):
         need(False, "trajectory_xy", "a list of [x, y] points")
     for i, p in enumerate(traj):
-        if not (isinstance(p, (list, tuple)) and len(p) == 2 and all(_is_num(v) for v in p)):
+        if not (isinstance(p, (list, tuple)) and len(p) == 2 and all(is_finite_number(v) for v in p)):
             raise ResultsError(f"{where}.trajectory_xy[{i}]: expected [x, y] finite numbers, got {p!r}")
     if traj and len(traj) != d["steps"] + 1:
         raise ResultsError(f"{where}.trajectory_xy: {len(traj)} points for {d['steps']} steps; expected "
@@ -289,7 +280,7 @@ def _close(a: Any, b: Any, where: str) -> None:
             raise ResultsError(f"{where}: {len(a)} entries, the episodes give {len(b)}")
         for i, (x, y) in enumerate(zip(a, b)):
             _close(x, y, f"{where}[{i}]")
-    elif _is_num(a) and _is_num(b):
+    elif is_finite_number(a) and is_finite_number(b):
         if not math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=1e-9):
             raise ResultsError(f"{where}: {a!r} does not match {b!r} recomputed from the episodes")
     elif a != b:

@@ -31,6 +31,7 @@ import numpy as np
 
 from shared.config import ACTION_NAMES, NUM_ACTIONS, EnvConfig, SensorConfig
 from shared.expert.expert import CommandExpert, ExpertConfig, SupervisedError
+from shared.jsontext import read_json_file
 from shared.rollout import Rollout, Step
 
 DATA_FORMAT = "cogexplore-sl-data"
@@ -105,11 +106,8 @@ class SupervisedDataset:
         path = root / MANIFEST
         if not path.is_file():
             raise SupervisedError(f"{root} is not a complete dataset: {MANIFEST} is missing")
-        try:
-            manifest = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise SupervisedError(f"{path} is not valid JSON: {exc}") from None
-        if manifest.get("format") != DATA_FORMAT or manifest.get("version") != VERSION:
+        manifest = read_json_file(path, "dataset manifest", SupervisedError)
+        if not isinstance(manifest, dict) or manifest.get("format") != DATA_FORMAT or manifest.get("version") != VERSION:
             raise SupervisedError(f"{path}: not a {DATA_FORMAT} v{VERSION} manifest")
         arrays = {}
         for name in _ARRAYS:

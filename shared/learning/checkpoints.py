@@ -214,6 +214,7 @@ class Checkpoint:
         try:
             agent.load_state_tensors(self.tensors, self.agent_meta)
         except (DQNError, ModelError, KeyError, ValueError, TypeError, AttributeError, IndexError) as exc:
+            # whatever a forged agent state raises: a CheckpointError, which a resume skips or reports
             raise CheckpointError(f"{self.path} does not fit this agent: {exc!r}") from None
         if replay is not None:
             self.restore_replay(replay)
@@ -295,8 +296,10 @@ def _replay_info(path: Path, meta: Mapping[str, Any]) -> dict[str, str] | None:
     rinfo = meta.get("replay")
     if rinfo is None:
         return None
-    if not (isinstance(rinfo, dict) and isinstance(rinfo.get("digest"), str)
-            and rinfo.get("file") == _replay_name(path, rinfo["digest"])):
+    name, digest = (rinfo.get("file"), rinfo.get("digest")) if isinstance(rinfo, dict) else (None, None)
+    # a bare name beside the checkpoint, its digest's: a copied or renamed checkpoint keeps its old one
+    if not (isinstance(digest, str) and isinstance(name, str) and "/" not in name and "\\" not in name
+            and not name.startswith(".") and name.endswith(f".replay-{digest[:12]}.safetensors")):
         raise CheckpointError(f"{path}: its replay entry does not name a replay memory file and digest")
     return rinfo
 

@@ -301,7 +301,7 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
     try:
         checkpoint.restore(core.agent)
     except CheckpointError as exc:
-        raise CheckpointError(f"cannot resume: {exc}. Its run was trained with another network or optimiser: "
+        raise CheckpointError(f"cannot resume: {exc}. If the run was trained with another network or optimiser, "
                               "train it with its own config (drop --preset and --set), or start it over "
                               "(up --fresh, or another --run)") from None
     if with_replay:

@@ -28,6 +28,7 @@ from typing import Any
 
 from shared.config import ConfigError, ModelConfig, SensorConfig, from_dict
 from shared.errors import CogexploreError
+from shared.jsontext import parse_json
 
 ONNX_FORMAT = "cogexplore-onnx"
 ONNX_FORMAT_VERSION = 1
@@ -80,10 +81,9 @@ class OnnxPolicyInfo:
     @classmethod
     def from_json(cls, text: str, where: str = "ONNX file") -> OnnxPolicyInfo:
         """Parse and check a ``cogexplore`` metadata entry; OnnxModelError (one line) if malformed."""
-        try:
-            data = json.loads(text)
-        except (TypeError, json.JSONDecodeError) as exc:
-            raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not JSON: {exc}") from None
+        if not isinstance(text, (str, bytes)):
+            raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not text")
+        data = parse_json(text, f"{where}: its {METADATA_KEY!r} metadata", OnnxModelError)
         if not isinstance(data, dict) or data.get("format") != ONNX_FORMAT:
             raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not a {ONNX_FORMAT} entry")
         if data.get("version") != ONNX_FORMAT_VERSION:

@@ -156,7 +156,7 @@ def test_a_broken_or_foreign_file_is_a_one_line_error(onnx_path: Path, tmp_path:
         truncated: "not a readable ONNX model",
         garbage: "not a readable ONNX model",
         foreign: "not a cogexplore ONNX export",
-        _with_metadata(onnx_path, tmp_path / "json.onnx", lambda t: t[:-5]): "metadata is not JSON",
+        _with_metadata(onnx_path, tmp_path / "json.onnx", lambda t: t[:-5]): "metadata is not readable JSON",
         _with_metadata(onnx_path, tmp_path / "version.onnx", lambda t: t.replace('"version": 1', '"version": 9')):
             "version 9",
         _with_metadata(onnx_path, tmp_path / "field.onnx", lambda t: t.replace('"control_period_s"', '"period"')):

@@ -331,14 +331,15 @@ def test_an_eval_log_row_the_evaluator_could_not_have_written_is_skipped(tmp_pat
     good = {"policy_version": 1000, "protocol": "robust", "episodes_per_start": 1, "max_steps": 200,
             "summary": {"mean_steps": 42.5}}
     bad = [{**good, "summary": {}}, {**good, "summary": {"mean_steps": "abc"}}, {**good, "policy_version": -7},
-           {**good, "episodes_per_start": "x"}, {**good, "max_steps": 0}, {**good, "protocol": 3}]
+           {**good, "episodes_per_start": "x"}, {**good, "max_steps": 0}, {**good, "protocol": 3},
+           {**good, "policy_version": 10**400}, {**good, "summary": {"mean_steps": 10**400}}]
     lines = [json.dumps(good), *map(json.dumps, bad), json.dumps(good).replace("42.5", "NaN"),
              json.dumps(good).replace("42.5", "1e999"), "[" * 100_000, '{"policy_ver']
     path = tmp_path / "eval.jsonl"
     path.write_text("\n".join(lines) + "\n")
     with caplog.at_level("WARNING", logger="cogexplore.report"):
         assert load_eval_log(path) == [good]
-    assert "10 row(s) skipped" in caplog.text
+    assert "12 row(s) skipped" in caplog.text
 
 
 def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:

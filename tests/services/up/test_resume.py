@@ -148,7 +148,9 @@ def test_the_final_model_is_the_mean_of_the_last_checkpoints(tmp_path: Path) -> 
     three = Launcher(launcher_args(tmp_path, "--resume", "--final-average", "4")).final_model()
     assert three.name == f"{RUN}-mean3.safetensors" and len(load_model(three).averaged_from) == 3
     assert Launcher(launcher_args(tmp_path, "--resume", "--final-average", "1")).final_model() == paths.root
-    assert main(UP + ["--runs-dir", str(tmp_path), "--final-average", "0"]) == 2
+    with pytest.raises(SystemExit) as refused:  # refused when parsed
+        main(UP + ["--runs-dir", str(tmp_path), "--final-average", "0"])
+    assert refused.value.code == 2
 
 
 def test_a_run_is_started_by_one_up_and_trained_by_one_learner_at_a_time(tmp_path: Path, capsys) -> None:
@@ -170,6 +172,9 @@ def test_a_run_is_started_by_one_up_and_trained_by_one_learner_at_a_time(tmp_pat
             RunLock(paths, "learner")
         assert main(["train", "--run", RUN, "--runs-dir", str(tmp_path), "--quiet"]) == 2
         assert "is in use" in capsys.readouterr().err and checkpoint_updates(paths) == 10
+        assert main(["learner", "--run", RUN, "--runs-dir", str(tmp_path), "--connect", "tcp/127.0.0.1:9",
+                     "--no-tensorboard"]) == 2  # the service refuses before it joins the bus
+        assert "its learner is pid" in capsys.readouterr().err and checkpoint_updates(paths) == 10
     finally:
         learner.release()
     RunLock(paths, "learner").release()  # free again once let go
@@ -187,7 +192,7 @@ def test_a_run_whose_config_was_cut_short_or_does_not_fit_its_checkpoints_is_ref
     from shared.learning.learner import resume_from
 
     other = LearnerCore(load_preset("smoke").with_overrides({"model.fc1": 48}), device="cpu")
-    with pytest.raises(CheckpointError, match="cannot resume: .*another network or optimiser"):
+    with pytest.raises(CheckpointError, match="cannot resume: .*does not fit this agent.*another network or optimiser"):
         resume_from(CheckpointManager(paths.checkpoints), other)
     assert checkpoint_updates(paths) == 10
 

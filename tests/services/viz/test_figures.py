@@ -116,7 +116,7 @@ def test_load_loss_log_formats(tmp_path) -> None:
     ("update,loss\n1,abc\n", ".csv", "non-numeric"),
     ('{"update": [1, 2], "loss": [1]}', ".json", "2 updates but 1 losses"),
     ('[{"update": 1}]', ".json", "lacks 'update' or 'loss'"),
-    ("{oops", ".json", "not valid JSON"),
+    ("{oops", ".json", "not readable JSON"),
     ("update,loss\n1,nan\n", ".csv", "no row with a finite loss"),
 ])
 def test_load_loss_log_errors(tmp_path, content: str, suffix: str, match: str) -> None:

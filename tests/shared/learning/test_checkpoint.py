@@ -445,6 +445,10 @@ def test_a_checkpoint_with_forged_metadata_is_skipped_not_a_crash(tmp_path):
             load_checkpoint(forged)
         with pytest.raises(CheckpointError):
             load_model(forged)
+    copied = tmp_path / "best.safetensors"  # a checkpoint copied away keeps its replay entry: it loads
+    copied.write_bytes(good.read_bytes())
+    assert load_checkpoint(copied).replay_path is None or not load_checkpoint(copied).replay_path.exists()
+    assert load_model(copied).policy_version == load_model(good).policy_version
     (manager.directory / "latest").write_text(forged.name + "\n")
     resumed = manager.load_latest()
     assert resumed is not None and resumed.path == good and any(forged.name in s for s in manager.skipped)
