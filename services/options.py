@@ -5,13 +5,12 @@ every command that runs the protocol (``evaluate``, the evaluator, ``experiment`
 from __future__ import annotations
 
 import argparse
-import math
 import os
 from collections.abc import Callable
 
-from services.bus import DEFAULT_ROUTER_WAIT_S, ENV_ROUTER_WAIT, parse_seconds
+from services.bus import DEFAULT_ROUTER_WAIT_S, ENV_ROUTER_WAIT
 from services.runs import CONFIG_FILE
-from shared.config import DEFAULT_PRESET
+from shared.config import DEFAULT_PRESET, ConfigError, parse_number
 from shared.evaluation import (
     DEFAULT_PROTOCOL,
     PROTOCOLS,
@@ -27,23 +26,21 @@ DEFAULT_CONFIG_WAIT_S = 120.0
 """How long an actor or evaluator without --preset waits for its learner's configuration."""
 
 
-def seconds_argument(text: str) -> float:
-    """argparse ``type`` of a time to wait: finite seconds, 0 or more (NaN would wait forever)."""
-    try:
-        return parse_seconds(text, "")
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number of seconds >= 0, got {text!r}") from None
+def _number_argument(*, strict: bool, unit: str = "") -> Callable[[str], float]:
+    """argparse ``type`` of a finite number >= 0 (> 0 with ``strict``): :func:`shared.config.parse_number`."""
+    def parse(text: str) -> float:
+        try:
+            return parse_number(text, "", strict=strict, unit=unit)
+        except ConfigError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    return parse
 
 
-def positive_number_argument(text: str) -> float:
-    """argparse ``type`` of a duration that must pass: a finite number > 0 (minutes, a window, a period)."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}")
-    return value
+seconds_argument = _number_argument(strict=False, unit="of seconds")
+"""argparse ``type`` of a time to wait: finite seconds, 0 or more (NaN would wait forever)."""
+positive_number_argument = _number_argument(strict=True)
+"""argparse ``type`` of a duration that must pass: a finite number > 0 (minutes, a window, a period)."""
 
 
 def whole_number_argument(minimum: int) -> Callable[[str], int]:

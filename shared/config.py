@@ -171,6 +171,20 @@ PROCEDURAL_PREFIX = "procedural:"
 """World names ``procedural:<seed>`` are generated layouts (shared.sim.world.procedural_world)."""
 
 
+def parse_number(value: object, what: str, *, minimum: float = 0.0, strict: bool = False, unit: str = "") -> float:
+    """``value`` (a number, or text read as one) as a finite float >= ``minimum`` (> with ``strict``);
+    ConfigError naming ``what`` otherwise: a NaN time would never pass, a negative one always has.
+    ``unit`` words the error ("of seconds")."""
+    try:
+        number = float(value) if not isinstance(value, bool) else math.nan  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        number = math.nan
+    if not (math.isfinite(number) and (number > minimum if strict else number >= minimum)):
+        words = f"a number {unit} " if unit else "a number "
+        raise ConfigError(f"{what} must be {words}{'>' if strict else '>='} {minimum:g}, got {value!r}".lstrip())
+    return number
+
+
 def is_procedural_seed(text: str) -> bool:
     """Whether ``text`` is a procedural world's seed: decimal digits, at most 18 (a seed of
     thousands of digits is no layout, and Python refuses to read one)."""

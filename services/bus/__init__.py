@@ -3,10 +3,6 @@ newest-weights follower of the actors and the evaluator (``follower``). This fil
 the bus is by default and how long to wait for it, so that command-line options can name them without
 importing Zenoh."""
 
-import math
-
-from shared.errors import CogexploreError
-
 MODES: tuple[str, ...] = ("peer", "client", "router")
 DEFAULT_ROUTER_PORT = 7447
 DEFAULT_CONNECT: tuple[str, ...] = (f"tcp/127.0.0.1:{DEFAULT_ROUTER_PORT}",)
@@ -25,14 +21,3 @@ ZENOHD_DIR = "/secure"
 ROLES: tuple[str, ...] = ("learner", "actor", "evaluator", "viewer")
 """The roles a run's sessions take, one user each (services.bus.security)."""
 
-
-def parse_seconds(value: object, what: str) -> float:
-    """A time to wait in seconds, finite and 0 or more (a string is read as a number); CogexploreError
-    naming ``what`` otherwise (a NaN would never time out, a negative one always has)."""
-    try:
-        seconds = float(value)  # type: ignore[arg-type]
-    except (TypeError, ValueError):
-        seconds = math.nan
-    if isinstance(value, bool) or not math.isfinite(seconds) or seconds < 0:
-        raise CogexploreError(f"{what} must be a number of seconds >= 0, got {value!r}")
-    return seconds

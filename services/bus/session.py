@@ -43,10 +43,10 @@ from services.bus import (
     ENV_MODE,
     ENV_ROUTER_WAIT,
     MODES,
-    parse_seconds,
 )
 from services.bus.security import PATH_KEYS, SecureFiles
 from services.runs import run_paths
+from shared.config import parse_number
 from shared.errors import CogexploreError
 from shared.wire.messages import (
     MAX_MESSAGE_BYTES,
@@ -118,7 +118,8 @@ class ZenohSettings:
         if self.config_file is not None:
             object.__setattr__(self, "config_file", str(self.config_file))
         try:
-            object.__setattr__(self, "router_wait_s", parse_seconds(self.router_wait_s, f"the router wait (--router-wait, {ENV_ROUTER_WAIT})"))
+            object.__setattr__(self, "router_wait_s", parse_number(
+                self.router_wait_s, f"the router wait (--router-wait, {ENV_ROUTER_WAIT})", unit="of seconds"))
         except CogexploreError as exc:
             raise TransportConfigError(str(exc)) from None
 

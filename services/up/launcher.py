@@ -383,6 +383,7 @@ class Launcher:
             bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True, disable=a.quiet,
                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} upd [{elapsed}{postfix}]")
             reason = "done"
+            evaluators = [c for c in self.children if c.role == "evaluator"]
             evaluator_gone = False
             try:
                 while True:
@@ -408,11 +409,10 @@ class Launcher:
                         last = max((c for c in self.children if c.role == "actor"), key=lambda c: c.process.returncode)
                         reason = f"failed: {last.name}"  # the learner would wait for transitions forever
                         break
-                    evaluator = [c for c in self.children if c.role == "evaluator"]
-                    if evaluator and not evaluator_gone and evaluator[0].process.poll() is not None:
+                    if evaluators and not evaluator_gone and evaluators[0].process.poll() is not None:
                         evaluator_gone = True  # its figures are a curve; the final evaluation is up's own
-                        bar.write(f"the evaluator stopped (exit {evaluator[0].process.returncode}): training goes "
-                                  f"on without its curve; see {evaluator[0].logfile}", file=sys.stderr)
+                        bar.write(f"the evaluator stopped (exit {evaluators[0].process.returncode}): training goes "
+                                  f"on without its curve; see {evaluators[0].logfile}", file=sys.stderr)
                     stop.wait(1.0)
                     figures = progress.figures(len(actors.alive))
                     if deadline is not None:

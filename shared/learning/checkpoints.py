@@ -285,9 +285,13 @@ def load_checkpoint(path: Path | str) -> Checkpoint:
                       replay_digest=rinfo["digest"] if rinfo else None)
 
 
+def _replay_suffix(digest: str) -> str:
+    return f".replay-{digest[:12]}.safetensors"
+
+
 def _replay_name(checkpoint: Path, digest: str) -> str:
     """The name of a checkpoint's replay memory file, beside it."""
-    return checkpoint.name.replace(".safetensors", f".replay-{digest[:12]}.safetensors")
+    return checkpoint.name.replace(".safetensors", _replay_suffix(digest))
 
 
 def _replay_info(path: Path, meta: Mapping[str, Any]) -> dict[str, str] | None:
@@ -299,7 +303,7 @@ def _replay_info(path: Path, meta: Mapping[str, Any]) -> dict[str, str] | None:
     name, digest = (rinfo.get("file"), rinfo.get("digest")) if isinstance(rinfo, dict) else (None, None)
     # a bare name beside the checkpoint, its digest's: a copied or renamed checkpoint keeps its old one
     if not (isinstance(digest, str) and isinstance(name, str) and "/" not in name and "\\" not in name
-            and not name.startswith(".") and name.endswith(f".replay-{digest[:12]}.safetensors")):
+            and not name.startswith(".") and name.endswith(_replay_suffix(digest))):
         raise CheckpointError(f"{path}: its replay entry does not name a replay memory file and digest")
     return rinfo
 
