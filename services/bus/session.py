@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import json
 import logging
 import os
@@ -220,11 +221,14 @@ def _json_value(config: zenoh.Config, key: str) -> object:
         return None
 
 
-def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0) -> zenoh.Session:
+def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0,
+                 give_up: Callable[[], str | None] | None = None) -> zenoh.Session:
     """Open a Zenoh session (``ZenohSettings.from_env()`` when ``settings`` is None).
 
     A client fails at once when no router answers; ``wait_s`` > 0 keeps retrying that long,
-    for processes started alongside their router. Use the result as a context manager.
+    for processes started alongside their router. ``give_up`` is asked after each failed try: a
+    reason (e.g. the router process has exited) ends the wait at once with it. Use the result as a
+    context manager.
     """
     settings = settings if settings is not None else ZenohSettings.from_env()
     deadline = time.monotonic() + max(0.0, wait_s)
@@ -233,8 +237,9 @@ def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0) 
             return zenoh.open(settings.to_config())
         except zenoh.ZError as exc:
             remaining = deadline - time.monotonic()
-            if remaining <= 0:
-                raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {exc}") from None
+            reason = give_up() if give_up is not None else None
+            if remaining <= 0 or reason:
+                raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {reason or exc}") from None
             time.sleep(min(0.2, remaining))
 
 
@@ -392,6 +397,27 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
         sock.bind((host, 0))
         return int(sock.getsockname()[1])
+
+
+def port_taken(endpoint: str) -> str | None:
+    """Why a router could not listen on ``endpoint`` (``tcp/`` or ``tls/`` HOST:PORT) because some
+    other socket already holds its port; None when it is free, or not one this can tell (the router
+    then says what is wrong). A port in TIME_WAIT counts as free, as it does for a router."""
+    protocol, _, address = re.split(r"[#?]", endpoint, maxsplit=1)[0].partition("/")
+    host, _, port = address.rpartition(":")
+    if protocol not in ("tcp", "tls") or not port.isdigit():
+        return None
+    try:
+        family, kind, _, _, where = socket.getaddrinfo(host.strip("[]") or None, int(port), type=socket.SOCK_STREAM)[0]
+    except (OSError, UnicodeError):
+        return None
+    with socket.socket(family, kind) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind(where)
+        except OSError as exc:
+            return f"port {port} of {host} is taken ({exc.strerror})" if exc.errno == errno.EADDRINUSE else None
+    return None
 
 
 def open_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *,

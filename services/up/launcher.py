@@ -42,10 +42,12 @@ from tqdm import tqdm
 from services.bus.security import SecureFiles, SecurityError, init_secure
 from services.bus.session import (
     LivelinessWatch,
+    TransportError,
     ZenohSettings,
     free_tcp_port,
     open_session,
     parse_endpoints,
+    port_taken,
     subscribe_messages,
 )
 from services.process import setup_logging
@@ -74,6 +76,17 @@ class Child:
     name: str
     process: subprocess.Popen
     logfile: Path
+
+    def exited(self) -> str | None:
+        """None while the process runs; else its exit code and the last line of its log."""
+        code = self.process.poll()
+        if code is None:
+            return None
+        try:
+            lines = self.logfile.read_text(errors="replace").strip().splitlines()
+        except OSError:
+            lines = []
+        return f"its {self.name} exited ({code}): {lines[-1] if lines else 'no output'} (see {self.logfile})"
 
 
 LEARNER_WAITS = 0.1
@@ -274,6 +287,10 @@ class Launcher:
         self.paths = RunPaths(Path(args.runs_dir) / self.run)
         self.children: list[Child] = []
         self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
+        for endpoint in self.listen:  # else the progress session would wait on whatever holds it
+            if (taken := port_taken(endpoint)) is not None:
+                raise TransportError(f"the router cannot listen on {endpoint}: {taken}, by another router or "
+                                     "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
         if getattr(args, "resume", False) and not self.paths.root.exists():
             raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
         self.lock = RunLock(self.paths, "up")  # before anything in the run folder is touched, --fresh included
@@ -375,7 +392,9 @@ class Launcher:
         # the learner's first update waits for both (shared.learning.learner.LearnerCore.updates_due)
         progress = Progress(cfg_updates, max(self.config.train.warmup_transitions, self.config.dqn.batch_size))
         rejects = RejectCounter("stats message", log)
-        with open_session(self.settings("viewer"), wait_s=30.0) as session:
+        router = next(c for c in self.children if c.role == "router")
+        # a router that could not start (its port taken, a bad config) says why in its log at once
+        with open_session(self.settings("viewer"), wait_s=30.0, give_up=router.exited) as session:
             subs = [subscribe_messages(session, keys.all_stats("learner"), LearnerStats, progress.on_learner, rejects),
                     subscribe_messages(session, keys.all_stats("episode"), EpisodeStats, progress.on_episode, rejects)]
             actors = LivelinessWatch(session, keys.all_alive("actor"))

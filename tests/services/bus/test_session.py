@@ -28,6 +28,7 @@ from services.bus.session import (
     free_tcp_port,
     open_router,
     open_session,
+    port_taken,
     put_reliable,
     query_latest,
     serve_latest,
@@ -224,6 +225,37 @@ def test_client_without_router_fails_clearly_and_can_wait_for_one() -> None:
         starter.join()
         for r in routers:
             r.close()
+
+
+def test_a_wait_for_a_router_ends_at_once_when_told_why() -> None:
+    """``give_up``: `up` asks whether its router process has exited after each failed try."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    asked: list[float] = []
+
+    def give_up() -> str | None:
+        asked.append(time.monotonic())
+        return "its router exited (1): Address already in use" if len(asked) >= 3 else None
+
+    started = time.monotonic()
+    with pytest.raises(TransportError, match=r"cannot open a Zenoh session .*: its router exited \(1\)"):
+        open_session(ZenohSettings(mode="client", connect=(endpoint,)), wait_s=30.0, give_up=give_up)
+    assert len(asked) == 3 and time.monotonic() - started < 15.0
+
+
+def test_a_port_another_socket_holds_is_named_before_a_router_tries_it() -> None:
+    import socket
+
+    with socket.socket() as listening, socket.socket() as bound:
+        listening.bind(("127.0.0.1", 0))
+        listening.listen()
+        bound.bind(("127.0.0.1", 0))
+        for sock in (listening, bound):
+            port = sock.getsockname()[1]
+            for endpoint in (f"tcp/127.0.0.1:{port}", f"tls/127.0.0.1:{port}#iface=lo", f"tcp/0.0.0.0:{port}"):
+                assert f"port {port} of" in port_taken(endpoint) and "in use" in port_taken(endpoint), endpoint
+        port = listening.getsockname()[1]
+    assert port_taken(f"tcp/127.0.0.1:{port}") is None  # closed: free again, TIME_WAIT or not
+    assert port_taken(f"udp/127.0.0.1:{port}") is None and port_taken("tcp/no-such-host.invalid:7447") is None
 
 
 # --- data through a router ---------------------------------------------------------------------

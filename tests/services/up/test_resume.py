@@ -233,3 +233,38 @@ def _cmdline(proc_dir: Path) -> str:
         return (proc_dir / "cmdline").read_text()
     except OSError:
         return ""
+
+
+def test_up_whose_router_port_is_taken_says_so_before_it_starts_anything(tmp_path: Path) -> None:
+    """A taken --listen port is named at once, and no run folder is made: before, up's progress
+    session waited 30 s on whatever held the port and said only that it could not connect."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        result = up(tmp_path, "--listen", f"tcp/127.0.0.1:{port}", "--minutes", "1", timeout_s=60)
+    assert result.returncode == 2
+    assert f"the router cannot listen on tcp/127.0.0.1:{port}: port {port} of 127.0.0.1 is taken" in result.stderr, \
+        result.stderr[-2000:]
+    assert not (tmp_path / RUN).exists()
+
+
+def test_a_child_that_exited_says_how_from_its_log(tmp_path: Path) -> None:
+    """What `up` reports when its router exits while it waits for it (Child.exited)."""
+    from services.up.launcher import Child
+
+    log = tmp_path / "router.log"
+    with open(log, "wb") as out:
+        process = subprocess.Popen([sys.executable, "-c", "import sys; print('starting'); sys.exit('error: no')"],
+                                   stdout=out, stderr=subprocess.STDOUT)
+    child = Child("router", "router", process, log)
+    process.wait(30)
+    assert child.exited() == f"its router exited (1): error: no (see {log})"
+    sleeper = Child("router", "router", subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"]), log)
+    try:
+        assert sleeper.exited() is None
+    finally:
+        sleeper.process.kill()
+        sleeper.process.wait()
