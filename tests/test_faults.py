@@ -206,9 +206,11 @@ def test_an_actor_s_worst_batches_leave_the_learner_standing_and_bounded(system:
                   congestion_control=zenoh.CongestionControl.BLOCK)
         for i in range(ghosts):
             s.put(KEYS.transitions(f"ghost-{i}"), batch(f"ghost-{i}"), congestion_control=zenoh.CongestionControl.BLOCK)
+        # one session's blocking puts arrive in order: the last invented id counted, all were
+        last_ghost = f"ghost-{ghosts - 1}"
         after = system.wait(lambda st: st.rejects.get("range", 0) >= 40 and st.updates > before.updates + 5
-                            and st.transitions_received >= before.transitions_received + ghosts, 180,
-                            "the poisoned batches rejected, the invented ids' counted and more updates")
+                            and any(last_ghost in f.received_from for f in list(flows)), 180,
+                            "the poisoned batches rejected, the invented ids counted and more updates")
         assert received(after, "poison") == 0
         assert all(system.alive().values()), system.alive()
         # The learner's own messages still fit: its FlowControl carries only the actors it tracks.

@@ -400,24 +400,32 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
 
 
 def port_taken(endpoint: str) -> str | None:
-    """Why a router could not listen on ``endpoint`` (``tcp/`` or ``tls/`` HOST:PORT) because some
-    other socket already holds its port; None when it is free, or not one this can tell (the router
-    then says what is wrong). A port in TIME_WAIT counts as free, as it does for a router."""
-    protocol, _, address = re.split(r"[#?]", endpoint, maxsplit=1)[0].partition("/")
+    """Why a router could not listen on ``endpoint`` (``tcp/`` or ``tls/`` HOST:PORT) because other
+    sockets already hold its port at every address HOST resolves to (a Zenoh listener keeps the
+    first address that binds); None when one is free, or when this cannot tell (an ``#iface=``
+    endpoint, a name that does not resolve: the router then says what is wrong). A port in
+    TIME_WAIT counts as free, as it does for a router."""
+    base = re.split(r"[?]", endpoint, maxsplit=1)[0]
+    protocol, _, address = base.partition("/")
     host, _, port = address.rpartition(":")
-    if protocol not in ("tcp", "tls") or not port.isdigit():
+    if protocol not in ("tcp", "tls") or "#" in base or not (port.isascii() and port.isdigit()):
         return None
     try:
-        family, kind, _, _, where = socket.getaddrinfo(host.strip("[]") or None, int(port), type=socket.SOCK_STREAM)[0]
-    except (OSError, UnicodeError):
+        addresses = socket.getaddrinfo(host.strip("[]") or None, int(port), type=socket.SOCK_STREAM)
+    except (OSError, UnicodeError, ValueError):
         return None
-    with socket.socket(family, kind) as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    reasons = []
+    for family, kind, _, _, where in addresses:
         try:
-            probe.bind(where)
+            with socket.socket(family, kind) as probe:
+                probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                probe.bind(where)
+            return None
         except OSError as exc:
-            return f"port {port} of {host} is taken ({exc.strerror})" if exc.errno == errno.EADDRINUSE else None
-    return None
+            if exc.errno != errno.EADDRINUSE:
+                return None
+            reasons.append(exc.strerror)
+    return f"port {port} of {host} is taken ({reasons[0]})" if reasons else None
 
 
 def open_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *,

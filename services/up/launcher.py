@@ -76,14 +76,18 @@ class Child:
     name: str
     process: subprocess.Popen
     logfile: Path
+    log_start: int = 0
+    """Where this process's output begins in ``logfile`` (a resumed run's logs are appended to)."""
 
     def exited(self) -> str | None:
-        """None while the process runs; else its exit code and the last line of its log."""
+        """None while the process runs; else its exit code and the last line it logged."""
         code = self.process.poll()
         if code is None:
             return None
         try:
-            lines = self.logfile.read_text(errors="replace").strip().splitlines()
+            with open(self.logfile, "rb") as f:
+                f.seek(self.log_start)
+                lines = f.read().decode(errors="replace").strip().splitlines()
         except OSError:
             lines = []
         return f"its {self.name} exited ({code}): {lines[-1] if lines else 'no output'} (see {self.logfile})"
@@ -287,10 +291,6 @@ class Launcher:
         self.paths = RunPaths(Path(args.runs_dir) / self.run)
         self.children: list[Child] = []
         self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
-        for endpoint in self.listen:  # else the progress session would wait on whatever holds it
-            if (taken := port_taken(endpoint)) is not None:
-                raise TransportError(f"the router cannot listen on {endpoint}: {taken}, by another router or "
-                                     "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
         if getattr(args, "resume", False) and not self.paths.root.exists():
             raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
         self.lock = RunLock(self.paths, "up")  # before anything in the run folder is touched, --fresh included
@@ -331,6 +331,7 @@ class Launcher:
     def _spawn(self, role: str, name: str, argv: list[str]) -> Child:
         logfile = self.paths.logs / f"{name}.log"
         handle = open(logfile, "ab")
+        log_start = handle.seek(0, os.SEEK_END)
         env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
         if self.args.rerun_connect:
             env["COGEXPLORE_RERUN_URL"] = self.args.rerun_connect  # evaluator and actors stream there
@@ -338,7 +339,7 @@ class Launcher:
                                    stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
                                    start_new_session=True, preexec_fn=_die_with_parent)
         handle.close()
-        child = Child(role, name, process, logfile)
+        child = Child(role, name, process, logfile, log_start)
         self.children.append(child)
         return child
 
@@ -349,6 +350,10 @@ class Launcher:
 
     def start(self) -> None:
         a = self.args
+        for endpoint in self.listen:  # else the progress session would wait on whatever holds it
+            if (taken := port_taken(endpoint)) is not None:
+                raise TransportError(f"the router cannot listen on {endpoint}: {taken}. Another router or "
+                                     "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
         self._spawn("router", "router", ["router", "--listen", ",".join(self.listen),
                                          "--config", str(self.secure.router_config)])
         config = ["--preset", str(self.paths.config)]

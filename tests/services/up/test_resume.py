@@ -236,7 +236,7 @@ def _cmdline(proc_dir: Path) -> str:
 
 
 def test_up_whose_router_port_is_taken_says_so_before_it_starts_anything(tmp_path: Path) -> None:
-    """A taken --listen port is named at once, and no run folder is made: before, up's progress
+    """A taken --listen port is named at once, before any process starts: before, up's progress
     session waited 30 s on whatever held the port and said only that it could not connect."""
     import socket
 
@@ -248,7 +248,7 @@ def test_up_whose_router_port_is_taken_says_so_before_it_starts_anything(tmp_pat
     assert result.returncode == 2
     assert f"the router cannot listen on tcp/127.0.0.1:{port}: port {port} of 127.0.0.1 is taken" in result.stderr, \
         result.stderr[-2000:]
-    assert not (tmp_path / RUN).exists()
+    assert not list((tmp_path / RUN).glob("logs/*.log")) and checkpoint_updates(RunPaths(tmp_path / RUN)) is None
 
 
 def test_a_child_that_exited_says_how_from_its_log(tmp_path: Path) -> None:
@@ -256,12 +256,15 @@ def test_a_child_that_exited_says_how_from_its_log(tmp_path: Path) -> None:
     from services.up.launcher import Child
 
     log = tmp_path / "router.log"
-    with open(log, "wb") as out:
-        process = subprocess.Popen([sys.executable, "-c", "import sys; print('starting'); sys.exit('error: no')"],
-                                   stdout=out, stderr=subprocess.STDOUT)
-    child = Child("router", "router", process, log)
-    process.wait(30)
-    assert child.exited() == f"its router exited (1): error: no (see {log})"
+    log.write_text("error: an earlier run's router, in the same log\n")
+    for code, said in (("print('starting'); sys.exit('error: no')", "error: no"), ("sys.exit(3)", "no output")):
+        with open(log, "ab") as out:
+            start = out.seek(0, 2)
+            process = subprocess.Popen([sys.executable, "-u", "-c", f"import sys; {code}"], stdout=out,
+                                       stderr=subprocess.STDOUT)
+        process.wait(30)
+        child = Child("router", "router", process, log, start)
+        assert child.exited() == f"its router exited ({process.returncode}): {said} (see {log})"
     sleeper = Child("router", "router", subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"]), log)
     try:
         assert sleeper.exited() is None
