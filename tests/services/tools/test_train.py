@@ -57,7 +57,7 @@ def collision_ranking(net, steps) -> float:
 @pytest.mark.timeout(900)
 def test_tiny_training_beats_random_and_learns_what_a_collision_costs(tmp_path: Path):
     torch.manual_seed(0)
-    # A quarter of tiny's pixels (20 x 15, the same network): an update costs a third as much.
+    # A quarter of tiny's pixels (20 x 15, the same network): an update takes about 40% as long.
     cfg = load_preset("tiny").with_overrides({"train.checkpoint_every": 500, "train.keep_checkpoints": 5,
                                               "sensor.width": 20, "sensor.height": 15})
     paths = RunPaths(tmp_path / "tiny")
