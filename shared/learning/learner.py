@@ -26,7 +26,7 @@ from typing import Any, Hashable
 
 import numpy as np
 
-from shared.config import RunConfig
+from shared.config import RunConfig, is_whole
 from shared.learning.checkpoints import (
     CheckpointError,
     CheckpointManager,
@@ -37,7 +37,7 @@ from shared.learning.demos import demo_replay, load_demonstrations
 from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
 from shared.learning.pipeline import TargetPipeline
 from shared.learning.replay import Batch, ReplayError, ReplayMemory, concat_batches
-from shared.wire.messages import TransitionBatch
+from shared.wire.messages import MAX_BATCH_STEPS, TransitionBatch
 
 log = logging.getLogger("cogexplore.learner")
 
@@ -173,8 +173,13 @@ class LearnerCore:
         to ``total_updates`` at the replay ratio, but no more than ``slack`` ahead of now."""
         t = self.cfg.train
         needed_for_next = t.warmup_transitions + math.ceil(self.updates / t.replay_ratio)
-        needed_for_all = t.warmup_transitions + math.ceil(t.total_updates / t.replay_ratio)
-        return min(needed_for_next + slack, needed_for_all)
+        return min(needed_for_next + slack, self.transitions_needed)
+
+    @property
+    def transitions_needed(self) -> int:
+        """Transitions the whole run needs: the warm-up, then every update at the replay ratio."""
+        t = self.cfg.train
+        return t.warmup_transitions + math.ceil(t.total_updates / t.replay_ratio)
 
     @property
     def done(self) -> bool:
@@ -285,6 +290,21 @@ class RateMeter:
         return sum(c for _, c in list(self._points)[1:]) / max(span, 1e-9)
 
 
+def _saved_count(saved: Any, stored: int, most: int, name: str) -> int:
+    """A checkpoint's count of transitions received: at least the ``stored`` ones its replay memory
+    holds, at most ``most`` (what the run needs, and a batch in flight from each actor it tracks).
+    A checkpoint without one, or with one outside that (hand-made, or forged past the tensors'
+    digest), resumes from ``stored``: the count paces the replay ratio and the actors' credit, so a
+    huge one would hold every actor for good, and refusing the weights over it would stop the run."""
+    if saved is None:
+        return stored
+    if is_whole(saved) and stored <= saved <= max(stored, most):
+        return int(saved)
+    log.warning("%s: transitions_received %r is not a count between the %d stored and the %d this run can "
+                "receive: taking %d", name, saved, stored, most, stored)
+    return stored
+
+
 def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
     """Restore the newest checkpoint that loads (agent, and replay when it was saved); False when
     there is none. CheckpointError when it does not fit ``core``: starting afresh there would train
@@ -310,7 +330,8 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
         except CheckpointError as exc:
             raise CheckpointError(f"cannot resume: {exc}. Move that file away to resume with an empty replay "
                                   "memory") from None
-    core.received = int(checkpoint.extra.get("transitions_received", len(core.replay)))
+    core.received = _saved_count(checkpoint.extra.get("transitions_received"), len(core.replay),
+                                 core.transitions_needed + MAX_TRACKED_ACTORS * MAX_BATCH_STEPS, checkpoint.path.name)
     purged = core.purge_out_of_bounds()
     if purged:
         log.warning("removed %d stored transition(s) this task cannot produce from %s's replay memory", purged,

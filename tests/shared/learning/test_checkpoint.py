@@ -150,6 +150,30 @@ def test_only_the_newest_checkpoints_keep_their_replay_and_an_older_one_resumes_
         CheckpointManager(tmp_path, keep_replays=0)
 
 
+@pytest.mark.parametrize("saved", [None, "stored", "most", "abc", -5, True, 2.5, "fewer", "more", 10**400])
+def test_a_checkpoint_s_transition_count_resumes_only_as_a_count_the_run_can_have(tmp_path, caplog, saved):
+    """The learner's own count paces its replay ratio and the actors' credit; one that no run could
+    have (hand-made, or forged past the tensors' digest; a huge one would hold the actors for good)
+    takes the replay memory's size, with a warning instead of a crash or a stall."""
+    from shared.learning.learner import MAX_TRACKED_ACTORS, LearnerCore, resume_from
+    from shared.wire.messages import MAX_BATCH_STEPS
+
+    agent, mem = setup(DQNConfig())
+    fill(mem)
+    step(agent, mem)
+    cfg = RunConfig(sensor=TINY, model=MODEL, replay=ReplayConfig(capacity=64, prioritized=True))
+    core = LearnerCore(cfg, device="cpu")
+    stored, most = len(mem), core.transitions_needed + MAX_TRACKED_ACTORS * MAX_BATCH_STEPS
+    count = {"stored": stored, "most": most, "fewer": stored - 1, "more": most + 1}.get(saved, saved)
+    CheckpointManager(tmp_path).save(agent, replay=mem, extra=None if saved is None else {"transitions_received": count})
+    with caplog.at_level("WARNING"):
+        assert resume_from(CheckpointManager(tmp_path), core)
+    assert len(core.replay) == stored
+    kept = saved in ("stored", "most")
+    assert core.received == (count if kept else stored)
+    assert ("is not a count" in caplog.text) == (saved is not None and not kept)
+
+
 def test_partial_write_leaves_the_previous_checkpoint_usable(tmp_path):
     agent, mem = setup(DQNConfig())
     fill(mem)
