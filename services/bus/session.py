@@ -89,6 +89,14 @@ def parse_endpoints(value: str | Sequence[str], what: str = "") -> tuple[str, ..
     return tuple(out)
 
 
+def endpoint_host_port(endpoint: str) -> tuple[str, str, str]:
+    """(protocol, host, port) of a ``<protocol>/<host>:<port>[?metadata][#config]`` endpoint: an
+    IPv6 host without its brackets; a part the endpoint lacks is empty."""
+    protocol, _, address = re.split(r"[?#]", endpoint, maxsplit=1)[0].partition("/")
+    host, _, port = address.rpartition(":")
+    return protocol, host.strip("[]"), port
+
+
 @dataclass(frozen=True)
 class ZenohSettings:
     """How a process joins Zenoh.
@@ -405,13 +413,11 @@ def port_taken(endpoint: str) -> str | None:
     first address that binds); None when one is free, or when this cannot tell (an ``#iface=``
     endpoint, a name that does not resolve: the router then says what is wrong). A port in
     TIME_WAIT counts as free, as it does for a router."""
-    base = re.split(r"[?]", endpoint, maxsplit=1)[0]
-    protocol, _, address = base.partition("/")
-    host, _, port = address.rpartition(":")
-    if protocol not in ("tcp", "tls") or "#" in base or not (port.isascii() and port.isdigit()):
+    protocol, host, port = endpoint_host_port(endpoint)
+    if protocol not in ("tcp", "tls") or "#" in endpoint or not (port.isascii() and port.isdigit()):
         return None
     try:
-        addresses = socket.getaddrinfo(host.strip("[]") or None, int(port), type=socket.SOCK_STREAM)
+        addresses = socket.getaddrinfo(host or None, int(port), type=socket.SOCK_STREAM)
     except (OSError, UnicodeError, ValueError):
         return None
     reasons = []

@@ -109,7 +109,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
 
     def save_checkpoint() -> None:
         checkpoints.save(core.agent, replay=core.replay if save_replay else None, config=config_dict,
-                         extra={"transitions_received": core.received})
+                         extra=core.checkpoint_extra())
     inbox: queue.Queue[TransitionBatch] = queue.Queue(maxsize=4096)
     rejects = RejectCounter("transition batch", log)
     flow_slack = flow_slack if flow_slack is not None else max(256, 4 * cfg.dqn.batch_size)

@@ -62,7 +62,7 @@ class _Training:
 
     def save(self) -> Path:
         return self.checkpoints.save(self.core.agent, replay=self.core.replay, config=self.config_dict,
-                                     extra={"transitions_received": self.core.received})
+                                     extra=self.core.checkpoint_extra())
 
     def on_step(self, step: Step) -> None:
         core, train = self.core, self.cfg.train

@@ -44,6 +44,7 @@ from services.bus.session import (
     LivelinessWatch,
     TransportError,
     ZenohSettings,
+    endpoint_host_port,
     free_tcp_port,
     open_session,
     parse_endpoints,
@@ -608,8 +609,7 @@ def resume_line(run: str, paths: RunPaths, done: int, total: int) -> str:
 
 
 def _loopback(endpoint: str) -> bool:
-    host = endpoint.split("/", 1)[1].rsplit(":", 1)[0].strip("[]")
-    return host in ("127.0.0.1", "localhost", "::1")
+    return endpoint_host_port(endpoint)[1] in ("127.0.0.1", "localhost", "::1")
 
 
 def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> tuple[tuple[str, ...], str]:

@@ -155,6 +155,10 @@ class LearnerCore:
         ids, rewards = self.replay.stored_rewards()
         return self.replay.remove(ids[~self.cfg.env.pays(rewards)])
 
+    def checkpoint_extra(self) -> dict[str, int]:
+        """What a checkpoint keeps of the core beside the agent and replay (read by :func:`resume_from`)."""
+        return {"transitions_received": self.received}
+
     # -- the ratio rule --------------------------------------------------------------------
     @property
     def updates(self) -> int:
