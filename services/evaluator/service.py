@@ -87,7 +87,7 @@ from shared.learning.model import (
 from shared.learning.stats import TensorBoardLog
 from shared.sim.world import load_world
 from shared.wire.keys import RunKeys, validate_name
-from shared.wire.messages import EvalResult, RejectCounter, WeightsMessage
+from shared.wire.messages import MAX_EVAL_EPISODES, EvalResult, RejectCounter, WeightsMessage
 
 EVALUATOR_NICENESS = 10
 """Scheduling niceness of a long-running evaluator (0 = as the learner; 19 = the lowest)."""
@@ -125,7 +125,11 @@ class EvaluatorService:
         self.episodes_per_start = episodes_per_start
         self.max_steps = max_steps
         self.world = world or cfg.env.world
-        load_world(self.world)  # a bad world fails at start-up, not at the first evaluation
+        episodes = len(load_world(self.world).starts) * episodes_per_start  # a bad world fails at start-up
+        if episodes > MAX_EVAL_EPISODES:  # its result message could not carry them, after the first run
+            raise ConfigError(f"{episodes_per_start} episode(s) per start in {self.world} are {episodes} episodes; "
+                              f"an evaluation result carries at most {MAX_EVAL_EPISODES}: lower "
+                              "--episodes-per-start")
         self.image_every = image_every
         self.record = record
         # A malformed URL fails here, at start-up; one that does not answer is checked per evaluation.

@@ -122,6 +122,9 @@ def _start_indices(starts: list[int] | None, world: str) -> list[int] | None:
     bad = [s for s in starts if not 1 <= s <= n_starts]
     if bad:
         raise EvaluateError(f"--starts {' '.join(map(str, bad))}: world {world!r} has starts 1-{n_starts}")
+    twice = sorted({s for s in starts if starts.count(s) > 1})
+    if twice:  # the results would hold one (start, episode) twice and be refused after the whole run
+        raise EvaluateError(f"--starts names start {' '.join(map(str, twice))} more than once")
     return [s - 1 for s in starts]
 
 
@@ -141,16 +144,22 @@ def run_evaluate(args: argparse.Namespace) -> int:
     except ConfigError as exc:
         raise EvaluateError(f"--protocol: {exc}") from None
     model, ensemble = None, args.ensemble
-    for world in _worlds_of(args):
+    worlds = _worlds_of(args)
+    several = len(worlds) > 1
+    if several:  # a world that does not load is refused before hours go into the ones before it
+        from shared.sim.world import load_world
+
+        for world in worlds:
+            load_world(world)
+    for world in worlds:
         setup, results, recorder, probe = _evaluate_one(args, world, model, ensemble, protocol)
         done.append((setup, results, probe))
+        if args.json_out:  # saved at once: an interrupted run keeps the worlds it finished
+            save_results(results, _json_path(args.json_out, setup.world, several))
         model, ensemble = setup.model, ()  # loaded (and joined into one ensemble) once for every world
-    several = len(done) > 1
     print(f"protocol {protocol.describe()}")
     for setup, results, probe in done:
         json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None
-        if json_path is not None:
-            save_results(results, json_path)
         summary = aggregate(results.episodes)["overall"]
         if several:
             print(f"## {setup.world}")
@@ -199,6 +208,7 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
                              preset=args.preset, overrides=args.overrides, seed=args.seed, device=args.device,
                              model=model, ensemble=ensemble)
     log.info("evaluating %s on %s", setup.meta()["model"], setup.world)
+    starts = _start_indices(args.starts, setup.world)  # before a recording is opened for nothing
     recording_name = f"evaluate {setup.meta()['model']} on {setup.world}"  # the protocol: a property
     recorder = None
     if args.rerun_serve:
@@ -214,7 +224,7 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
     probe = ForesightProbe(setup.policy_fn, setup.sensor_cfg, setup.env_cfg) if args.foresight else None
     policy_fn = setup.policy_fn if probe is None else probe
     run = {"episodes_per_start": args.episodes_per_start, "max_steps": args.max_steps, "seed": args.seed,
-           "starts": _start_indices(args.starts, setup.world),
+           "starts": starts,
            "policy_version": setup.model.policy_version if setup.model else 0,
            "progress": not args.quiet, "meta": setup.meta(), "protocol": protocol}
     try:
@@ -225,10 +235,10 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
             results = evaluate_recorded(policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
                                         env_cfg=setup.env_cfg, rrd=args.rrd, rerun_connect=args.rerun_connect,
                                         image_every=args.image_every, recording_name=recording_name, **run)
+        if recorder is not None:
+            recorder.commit()  # the file is whole and named while the server stays up
     except BaseException:
         if recorder is not None:
-            recorder.close()
-            if recorder.path is not None:
-                recorder.path.unlink(missing_ok=True)
+            recorder.close(keep=False)
         raise
     return setup, results, recorder, probe

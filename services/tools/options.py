@@ -69,7 +69,8 @@ def add_evaluate_arguments(parser: argparse.ArgumentParser) -> None:
                              "(its 24-step horizon) and print, per world, how many decisions before each collision "
                              "the last such state was (how far ahead the policy went wrong); it only observes")
     parser.add_argument("--json", dest="json_out", metavar="PATH",
-                        help="write the results JSON here (several worlds: one file each, PATH-<world>.json)")
+                        help="write the results JSON here (several worlds: one file each, PATH-<world>.json, written "
+                             "as each world finishes, so an interrupted run keeps the worlds it finished)")
     parser.add_argument("--rrd", metavar="PATH", help="write a Rerun recording here")
     parser.add_argument("--image-every", type=int, default=1, metavar="N",
                         help="record every N-th depth image only (default 1)")

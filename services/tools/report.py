@@ -26,7 +26,6 @@ inlined while they stay small) and linked from ``report.md`` (the same sections,
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import logging
 import os
@@ -211,30 +210,46 @@ class EvalPoint:
     final: bool = False
     protocol: str = "paper"
     """The test protocol's name (rows the evaluator wrote before it recorded one ran the paper's)."""
+    world: str | None = None
+    """The world evaluated in, as the evaluator was given it (None: a row that did not say)."""
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> EvalPoint:
         """A periodic evaluation, from a row of ``eval.jsonl``."""
+        world = row.get("world")
         return cls(row["policy_version"], float(row["summary"]["mean_steps"]), row.get("episodes_per_start"),
-                   row.get("max_steps"), protocol=str(row.get("protocol", "paper")))
+                   row.get("max_steps"), protocol=str(row.get("protocol", "paper")),
+                   world=world if isinstance(world, str) else None)
 
     @classmethod
-    def final_of(cls, results: EvalResults) -> EvalPoint:
-        """The final evaluation of a checkpoint, at the version its weights were saved at."""
+    def final_of(cls, results: EvalResults, world: str) -> EvalPoint | None:
+        """The final evaluation of a checkpoint in ``world``, at the version its weights were saved
+        at; None when its results do not say which version (a hand-edited or older file)."""
         meta = results.meta
-        return cls(int(meta["policy_version"]), float(results.summary["overall"]["mean_steps"]),
+        version = meta.get("policy_version")
+        if not (is_whole(version) and version >= 0):
+            return None
+        return cls(int(version), float(results.summary["overall"]["mean_steps"]),
                    meta.get("episodes_per_start"), meta.get("max_steps"), final=True,
-                   protocol=results.protocol.name)
+                   protocol=results.protocol.name, world=world)
 
 
-def eval_curve_points(rows: Sequence[Mapping[str, Any]], final: EvalPoint | None = None) -> list[EvalPoint]:
-    """The evaluator's periodic evaluations and the final one, by policy version. The final
-    evaluation stands in for a periodic one of the same version (it is Table III's number), so
-    no version is drawn twice for it."""
-    points = [EvalPoint.from_row(r) for r in rows]
-    if final is not None:
+def eval_curve_points(rows: Sequence[Mapping[str, Any]], final: EvalPoint | None = None
+                      ) -> tuple[list[EvalPoint], int]:
+    """The evaluator's periodic evaluations in the world and protocol of its newest one, and the
+    final one if it was measured in the same, by policy version; and how many rows were left out
+    (other worlds or protocols: one line must not join two tasks). The final evaluation stands in
+    for a periodic one of the same version (it is Table III's number), so no version is drawn twice."""
+    if not rows:
+        return [], 0
+    every = [EvalPoint.from_row(r) for r in rows]
+    task = (every[-1].world, every[-1].protocol)
+    points = [p for p in every if (p.world, p.protocol) == task]
+    left_out = len(every) - len(points)
+    # A row from before the evaluator recorded its world ran the run's own, the report's default.
+    if final is not None and final.protocol == task[1] and task[0] in (None, final.world):
         points = [p for p in points if p.policy_version != final.policy_version] + [final]
-    return sorted(points, key=lambda p: p.policy_version)
+    return sorted(points, key=lambda p: p.policy_version), left_out
 
 
 def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 110) -> Path:
@@ -258,7 +273,8 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     ax.set_xlabel("policy version (learner updates)")
     ax.set_ylabel("mean moving steps")
     protocols = sorted({p.protocol for p in points})
-    ax.set_title(f"Evaluations during training ({', '.join(protocols)} protocol)")
+    worlds = sorted({p.world or "world not recorded" for p in points})
+    ax.set_title(f"Evaluations during training: {', '.join(worlds)}, {', '.join(protocols)} protocol")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -397,7 +413,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     if learner_csv.is_file():
         try:
             training = summarize_learner_log(learner_csv)
-        except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        except OSError as exc:
             notes.append(f"The training line could not be read from {learner_csv}: {exc}")
         try:
             loss_png = save_loss_curve_png(learner_csv, out / "loss.png", title=f"Training loss ({run.name})")
@@ -412,8 +428,11 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     if rows:  # the evaluator ran during training: its curve, ending in this report's evaluation of the run
         evaluator_protocol = EvalPoint.from_row(rows[-1]).protocol
         run_results = models[0].results.get(evaluator_protocol) if run_has_checkpoint else None  # the run's
-        final = EvalPoint.final_of(run_results) if run_results is not None else None
-        report.eval_curve = eval_curve_points(rows, final)
+        final = EvalPoint.final_of(run_results, world_name) if run_results is not None else None
+        report.eval_curve, left_out = eval_curve_points(rows, final)
+        if left_out:
+            notes.append(f"Evaluations during training: {left_out} evaluation(s) in another world or protocol "
+                         f"than the evaluator's newest are not drawn ({eval_log}).")
         eval_png = save_eval_curve_png(report.eval_curve, out / "eval-curve.png")
         report.figures.append(eval_png)
 

@@ -138,22 +138,21 @@ def window_rows_markdown(scores: Sequence[WindowScore], chosen: WindowScore | No
 def wall_minutes(learner_csv: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(updates, minutes of training) from a run's ``stats/learner.csv``, across resumes (each
     restarts its clock: the time before it is carried over); None without a usable file."""
-    import csv
+    from shared.learning.stats import read_csv_records
 
     updates, minutes, offset, last = [], [], 0.0, 0.0
     try:
-        with open(learner_csv, newline="") as f:
-            for row in csv.DictReader(f):
-                try:
-                    u, t = int(row["update"]), float(row["time_s"])
-                except (KeyError, TypeError, ValueError):
-                    continue
-                if t < last:  # a resumed run's clock starts again
-                    offset += last
-                last = t
-                if not updates or u > updates[-1]:
-                    updates.append(u)
-                    minutes.append((offset + t) / 60.0)
+        for row in read_csv_records(learner_csv):
+            try:
+                u, t = int(row["update"]), float(row["time_s"])
+            except (KeyError, TypeError, ValueError):
+                continue
+            if t < last:  # a resumed run's clock starts again
+                offset += last
+            last = t
+            if not updates or u > updates[-1]:
+                updates.append(u)
+                minutes.append((offset + t) / 60.0)
     except OSError:
         return None
     if len(updates) < 2:

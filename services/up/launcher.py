@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import collections
-import csv
 import dataclasses
 import logging
 import os
@@ -54,7 +53,7 @@ from services.bus.session import (
 from services.process import setup_logging
 from services.runs import RunLock, RunPaths, resolve_config, save_config
 from shared.errors import CogexploreError
-from shared.learning.stats import LearnerRow
+from shared.learning.stats import LearnerRow, read_csv_records
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EpisodeStats, LearnerStats, RejectCounter
 
@@ -584,14 +583,13 @@ def recorded_update_rate(learner_csv: Path) -> float | None:
     column, one row a second, warm-up rows left out); None under a minute of them on record."""
     rates = []
     try:
-        with open(learner_csv, newline="") as fh:
-            for row in csv.DictReader(fh):
-                try:
-                    rate = float(row["updates_per_s"])
-                except (KeyError, TypeError, ValueError):
-                    continue  # a torn last line of a killed learner
-                if rate > 0:
-                    rates.append(rate)
+        for row in read_csv_records(learner_csv):
+            try:
+                rate = float(row["updates_per_s"])
+            except (KeyError, TypeError, ValueError):
+                continue  # a torn last line of a killed learner
+            if rate > 0:
+                rates.append(rate)
     except OSError:
         return None
     return sum(rates) / len(rates) if len(rates) >= ETA_AFTER_S else None

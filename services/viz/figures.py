@@ -12,7 +12,7 @@ state and no GUI backend, so it is safe in services and threads.
 
 from __future__ import annotations
 
-import csv
+import logging
 import math
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
@@ -22,6 +22,7 @@ import numpy as np
 from shared.errors import CogexploreError
 from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of
 from shared.jsontext import parse_json
+from shared.learning.stats import read_csv_records
 from shared.sim.maps import (
     OccupancyGrid,
     draw_map,
@@ -30,6 +31,8 @@ from shared.sim.maps import (
     visit_counts,
 )
 from shared.sim.world import World
+
+logger = logging.getLogger("cogexplore.figures")
 
 # Column labels of the paper's Table II.
 PAPER_COMMAND_LABELS: tuple[str, ...] = ("Left", "H-Left", "Straight", "H-Right", "Right")
@@ -124,20 +127,38 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
 # ---------------------------------------------------------------------------
 
 
-def _rows_to_arrays(rows: Iterable[Mapping[str, Any]], source: str) -> tuple[np.ndarray, np.ndarray]:
-    updates, losses = [], []
+def _row_numbers(row: Any, i: int, source: str) -> tuple[float, float]:
+    if not isinstance(row, Mapping):
+        raise FigureError(f"{source}: row {i} is not an object with 'update' and 'loss'")
+    if "update" not in row or "loss" not in row:
+        raise FigureError(f"{source}: row {i} lacks 'update' or 'loss' (has {sorted(map(str, row))})")
+    update, loss = row["update"], row["loss"]
+    try:
+        return float(update), float(loss) if loss not in ("", None) else math.nan
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer past float's range
+        raise FigureError(f"{source}: row {i} has a non-numeric update or loss: "
+                          f"{str(update)[:40]!r}, {str(loss)[:40]!r}") from None
+
+
+def _rows_to_arrays(rows: Iterable[Any], source: str, skip_bad: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The rows' updates and losses; with ``skip_bad`` (a learner's own log, whose last line a
+    killed process can tear) a row that is not two numbers is left out, unless every row is."""
+    updates, losses, bad = [], [], []
     for i, row in enumerate(rows):
-        if not isinstance(row, Mapping):
-            raise FigureError(f"{source}: row {i} is not an object with 'update' and 'loss'")
-        if "update" not in row or "loss" not in row:
-            raise FigureError(f"{source}: row {i} lacks 'update' or 'loss' (has {sorted(row)})")
         try:
-            updates.append(float(row["update"]))
-            losses.append(float(row["loss"]) if row["loss"] not in ("", None) else math.nan)
-        except (TypeError, ValueError):
-            raise FigureError(f"{source}: row {i} has a non-numeric update or loss: "
-                              f"{row['update']!r}, {row['loss']!r}") from None
-    return np.asarray(updates), np.asarray(losses)
+            update, loss = _row_numbers(row, i, source)
+        except FigureError as exc:
+            if not skip_bad:
+                raise
+            bad.append(exc)
+            continue
+        updates.append(update)
+        losses.append(loss)
+    if bad and not updates:
+        raise bad[0]
+    if bad:
+        logger.warning("%s: %d row(s) left out, not numbers (first: %s)", source, len(bad), bad[0])
+    return np.asarray(updates, dtype=np.float64), np.asarray(losses, dtype=np.float64)
 
 
 def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, Sequence[float]]
@@ -145,22 +166,27 @@ def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, S
     """(updates, losses) sorted by update from a CSV file (header with ``update`` and
     ``loss``; other columns ignored), a JSON file (a list of row objects or an object of
     columns), a JSON Lines file (``.jsonl``, one row per line), or those objects in memory.
-    Rows with an empty or non-finite loss are dropped (a diverged run still plots)."""
+    Rows with an empty or non-finite loss are dropped (a diverged run still plots); so are a CSV
+    file's rows that do not parse (the learner's log after a crash), unless all of them do not."""
     source = "loss log"
     if isinstance(log, (str, Path)):
         path = Path(log)
         source = str(path)
         try:
-            text = path.read_text()
+            if path.suffix == ".csv":
+                records = list(read_csv_records(path))
+            else:
+                text = path.read_text()
         except FileNotFoundError:
             raise FigureError(f"loss log {path} does not exist") from None
         except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, binary bytes
             raise FigureError(f"loss log {path} cannot be read as text: {exc}") from None
         if path.suffix == ".csv":
-            reader = csv.DictReader(text.splitlines())
-            if not reader.fieldnames or not {"update", "loss"} <= set(reader.fieldnames):
-                raise FigureError(f"{path}: the CSV header must name 'update' and 'loss', got {reader.fieldnames}")
-            updates, losses = _rows_to_arrays(reader, source)
+            columns = list(records[0]) if records else []
+            if not {"update", "loss"} <= set(columns):
+                raise FigureError(f"{path}: the CSV header must name 'update' and 'loss' and rows must "
+                                  f"follow it, got {columns or 'no rows'}")
+            updates, losses = _rows_to_arrays(records, source, skip_bad=True)
             return _finite_sorted(updates, losses, source)
         if path.suffix == ".jsonl":
             log = [parse_json(line, str(path), FigureError) for line in text.splitlines() if line.strip()]
@@ -168,10 +194,16 @@ def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, S
             log = parse_json(text, str(path), FigureError)
     if isinstance(log, Mapping):
         if "update" not in log or "loss" not in log:
-            raise FigureError(f"{source}: a column object needs 'update' and 'loss', has {sorted(log)}")
+            raise FigureError(f"{source}: a column object needs 'update' and 'loss', has {sorted(map(str, log))}")
+        if not all(isinstance(log[k], (Sequence, np.ndarray)) and not isinstance(log[k], str)
+                   for k in ("update", "loss")):
+            raise FigureError(f"{source}: a column object's 'update' and 'loss' must be lists of numbers")
         if len(log["update"]) != len(log["loss"]):
             raise FigureError(f"{source}: {len(log['update'])} updates but {len(log['loss'])} losses")
         log = [{"update": u, "loss": v} for u, v in zip(log["update"], log["loss"])]
+    if not isinstance(log, Sequence) or isinstance(log, str):
+        raise FigureError(f"{source}: a loss log is a list of rows or an object of columns, "
+                          f"got {type(log).__name__}")
     updates, losses = _rows_to_arrays(log, source)
     return _finite_sorted(updates, losses, source)
 

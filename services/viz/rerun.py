@@ -240,6 +240,10 @@ class EvalRecorder:
     ``recording_id``: recorders with the same id add to one recording in the viewer (the
     actors' streams). ``image_every`` logs every n-th depth image only (a full 12 x 10 x
     200-step protocol is 24,000 images, ~0.9 GB of millimetres).
+
+    The file is written as ``<path>.partial`` and takes its name at :meth:`commit` or
+    ``close(keep=True)``: a recording that fails or is cancelled leaves the file it would have
+    replaced (an earlier evaluation of the same version) as it was.
     """
 
     def __init__(self, target: str | Path | rr.RecordingStream | None, world: World, grid: OccupancyGrid | None,
@@ -255,6 +259,8 @@ class EvalRecorder:
         self.sensor_cfg = sensor_cfg
         self.image_every = image_every
         self.path: Path | None = None
+        """The recording's file (being written while ``partial_path`` exists)."""
+        self.partial_path: Path | None = None
         self.server_uri: str | None = None
         self.viewer_url: str | None = None
         """Where a viewer on this machine connects to the served stream (``serve``)."""
@@ -278,8 +284,9 @@ class EvalRecorder:
             sinks: list[Any] = []
             if target is not None:
                 self.path = Path(target)
+                self.partial_path = self.path.with_name(self.path.name + ".partial")
                 self.path.parent.mkdir(parents=True, exist_ok=True)
-                sinks.append(rr.FileSink(self.path))
+                sinks.append(rr.FileSink(self.partial_path))
             if connect_url:
                 sinks.append(rr.GrpcSink(connect_url))
             if serve or serve_web:
@@ -526,28 +533,50 @@ class EvalRecorder:
 
     # -- lifetime ---------------------------------------------------------------------------
 
-    def close(self) -> None:
-        """Flush everything and close the sinks this recorder opened (the .rrd file is
-        complete afterwards); a stream passed in by the caller is flushed, not closed. A live
-        stream whose viewer went away is logged as a warning, not raised: the file sink is
-        flushed and closed all the same."""
-        if self._closed:
-            return
-        self._closed = True
+    def _flush(self) -> None:
         try:
             self.rec.flush(timeout_sec=30.0)
         except RuntimeError as exc:
             if not self.live or "grpc" not in str(exc).lower():  # a file that fails is an error
                 raise
             log.warning("Rerun live stream failed (%s); the recording file, if any, is complete", exc)
-        if self._owns_stream:
-            self.rec.disconnect()
+
+    def commit(self) -> None:
+        """Flush, and give the file its name while the stream stays open (a served recording is
+        complete on disk before its server goes away); nothing to do without a file."""
+        if self.partial_path is None or self._closed:
+            return
+        self._flush()
+        self.partial_path.replace(self.path)  # the open sink writes on into the renamed file
+        self.partial_path = None
+
+    def close(self, keep: bool = True) -> None:
+        """Flush everything and close the sinks this recorder opened; a stream passed in by the
+        caller is flushed, not closed. The file takes its name with ``keep`` and is deleted
+        without it (a failed or cancelled evaluation). A live stream whose viewer went away is
+        logged as a warning, not raised: the file sink is flushed and closed all the same."""
+        if self._closed:
+            return
+        self._closed = True
+        flushed = False
+        try:
+            self._flush()
+            flushed = True
+        finally:
+            if self._owns_stream:
+                self.rec.disconnect()
+            if self.partial_path is not None:
+                if keep and flushed:
+                    self.partial_path.replace(self.path)
+                else:
+                    self.partial_path.unlink(missing_ok=True)
+                self.partial_path = None
 
     def __enter__(self) -> EvalRecorder:
         return self
 
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        self.close(keep=exc_type is None)
 
 
 class EpisodeStream:
@@ -770,7 +799,7 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
     ``image_every``-th depth image, every step's pose, Q-values/scores, command and trajectory, and
     the summary) and/or live to the viewer at ``rerun_connect`` (one that does not answer is skipped
     with a warning). Neither given: the protocol alone. A run that fails or is cancelled leaves no
-    partial file. ``protocol``: the other arguments of ``evaluate_policy``."""
+    partial file, and a file of the same name from before as it was. ``protocol``: the other arguments of ``evaluate_policy``."""
     from shared.evaluation.protocol import evaluate_policy, protocol_env_config
 
     rerun_connect = live_viewer_url(rerun_connect, rrd is not None)
@@ -786,9 +815,7 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
         return results
     finally:
         if recorder is not None:
-            recorder.close()
-            if not ok and recorder.path is not None:
-                recorder.path.unlink(missing_ok=True)
+            recorder.close(keep=ok)
 
 
 TIMELINE_DECISION = "decision"

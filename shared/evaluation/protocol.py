@@ -140,6 +140,13 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
         raise ResultsError(f"episodes_per_start must be an integer >= 1, got {episodes_per_start!r}")
     if not (is_whole(max_steps) and max_steps >= 1):
         raise ResultsError(f"max_steps must be an integer >= 1, got {max_steps!r}")
+    if not (is_whole(seed) and seed >= 0):
+        raise ResultsError(f"seed must be an integer >= 0, got {seed!r}")
+    if starts is not None and (isinstance(starts, (str, bytes)) or not isinstance(starts, (Sequence, np.ndarray))
+                               or not all(is_whole(s) for s in starts)):
+        raise ResultsError(f"starts must be a list of start indices (whole numbers), got {starts!r}")
+    if not isinstance(protocol, ProtocolConfig):
+        raise ResultsError(f"protocol must be a ProtocolConfig, got {type(protocol).__name__}")
     env = make_env()
     try:
         n_starts = len(env.world.starts)
@@ -148,6 +155,8 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
         if bad or not start_list:
             raise ResultsError(f"starts {bad or start_list} invalid: world {env.world.name!r} has "
                                f"{n_starts} starts (indices 0..{n_starts - 1})")
+        if len(set(start_list)) < len(start_list):  # refused now, not by the results after every episode
+            raise ResultsError(f"starts {start_list} name a start more than once")
         if env.env_config.max_episode_steps < max_steps:
             raise ResultsError(f"the env truncates at {env.env_config.max_episode_steps} steps, before the "
                                f"protocol's max_steps={max_steps}: build it with max_episode_steps >= {max_steps}")

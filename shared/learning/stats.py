@@ -140,6 +140,31 @@ class TrainingSummary:
         return self.updates / self.learner_s if self.learner_s else None
 
 
+def read_csv(path: str | Path) -> Iterator[list[str]]:
+    """The rows of a statistics CSV file, header first. A line the csv module cannot parse is
+    skipped, not fatal: a power loss can leave a tail of NUL bytes (one field past the csv
+    module's size limit), and bytes that are not UTF-8 become U+FFFD."""
+    with open(path, newline="", errors="replace") as fh:
+        reader = csv.reader(fh)
+        while True:
+            try:
+                yield next(reader)
+            except StopIteration:
+                return
+            except csv.Error:
+                continue
+
+
+def read_csv_records(path: str | Path) -> Iterator[dict[str, str | None]]:
+    """:func:`read_csv`'s rows by the header's column names, as ``csv.DictReader`` gives them: a
+    row short of cells (a torn last line) has None in the missing ones; blank lines are skipped."""
+    rows = read_csv(path)
+    header = next(rows, None)
+    for row in rows if header else ():
+        if row:
+            yield {column: row[i] if i < len(row) else None for i, column in enumerate(header)}
+
+
 def summarize_learner_log(path: Path) -> TrainingSummary | None:
     """The training a learner log records; None where it has no readable row. Rows that do not
     parse (a torn last line, a column an older run lacks) are skipped, not fatal."""
@@ -154,22 +179,20 @@ def summarize_learner_log(path: Path) -> TrainingSummary | None:
     learner_s = session_s = 0.0
     lr_first = lr_last = None
     timed = False
-    with open(path, newline="") as fh:
-        for row in csv.DictReader(fh):
-            torn = any(value is None for column, value in row.items() if column is not None)  # cells missing
-            if torn or number(row, "update", int) is None:
-                continue
-            last = row
-            t = number(row, "time_s", float)
-            if t is not None:
-                timed = True
-                if t < session_s:  # a new session: the learner's clock restarted
-                    learner_s += session_s
-                session_s = t
-            lr = number(row, "lr", float)
-            if lr is not None:
-                lr_first = lr if lr_first is None else lr_first
-                lr_last = lr
+    for row in read_csv_records(path):
+        if None in row.values() or number(row, "update", int) is None:  # torn: cells missing
+            continue
+        last = row
+        t = number(row, "time_s", float)
+        if t is not None:
+            timed = True
+            if t < session_s:  # a new session: the learner's clock restarted
+                learner_s += session_s
+            session_s = t
+        lr = number(row, "lr", float)
+        if lr is not None:
+            lr_first = lr if lr_first is None else lr_first
+            lr_last = lr
     if last is None:
         return None
     return TrainingSummary(updates=number(last, "update", int), transitions=number(last, "transitions", int),
@@ -186,8 +209,7 @@ def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
     path = Path(stats_dir) / row_type.FILE
     if not path.is_file():
         return 0
-    with open(path, newline="") as fh:
-        rows = list(csv.reader(fh))
+    rows = list(read_csv(path))
     if not rows or "update" not in rows[0]:
         return 0
     col = rows[0].index("update")

@@ -26,7 +26,7 @@ from services.bus.session import (
     serve_latest,
 )
 from services.evaluator.service import EvaluatorService, recording_path
-from shared.config import load_preset
+from shared.config import ConfigError, load_preset
 from shared.evaluation import PROTOCOLS
 from shared.evaluation.results import load_results
 from shared.learning.model import QNetwork
@@ -148,6 +148,16 @@ def service_process(router: str, runs: Path, *extra: str) -> subprocess.Popen:
            "--connect", router, "--id", "ev-proc", "--max-steps", "4", "--no-record", "--preset", "paper", *SET_ARGS,
            *extra]  # a preset: no learner here to take the run's configuration from
     return subprocess.Popen(cmd, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def test_more_episodes_than_a_result_message_carries_are_refused_at_start_up(tmp_path: Path) -> None:
+    # box-room has 4 starts: 1024 per start is the message's 4096 episodes, 1025 is not, and was
+    # found only after the first evaluation (its files written), which then stopped the service.
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    settings = ZenohSettings(connect=("tcp/127.0.0.1:9",))
+    assert EvaluatorService(cfg, "cap", tmp_path, settings, "ev-1", episodes_per_start=1024).episodes_per_start == 1024
+    with pytest.raises(ConfigError, match="4100 episodes; an evaluation result carries at most 4096"):
+        EvaluatorService(cfg, "cap", tmp_path, settings, "ev-1", episodes_per_start=1025)
 
 
 def test_once_queries_the_latest_weights_and_exits(router: str, tmp_path: Path) -> None:

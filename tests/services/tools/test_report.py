@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import re
 from html.parser import HTMLParser
@@ -292,8 +293,9 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     run = make_run(tmp_path / "short", policy_version=1000)
     (run / "config.toml").write_text(to_toml(small_config()))
     (run / "stats").mkdir()
-    periodic = {"policy_version": 0, "protocol": "robust", "episodes_per_start": 1, "max_steps": 200,
-                "summary": {"mean_steps": 3.0}}
+    world = small_config().env.world
+    periodic = {"policy_version": 0, "protocol": "robust", "world": world, "episodes_per_start": 1,
+                "max_steps": 200, "summary": {"mean_steps": 3.0}}
     (run / "stats" / "eval.jsonl").write_text(json.dumps(periodic) + "\n")
     final_json = run / "stats" / "final-eval.json"
     assert main(["evaluate", "--checkpoint", str(run), "--episodes-per-start", "1", "--max-steps", "4",
@@ -302,13 +304,25 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     final_steps = final.summary["overall"]["mean_steps"]
 
     # The data: version 0 from the evaluator, then the final evaluation at the checkpoint's version.
-    points = eval_curve_points(load_eval_log(run / "stats" / "eval.jsonl"), EvalPoint.final_of(final))
-    assert points == [EvalPoint(0, 3.0, 1, 200, protocol="robust"),
-                      EvalPoint(1000, final_steps, 1, 4, final=True, protocol="robust")]
+    points, left_out = eval_curve_points(load_eval_log(run / "stats" / "eval.jsonl"),
+                                         EvalPoint.final_of(final, world))
+    assert left_out == 0
+    assert points == [EvalPoint(0, 3.0, 1, 200, protocol="robust", world=world),
+                      EvalPoint(1000, final_steps, 1, 4, final=True, protocol="robust", world=world)]
     # A periodic evaluation of the final version is not drawn a second time: the final one stands for it.
-    again = eval_curve_points([periodic, {**periodic, "policy_version": 1000, "summary": {"mean_steps": 7.0}}],
-                              EvalPoint.final_of(final))
-    assert [(p.policy_version, p.final) for p in again] == [(0, False), (1000, True)]
+    again, left_out = eval_curve_points([periodic, {**periodic, "policy_version": 1000,
+                                                    "summary": {"mean_steps": 7.0}}], EvalPoint.final_of(final, world))
+    assert [(p.policy_version, p.final) for p in again] == [(0, False), (1000, True)] and left_out == 0
+    # One line joins one task: rows in another world or protocol, and a final evaluation in another
+    # world, are left out (counted, for the report's note), not joined to the evaluator's newest.
+    elsewhere = [{**periodic, "policy_version": 500, "world": "procedural:5"},
+                 {**periodic, "policy_version": 700, "protocol": "paper"}, periodic]
+    only, left_out = eval_curve_points(elsewhere, EvalPoint.final_of(final, "procedural:5"))
+    assert [(p.policy_version, p.world, p.final) for p in only] == [(0, world, False)] and left_out == 2
+    # Results that do not say their version (a hand-edited file) give no final point.
+    unversioned = dataclasses.replace(final, meta={k: v for k, v in final.meta.items() if k != "policy_version"})
+    assert EvalPoint.final_of(unversioned, world) is None
+    assert EvalPoint.final_of(dataclasses.replace(final, meta={**final.meta, "policy_version": None}), world) is None
     assert again[1].mean_steps == final_steps
     png = save_eval_curve_png(again, tmp_path / "curve.png")
     assert png.read_bytes()[:8] == PNG_MAGIC
@@ -323,7 +337,7 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     (run / "stats" / "eval.jsonl").write_text(json.dumps({k: v for k, v in periodic.items() if k != "protocol"}) + "\n")
     older = build_report(run, episodes_per_start=1, max_steps=4, baselines=(), device="cpu", progress=False)
     paper = load_results(older.results["paper"]["short@1000"])
-    assert older.eval_curve == [EvalPoint(0, 3.0, 1, 200), EvalPoint.final_of(paper)]
+    assert older.eval_curve == [EvalPoint(0, 3.0, 1, 200, world=world), EvalPoint.final_of(paper, world)]
     assert older.eval_curve[1].protocol == "paper"
 
 
@@ -363,8 +377,18 @@ def test_a_garbled_learner_log_is_a_note_not_a_crash(tmp_path: Path) -> None:
     report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
                           protocols=("paper",))
     text = report.markdown.read_text()
-    assert "The training line could not be read" in text and "cannot be read as text" in text
+    # What parses is read (update 1); the loss that does not is a note, not a crash.
+    assert "Training: 1 updates" in text
+    assert "The loss curve could not be drawn" in text and "non-numeric update or loss" in text
     assert "| reactive |" in text
+    # A power loss's tail of NUL bytes (one csv field past the module's limit) after good rows: the
+    # rows before it still make the training line and the curve (before, csv.Error ended the report).
+    (run / "stats" / "learner.csv").write_bytes(b"update,loss\n1,2.0\n2,1.5\n" + b"\0" * 200_000)
+    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
+                          protocols=("paper",))
+    text = report.markdown.read_text()
+    assert "Training: 2 updates" in text and "The loss curve could not be drawn" not in text
+    assert (run / "report" / "loss.png").read_bytes()[:8] == PNG_MAGIC
 
 
 def report(argv: list[str]) -> int:

@@ -114,6 +114,12 @@ def test_load_loss_log_formats(tmp_path) -> None:
 @pytest.mark.parametrize("content,suffix,match", [
     ("step,value\n1,2\n", ".csv", "must name 'update' and 'loss'"),
     ("update,loss\n1,abc\n", ".csv", "non-numeric"),
+    ("", ".csv", "got no rows"),
+    ('{"update": 5, "loss": 3}', ".json", "must be lists of numbers"),
+    ("5", ".json", "got int"),
+    ("null", ".json", "got NoneType"),
+    ('[{"update": 1' + "0" * 400 + ', "loss": 1}]', ".json", "non-numeric"),
+    ('[{"update": 1, "loss": [2]}]', ".json", "non-numeric"),
     ('{"update": [1, 2], "loss": [1]}', ".json", "2 updates but 1 losses"),
     ('[{"update": 1}]', ".json", "lacks 'update' or 'loss'"),
     ("{oops", ".json", "not readable JSON"),
@@ -124,6 +130,19 @@ def test_load_loss_log_errors(tmp_path, content: str, suffix: str, match: str) -
     path.write_text(content)
     with pytest.raises(FigureError, match=match):
         load_loss_log(path)
+
+
+def test_a_learner_log_with_a_torn_or_damaged_tail_still_plots_its_rows(tmp_path, caplog) -> None:
+    # A killed learner tears its last line; a power loss leaves NUL bytes (a field past csv's limit).
+    path = tmp_path / "learner.csv"
+    path.write_text("time_s,update,loss\n1.0,10,2.0\n2.0,20,1.0\n" + "\0" * 200_000 + "\n3.0,30,0.5\n700.123")
+    with caplog.at_level("WARNING", logger="cogexplore.figures"):
+        updates, losses = load_loss_log(path)
+    assert updates.tolist() == [10, 20, 30] and losses.tolist() == [2.0, 1.0, 0.5]
+    assert "1 row(s) left out" in caplog.text
+    # In memory, numpy columns are columns.
+    u, v = load_loss_log({"update": np.array([2, 1]), "loss": np.array([1.0, 3.0])})
+    assert u.tolist() == [1, 2] and v.tolist() == [3.0, 1.0]
 
 
 def test_missing_log(tmp_path) -> None:

@@ -156,7 +156,23 @@ def test_stop_cancels_within_a_step_and_drops_the_partial_recording(tmp_path: Pa
     with pytest.raises(EvaluationCancelled):
         evaluate_recorded(policy, world="box-room", sensor_cfg=sensor, max_steps=50, rrd=rrd, progress=False,
                           stop=stop)
-    assert len(calls) == 3 and not rrd.exists()
+    assert len(calls) == 3 and not rrd.exists() and list(tmp_path.iterdir()) == []
+
+    # An evaluation of a version already recorded (a restarted learner's first weights) writes
+    # beside the earlier file, which stays whole if this one is cancelled and is replaced if it ends.
+    earlier = tmp_path / "eval-001000.rrd"
+    evaluate_recorded(lambda depth: (0, None), world="box-room", sensor_cfg=sensor, max_steps=5, rrd=earlier,
+                      starts=[0], episodes_per_start=1, progress=False)
+    whole = earlier.read_bytes()
+    calls.clear()
+    stop.clear()
+    with pytest.raises(EvaluationCancelled):
+        evaluate_recorded(policy, world="box-room", sensor_cfg=sensor, max_steps=50, rrd=earlier, progress=False,
+                          stop=stop)
+    assert earlier.read_bytes() == whole and [f.name for f in tmp_path.iterdir()] == [earlier.name]
+    evaluate_recorded(lambda depth: (1, None), world="box-room", sensor_cfg=sensor, max_steps=5, rrd=earlier,
+                      starts=[1], episodes_per_start=1, progress=False)
+    assert earlier.read_bytes() != whole and [f.name for f in tmp_path.iterdir()] == [earlier.name]
 
 
 # -- the reactive baseline -----------------------------------------------------------------------
@@ -300,7 +316,7 @@ def test_evaluate_starts_are_numbered_from_one_as_in_the_tables(tmp_path: Path) 
     assert [e.start_index for e in results.episodes] == [1, 3]  # the JSON's start_index is 0-based
 
 
-def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> None:
+def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys, monkeypatch) -> None:
     run = make_run(tmp_path / "run")
     status = evaluate((["--checkpoint", str(run), "--world", "box-room,corridor", "--episodes-per-start",
                                  "1", "--max-steps", "5", "--json", str(tmp_path / "r.json"), "--device", "cpu",
@@ -319,6 +335,24 @@ def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> 
     assert last["mean_steps_over_worlds"] == pytest.approx(sum(per_world.values()) / 2)
     assert not (tmp_path / "r.json").exists()
 
+    # A world that fails while it runs (here Ctrl-C) leaves the results of the worlds before it.
+    for f in tmp_path.glob("r-*.json"):
+        f.unlink()
+    calls = []
+
+    def interrupt_in_corridor(*args, **kwargs):
+        calls.append(kwargs["world"])
+        if kwargs["world"] == "corridor":
+            raise KeyboardInterrupt
+        return evaluate_recorded(*args, **kwargs)
+
+    monkeypatch.setattr("services.tools.evaluate.evaluate_recorded", interrupt_in_corridor)
+    assert evaluate(["--checkpoint", str(run), "--world", "box-room,corridor", "--episodes-per-start", "1",
+                     "--max-steps", "5", "--json", str(tmp_path / "r.json"), "--device", "cpu", "--quiet"]) == 130
+    assert calls == ["box-room", "corridor"]
+    assert validate_results_json((tmp_path / "r-box-room.json").read_text()).meta["world"] == "box-room"
+    assert not (tmp_path / "r-corridor.json").exists()
+
 
 @pytest.mark.parametrize("argv,message", [
     ([], "give --checkpoint"),
@@ -331,10 +365,17 @@ def test_evaluate_several_worlds_one_after_the_other(tmp_path: Path, capsys) -> 
     (["--policy", "random", "--episodes-per-start", "0", "--world", "box-room"], "episodes_per_start"),
     (["--policy", "random", "--world", "box-room", "--starts", "0"], "--starts 0: world 'box-room' has starts 1-4"),
     (["--policy", "random", "--world", "box-room", "--starts", "1", "5"], "--starts 5: world 'box-room' has"),
+    (["--policy", "random", "--world", "box-room", "--starts", "2", "1", "2"], "names start 2 more than once"),
+    (["--policy", "random", "--world", "box-room", "--starts", "9", "--rrd", "x.rrd"], "--starts 9: world"),
+    (["--policy", "random", "--world", "box-room,nowhere.xml"], "MJCF file 'nowhere.xml' does not exist"),
 ])
-def test_evaluate_refuses_bad_options_clearly(argv: list[str], message: str, capsys) -> None:
-    assert evaluate(argv + ["--quiet"]) == 2
-    assert message in capsys.readouterr().err
+def test_evaluate_refuses_bad_options_clearly(argv: list[str], message: str, capsys, tmp_path: Path,
+                                              monkeypatch) -> None:
+    monkeypatch.chdir(tmp_path)
+    assert evaluate(argv + ["--json", "r.json", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert message in err
+    assert list(tmp_path.iterdir()) == []  # refused before any file: a recording, a world's results
 
 
 def test_greedy_policy_takes_the_best_q_value(tmp_path: Path) -> None:

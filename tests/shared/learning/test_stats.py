@@ -14,6 +14,8 @@ from shared.learning.stats import (
     EpisodeRow,
     LearnerRow,
     TensorBoardLog,
+    read_csv,
+    rewind,
     scalars,
     summarize_learner_log,
 )
@@ -66,6 +68,27 @@ def test_a_learner_log_sums_its_sessions_and_skips_what_does_not_parse(tmp_path:
     assert (old.updates, old.transitions, old.learner_s, old.lr_first, old.updates_per_s) == (50, None, None, None, None)
     (tmp_path / "empty.csv").write_text("update,loss\n")
     assert summarize_learner_log(tmp_path / "empty.csv") is None
+
+
+def test_a_power_loss_tail_or_foreign_bytes_are_skipped_by_every_reader_and_resume_rewinds_past_them(
+        tmp_path: Path):
+    # A power loss can leave a file's tail as NUL bytes: one csv field past the csv module's
+    # 128 KiB limit, which raised csv.Error out of the learner's resume (rewind) and the report.
+    with CsvLog(tmp_path, LearnerRow) as log:
+        for update in (50, 100, 150):
+            log.write(row(time_s=update / 10, update=update))
+    path = tmp_path / "learner.csv"
+    clean = path.read_bytes()
+    path.write_bytes(clean + b"\0" * 200_000 + b"\n" + b"\xff\xfe,\x80\n")
+    rows = list(read_csv(path))
+    assert rows[0] == list(LearnerRow.columns()) and [r[1] for r in rows[1:4]] == ["50", "100", "150"]
+    assert len(rows) == 5 and "\ufffd" in rows[4][0]  # the NUL line skipped, foreign bytes replaced
+    t = summarize_learner_log(path)
+    assert (t.updates, t.learner_s) == (150, 15.0)
+    # Resumed from the checkpoint at update 100: the rows after it go, and so does the damage.
+    assert rewind(tmp_path, LearnerRow, 100) == 2  # update 150 and the foreign line (the NUL one was no row)
+    assert path.read_bytes() == b"\n".join(clean.split(b"\n")[:3]) + b"\n"
+    assert summarize_learner_log(path).updates == 100
 
 
 def test_a_record_needs_every_column():
