@@ -131,8 +131,12 @@ class Ros2Subscriber(_Entity):
     kind = "subscriber"
 
     def __init__(self, session: zenoh.Session, fmt: Ros2Format, node: NodeInfo, entity_id: int, topic: str,
-                 msgtype: str, callback: Callable[[bytes], None], qos: QosProfile) -> None:
+                 msgtype: str, callback: Callable[[bytes], None], qos: QosProfile, max_bytes: int | None = None,
+                 on_oversize: Callable[[int], None] | None = None) -> None:
         super().__init__()
+        self.max_bytes = max_bytes
+        """Larger payloads are never copied out of Zenoh: ``on_oversize(size)`` is called instead."""
+        self._on_oversize = on_oversize
         self.topic = topic
         self.msgtype = msgtype
         self.key = fmt.subscriber_key(topic, msgtype)
@@ -149,6 +153,11 @@ class Ros2Subscriber(_Entity):
         with self._lock:
             self._received += 1
         try:
+            size = len(sample.payload)
+            if self.max_bytes is not None and size > self.max_bytes:
+                if self._on_oversize is not None:
+                    self._on_oversize(size)
+                return
             self._callback(sample.payload.to_bytes())
         except Exception:
             # Never into Zenoh's thread: the subscription would go on silently anyway.
@@ -223,12 +232,16 @@ class Ros2Node:
         return publisher
 
     def subscriber(self, topic: str, msgtype: str, callback: Callable[[bytes], None], *,
-                   qos: str | QosProfile = "default") -> Ros2Subscriber:
+                   qos: str | QosProfile = "default", max_bytes: int | None = None,
+                   on_oversize: Callable[[int], None] | None = None) -> Ros2Subscriber:
         """Call ``callback(payload)`` on a Zenoh thread for each sample of ``topic``; an exception
-        it raises is logged once and counted (``callback_errors``), never propagated."""
+        it raises is logged once and counted (``callback_errors``), never propagated. A payload
+        over ``max_bytes`` is not copied out of Zenoh (a 400 MB one would double the memory it
+        takes): ``on_oversize(its size)`` is called in place of ``callback``."""
         self._check_open()
         subscriber = Ros2Subscriber(self._session, self.format, self.info, _next_entity_id(),
-                                    qualify(self.namespace, topic), msgtype, callback, qos_profile(qos))
+                                    qualify(self.namespace, topic), msgtype, callback, qos_profile(qos),
+                                    max_bytes=max_bytes, on_oversize=on_oversize)
         self._add(subscriber)
         return subscriber
 

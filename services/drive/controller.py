@@ -4,17 +4,20 @@ command or a stop, and the clock alone (the watchdog) can stop the robot.
 The safety rules, in the order they are checked:
 
 1. An image that cannot be read (garbage, truncated, another encoding, an absurd or wrong size,
-   no valid pixel at all) is refused, counted by cause, and stops the robot.
+   negative depths, no return within the camera's range at all: a blinded or saturated sensor
+   that reads NaN, 0 or its maximum everywhere) is refused, counted by cause, and stops the robot.
 2. An image whose nearest valid depth is below the collision distance stops the robot (the task's
    collision rule, ``EnvConfig.collision_distance_m``: the policy was never taught to act there).
 3. Otherwise the policy chooses a command from the image, at most one per control period (in lock
    step, one per image): a command always comes from the image that just arrived, never a stale one.
+   A policy that fails on it (a runtime error of torch or onnxruntime) stops the robot, as a refused
+   image does.
 4. No valid image for ``watchdog_s`` stops the robot, and the stop is repeated each control period
    until images return.
 
 A stop is sent at once when the robot was moving; while it stands, at most once per control period,
-so a flood of garbage cannot flood ``cmd_vel``. The process shell (``services.drive.service``) adds
-the signals and the stop at exit.
+so a flood of garbage cannot flood ``cmd_vel``. After the stop at exit nothing more is decided. The
+process shell (``services.drive.service``) adds the signals and sends that stop.
 """
 
 from __future__ import annotations
@@ -29,6 +32,7 @@ import numpy as np
 from shared.config import SPEED_TABLES, EnvConfig
 from shared.errors import CogexploreError
 from shared.ros2.messages import Ros2MessageError, decode_depth_image
+from shared.wire.messages import OVERSIZE
 
 DEFAULT_WATCHDOG_S = 0.5
 MAX_IMAGE_BYTES = 64 * 2**20
@@ -37,6 +41,10 @@ NO_VALID_DEPTH = "no_valid_depth"
 """Reject cause of an image without a single valid pixel (all NaN, all zero): a blinded sensor."""
 TOO_SMALL = "too_small"
 """Reject cause of an image smaller than the network's input: resizing up would invent detail."""
+BAD_DEPTH = "bad_depth"
+"""Reject cause of an image the policy's camera refuses: negative depths, another aspect ratio."""
+POLICY_ERROR = "policy_error"
+"""Reject cause of an image the policy failed on (the error is in the decision and the log)."""
 
 
 class DriveConfigError(CogexploreError):
@@ -100,15 +108,17 @@ class Decision:
     q_values: tuple[float, ...] = ()
     reject_cause: str | None = None
     """Set when a refused image caused this stop."""
+    error: str | None = None
+    """What went wrong, for a stop the policy's failure caused."""
 
     @property
     def is_stop(self) -> bool:
         return self.command is None
 
 
-def nearest_valid_depth(depth_m: np.ndarray) -> float | None:
-    """The smallest finite depth above 0 (None when the image has no return at all)."""
-    valid = depth_m[np.isfinite(depth_m) & (depth_m > 0)]
+def nearest_valid_depth(depth_m: np.ndarray, max_range_m: float = np.inf) -> float | None:
+    """The smallest depth above 0 and within ``max_range_m`` (None when the image has no such return)."""
+    valid = depth_m[np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= max_range_m)]
     return float(valid.min()) if valid.size else None
 
 
@@ -132,18 +142,24 @@ class DriveController:
         self.rejects: dict[str, int] = {}
         self.last_depth_m: np.ndarray | None = None
         """The last image read (for recordings)."""
+        self.exited = False
+        """Set by :meth:`exit_stop`: no decision after it."""
 
     # -- inputs ---------------------------------------------------------------------------
     def on_image(self, payload: bytes | bytearray | memoryview, received_s: float | None = None) -> Decision | None:
         """One image message as it arrived; the decision to publish, if any."""
+        if self.exited:
+            return None
         received_s = self.clock() if received_s is None else received_s
         try:
             depth = self._read(payload)
         except Ros2MessageError as exc:
             return self._reject(exc.cause, received_s)
-        except CogexploreError:  # the policy's camera refused it: another aspect ratio
-            return self._reject("shape", received_s)
-        nearest = nearest_valid_depth(depth)
+        except CogexploreError:  # the policy's camera refused it: negative depths, another aspect ratio
+            return self._reject(BAD_DEPTH, received_s)
+        # Beyond the camera's range is no return, as the network sees it (range-gated to 0): an image
+        # that reads its maximum everywhere is as blind as one that reads NaN everywhere.
+        nearest = nearest_valid_depth(depth, float(self.policy.sensor.max_range_m))
         if nearest is None:
             return self._reject(NO_VALID_DEPTH, received_s)
         self.last_image_s = received_s
@@ -153,16 +169,28 @@ class DriveController:
                or received_s - self.last_command_s >= 0.9 * self.period_s)  # 0.9: a camera's jitter
         if not due:
             return None
-        command, q_values = self.policy.decide(depth)
-        twist = self.policy.twist(int(command), self.config.speed_table)
+        try:
+            command, q_values = self.policy.decide(depth)
+            twist = self.policy.twist(int(command), self.config.speed_table)
+        except Exception as exc:  # noqa: BLE001 -- whatever the network's runtime raises, the robot stops
+            decision = self._reject(POLICY_ERROR, received_s)
+            return None if decision is None else dataclasses.replace(decision, error=f"{type(exc).__name__}: {exc}"[:300])
         now = self.clock()
         self.last_command_s = received_s
         self.moving = twist.linear_mps != 0 or twist.angular_rps != 0
         return self._decided(Decision(twist.linear_mps, twist.angular_rps, int(command), None, nearest,
                                       (now - received_s) * 1e3, tuple(float(q) for q in np.asarray(q_values))))
 
+    def on_oversize_image(self, size: int, received_s: float | None = None) -> Decision | None:
+        """An image message refused unread for its ``size`` in bytes (over ``max_image_bytes``)."""
+        if self.exited:
+            return None
+        return self._reject(OVERSIZE, self.clock() if received_s is None else received_s)
+
     def on_tick(self, now_s: float | None = None) -> Decision | None:
         """The watchdog, called often (every few tens of ms): a stop when images have stopped."""
+        if self.exited:
+            return None
         now_s = self.clock() if now_s is None else now_s
         since = self.last_image_s if self.last_image_s is not None else self.started_s
         if now_s - since < self.config.watchdog_s:
@@ -170,8 +198,9 @@ class DriveController:
         return self._stop("watchdog" if self.last_image_s is not None else "no_image", now_s)
 
     def exit_stop(self) -> Decision:
-        """The stop sent when the process ends (always sent)."""
+        """The stop sent when the process ends (always sent); nothing is decided after it."""
         self.moving = False
+        self.exited = True
         return self._decided(Decision(0.0, 0.0, None, "exit"))
 
     def reset(self) -> None:
@@ -186,7 +215,7 @@ class DriveController:
             raise Ros2MessageError(TOO_SMALL, f"{image.width} x {image.height} image; the network sees "
                                               f"{sensor.width} x {sensor.height}")
         depth = image.depth_m
-        self.policy.observation(depth)  # the aspect-ratio check, before any decision
+        self.policy.observation(depth)  # the checks of the policy's camera, before any decision
         self.last_depth_m = depth
         return depth
 

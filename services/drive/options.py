@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus.options import add_ros2_arguments
-from services.options import positive_number_argument
+from services.options import positive_number_argument, whole_number_argument
 
 
 def add_drive_arguments(p: argparse.ArgumentParser) -> None:
@@ -19,7 +19,7 @@ def add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="the commands' speeds: the paper's test table (the protocol's) or its train table (default test)")
     p.add_argument("--watchdog", type=positive_number_argument, default=0.5, metavar="SECONDS",
                    help="stop (zero twist) when no valid image has come for this long (default 0.5)")
-    p.add_argument("--collision-distance", type=float, default=None, metavar="METRES",
+    p.add_argument("--collision-distance", type=positive_number_argument, default=None, metavar="METRES",
                    help="stop when the nearest valid depth is below this (default: the task's, 0.55)")
     p.add_argument("--control-period", type=positive_number_argument, default=None, metavar="SECONDS",
                    help="at most one command per period (default: the policy's, 0.5)")
@@ -29,5 +29,6 @@ def add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="also stream depth, commands, Q-values, nearest depth and latency to the Rerun viewer at URL "
                         "(e.g. rerun+http://127.0.0.1:9876/proxy)")
     p.add_argument("--rrd", default=None, metavar="FILE", help="also record them to a Rerun file")
-    p.add_argument("--max-decisions", type=int, default=None, metavar="N", help="exit after N decisions (tests, demos)")
+    p.add_argument("--max-decisions", type=whole_number_argument(1), default=None, metavar="N",
+                   help="exit after N decisions (tests, demos)")
     add_ros2_arguments(p)

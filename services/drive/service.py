@@ -30,6 +30,8 @@ from shared.wire.robot import DriveDiagnostics
 
 log = logging.getLogger("cogexplore.drive")
 WATCHDOG_TICK_S = 0.02
+RESET_LOG_EVERY_S = 1.0
+"""At most one reset log line per this many seconds."""
 NODE_NAME = "cogexplore_drive"
 
 
@@ -52,7 +54,8 @@ class DriveNode:
         self.keys = RobotKeys(args.robot)
         self.controller = DriveController(policy, DriveConfig(
             speed_table=args.speed_table, watchdog_s=args.watchdog,
-            collision_distance_m=args.collision_distance or EnvConfig().collision_distance_m,
+            collision_distance_m=(EnvConfig().collision_distance_m if args.collision_distance is None
+                                  else args.collision_distance),
             control_period_s=args.control_period, lockstep=args.lockstep))
         self.lock = threading.Lock()
         self.recorder = recorder
@@ -62,14 +65,25 @@ class DriveNode:
         self.cmd_vel = self.node.publisher(qualify(args.namespace, args.cmd_vel_topic), TWIST, qos="default")
         self.diagnostics = session.declare_publisher(self.keys.diagnostics)
         self.image_sub = self.node.subscriber(qualify(args.namespace, args.image_topic), IMAGE, self.on_image,
-                                              qos="sensor_data")
+                                              qos="sensor_data", max_bytes=self.controller.config.max_image_bytes,
+                                              on_oversize=self.on_oversize_image)
         self.reset_sub = session.declare_subscriber(self.keys.reset, lambda _sample: self.reset())
         self.exit_sent = False
+        self.last_reset_log_s: float | None = None
+        self.last_stop: tuple[str | None, str | None] | None = None
+        """(reason, reject cause) of the last twist if it was a stop (its log line once, not each period)."""
 
     def on_image(self, payload: bytes) -> None:
         received = time.monotonic()
-        with self.lock:
+        with self.lock:  # an image that waited for it after the exit stop decides nothing (the controller's rule)
             decision = self.controller.on_image(payload, received)
+            if decision is not None:
+                self._send(decision)
+
+    def on_oversize_image(self, size: int) -> None:
+        received = time.monotonic()
+        with self.lock:
+            decision = self.controller.on_oversize_image(size, received)
             if decision is not None:
                 self._send(decision)
 
@@ -82,6 +96,10 @@ class DriveNode:
     def reset(self) -> None:
         with self.lock:
             self.controller.reset()
+            now = time.monotonic()
+            if self.last_reset_log_s is not None and now - self.last_reset_log_s < RESET_LOG_EVERY_S:
+                return  # a flood of resets is not a flood of log lines
+            self.last_reset_log_s = now
         log.info("reset: a new episode, no previous command")
 
     def stop_at_exit(self) -> None:
@@ -94,9 +112,16 @@ class DriveNode:
     def _send(self, decision: Decision) -> None:
         self.cmd_vel.put(encode_twist(decision.linear_mps, decision.angular_rps))
         c = self.controller
-        if decision.is_stop and decision.stop_reason != "too_close":
-            log.log(logging.INFO if decision.stop_reason == "exit" else logging.WARNING, "stop: %s%s",
-                    decision.stop_reason, f" ({decision.reject_cause})" if decision.reject_cause else "")
+        if self.args.max_decisions is not None and c.decisions >= self.args.max_decisions:
+            self.done.set()
+        stop = None if not decision.is_stop else (decision.stop_reason, decision.reject_cause)
+        if stop is not None and decision.stop_reason != "too_close":
+            # A warning when the reason changes; the reminder each control period while it stands, at debug.
+            level = logging.INFO if decision.stop_reason == "exit" else logging.WARNING
+            log.log(level if stop != self.last_stop else logging.DEBUG, "stop: %s%s%s", decision.stop_reason,
+                    f" ({decision.reject_cause})" if decision.reject_cause else "",
+                    f": {decision.error}" if decision.error else "")
+        self.last_stop = stop
         message = DriveDiagnostics(
             robot=self.args.robot, decision=c.decisions, command=decision.command, linear_mps=decision.linear_mps,
             angular_rps=decision.angular_rps, stop_reason=decision.stop_reason,
@@ -105,8 +130,6 @@ class DriveNode:
         self.diagnostics.put(message.encode())
         if self.recorder is not None:
             self.recorder.log_decision(message, c.last_depth_m if decision.command is not None else None)
-        if self.args.max_decisions is not None and c.decisions >= self.args.max_decisions:
-            self.done.set()
 
     def close(self) -> None:
         self.stop_at_exit()

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus.options import DEFAULT_ODOM_TOPIC, add_ros2_arguments
-from services.options import positive_number_argument
+from services.options import positive_number_argument, whole_number_argument
 
 
 def add_sim_robot_arguments(p: argparse.ArgumentParser) -> None:
@@ -24,5 +24,6 @@ def add_sim_robot_arguments(p: argparse.ArgumentParser) -> None:
                    help="real time: stop when no cmd_vel has come for this long, as a TurtleBot base does (default 0.5)")
     p.add_argument("--odom-topic", default=DEFAULT_ODOM_TOPIC, metavar="TOPIC",
                    help=f"nav_msgs/msg/Odometry topic (default {DEFAULT_ODOM_TOPIC})")
-    p.add_argument("--max-periods", type=int, default=None, metavar="N", help="exit after N control periods")
+    p.add_argument("--max-periods", type=whole_number_argument(1), default=None, metavar="N",
+                   help="exit after N control periods (a collided robot's periods count too)")
     add_ros2_arguments(p)

@@ -110,12 +110,12 @@ class SimRobot:
         self.publish()
 
     def drive(self, linear: float, angular: float) -> None:
-        """One control period at this command (nothing once collided), then the new image."""
+        """One control period at this command (the robot stands once collided), then the new image."""
         self.twist = (linear, angular)
+        self.periods += 1  # a collided robot's periods count too: --max-periods ends the run all the same
         if self.collision_cause is None:
             _depth, _r, terminated, _t, info = self.env.step_twist(linear, angular)
             self.step += 1
-            self.periods += 1
             if terminated:
                 self.collision_cause = info.get("collision_cause") or "depth"
                 x, y, _ = self.env.robot.pose()

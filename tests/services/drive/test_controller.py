@@ -9,7 +9,9 @@ from shared.ros2.messages import IMAGE, TYPESTORE, encode_depth_image
 
 from cogexplore.policy import load_policy
 from services.drive.controller import (
+    BAD_DEPTH,
     NO_VALID_DEPTH,
+    POLICY_ERROR,
     TOO_SMALL,
     DriveConfig,
     DriveConfigError,
@@ -114,16 +116,27 @@ def test_an_obstacle_nearer_than_the_collision_distance_stops_the_robot_at_once(
     ("empty", b"", "garbage"),
     ("wrong encoding", other_image("rgb8", 30, 40, 120, bytes(3600)), "encoding"),
     ("truncated", other_image("32FC1", 30, 40, 160, bytes(1000)), "truncated"),
-    ("another aspect ratio", None, "shape"),
+    ("another aspect ratio", None, BAD_DEPTH),
+    ("negative depths", None, BAD_DEPTH),
     ("smaller than the network", None, TOO_SMALL),
     ("NaN-filled", None, NO_VALID_DEPTH),
+    # A blinded or saturated camera that reads its maximum (or more) everywhere: the network sees
+    # no return, as for NaN, so it is refused as NaN is (before, it was driven on).
+    ("20 m everywhere", None, NO_VALID_DEPTH),
+    ("saturated millimetres", None, NO_VALID_DEPTH),
+    ("5 km everywhere", None, NO_VALID_DEPTH),
 ])
 def test_a_bad_image_stops_the_robot_and_is_counted(policy, start_image, name, payload, cause):
     if payload is None:
+        full = start_image.shape
         depth = {"another aspect ratio": np.full((40, 40), 2.0, np.float32),
+                 "negative depths": np.where(start_image > 0, start_image, -np.inf).astype(np.float32),
                  "smaller than the network": np.full((15, 20), 2.0, np.float32),
-                 "NaN-filled": np.full(start_image.shape, np.nan, np.float32)}[name]
-        payload = image(depth)
+                 "NaN-filled": np.full(full, np.nan, np.float32),
+                 "20 m everywhere": np.full(full, 20.0, np.float32),
+                 "saturated millimetres": np.full(full, 65535, np.uint16),
+                 "5 km everywhere": np.full(full, 5000.0, np.float32)}[name]
+        payload = image(depth, "16UC1" if depth.dtype == np.uint16 else "32FC1")
     drive, clock = controller(policy)
     assert drive.on_image(image(start_image), clock.t).command is not None  # moving
     decision = drive.on_image(payload, clock.t + 0.01)
@@ -156,6 +169,39 @@ def test_reset_forgets_the_previous_command_and_exit_always_stops(policy, start_
     assert policy.previous_command is None
     stop = drive.exit_stop()
     assert stop.stop_reason == "exit" and (stop.linear_mps, stop.angular_rps) == (0.0, 0.0)
+    # The exit stop is the last word: an image that arrives after it (waiting on the shell's lock
+    # meanwhile) or a watchdog tick decides nothing.
+    assert drive.on_image(image(start_image), clock.t + 1.0) is None and drive.on_tick(clock.t + 9.0) is None
+
+
+def test_a_policy_that_fails_stops_the_robot_every_period_until_it_decides_again(policy, start_image):
+    class Flaky:
+        """The shipped policy, whose runtime fails while ``failing`` (a CUDA or onnxruntime error)."""
+
+        def __init__(self) -> None:
+            self.failing = False
+
+        def __getattr__(self, name):
+            return getattr(policy, name)
+
+        def decide(self, depth_m):
+            if self.failing:
+                raise RuntimeError("CUDA error: an illegal memory access was encountered")
+            return policy.decide(depth_m)
+
+    flaky, clock = Flaky(), Clock()
+    policy.reset()
+    drive = DriveController(flaky, DriveConfig(watchdog_s=0.5), clock=clock)
+    assert drive.on_image(image(start_image), clock.t).command is not None  # moving
+    flaky.failing = True
+    stop = drive.on_image(image(start_image), clock.t + 0.5)
+    assert stop.is_stop and stop.reject_cause == POLICY_ERROR and "CUDA error" in stop.error
+    # Images keep coming, so the watchdog never fires: the failure itself keeps the robot stopped.
+    stops = [drive.on_image(image(start_image), clock.t + 0.5 + 0.1 * k) for k in range(1, 11)]
+    assert [d is not None for d in stops].count(True) == 2 and all(d.is_stop for d in stops if d is not None)
+    assert drive.rejects == {POLICY_ERROR: 11} and not drive.moving
+    flaky.failing = False
+    assert drive.on_image(image(start_image), clock.t + 2.0).command is not None
 
 
 @pytest.mark.parametrize("field, value", [("speed_table", "fast"), ("watchdog_s", 0), ("watchdog_s", float("nan")),

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from service_processes import cogexplore, stop, wait_for
 from shared.ros2.formats import make_format, qualify
-from shared.ros2.messages import IMAGE, TWIST, decode_twist, encode_depth_image
+from shared.ros2.messages import IMAGE, TWIST, decode_twist, encode_depth_image, encode_twist
 from services.bus.ros2 import Ros2Node
 
 import cogexplore as api
@@ -217,3 +217,52 @@ def test_in_real_time_the_sim_robot_moves_at_the_control_period(tmp_path, router
         assert len(moving) >= 5  # the first period or two wait for drive's first command
         first, last = seen[0], seen[-1]
         assert np.hypot(last.x - first.x, last.y - first.y) > 0.3 and not any(s.collided for s in seen)
+
+
+def test_a_payload_over_a_subscribers_limit_is_never_copied_out_and_is_reported_by_size(router):
+    # The drive node's image subscription takes at most 64 MB; a bigger image used to be copied
+    # out of Zenoh before the decoder refused it (a 400 MB one took 800 MB at its peak).
+    payloads, oversize = [], []
+    heard = threading.Event()
+    with open_session(ZenohSettings(mode="client", connect=(router,))) as session:
+        node = Ros2Node(session, make_format("rmw_zenoh"), "limits")
+        try:
+            node.subscriber(qualify("/", "camera/depth/image_raw"), IMAGE, payloads.append, qos="default",
+                            max_bytes=1000, on_oversize=oversize.append)
+            node.subscriber(qualify("/", "done"), TWIST, lambda _payload: heard.set(), qos="default")
+            images = node.publisher(qualify("/", "camera/depth/image_raw"), IMAGE, qos="default")
+            done = node.publisher(qualify("/", "done"), TWIST, qos="default")
+            time.sleep(0.5)  # the subscriptions reach the router
+            for size in (999, 1000, 1001, 2**20):
+                images.put(bytes(size))
+            done.put(b"end")
+            assert heard.wait(10.0)
+            assert [len(p) for p in payloads] == [999, 1000] and oversize == [1001, 2**20]
+        finally:
+            node.close()
+
+
+@pytest.mark.timeout(120)
+def test_the_sim_robot_ends_after_its_periods_even_when_it_has_collided(tmp_path, router):
+    """This test is the driver: straight ahead at full speed into paper-indoor's walls, in lock step."""
+    keys = RobotKeys("crash")
+    log = tmp_path / "sim.log"
+    with open_session(ZenohSettings(mode="client", connect=(router,))) as session:
+        statuses = Collector(session, keys.status)
+        node = Ros2Node(session, make_format("rmw_zenoh"), "crash_driver")
+        cmd_vel = node.publisher(qualify("/", "cmd_vel"), TWIST, qos="default")
+        sim = cogexplore(["sim-robot", "--connect", router, "--robot", "crash", "--lockstep", "--max-periods", "30"],
+                         log)
+        try:
+            wait_for(lambda: statuses.snapshot(), 90, "the sim-robot's first status", [log])
+            for _ in range(60):  # until it has hit a wall, then on: a collided robot's periods count too
+                cmd_vel.put(encode_twist(0.5, 0.0))
+                time.sleep(0.05)
+                if sim.poll() is not None:
+                    break
+            assert sim.wait(30) == 0, log.read_text()[-2000:]
+        finally:
+            stop(sim)
+            node.close()
+    seen = [s for s in statuses.snapshot() if isinstance(s, SimRobotStatus)]
+    assert any(s.collided for s in seen) and max(s.step for s in seen) < 30  # it collided before its 30 periods
