@@ -260,7 +260,7 @@ def test_forged_credit_is_ignored_and_a_restarted_actor_starts_from_nothing(syst
 
 def test_a_killed_learner_resumes_and_every_actor_is_on_its_weights_within_10_s(system: System):
     """Case 5: SIGKILL the learner, start it again: it resumes from its checkpoint at a lower update
-    than the dead one published; the actors take its weights at once (a newer learner epoch)."""
+    than the dead one published; the actors take its weights (another learner epoch, the dead one quiet)."""
     dead = system.wait(lambda st: st.updates >= 40, 300, "40 updates (two checkpoints)")
     system.procs["learner"].send_signal(signal.SIGKILL)
     system.procs["learner"].wait(10)

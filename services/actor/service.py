@@ -24,6 +24,7 @@ import json
 import logging
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -64,12 +65,16 @@ from shared.wire.messages import (
     EpisodeStats,
     FlowControl,
     MessageError,
+    LearnerEpochs,
     RejectCounter,
-    epoch_from_the_future,
     new_epoch,
 )
 
 log = logging.getLogger("cogexplore.actor")
+
+FLOW_QUIET_S = 2.0
+"""How long the followed learner must have sent no flow control (it speaks every 0.1 s) before
+another learner process's is taken."""
 
 
 class FlowGate:
@@ -78,9 +83,11 @@ class FlowGate:
     yet counted by the learner in ``received_from``).
 
     It holds until the learner's first word, so nothing is sent beyond the learner's want at the
-    start or after a learner came back. It follows one learner process: flow control of an older
-    learner epoch (a dead learner's, still in flight) is ignored, a newer one starts the accounting
-    afresh, and one from the future is refused. The learner counts per actor process
+    start or after a learner came back. It follows one learner process
+    (:class:`shared.wire.messages.LearnerEpochs`): flow control of another learner epoch is ignored
+    while the followed learner speaks, and starts the accounting afresh once it has been quiet for
+    ``quiet_s`` (a restarted learner; a forged credit of 0 would otherwise hold the actor for good);
+    one from the future is refused. The learner counts per actor process
     (``actor_epoch``): a count of a predecessor under the same id is not this process's.
 
     A transition not counted within ``horizon_s`` is taken as lost (e.g. sent just before
@@ -90,39 +97,40 @@ class FlowGate:
     """
 
     def __init__(self, actor_id: str, horizon_s: float = 10.0, actor_epoch: int = 0,
-                 rejects: RejectCounter | None = None) -> None:
+                 rejects: RejectCounter | None = None, quiet_s: float = FLOW_QUIET_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.actor_id = actor_id
         self.rejects = rejects
         self.actor_epoch = actor_epoch
         self.horizon_s = horizon_s
         self._waiting_since: float | None = None  # when open() first found no credit
         self._lock = threading.Lock()
-        self._learner_epoch: int | None = None  # None: no word from any learner yet
+        self._epochs = LearnerEpochs(quiet_s, clock)  # the learner process whose word counts
         self._credit: int | None = None  # None: no word from the learner yet: hold
         self._received_from_me = 0
         self._sent = 0
         self._sends: collections.deque = collections.deque()  # (time, total sent after it)
         self._settled = 0  # total sent as of horizon_s ago: arrived or lost by now
         self.ignored = 0
-        """Flow-control messages of another learner process (older, or from the future)."""
+        """Flow-control messages of another learner process than the one followed, or from the future."""
         self.changed = threading.Event()
 
     def on_flow(self, message: FlowControl, _key: str = "") -> None:
         with self._lock:
-            epoch = message.learner_epoch
-            if epoch_from_the_future(epoch):
+            first = self._epochs.followed is None
+            verdict = self._epochs.admit(message.learner_epoch)
+            if verdict == LearnerEpochs.FUTURE:
                 if self.rejects is not None:  # not a late word of a dead learner: an impossible one
                     self.rejects.reject(MessageError(RANGE, "flow control of a learner started in the future"), _key)
                 self.ignored += 1
                 return
-            if self._learner_epoch is not None and epoch < self._learner_epoch:
+            if verdict == LearnerEpochs.OTHER:
                 self.ignored += 1
                 return
-            if self._learner_epoch is not None and epoch > self._learner_epoch:  # a new learner counts afresh
+            if verdict == LearnerEpochs.NEW and not first:  # another learner process counts afresh
                 self._sent = self._settled = 0
                 self._sends.clear()
                 self._received_from_me = 0
-            self._learner_epoch = epoch
             mine = message.actor_epochs.get(self.actor_id) == self.actor_epoch
             received = message.received_from.get(self.actor_id, 0) if mine else 0
             if received < self._received_from_me:  # the count went back: the learner lost track

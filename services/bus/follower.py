@@ -4,8 +4,10 @@ In the spirit of Acme's ``VariableClient``: the actors and the evaluator each ho
 :class:`WeightFollower`. Zenoh threads ``offer`` every ``WeightsMessage`` from the learner's stream
 (and the reply to the latest-weights query); the follower keeps only the newest that fits the
 receiver's architecture, so a slow receiver skips versions instead of queueing them. Versions are
-(learner epoch, update): a restarted learner's weights replace the dead one's at once, and an epoch
-from the future is refused (it would outrank every real learner for good). The
+(learner epoch, update), and one learner process is followed at a time
+(:class:`shared.wire.messages.LearnerEpochs`): a restarted learner's weights replace the dead one's
+once the dead one has been quiet for ``WEIGHTS_QUIET_S``, a message of another epoch among the live
+learner's is ignored, and an epoch from the future is refused. The
 receiver's own loop ``take``\\s it when it is ready and ``load``\\s it into its network; a message
 that does not fit (another fingerprint, or tensors that do not load despite it) is counted by
 cause in ``rejects`` and dropped, never raised.
@@ -22,7 +24,8 @@ from __future__ import annotations
 
 import logging
 import threading
-from collections.abc import Iterator
+import time
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
@@ -38,14 +41,18 @@ from shared.wire.messages import (
     SHAPE,
     MessageError,
     RejectCounter,
+    LearnerEpochs,
     WeightsMessage,
-    epoch_from_the_future,
 )
 
 log = logging.getLogger("cogexplore.weights")
 
 WEIGHTS_ENVELOPE_BYTES = 2**20
 """Room for a weights message's names, shapes and fields beside its tensor bytes."""
+WEIGHTS_QUIET_S = 5.0
+"""How long the followed learner must have sent no weights before another learner's are taken.
+It publishes every few seconds at most while it trains (``--weights-every`` updates); a restarted
+one takes longer than this to load torch and its checkpoint."""
 
 
 class WeightFollower:
@@ -55,7 +62,8 @@ class WeightFollower:
     carries against what its fingerprint claims, on arrival: a tensor the wrong way round is counted
     then, not only if it happens to be the newest when the receiver takes one."""
 
-    def __init__(self, fingerprint: str, rejects: RejectCounter, shapes: dict[str, tuple[int, ...]] | None = None):
+    def __init__(self, fingerprint: str, rejects: RejectCounter, shapes: dict[str, tuple[int, ...]] | None = None,
+                 quiet_s: float = WEIGHTS_QUIET_S, clock: Callable[[], float] = time.monotonic):
         self.fingerprint = fingerprint
         self.rejects = rejects
         self.shapes = shapes
@@ -63,6 +71,7 @@ class WeightFollower:
         self.max_bytes = (None if shapes is None else
                           4 * sum(int(np.prod(s)) for s in shapes.values()) + WEIGHTS_ENVELOPE_BYTES)
         self._arrived = threading.Condition()
+        self._epochs = LearnerEpochs(quiet_s, clock)
         self._newest: WeightsMessage | None = None
         self._taken_version: tuple[int, int] = (-1, -1)
         self._queries: list[threading.Thread] = []
@@ -83,15 +92,15 @@ class WeightFollower:
             self.rejects.reject(MessageError(SHAPE, f"weights v{message.policy_version}: tensors {wrong[:3]} do not "
                                                     "have the shapes their fingerprint claims"), key or None)
             return
-        if epoch_from_the_future(message.learner_epoch):
-            self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
-                                                    "in the future"), key or None)
-            return
         with self._arrived:
+            verdict = self._epochs.admit(message.learner_epoch)
             newest = self._newest.version if self._newest is not None else self._taken_version
-            if message.version > newest:
+            if verdict == LearnerEpochs.NEW or (verdict == LearnerEpochs.SAME and message.version > newest):
                 self._newest = message
                 self._arrived.notify_all()
+        if verdict == LearnerEpochs.FUTURE:
+            self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
+                                                    "in the future"), key or None)
 
     def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Any:
         """Follow the run's weights stream, then ask the learner for its newest weights on a thread

@@ -100,7 +100,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     keys = RunKeys(run)
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
-    epoch = new_epoch()  # this process: its weights outrank every earlier learner's, whatever their update
+    epoch = new_epoch()  # this process: its word replaces a quiet earlier learner's, whatever their update
     core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     if resume_from(checkpoints, core):

@@ -44,7 +44,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass, field, fields
-from typing import Any, ClassVar, Mapping, Sequence, TypeVar
+from typing import Any, Callable, ClassVar, Mapping, Sequence, TypeVar
 
 import msgpack
 import numpy as np
@@ -94,6 +94,42 @@ def epoch_from_the_future(epoch: int, now_ns: int | None = None) -> bool:
     """An epoch no process can have yet (beyond :data:`MAX_CLOCK_SKEW_NS` of this clock): an attack or
     a broken clock, whose messages would otherwise outrank every real process's for good."""
     return epoch > (time.time_ns() if now_ns is None else now_ns) + MAX_CLOCK_SKEW_NS
+
+
+class LearnerEpochs:
+    """Which learner process a receiver follows, by its epoch (the weights and flow-control streams).
+
+    The first epoch heard is followed. Another epoch (a restarted learner's, newer; or the real
+    learner's, older, after a forged message was followed) is taken only once the followed one has
+    said nothing for ``quiet_s``: a dead learner falls silent at once, while one forged message
+    among a live learner's is ignored, and a forged epoch that is followed loses it as soon as it
+    stops. (Ranking epochs alone let a single message dated now outrank the real learner for good.)
+    An epoch from the future is never taken. Not thread-safe: the receiver's lock holds it.
+    """
+
+    FUTURE, OTHER, SAME, NEW = "future", "other", "same", "new"
+
+    def __init__(self, quiet_s: float, clock: Callable[[], float] = time.monotonic):
+        self.quiet_s = quiet_s
+        self.clock = clock
+        self.followed: int | None = None
+        """The epoch followed now (None: no learner heard yet)."""
+        self._heard_s = 0.0
+
+    def admit(self, epoch: int) -> str:
+        """One message's epoch: ``SAME`` (the followed learner's), ``NEW`` (followed from now on:
+        the first, or a learner that replaces a quiet one), ``OTHER`` (ignored: the followed one
+        is speaking) or ``FUTURE`` (refused: no process can have it yet)."""
+        if epoch_from_the_future(epoch):
+            return self.FUTURE
+        now = self.clock()
+        if epoch == self.followed:
+            self._heard_s = now
+            return self.SAME
+        if self.followed is not None and now - self._heard_s < self.quiet_s:
+            return self.OTHER
+        self.followed, self._heard_s = epoch, now
+        return self.NEW
 
 # --- reject causes --------------------------------------------------------------------------
 TRUNCATED = "truncated"          # the bytes end inside a msgpack object (or are empty)
@@ -580,8 +616,9 @@ class WeightsMessage(Message):
     process that started at ``learner_epoch``.
 
     ``tensors`` maps parameter names to float32/float16 arrays (e.g. a state_dict moved to
-    numpy); NaN and Inf are rejected. Weights are ordered by :attr:`version`, (learner epoch,
-    update): a restarted learner's weights replace a dead one's at once, whatever their updates.
+    numpy); NaN and Inf are rejected. A receiver follows one learner process
+    (:class:`LearnerEpochs`) and, within it, the highest update: a restarted learner's weights
+    replace a dead one's once it has fallen quiet, whatever their updates.
     """
 
     TYPE: ClassVar[str] = "weights"

@@ -87,17 +87,26 @@ def test_ingested_batches_give_each_transition_its_previous_command_across_batch
 
 
 def test_flow_gate_follows_one_learner_process_and_counts_only_its_own_actor_process():
-    gate = FlowGate("a", actor_epoch=7)
+    clock = [100.0]
+    gate = FlowGate("a", actor_epoch=7, quiet_s=2.0, clock=lambda: clock[0])
     gate.on_flow(_flow(credit=10, received_from_a=0, learner_epoch=5, actor_epoch=7))
     gate.sent(16)
     assert not gate.open()
-    # the dead learner's word, still in flight, and one from the future change nothing
+    # another learner's word while this one speaks, and one from the future, change nothing: before,
+    # one message with a later epoch and a credit of 0 (forged) held the actor for good
     gate.on_flow(_flow(credit=10_000, received_from_a=16, learner_epoch=4, actor_epoch=7))
+    gate.on_flow(_flow(credit=10_000, received_from_a=16, learner_epoch=6, actor_epoch=7))
     gate.on_flow(_flow(credit=10_000, received_from_a=16, learner_epoch=2**62, actor_epoch=7))
-    assert not gate.open() and gate.ignored == 2
-    # a restarted learner (a later epoch) counts afresh
+    assert not gate.open() and gate.ignored == 3
+    clock[0] += 1.5
+    gate.on_flow(_flow(credit=0, received_from_a=16, learner_epoch=5, actor_epoch=7))  # the learner speaks on
+    clock[0] += 1.5
+    gate.on_flow(_flow(credit=10_000, received_from_a=0, learner_epoch=6, actor_epoch=7))
+    assert not gate.open() and gate.ignored == 4  # quiet for 1.5 s only
+    # a restarted learner, once the dead one has been quiet for 2 s, counts afresh
+    clock[0] += 0.5
     gate.on_flow(_flow(credit=10, received_from_a=0, learner_epoch=6, actor_epoch=7))
-    assert gate.open()
+    assert gate.open() and gate.ignored == 4
 
 
 def test_a_restarted_actor_does_not_inherit_its_predecessors_count():

@@ -116,14 +116,25 @@ def test_leaving_following_closes_the_session_and_ends_the_query_thread_even_mid
         held.clear()
 
 
-def test_a_restarted_learners_weights_replace_the_dead_ones_at_once_and_absurd_versions_are_refused():
+class Clock:
+    def __init__(self) -> None:
+        self.t = 1000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_a_restarted_learner_takes_over_once_the_dead_one_is_quiet_and_one_message_never_holds_a_follower():
     from shared.wire.messages import MessageError, new_epoch
 
     net = network(0)
-    follower = follower_for(net)
+    clock = Clock()
+    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
+                              quiet_s=5.0, clock=clock)
     dead, restarted = new_epoch(), new_epoch() + 1
     follower.offer(to_message(net, 1450, learner_epoch=dead))
     assert follower.take().policy_version == 1450
+    clock.t += 6.0  # the learner was killed; its successor loads torch and its checkpoint
     follower.offer(to_message(net, 1000, learner_epoch=restarted))  # resumed from an older checkpoint
     assert follower.take().version == (restarted, 1000)
     follower.offer(to_message(net, 1475, learner_epoch=dead))  # the dead learner's last message, late
@@ -132,6 +143,26 @@ def test_a_restarted_learners_weights_replace_the_dead_ones_at_once_and_absurd_v
     assert follower.take() is None and follower.rejects.counts == {"range": 1}
     with pytest.raises(MessageError, match="policy_version"):  # 2^62 updates: refused on decode already
         WeightsMessage(policy_version=2**62, architecture_fingerprint="x", tensors={"w": np.zeros(1, np.float32)})
+
+    # One forged message dated now (the newest epoch there can be) among the live learner's: ignored.
+    # Ranking epochs alone took it, and refused the real learner's weights from then on, for good.
+    forged = new_epoch() + 10**9
+    for update in (1025, 1050):
+        clock.t += 1.5
+        follower.offer(to_message(net, update, learner_epoch=restarted))
+        follower.offer(to_message(net, 0, learner_epoch=forged))
+    assert follower.take().version == (restarted, 1050) and follower.rejects.counts == {"range": 1}
+    # One that arrives while the learner is quiet (warm-up, a checkpoint) is followed, but only
+    # until the learner speaks again after the forger has been quiet as long.
+    clock.t += 6.0
+    follower.offer(to_message(net, 0, learner_epoch=forged))
+    assert follower.take().version == (forged, 0)
+    clock.t += 1.0
+    follower.offer(to_message(net, 1075, learner_epoch=restarted))
+    assert follower.take() is None  # the forger spoke 1 s ago
+    clock.t += 4.0
+    follower.offer(to_message(net, 1100, learner_epoch=restarted))
+    assert follower.take().version == (restarted, 1100)
 
 
 def test_a_follower_with_the_networks_shapes_refuses_a_misshapen_message_on_arrival():
