@@ -31,9 +31,11 @@ class Command(NamedTuple):
 def metres(depth_m: Any) -> np.ndarray:
     """A user's depth image as (H, W) float metres (NaN and infinity kept: resizing reads them as
     no return); PolicyError for anything that is not one image of depths."""
+    if hasattr(depth_m, "detach") and hasattr(depth_m, "cpu"):  # a torch tensor, on a GPU or needing grad
+        depth_m = depth_m.detach().cpu()
     try:
         depth = np.asarray(depth_m)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, RuntimeError) as exc:
         raise PolicyError(f"depth_m must be an (H, W) array of depths in metres: {exc}") from None
     if depth.ndim == 3 and depth.shape[-1] == 1:  # (H, W, 1), as many camera drivers give it
         depth = depth[..., 0]
@@ -41,13 +43,25 @@ def metres(depth_m: Any) -> np.ndarray:
         raise PolicyError(f"depth_m must be one (H, W) depth image, got shape {depth.shape}")
     if depth.size == 0:
         raise PolicyError(f"depth_m is empty (shape {depth.shape})")
-    if depth.dtype == np.uint16:
-        return depth_from_mm(depth)
+    if depth.dtype.kind == "u" and depth.dtype.itemsize == 2:  # millimetres, in either byte order
+        return depth_from_mm(depth.astype(np.uint16))
     if not np.issubdtype(depth.dtype, np.floating):
         raise PolicyError(f"depth_m must be float metres (or uint16 millimetres), got {depth.dtype}")
     if (depth < 0).any():
         raise PolicyError("depth_m has negative depths; expected metres >= 0 (0, NaN or inf: no return)")
     return depth
+
+
+def checked_q_values(q_values: Any, label: str) -> np.ndarray:
+    """A network's Q-values for one image as (5,) float32; PolicyError when they are not five finite
+    numbers (broken weights, or a graph that computes something else): a robot must not drive on
+    NaN, which argmax reads as command 0, a full-speed turn."""
+    q = np.asarray(q_values, dtype=np.float32)
+    if q.shape != (len(COMMAND_NAMES),):
+        raise PolicyError(f"{label} gave Q-values of shape {q.shape}, not ({len(COMMAND_NAMES)},)")
+    if not np.isfinite(q).all():
+        raise PolicyError(f"{label} gave Q-values that are not finite ({q.tolist()}): its weights are broken")
+    return q
 
 
 def camera_observation(depth_m: Any, sensor: SensorConfig) -> np.ndarray:
@@ -65,7 +79,7 @@ def camera_observation(depth_m: Any, sensor: SensorConfig) -> np.ndarray:
 def twist(command: int, speed_table: str = "test") -> Command:
     """The (linear m/s, angular rad/s) of a command at the paper's ``test`` speeds (the
     protocol's) or its ``train`` speeds."""
-    if speed_table not in SPEED_TABLES:
+    if not isinstance(speed_table, str) or speed_table not in SPEED_TABLES:
         raise PolicyError(f"unknown speed table {speed_table!r}; choose {' or '.join(SPEED_TABLES)}")
     if not (isinstance(command, (int, np.integer)) and not isinstance(command, bool)
             and 0 <= command < len(COMMAND_NAMES)):

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from cogexplore._policy_io import CameraPolicy
 from cogexplore.policy import Policy
 from shared.evaluation import (
     DEFAULT_PROTOCOL,
@@ -81,8 +82,9 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
     ``policy``: a :class:`Policy` (:func:`cogexplore.load_policy`), or any callable taking a float32
     (H, W) depth image in metres (0 = no return) and returning a command index 0..4 (see
     ``cogexplore.COMMAND_NAMES``), with an optional ``reset()`` called at each episode's start.
-    A Policy sees its network's camera and plays in its run's world; a callable sees the paper's
-    160 x 120 camera and plays in ``paper-indoor``. ``world``: a world name (``paper-indoor``,
+    A Policy sees its network's camera and plays in its run's world; an ONNX policy
+    (:func:`cogexplore.onnx_runner.load_onnx_policy`) sees its network's camera and plays the paper's
+    task in ``paper-indoor``; a callable sees the paper's 160 x 120 camera and plays in ``paper-indoor``. ``world``: a world name (``paper-indoor``,
     ``procedural:101``, a world XML file...), None for that default. ``episodes_per_start`` (the
     paper's 10: ten different draws under ``robust``; under ``paper`` each repeats exactly, so 1
     gives the same mean) episodes from each of ``starts`` (start indices from 0, as in the results; the tables and
@@ -93,9 +95,21 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
     evaluate`` too: each start jittered by up to ±5 cm and ±3°, Kinect-like depth noise), ``paper``
     (the exact starts, no noise) or a ``shared.evaluation.ProtocolConfig``.
     """
+    policy_version = 0
     if isinstance(policy, Policy):
         setup = setup_evaluation(None, model=policy.model, world=world)
         meta = setup.meta()
+        policy_version = setup.model.policy_version
+    elif isinstance(policy, CameraPolicy):
+        # An ONNX export (cogexplore.onnx_runner.OnnxPolicy): its network's camera and command period, as
+        # a Policy of the same network would see them; the file carries no run, so the paper's task.
+        setup = setup_evaluation("random", world=world)
+        setup = dataclasses.replace(setup, sensor_cfg=policy.sensor.noise_free(), env_cfg=dataclasses.replace(
+            setup.env_cfg, control_period_s=policy.control_period_s))
+        info = getattr(policy, "info", None)
+        policy_version = getattr(info, "policy_version", 0)
+        meta = {"policy": "greedy", "model": policy.label, "policy_version": policy_version,
+                "weights_sha256": getattr(info, "weights_sha256", None)}
     elif callable(policy):
         # The baselines' setup (no network): the paper preset's camera and environment.
         setup = setup_evaluation("random", world=world)
@@ -103,6 +117,8 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
     else:
         raise PolicyError(f"policy must be a cogexplore.Policy or a callable depth_m -> command, "
                           f"got {type(policy).__name__}")
+    if not isinstance(protocol, (str, ProtocolConfig)):
+        raise PolicyError(f"protocol must be 'robust', 'paper' or a ProtocolConfig, got {type(protocol).__name__}")
     sensor = setup.sensor_cfg
     if resolution is not None:
         if not (isinstance(resolution, (tuple, list)) and len(resolution) == 2):
@@ -110,7 +126,7 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
         sensor = dataclasses.replace(sensor, width=resolution[0], height=resolution[1])
     results = evaluate_policy(_Controller(policy), world=setup.world, sensor_cfg=sensor, env_cfg=setup.env_cfg,
                               episodes_per_start=episodes_per_start, max_steps=max_steps, seed=seed, starts=starts,
-                              policy_version=setup.model.policy_version if setup.model else 0,
+                              policy_version=policy_version,
                               progress=progress, meta=meta,
                               protocol=protocol_named(protocol) if isinstance(protocol, str) else protocol)
     return Results(results.episodes, results.meta)

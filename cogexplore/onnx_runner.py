@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 import onnxruntime
 
-from cogexplore._policy_io import CameraPolicy
+from cogexplore._policy_io import CameraPolicy, checked_q_values
 from shared.config import MAX_ACTION_HISTORY, NUM_ACTIONS, SensorConfig
 from shared.depth import image_stack
 from shared.errors import PolicyError
@@ -37,6 +37,22 @@ from shared.learning.onnx_format import (
 )
 
 __all__ = ["OnnxModelError", "OnnxPolicy", "load_onnx_policy"]
+
+MAX_THREADS = 256
+"""More onnxruntime threads than this is a mistake (each is an OS thread), not a machine."""
+
+
+def run_graph(session: onnxruntime.InferenceSession, feed: dict[str, np.ndarray], label: str) -> np.ndarray:
+    """The graph's (5,) Q-values for a batch of one; OnnxModelError for a graph that fails on its
+    own inputs (a fixed batch size, a broken node), PolicyError for one that does not give five
+    finite Q-values."""
+    try:
+        out = session.run([Q_OUTPUT], feed)[0]
+    except Exception as exc:  # noqa: BLE001  onnxruntime's run errors share no other base
+        raise OnnxModelError(f"{label}: the graph fails: {' '.join(str(exc).split())[:300]}") from None
+    if getattr(out, "shape", None) != (1, NUM_ACTIONS):
+        raise PolicyError(f"{label} gave Q-values of shape {getattr(out, 'shape', None)}, not (1, {NUM_ACTIONS})")
+    return checked_q_values(out[0], label)
 
 
 class OnnxPolicy(CameraPolicy):
@@ -82,7 +98,7 @@ class OnnxPolicy(CameraPolicy):
         previous = np.array([self._previous_commands + missing], dtype=np.int64)  # (1, K)
         feed = {DEPTH_INPUT: image_stack(observation, self._previous_images, self._images)[None],
                 PREVIOUS_ACTION_INPUT: previous if self._history_input else previous[:, 0]}
-        return self._session.run([Q_OUTPUT], feed)[0][0]
+        return run_graph(self._session, feed, self.label)
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
         observation = self.observation(depth_m)
@@ -109,8 +125,8 @@ def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxP
     Raises OnnxModelError (one line) for a missing, corrupt or foreign file."""
     if not isinstance(path, (str, os.PathLike)):
         raise PolicyError(f"path must be an .onnx file path, got {type(path).__name__}")
-    if not (isinstance(threads, int) and not isinstance(threads, bool) and threads >= 1):
-        raise PolicyError(f"threads must be an integer >= 1, got {threads!r}")
+    if not (isinstance(threads, int) and not isinstance(threads, bool) and 1 <= threads <= MAX_THREADS):
+        raise PolicyError(f"threads must be an integer in 1..{MAX_THREADS}, got {threads!r}")
     path = Path(path)
     if not path.is_file():
         raise OnnxModelError(f"{path}: no such ONNX file (write one with `cogexplore model export CKPT --onnx FILE`)")
@@ -129,7 +145,12 @@ def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxP
                              "`cogexplore model export CKPT --onnx FILE`)")
     info = OnnxPolicyInfo.from_json(metadata[METADATA_KEY], str(path))
     _check_signature(session, info, path)
-    return OnnxPolicy(session, info, path)
+    policy = OnnxPolicy(session, info, path)
+    try:  # one decision on an empty view: a graph that cannot give Q-values fails here, not on the robot
+        policy.q_values(np.zeros((info.sensor.height, info.sensor.width), np.float32))
+    except (PolicyError, OnnxModelError) as exc:
+        raise OnnxModelError(f"{path}: {exc}") from None
+    return policy
 
 
 def _check_signature(session: onnxruntime.InferenceSession, info: OnnxPolicyInfo, path: Path) -> None:

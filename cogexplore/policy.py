@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from cogexplore._policy_io import ASPECT_TOLERANCE, COMMAND_NAMES, CameraPolicy, Command
+from cogexplore._policy_io import ASPECT_TOLERANCE, COMMAND_NAMES, CameraPolicy, Command, checked_q_values
 from shared.config import SensorConfig
 from shared.errors import PolicyError
 from shared.evaluation.setup import EvalSetup, setup_evaluation
@@ -54,10 +54,15 @@ class Policy(CameraPolicy):
         """(5,) float32 Q-values of the commands for this image and the previous command (and
         images, for a network that reads several); changes nothing (the next :meth:`act` still
         sees the same previous command)."""
-        return self._greedy.policy.q_values(self.observation(depth_m))
+        return checked_q_values(self._greedy.policy.q_values(self.observation(depth_m)), self.label)
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
-        return self._greedy(self.observation(depth_m))
+        command, q = self._greedy(self.observation(depth_m))
+        try:
+            return command, checked_q_values(q, self.label)
+        except PolicyError:
+            self.reset()  # the command argmax made of NaN is not remembered as the previous one
+            raise
 
     def reset(self) -> None:
         """A new episode: no previous command."""

@@ -170,6 +170,9 @@ def main(argv: list[str] | None = None) -> int:
         message = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
         print(f"cogexplore {args._command}: error: {message}", file=sys.stderr)
         return 2
+    except OSError as exc:  # a path that is a folder, no permission, a full disk: the user's to fix, in one line
+        print(f"cogexplore {args._command}: error: {exc}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

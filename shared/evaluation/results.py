@@ -237,8 +237,12 @@ def save_results(results: EvalResults, path: str | Path) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(out.name + ".tmp")
-    tmp.write_text(to_json(results))
-    tmp.replace(out)
+    try:
+        tmp.write_text(to_json(results))
+        tmp.replace(out)
+    except BaseException:  # ``out`` a folder, a full disk: no half file left beside it
+        tmp.unlink(missing_ok=True)
+        raise
     return out
 
 

@@ -48,7 +48,7 @@ import logging
 import os
 import re
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -112,21 +112,28 @@ def _fsync_dir(path: Path) -> None:
         os.close(fd)
 
 
-def _publish(tmp: Path, final: Path) -> None:
-    fd = os.open(tmp, os.O_RDONLY)
+def write_atomically(final: Path, write: Callable[[Path], Any]) -> None:
+    """``write(tmp)`` to a temporary file beside ``final``, fsynced and renamed to it: a reader never
+    sees half a file. The temporary file is removed when any step fails (a full disk, ``final`` a
+    folder)."""
+    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
     try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-    os.replace(tmp, final)
+        write(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     _fsync_dir(final.parent)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
     """Write ``text`` to ``path`` via a fsynced temporary file and a rename."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(text)
-    _publish(tmp, path)
+    write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
 def _digest(arrays: Mapping[str, Any]) -> str:
@@ -146,9 +153,8 @@ def _digest(arrays: Mapping[str, Any]) -> str:
 def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
     """Atomically write tensors + JSON metadata (with a digest of the tensors) as safetensors."""
     meta = dict(meta, digest=_digest(tensors))
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
-    _publish(tmp, path)
+    write_atomically(path, lambda tmp: safetensors.torch.save_file(tensors, tmp,
+                                                                    metadata={_META_KEY: json.dumps(meta)}))
 
 
 def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
@@ -251,12 +257,10 @@ def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory |
         arrays, rmeta = replay.state_dict()
         rdigest = _digest(arrays)
         rpath = path.with_name(_replay_name(path, rdigest))
-        tmp = rpath.with_name(f".{rpath.name}.tmp-{os.getpid()}")
-        safetensors.numpy.save_file(
+        write_atomically(rpath, lambda tmp: safetensors.numpy.save_file(
             {k: np.ascontiguousarray(v) for k, v in arrays.items()}, tmp,
             metadata={_META_KEY: json.dumps({"format": FORMAT + "-replay", "version": VERSION,
-                                             "replay": rmeta, "digest": rdigest})})
-        _publish(tmp, rpath)
+                                             "replay": rmeta, "digest": rdigest})}))
         replay_info = {"file": rpath.name, "digest": rdigest}
     meta = {"format": FORMAT, "version": VERSION, "created_unix": time.time(), "agent": agent_meta,
             "config": dict(config) if config is not None else None,

@@ -102,17 +102,22 @@ def preprocess_depth(depth: Any, device: torch.device | str | None = None) -> to
 
 
 def resolve_device(device: str | torch.device = "auto") -> torch.device:
-    """'auto' -> CUDA when present, else CPU; other names pass to torch.device (checked)."""
-    if isinstance(device, torch.device):
-        return device
+    """'auto' -> CUDA when present, else CPU; 'cpu', 'cuda' or 'cuda:N' (checked against this
+    machine's GPUs). Other torch device types (meta, mps...) are refused: nothing here runs on them."""
     if device == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if not isinstance(device, (str, torch.device)):
+        raise ModelError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {type(device).__name__}")
     try:
         dev = torch.device(device)
     except RuntimeError as exc:
         raise ModelError(f"unknown device {device!r}: {exc}") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ModelError(f"device {device!r}: cogexplore runs on 'cpu' or 'cuda' (or 'auto')")
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ModelError(f"device {device!r} requested but CUDA is not available")
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        raise ModelError(f"device {device!r}: this machine has {torch.cuda.device_count()} CUDA device(s)")
     return dev
 
 

@@ -30,7 +30,7 @@ from torch import nn
 from shared.config import NUM_ACTIONS, load_preset
 from shared.depth import range_gate
 from shared.evaluation.setup import setup_evaluation
-from shared.learning.checkpoints import LoadedModel, weights_sha256
+from shared.learning.checkpoints import LoadedModel, weights_sha256, write_atomically
 from shared.learning.model import (
     QEnsemble,
     QNetwork,
@@ -128,15 +128,7 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
     data = _serialise(net, info)
     _check_against_torch(net, data, path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    write_atomically(path, lambda tmp: tmp.write_bytes(data))
     return path
 
 

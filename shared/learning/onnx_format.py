@@ -21,12 +21,11 @@ network was trained with, its architecture, the control period, where it came fr
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from shared.config import ConfigError, ModelConfig, SensorConfig, from_dict
+from shared.config import ConfigError, ModelConfig, SensorConfig, from_dict, is_finite_number, is_whole
 from shared.errors import CogexploreError
 from shared.jsontext import parse_json
 
@@ -83,7 +82,7 @@ class OnnxPolicyInfo:
         """Parse and check a ``cogexplore`` metadata entry; OnnxModelError (one line) if malformed."""
         if not isinstance(text, (str, bytes)):
             raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not text")
-        data = parse_json(text, f"{where}: its {METADATA_KEY!r} metadata", OnnxModelError)
+        data = parse_json(text, f"{where}: its {METADATA_KEY!r} metadata", OnnxModelError, allow_nan=False)
         if not isinstance(data, dict) or data.get("format") != ONNX_FORMAT:
             raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is not a {ONNX_FORMAT} entry")
         if data.get("version") != ONNX_FORMAT_VERSION:
@@ -91,13 +90,16 @@ class OnnxPolicyInfo:
                                  f"version {ONNX_FORMAT_VERSION}")
         try:
             configs = from_dict({"sensor": data["sensor"], "model": data["model"]})
-            info = cls(sensor=configs.sensor, model=configs.model, control_period_s=float(data["control_period_s"]),
+            period, version = data["control_period_s"], data["policy_version"]
+            if not (is_finite_number(period) and period > 0):
+                raise ValueError(f"control_period_s must be a number of seconds > 0, got {period!r}")
+            if not (is_whole(version) and version >= 0):
+                raise ValueError(f"policy_version must be a whole number >= 0, got {version!r}")
+            info = cls(sensor=configs.sensor, model=configs.model, control_period_s=float(period),
                        label=str(data["label"]), source=str(data["source"]),
-                       policy_version=int(data["policy_version"]), weights_sha256=str(data["weights_sha256"]),
+                       policy_version=int(version), weights_sha256=str(data["weights_sha256"]),
                        cogexplore_version=str(data["cogexplore_version"]), extra=dict(data.get("extra") or {}))
-        except (ConfigError, KeyError, TypeError, ValueError) as exc:
+        except (ConfigError, KeyError, TypeError, ValueError, OverflowError) as exc:
             detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
             raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is invalid: {detail}") from None
-        if not (math.isfinite(info.control_period_s) and info.control_period_s > 0):
-            raise OnnxModelError(f"{where}: control_period_s must be > 0 s, got {info.control_period_s}")
         return info

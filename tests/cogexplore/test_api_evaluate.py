@@ -92,3 +92,12 @@ def test_evaluate_errors_are_clear() -> None:
         cogexplore.evaluate(lambda depth: 2, resolution=(4000, 3000), max_steps=3)
     with pytest.raises(cogexplore.CogexploreError, match=r"\(width, height\)"):
         cogexplore.evaluate(lambda depth: 2, resolution=640, max_steps=3)
+    # Before, "10" ran starts 1 and 0, 1.9 and True ran start 1, and the rest were raw TypeErrors.
+    for starts in ("10", [1.9], [True], 5, [0, 0]):
+        with pytest.raises(cogexplore.CogexploreError, match="start"):
+            cogexplore.evaluate(lambda depth: 2, starts=starts, episodes_per_start=1, max_steps=3)
+    for seed in ("x", 1.5, -1):
+        with pytest.raises(cogexplore.CogexploreError, match="seed"):
+            cogexplore.evaluate(lambda depth: 2, seed=seed, episodes_per_start=1, max_steps=3)
+    with pytest.raises(cogexplore.CogexploreError, match="protocol must be"):
+        cogexplore.evaluate(lambda depth: 2, protocol=3, max_steps=3)

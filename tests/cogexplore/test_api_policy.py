@@ -145,3 +145,39 @@ def test_bad_sources_and_commands_are_clear_errors(policy: cogexplore.Policy, tm
             policy.twist(command)
     with pytest.raises(PolicyError, match="unknown speed table"):
         policy.twist(0, "fast")
+    with pytest.raises(PolicyError, match="unknown speed table"):
+        policy.twist(0, [])
+    for device, message in ((None, "device must be"), ("meta", "runs on 'cpu' or 'cuda'"),
+                            ("mps", "runs on 'cpu' or 'cuda'"), ("cuda:7", "CUDA")):
+        with pytest.raises(cogexplore.CogexploreError, match=message):
+            cogexplore.load_policy("pretrained", device=device)
+
+
+def test_tensors_and_big_endian_millimetres_are_images_too(policy: cogexplore.Policy, scenes) -> None:
+    import torch
+
+    image = scenes[0][(160, 120)]
+    want = policy.observation(image)
+    np.testing.assert_array_equal(policy.observation(torch.tensor(image, requires_grad=True)), want)
+    millimetres = np.round(image * 1000).astype(np.uint16)
+    np.testing.assert_array_equal(policy.observation(millimetres.astype(">u2")), policy.observation(millimetres))
+
+
+def test_weights_that_give_nan_are_refused_not_driven_as_command_0(tmp_path) -> None:
+    # A well-formed file whose fc3 bias is NaN: argmax of NaN Q-values is command 0, a full-speed turn.
+    import torch
+
+    from shared.config import ModelConfig, SensorConfig
+    from shared.learning.checkpoints import export_weights
+    from shared.learning.model import QNetwork
+
+    net = QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=40, height=30))
+    with torch.no_grad():
+        dict(net.named_parameters())["fc3.bias"][0] = float("nan")
+    export_weights(tmp_path / "nan.safetensors", net, 7)
+    broken = cogexplore.load_policy(tmp_path / "nan.safetensors", device="cpu")
+    image = np.full((30, 40), 2.0, np.float32)
+    for call in (broken.act, broken.q_values):
+        with pytest.raises(PolicyError, match="not finite"):
+            call(image)
+    assert broken.previous_command is None  # the NaN's argmax is not remembered

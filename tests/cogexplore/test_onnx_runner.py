@@ -5,12 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import onnx
+import onnx.numpy_helper
 import pytest
 
 import cogexplore
@@ -133,6 +135,27 @@ def _with_metadata(src: Path, dst: Path, edit) -> Path:
     return dst
 
 
+def _with_graph(src: Path, dst: Path, edit) -> Path:
+    proto = onnx.load(str(src))
+    edit(proto.graph)
+    onnx.save(proto, str(dst))
+    return dst
+
+
+def nan_bias(graph) -> None:
+    """The last bias (the Q head's) NaN: the file loads, its metadata and signature are right."""
+    bias = [t for t in graph.initializer if len(t.dims) == 1 and t.dims[0] == 5][-1]
+    values = onnx.numpy_helper.to_array(bias).copy()
+    values[0] = np.nan
+    bias.CopyFrom(onnx.numpy_helper.from_array(values, bias.name))
+
+
+def batch_of_two(graph) -> None:
+    """Every input's batch axis fixed to 2: the signature check reads axes 1.. only."""
+    for value in graph.input:
+        value.type.tensor_type.shape.dim[0].dim_value = 2
+
+
 def test_a_broken_or_foreign_file_is_a_one_line_error(onnx_path: Path, tmp_path: Path) -> None:
     data = onnx_path.read_bytes()
     truncated = tmp_path / "truncated.onnx"
@@ -162,11 +185,33 @@ def test_a_broken_or_foreign_file_is_a_one_line_error(onnx_path: Path, tmp_path:
         _with_metadata(onnx_path, tmp_path / "field.onnx", lambda t: t.replace('"control_period_s"', '"period"')):
             "metadata is invalid: missing 'control_period_s'",
         _with_metadata(onnx_path, tmp_path / "size.onnx", resized): "not the 80 x 60 policy its metadata describes",
+        _with_metadata(onnx_path, tmp_path / "huge.onnx", lambda t: re.sub(r'"policy_version": \d+',
+                                                                          '"policy_version": 1e999', t)):
+            "metadata is not readable JSON",
+        _with_metadata(onnx_path, tmp_path / "text.onnx", lambda t: re.sub(r'"control_period_s": [0-9.]+',
+                                                                          '"control_period_s": "0.5"', t)):
+            "control_period_s must be a number",
+        _with_graph(onnx_path, tmp_path / "nan.onnx", nan_bias): "Q-values that are not finite",
+        _with_graph(onnx_path, tmp_path / "batch2.onnx", batch_of_two): "the graph fails",
     }
     for path, message in cases.items():
         with pytest.raises(OnnxModelError, match=message) as caught:
             load_onnx_policy(path)
         assert "\n" not in str(caught.value) and str(path) in str(caught.value), path
-    with pytest.raises(PolicyError, match="threads"):
-        load_onnx_policy(onnx_path, threads=0)
+    for threads in (0, 100_000, 2**31):
+        with pytest.raises(PolicyError, match="threads"):
+            load_onnx_policy(onnx_path, threads=threads)
     assert issubclass(OnnxModelError, cogexplore.CogexploreError)
+
+
+def test_evaluate_plays_an_onnx_policy_as_the_torch_policy_of_its_network(torch_policy: cogexplore.Policy,
+                                                                         policy: OnnxPolicy) -> None:
+    # Before, an ONNX policy was played as a foreign controller: through the paper's 160 x 120
+    # camera, resized down, and labelled "OnnxPolicy" (145.0 against the torch policy's 160.0).
+    kwargs = dict(protocol="paper", episodes_per_start=1, starts=[0, 5], max_steps=40)
+    ours, theirs = cogexplore.evaluate(policy, **kwargs), cogexplore.evaluate(torch_policy, **kwargs)
+    assert [(e.start_index, e.steps, e.terminated) for e in ours.episodes] == \
+           [(e.start_index, e.steps, e.terminated) for e in theirs.episodes]
+    assert ours.meta["model"] == theirs.meta["model"] == torch_policy.label
+    assert ours.meta["policy_version"] == theirs.meta["policy_version"] > 0
+    assert ours.meta["sensor"]["width"] == 40

@@ -216,10 +216,15 @@ def test_model_export_writes_the_onnx_file_beside_or_instead_of_the_weights(tmp_
 @pytest.mark.parametrize(("argv", "message"), [
     (["pretrained"], "give --out FILE.safetensors"),
     (["pretrained", "--onnx", "x.onnx", "--half"], "--half stores the --out weights"),
+    # A destination that is a folder: a traceback before, and an 11 MB temporary file left beside it.
+    (["pretrained", "--onnx", "dest"], "Is a directory"),
+    (["pretrained", "--out", "dest"], "Is a directory"),
 ])
 def test_model_export_option_errors_are_one_line(argv: list[str], message: str, tmp_path: Path, capsys,
                                                   monkeypatch) -> None:
     monkeypatch.chdir(tmp_path)
+    (tmp_path / "dest").mkdir()
     assert main(["model", "export", *argv]) == 2
     err = capsys.readouterr().err
-    assert message in err and err.count("\n") == 1 and not list(tmp_path.iterdir())
+    assert message in err and err.count("\n") == 1 and [p.name for p in tmp_path.iterdir()] == ["dest"]
+    assert not list((tmp_path / "dest").iterdir())
