@@ -102,7 +102,11 @@ class OnnxPolicy(CameraPolicy):
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
         observation = self.observation(depth_m)
-        q = self._q_values(observation)
+        try:
+            q = self._q_values(observation)
+        except PolicyError:
+            self.reset()  # as the torch Policy: a network that failed forgets the episode it was in
+            raise
         # np.argmax takes the first maximum: ties go to the lowest index, as GreedyPolicy's
         command = int(np.argmax(q))
         self._previous_commands = (command, *self._previous_commands[:self._history - 1])

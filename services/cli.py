@@ -5,7 +5,8 @@ module that runs it: building the parser imports only the options modules (argpa
 dataclasses, a few constants), so ``cogexplore --help`` and every ``cogexplore COMMAND --help``
 start in a fraction of a second, and a command imports only what it runs. A user-facing error
 (:class:`shared.errors.CogexploreError`: a bad setting, file, world, checkpoint, endpoint...) is
-caught here, once, and printed as one line with exit status 2.
+caught here, once, and printed as one line with exit status 2; so is an OSError (a path that is a
+folder, no permission, a full disk), whose traceback goes to the log at debug level.
 """
 
 from __future__ import annotations
@@ -171,6 +172,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cogexplore {args._command}: error: {message}", file=sys.stderr)
         return 2
     except OSError as exc:  # a path that is a folder, no permission, a full disk: the user's to fix, in one line
+        import logging
+
+        logging.getLogger("cogexplore").debug("%s failed", args._command, exc_info=True)
         print(f"cogexplore {args._command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -13,6 +13,7 @@ from typing import IO
 
 from shared.config import DEFAULT_PRESET, RunConfig, load_preset, parse_override, to_toml
 from shared.errors import CogexploreError
+from shared.files import atomic_write_text
 from shared.wire.keys import validate_name
 
 CONFIG_FILE = "config.toml"
@@ -141,8 +142,6 @@ def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
 def save_config(cfg: RunConfig, paths: RunPaths) -> None:
     """Write the run's config atomically (services started later read it back)."""
     paths.root.mkdir(parents=True, exist_ok=True)
-    tmp = paths.config.with_suffix(".tmp")
-    tmp.write_text(to_toml(cfg))
-    os.replace(tmp, paths.config)
+    atomic_write_text(paths.config, to_toml(cfg))
 
 

@@ -50,9 +50,9 @@ log = logging.getLogger("cogexplore.weights")
 WEIGHTS_ENVELOPE_BYTES = 2**20
 """Room for a weights message's names, shapes and fields beside its tensor bytes."""
 WEIGHTS_QUIET_S = 5.0
-"""How long the followed learner must have sent no weights before another learner's are taken.
-It publishes every few seconds at most while it trains (``--weights-every`` updates); a restarted
-one takes longer than this to load torch and its checkpoint."""
+"""How long the followed learner must have sent no weights before another learner's are taken. A
+live learner puts weights at least every 2 s (``services.learner.service.WEIGHTS_REPEAT_S``), new
+ones or its latest again, so only a dead (or cut off) one falls this quiet."""
 
 
 class WeightFollower:
@@ -72,6 +72,7 @@ class WeightFollower:
                           4 * sum(int(np.prod(s)) for s in shapes.values()) + WEIGHTS_ENVELOPE_BYTES)
         self._arrived = threading.Condition()
         self._epochs = LearnerEpochs(quiet_s, clock)
+        self._waiting: tuple[WeightsMessage, float] | None = None  # another learner's newest, and its arrival
         self._newest: WeightsMessage | None = None
         self._taken_version: tuple[int, int] = (-1, -1)
         self._queries: list[threading.Thread] = []
@@ -97,7 +98,10 @@ class WeightFollower:
             newest = self._newest.version if self._newest is not None else self._taken_version
             if verdict == LearnerEpochs.NEW or (verdict == LearnerEpochs.SAME and message.version > newest):
                 self._newest = message
+                self._waiting = None if verdict == LearnerEpochs.NEW else self._waiting
                 self._arrived.notify_all()
+            elif verdict == LearnerEpochs.OTHER:
+                self._waiting = (message, self._epochs.clock())
         if verdict == LearnerEpochs.FUTURE:
             self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
                                                     "in the future"), key or None)
@@ -160,11 +164,31 @@ class WeightFollower:
         than the last one taken has arrived."""
         with self._arrived:
             if timeout_s > 0:
-                self._arrived.wait_for(lambda: self._newest is not None, timeout_s)
+                self._arrived.wait_for(lambda: self._newest is not None or self._follow_waiting(), timeout_s)
+            else:
+                self._follow_waiting()
             message, self._newest = self._newest, None
             if message is not None:
                 self._taken_version = message.version
             return message
+
+    def _follow_waiting(self) -> bool:
+        """Park the message another learner sent while the followed one spoke, once that one has
+        been quiet for ``quiet_s``: a restarted learner publishes its weights once at start-up, maybe
+        within ``quiet_s`` of the dead one's last, then not again until it trains. Kept for twice
+        ``quiet_s``, no longer. Under ``_arrived``; True when it parked one."""
+        if self._waiting is None:
+            return False
+        message, arrived_s = self._waiting
+        if self._epochs.clock() - arrived_s > 2 * self._epochs.quiet_s:
+            self._waiting = None
+            return False
+        if not self._epochs.quiet():
+            return False
+        self._waiting = None
+        self._epochs.follow(message.learner_epoch)
+        self._newest = message
+        return True
 
     def load(self, net: Any, message: WeightsMessage) -> bool:
         """Load ``message`` into ``net``; False (counted as a reject, ``net`` untouched) when its

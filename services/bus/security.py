@@ -48,6 +48,7 @@ from typing import Any, Sequence
 
 from services.bus import ROLES, ZENOHD_DIR
 from shared.errors import CogexploreError
+from shared.files import write_atomically
 from shared.wire.keys import ROOT, validate_name
 
 DEFAULT_HOSTS: tuple[str, ...] = ("localhost", "127.0.0.1")
@@ -193,11 +194,12 @@ class SecureFiles:
 
 
 def _write_private(path: Path, text: str | bytes) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(text.encode() if isinstance(text, str) else text)
-    os.replace(tmp, path)
+    def write(tmp: Path) -> None:  # created 0600: never readable by others, not even for a moment
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(text.encode() if isinstance(text, str) else text)
+
+    write_atomically(path, write)
 
 
 def _json5(obj: Any) -> str:

@@ -149,9 +149,9 @@ class SimRobot:
                 except queue.Empty:
                     continue
                 self.commands_taken += 1
-                if linear == 0.0 and angular == 0.0:
+                if (linear == 0.0 and angular == 0.0) and self.collision_cause is None:
                     self.publish()  # a stop: no time passes, the image again
-                else:
+                else:  # a collided robot's stops (all a driver sends it) count, so --max-periods ends the run
                     self.drive(linear, angular)
                 continue
             while True:  # real time: the newest command wins

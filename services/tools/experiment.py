@@ -166,7 +166,7 @@ class ExperimentState:
         return entry
 
     def save(self) -> None:
-        from shared.learning.checkpoints import atomic_write_text
+        from shared.files import atomic_write_text
 
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.path, json.dumps(self.data, indent=2) + "\n")

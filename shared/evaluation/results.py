@@ -46,6 +46,7 @@ import numpy as np
 from shared.config import ConfigError, is_finite_number, is_whole
 from shared.errors import CogexploreError
 from shared.evaluation import ProtocolConfig
+from shared.files import atomic_write_text
 from shared.jsontext import parse_json, read_json_file
 
 SCHEMA_ID = "cogexplore.eval-results/2"
@@ -236,14 +237,7 @@ def save_results(results: EvalResults, path: str | Path) -> Path:
     """Write the results JSON atomically (a reader never sees half a file)."""
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    try:
-        tmp.write_text(to_json(results))
-        tmp.replace(out)
-    except BaseException:  # ``out`` a folder, a full disk: no half file left beside it
-        tmp.unlink(missing_ok=True)
-        raise
-    return out
+    return atomic_write_text(out, to_json(results))
 
 
 def slug(name: str) -> str:

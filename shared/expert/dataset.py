@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import shutil
 import time
 from collections.abc import Mapping, Sequence
@@ -31,6 +30,7 @@ import numpy as np
 
 from shared.config import ACTION_NAMES, NUM_ACTIONS, EnvConfig, SensorConfig
 from shared.expert.expert import CommandExpert, ExpertConfig, SupervisedError
+from shared.files import atomic_write_text
 from shared.jsontext import read_json_file
 from shared.rollout import Rollout, Step
 
@@ -346,9 +346,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
                   "worlds": {"dtype": "uint8", "shape": [frames]},
                   "poses": {"dtype": "float64", "shape": [frames, 3]}},
     }
-    tmp = out / f".{MANIFEST}.tmp"
-    tmp.write_text(json.dumps(manifest, indent=1))
-    os.replace(tmp, out / MANIFEST)
+    atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=1))
     return SupervisedDataset.open(out)
 
 

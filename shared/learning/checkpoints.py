@@ -48,7 +48,7 @@ import logging
 import os
 import re
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,6 +59,7 @@ import safetensors.torch
 import torch
 from safetensors import SafetensorError
 
+from shared.files import TMP_MARK, atomic_write_text, write_atomically
 from shared.config import (
     ROBOT_FIELDS,
     ConfigError,
@@ -101,39 +102,6 @@ _REPLAY_RE = re.compile(r"^ckpt-(\d{9})\.replay-[0-9a-f]{12}\.safetensors$")
 
 class CheckpointError(CogexploreError):
     """A checkpoint or weights file is missing, partial, corrupt or does not fit."""
-
-
-# --------------------------------------------------------------------------- atomic files
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
-def write_atomically(final: Path, write: Callable[[Path], Any]) -> None:
-    """``write(tmp)`` to a temporary file beside ``final``, fsynced and renamed to it: a reader never
-    sees half a file. The temporary file is removed when any step fails (a full disk, ``final`` a
-    folder)."""
-    tmp = final.with_name(f".{final.name}.tmp-{os.getpid()}")
-    try:
-        write(tmp)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, final)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    _fsync_dir(final.parent)
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` via a fsynced temporary file and a rename."""
-    write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
 def _digest(arrays: Mapping[str, Any]) -> str:
@@ -373,8 +341,8 @@ class CheckpointManager:
         for p in self.directory.iterdir():
             # orphans: replays of pruned, re-saved or older checkpoints, temporaries of crashed writers
             orphan_replay = _REPLAY_RE.match(p.name) and p.name not in live_replays
-            stale_tmp = p.name.startswith(".") and ".tmp-" in p.name and not p.name.endswith(
-                f".tmp-{os.getpid()}")
+            stale_tmp = p.name.startswith(".") and TMP_MARK in p.name and not p.name.endswith(
+                f"{TMP_MARK}{os.getpid()}")
             if orphan_replay or stale_tmp:
                 p.unlink(missing_ok=True)
 

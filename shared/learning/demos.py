@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -44,6 +43,7 @@ import numpy as np
 from shared.config import NUM_ACTIONS, ReplayConfig
 from shared.depth import depth_to_mm
 from shared.errors import CogexploreError
+from shared.files import write_atomically
 from shared.jsontext import parse_json
 from shared.rollout import Rollout, Step
 
@@ -218,10 +218,11 @@ def save_demonstrations(path: str | Path, demos: Sequence[Demonstration], extra:
     for i, d in enumerate(demos):
         arrays[f"depth_mm.{i}"], arrays[f"actions.{i}"], arrays[f"rewards.{i}"] = d.depth_mm, d.actions, d.rewards
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, path)
-    return path
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:  # a file object: savez would add ".npz" to a name
+            np.savez_compressed(fh, **arrays)
+
+    return write_atomically(path, write)
 
 
 def load_demonstrations(path: str | Path, frame_shape: tuple[int, int] | None = None) -> list[Demonstration]:

@@ -30,7 +30,8 @@ from torch import nn
 from shared.config import NUM_ACTIONS, load_preset
 from shared.depth import range_gate
 from shared.evaluation.setup import setup_evaluation
-from shared.learning.checkpoints import LoadedModel, weights_sha256, write_atomically
+from shared.files import write_atomically
+from shared.learning.checkpoints import LoadedModel, weights_sha256
 from shared.learning.model import (
     QEnsemble,
     QNetwork,

@@ -13,12 +13,15 @@ summary) as TensorBoard scalars, tagged ``<file stem>/<column>`` (``learner/loss
 from __future__ import annotations
 
 import csv
+import io
 import logging
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from numbers import Real
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
+
+from shared.files import atomic_write_text
 
 log = logging.getLogger("cogexplore.stats")
 
@@ -221,13 +224,19 @@ def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
             return False  # a torn last line of a killed process
 
     keep = [rows[0]] + [r for r in rows[1:] if kept(r)]
-    if len(keep) == len(rows):
-        return 0
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w", newline="") as fh:
-        csv.writer(fh).writerows(keep)
-    tmp.replace(path)
+    text = io.StringIO(newline="")
+    csv.writer(text).writerows(keep)
+    # Rewritten when anything goes: a row after ``update``, or damage the reader skipped (a power
+    # loss's NUL tail, which the next row would otherwise be appended to and lost with).
+    if text.getvalue().encode() != path.read_bytes():
+        atomic_write_text(path, text.getvalue())
     return len(rows) - len(keep)
+
+
+def _ends_in_newline(path: Path) -> bool:
+    with open(path, "rb") as fh:
+        fh.seek(-1, 2)
+        return fh.read(1) == b"\n"
 
 
 class CsvLog(Generic[RowT]):
@@ -240,6 +249,8 @@ class CsvLog(Generic[RowT]):
         new = not self.path.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "a", newline="")
+        if not new and self.path.stat().st_size and not _ends_in_newline(self.path):
+            self._file.write("\r\n")  # a killed writer's torn last line: the next row starts its own
         self._writer = csv.writer(self._file)
         if new:
             self._writer.writerow(row_type.columns())

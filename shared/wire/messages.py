@@ -122,14 +122,21 @@ class LearnerEpochs:
         is speaking) or ``FUTURE`` (refused: no process can have it yet)."""
         if epoch_from_the_future(epoch):
             return self.FUTURE
-        now = self.clock()
         if epoch == self.followed:
-            self._heard_s = now
+            self._heard_s = self.clock()
             return self.SAME
-        if self.followed is not None and now - self._heard_s < self.quiet_s:
+        if not self.quiet():
             return self.OTHER
-        self.followed, self._heard_s = epoch, now
+        self.follow(epoch)
         return self.NEW
+
+    def quiet(self) -> bool:
+        """No learner followed, or the followed one has said nothing for ``quiet_s``."""
+        return self.followed is None or self.clock() - self._heard_s >= self.quiet_s
+
+    def follow(self, epoch: int) -> None:
+        """Follow ``epoch`` from now on (one whose message the receiver kept while another spoke)."""
+        self.followed, self._heard_s = epoch, self.clock()
 
 # --- reject causes --------------------------------------------------------------------------
 TRUNCATED = "truncated"          # the bytes end inside a msgpack object (or are empty)

@@ -165,6 +165,35 @@ def test_a_restarted_learner_takes_over_once_the_dead_one_is_quiet_and_one_messa
     assert follower.take().version == (restarted, 1100)
 
 
+def test_a_restarted_learners_start_up_weights_are_kept_until_the_dead_one_is_quiet():
+    # A learner publishes its weights once at start-up, then not until it trains (minutes of
+    # warm-up, maybe): if they came within the quiet time of the dead one's last, dropping them
+    # left every receiver on the dead learner's weights until then.
+    from shared.wire.messages import new_epoch
+
+    net = network(0)
+    clock = Clock()
+    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
+                              quiet_s=5.0, clock=clock)
+    dead, restarted, forged = new_epoch(), new_epoch() + 1, new_epoch() + 2
+    follower.offer(to_message(net, 1450, learner_epoch=dead))
+    assert follower.take().version == (dead, 1450)
+    clock.t += 2.0
+    follower.offer(to_message(net, 1000, learner_epoch=restarted))  # its start-up weights, 2 s after
+    assert follower.take() is None
+    clock.t += 3.0  # the dead one quiet for 5 s: the kept message is followed, without another
+    assert follower.take(timeout_s=0.01).version == (restarted, 1000)
+    # A message kept while the followed learner spoke on is dropped after twice the quiet time:
+    # a forged one is not followed the next time the learner pauses (a checkpoint, its warm-up).
+    follower.offer(to_message(net, 1, learner_epoch=forged))
+    for update in range(1025, 1300, 25):
+        clock.t += 1.0
+        follower.offer(to_message(net, update, learner_epoch=restarted))
+        assert follower.take().version == (restarted, update)
+    clock.t += 6.0
+    assert follower.take() is None
+
+
 def test_a_follower_with_the_networks_shapes_refuses_a_misshapen_message_on_arrival():
     from shared.learning.model import named_shapes
 

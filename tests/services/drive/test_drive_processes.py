@@ -255,8 +255,13 @@ def test_the_sim_robot_ends_after_its_periods_even_when_it_has_collided(tmp_path
                          log)
         try:
             wait_for(lambda: statuses.snapshot(), 90, "the sim-robot's first status", [log])
-            for _ in range(60):  # until it has hit a wall, then on: a collided robot's periods count too
+            for _ in range(60):  # until it has hit a wall
                 cmd_vel.put(encode_twist(0.5, 0.0))
+                time.sleep(0.05)
+                if any(s.collided for s in statuses.snapshot()):
+                    break
+            for _ in range(60):  # then stops, as the drive node sends before a wall: they count too
+                cmd_vel.put(encode_twist(0.0, 0.0))
                 time.sleep(0.05)
                 if sim.poll() is not None:
                     break

@@ -90,6 +90,18 @@ def test_a_power_loss_tail_or_foreign_bytes_are_skipped_by_every_reader_and_resu
     assert path.read_bytes() == b"\n".join(clean.split(b"\n")[:3]) + b"\n"
     assert summarize_learner_log(path).updates == 100
 
+    # The usual power loss: the checkpoint (fsynced) at the last readable row, the rows after it
+    # NULs, with no newline. No row goes, but the damage must: the resumed learner's rows are
+    # appended after it, and were read as part of it (lost) before.
+    path.write_bytes(clean + b"\0" * 200_000)
+    assert rewind(tmp_path, LearnerRow, 150) == 0 and path.read_bytes() == clean
+    path.write_bytes(clean + b"\0" * 200_000)
+    for update, torn in ((200, b""), (250, b"16.0,2")):  # NULs left alone; a killed learner's torn line
+        path.write_bytes(path.read_bytes() + torn)
+        with CsvLog(tmp_path, LearnerRow) as log:  # a resumed learner appends
+            log.write(row(time_s=update / 10, update=update))
+        assert summarize_learner_log(path).updates == update
+
 
 def test_a_record_needs_every_column():
     with pytest.raises(TypeError):

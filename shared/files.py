@@ -1,0 +1,50 @@
+"""Files written whole or not at all: every file a reader may open while it is written (checkpoints,
+results, run configs, credentials, statistics rewound on resume) goes through
+:func:`write_atomically`, so a crash or a full disk leaves the old file or the new one, never half of
+one, and no temporary file beside it. numpy-free and torch-free."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+TMP_MARK = ".tmp-"
+"""In the name of a temporary file being written (``.<name>.tmp-<pid>``): what a cleaner of
+stale temporaries looks for."""
+
+
+def fsync_dir(path: Path) -> None:
+    """Make a rename in the folder ``path`` durable."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
+    """``write(tmp)`` to a temporary file beside ``final``, fsynced and renamed to it: a reader never
+    sees half a file. The temporary file is removed when any step fails (a full disk, ``final`` a
+    folder). Returns ``final``."""
+    final = Path(final)
+    tmp = final.with_name(f".{final.name}{TMP_MARK}{os.getpid()}")
+    try:
+        write(tmp)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, final)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    fsync_dir(final.parent)
+    return final
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    """Write ``text`` to ``path`` via :func:`write_atomically`."""
+    return write_atomically(path, lambda tmp: tmp.write_text(text))
