@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from shared.errors import CogexploreError
+from shared.evaluation.results import markdown_cell
 
 # A page with every image inlined stays below this (base64 adds a third); else images are linked.
 EMBED_LIMIT_BYTES = 5_000_000
@@ -62,13 +63,19 @@ class Table:
 
     @classmethod
     def from_markdown(cls, text: str) -> Table:
-        """The table a Markdown pipe table (header, rule, rows) holds."""
+        """The table a Markdown pipe table (header, rule, rows) holds; ``\\|`` in a cell is a ``|`` of
+        its text (a model named ``a|b``), every other ``|`` a column border."""
         lines = [line.strip() for line in text.strip().splitlines()]
-        if len(lines) < 2 or not all(line.startswith("|") and line.endswith("|") for line in lines):
+        if len(lines) < 2 or not all(line.startswith("|") and line.endswith("|") and not line.endswith("\\|")
+                                     for line in lines):
             raise DocumentError(f"not a Markdown pipe table: {text[:80]!r}")
-        header, rule, *rows = ([c.strip() for c in line[1:-1].split("|")] for line in lines)
+        header, rule, *rows = ([c.strip().replace("\\|", "|") for c in re.split(r"(?<!\\)\|", line[1:-1])]
+                               for line in lines)
         if len(rule) != len(header) or not all(re.fullmatch(r":?-+:?", c) for c in rule):
             raise DocumentError(f"the table's second line is not a rule of {len(header)} columns: {lines[1]!r}")
+        for line, row in zip(lines[2:], rows):
+            if len(row) != len(header):  # a cell's unescaped | would shift every cell after it
+                raise DocumentError(f"a row of {len(row)} cells in a table of {len(header)} columns: {line[:80]!r}")
         return cls(tuple(header), tuple(c.endswith(":") for c in rule), tuple(tuple(r) for r in rows))
 
 
@@ -90,7 +97,7 @@ def _markdown_block(block: Block) -> str:
 
 
 def _markdown_row(cells: Sequence[str]) -> str:
-    return "| " + " | ".join(cells) + " |"
+    return "| " + " | ".join(markdown_cell(c) for c in cells) + " |"
 
 
 def markdown(blocks: Sequence[Block]) -> str:

@@ -54,6 +54,7 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 from shared.config import (
     ConfigError,
     RunConfig,
+    is_finite_number,
     load_preset,
     parse_override,
     parse_world_list,
@@ -130,6 +131,50 @@ class Options:
 # ---------------------------------------------------------------------------------------------
 
 
+def _stage_problem(name: str, stage: Any) -> str | None:
+    """What is wrong with one finished stage of a state file (hand-edited, damaged), or None."""
+    if not isinstance(stage, dict):
+        return "is not an object"
+    if not (is_finite_number(stage.get("seconds")) and stage["seconds"] >= 0):
+        return "has no time in seconds"
+    text = {"drl-": ("file",), "eval-": ("results",), "sl": ("model",), "rl": ("run",)}
+    number = {"drl-": ("updates",), "eval-": ("mean_steps",)}
+    kind = next((k for k in text if name == k or (k.endswith("-") and name.startswith(k))), None)
+    if kind is None:
+        return "is no stage of an experiment"
+    if kind == "drl-" and not name[4:].isdigit():
+        return "names no number of updates"
+    if not all(isinstance(stage.get(key), str) for key in text[kind]):
+        return f"lacks {' or '.join(text[kind])}"
+    if not all(is_finite_number(stage.get(key)) for key in number.get(kind, ())):
+        return f"lacks a number for {' or '.join(number[kind])}"
+    if kind == "sl" and not (stage.get("accuracy") is None or is_finite_number(stage["accuracy"])):
+        return "has an accuracy that is not a number"
+    return None
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP to the experiment, raised where it runs: stages end as on Ctrl-C."""
+
+
+def _raise_terminated(signum: int, _frame: Any) -> None:
+    raise Terminated(signal.Signals(signum).name)
+
+
+def _stop_child(proc: subprocess.Popen, signal_it: bool) -> None:
+    """Let ``cogexplore up`` write its final checkpoint and exit (at most 180 s; SIGINT first when it
+    did not get the signal that stops the experiment), then kill it."""
+    if proc.poll() is not None:
+        return
+    if signal_it:
+        proc.send_signal(signal.SIGINT)  # the launcher's orderly stop: final checkpoint first
+    try:
+        proc.wait(timeout=180)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+
+
 class ExperimentState:
     """``state.json``: the options that fix the results, and every finished stage."""
 
@@ -144,9 +189,14 @@ class ExperimentState:
                 raise ExperimentError(f"{exc}: move it away to start afresh") from None
             if not (isinstance(old, dict) and old.get("format") == STATE_FORMAT and old.get("version") == STATE_VERSION
                     and isinstance(old.get("options"), dict) and isinstance(old.get("stages"), dict)
-                    and all(isinstance(v, dict) for v in old["stages"].values())):
+                    and isinstance(old.get("partial_seconds", {}), dict)
+                    and all(is_finite_number(v) for v in old.get("partial_seconds", {}).values())):
                 raise ExperimentError(f"{path} is not a {STATE_FORMAT} v{STATE_VERSION} state file: move it away "
                                       "to start afresh")
+            for name, stage in old["stages"].items():
+                problem = _stage_problem(name, stage)
+                if problem:
+                    raise ExperimentError(f"{path}: stage {name!r} {problem}: move it away to start afresh")
             # State files from before the protocol was an option were evaluated under the paper's.
             old["options"].setdefault("protocol", PROTOCOLS["paper"].to_dict())
             differ = sorted(k for k in FIXED_OPTIONS if old["options"].get(k) != self.data["options"][k])
@@ -162,8 +212,18 @@ class ExperimentState:
     def finish(self, stage: str, seconds: float, **info: Any) -> dict[str, Any]:
         entry = {"seconds": round(seconds, 3), "finished_unix": time.time(), **info}
         self.data["stages"][stage] = json.loads(json.dumps(entry))
+        self.data.get("partial_seconds", {}).pop(stage, None)
         self.save()
         return entry
+
+    def partial(self, stage: str) -> float:
+        """Seconds spent on ``stage`` in attempts that were interrupted."""
+        return float(self.data.get("partial_seconds", {}).get(stage, 0.0))
+
+    def add_partial(self, stage: str, seconds: float) -> None:
+        partial = self.data.setdefault("partial_seconds", {})
+        partial[stage] = round(self.partial(stage) + seconds, 3)
+        self.save()
 
     def save(self) -> None:
         from shared.files import atomic_write_text
@@ -211,6 +271,16 @@ class Experiment:
         return [x for x in self.o.overrides if x.strip().startswith(("sensor.", "env."))
                 and parse_override(x)[0] not in owned]
 
+    def stored(self, path: Path) -> str:
+        """How a path goes into the state: relative to the experiment folder when inside it, so a
+        moved or copied experiment reads its own files (not the original's)."""
+        path = Path(path).resolve()
+        return str(path.relative_to(self.out)) if path.is_relative_to(self.out) else str(path)
+
+    def path(self, stored: str) -> Path:
+        """A path from the state (relative ones are the experiment folder's)."""
+        return self.out / stored if not Path(stored).is_absolute() else Path(stored)
+
     @property
     def sl_path(self) -> Path:
         if self.o.sl_model:
@@ -229,8 +299,12 @@ class Experiment:
             return done
         self.echo(f"{name}: starting")
         t0 = time.monotonic()
-        info = fn()
-        entry = self.state.finish(name, time.monotonic() - t0, **info)
+        try:
+            info = fn()
+        except BaseException:  # interrupted (or failed): its time counts when the stage is resumed
+            self.state.add_partial(name, time.monotonic() - t0)
+            raise
+        entry = self.state.finish(name, self.state.partial(name) + time.monotonic() - t0, **info)
         self.ran.append(name)
         self.echo(f"{name}: finished in {entry['seconds']:.1f} s")
         return entry
@@ -243,12 +317,15 @@ class Experiment:
             from shared.learning.checkpoints import load_supervised
 
             _net, meta = load_supervised(self.sl_path)  # fail now, not after hours of training
-            return {"model": str(self.sl_path), "given": True, "accuracy": meta.get("card", {}).get("accuracy")}
+            card = meta.get("card")
+            accuracy = card.get("accuracy") if isinstance(card, dict) else None  # the file's word: checked
+            return {"model": self.stored(self.sl_path), "given": True,
+                    "accuracy": float(accuracy) if is_finite_number(accuracy) else None}
         result = run_pretraining(self.cfg, out=self.sl_path, worlds=self.o.sl_worlds, frames=self.o.sl_frames,
                                  epochs=self.o.sl_epochs, seed=self.o.seed, progress=not self.o.quiet,
                                  device=self.o.device or "auto")
         card = result.card
-        return {"model": str(self.sl_path), "given": False, "accuracy": card["accuracy"],
+        return {"model": self.stored(self.sl_path), "given": False, "accuracy": card["accuracy"],
                 "balanced_accuracy": card["balanced_accuracy"], "frames": card["data"]["frames"],
                 "label_counts": card["data"]["label_counts"], "data_seconds": result.seconds["data"],
                 "train_seconds": result.seconds["train"]}
@@ -264,7 +341,7 @@ class Experiment:
         paths = RunPaths(self.runs_dir / RL_RUN)
         summary = train_single_process(cfg, paths, progress=not self.o.quiet,
                                        max_minutes=self.o.minutes_per_stage)
-        return {"run": str(paths.root), "updates": int(summary["updates"]), "env_steps": int(summary["env_steps"]),
+        return {"run": self.stored(paths.root), "updates": int(summary["updates"]), "env_steps": int(summary["env_steps"]),
                 "stopped_early": int(summary["updates"]) < self.o.rl_updates}
 
     # -- DRL ----------------------------------------------------------------------------------
@@ -300,18 +377,11 @@ class Experiment:
         except subprocess.TimeoutExpired:
             timed_out = True
             self.echo(f"drl-{updates}: {self.o.minutes_per_stage} minutes are up: stopping the run")
-            proc.send_signal(signal.SIGINT)  # the launcher's orderly stop: final checkpoint first
-            try:
-                proc.wait(timeout=180)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        except KeyboardInterrupt:
-            # the child got the same Ctrl-C (same process group): let it write its checkpoint
-            try:
-                proc.wait(timeout=180)
-            except subprocess.TimeoutExpired:
-                proc.kill()
+            _stop_child(proc, signal_it=True)
+        except BaseException as exc:
+            # Ctrl-C reached the child too (one process group): let it write its checkpoint. A SIGTERM
+            # (kill, timeout, systemd) reached only this process: the child is told, or it trains on alone.
+            _stop_child(proc, signal_it=not isinstance(exc, KeyboardInterrupt) or isinstance(exc, Terminated))
             raise
         if proc.returncode != 0 and not timed_out:
             raise ExperimentError(f"`cogexplore up` for {updates} updates failed (exit {proc.returncode}); "
@@ -326,7 +396,7 @@ class Experiment:
             raise ExperimentError(f"the DRL run stopped before its first update; see {run / 'logs'}")
         path = self.out / "models" / f"drl-{updates}.safetensors"
         export_weights(path, model.net, model.policy_version, run_config=model.run_config)
-        return {"file": str(path), "checkpoint": str(model.path), "updates": reached,
+        return {"file": self.stored(path), "checkpoint": self.stored(model.path), "updates": reached,
                 "policy_version": model.policy_version, "stopped_early": reached < updates}
 
     # -- evaluation ---------------------------------------------------------------------------
@@ -337,7 +407,7 @@ class Experiment:
         for u in self.o.checkpoints:
             info = self.state.done(f"drl-{u}")
             if info is not None:
-                rows.append((f"DRL-{info['updates']}", "greedy", info["file"]))
+                rows.append((f"DRL-{info['updates']}", "greedy", str(self.path(info["file"]))))
         rows += [("reactive", "reactive", None), ("random", "random", None)]
         return rows
 
@@ -358,7 +428,7 @@ class Experiment:
         path.parent.mkdir(parents=True, exist_ok=True)
         save_results(results, path)
         overall = results.summary["overall"]
-        return {"label": label, "world": world, "results": str(path), "mean_steps": overall["mean_steps"],
+        return {"label": label, "world": world, "results": self.stored(path), "mean_steps": overall["mean_steps"],
                 "mean_distance_m": overall["mean_distance_m"]}
 
     # -- report -------------------------------------------------------------------------------
@@ -374,7 +444,7 @@ class Experiment:
         for label, _policy, _ckpt in self.models():
             info = self.state.done(self.eval_stage(label, world))
             if info is not None:
-                results[label] = load_results(info["results"])
+                results[label] = load_results(self.path(info["results"]))
         return results
 
     def _heatmaps(self, world: str, results: dict[str, Any], name: str) -> Path:
@@ -403,7 +473,7 @@ class Experiment:
                                                 else "")
                  + f"; protocol {self.o.protocol.describe()}; {self.o.episodes_per_start} episode(s) from each "
                    f"start, at most {self.o.max_steps} steps, test speeds, seed {self.o.seed}.", ""]
-        if sl.get("accuracy") is not None:
+        if is_finite_number(sl.get("accuracy")):
             lines += [f"SL model `{sl['model']}`: test accuracy {sl['accuracy']:.3f}"
                       + (f" (balanced {sl['balanced_accuracy']:.3f}, {sl['frames']} frames)"
                          if "balanced_accuracy" in sl else "") + ".", ""]
@@ -560,6 +630,8 @@ def options_from_args(args: argparse.Namespace) -> Options:
     for name in ("actors", "sl_frames", "sl_epochs", "episodes_per_start", "max_steps"):
         if getattr(args, name) < 1:
             raise ExperimentError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.seed < 0:
+        raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
     if args.rl_updates is not None and args.rl_updates < 1:
         raise ExperimentError(f"--rl-updates must be >= 1, got {args.rl_updates}")
     if args.minutes_per_stage is not None and not args.minutes_per_stage > 0:
@@ -588,11 +660,13 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     for world in (opts.world, *opts.unseen_worlds):
         load_world(world)  # an unknown world fails now, not after the pretraining
     experiment = Experiment(opts)
+    for signum in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, _raise_terminated)
     try:
         report = experiment.run()
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as exc:
         print("cogexplore experiment: interrupted; run the same command again to resume", file=sys.stderr)
-        return 130
+        return 143 if isinstance(exc, Terminated) else 130
     print((experiment.out / "table.md").read_text(), end="")
     print(f"ran: {', '.join(experiment.ran) or 'nothing'}; skipped (done before): "
           f"{', '.join(experiment.skipped) or 'nothing'}")

@@ -38,7 +38,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from shared.errors import CogexploreError
-from shared.evaluation import DEFAULT_PROTOCOL, PROTOCOLS, SELECTION_SEED, TEST_SEED, ProtocolConfig
+from shared.evaluation import (
+    DEFAULT_PROTOCOL,
+    PAPER_MAX_STEPS,
+    PROTOCOLS,
+    SELECTION_SEED,
+    TEST_SEED,
+    ProtocolConfig,
+)
 from shared.jsontext import parse_json
 
 log = logging.getLogger("cogexplore.select")
@@ -162,7 +169,8 @@ def wall_minutes(learner_csv: str | Path) -> tuple[np.ndarray, np.ndarray] | Non
 
 def save_selection_png(scores: Sequence[WindowScore], out_path: str | Path, *, gate_min: float,
                        gate_start_min: float = 0.0, chosen: WindowScore | None = None, gate_world: str = "gate",
-                       title: str | None = None, clock: tuple[np.ndarray, np.ndarray] | None = None) -> Path:
+                       title: str | None = None, clock: tuple[np.ndarray, np.ndarray] | None = None,
+                       max_steps: int = PAPER_MAX_STEPS) -> Path:
     """Gate and validation scores of every window against updates, the gate threshold dashed and
     the chosen window starred (the model card's learning curve), with ``gate_start_min`` the worst
     start's score and that threshold too; with ``clock`` (see
@@ -189,8 +197,8 @@ def save_selection_png(scores: Sequence[WindowScore], out_path: str | Path, *, g
         u, m = clock
         top = ax.secondary_xaxis("top", functions=(lambda x: _extrapolate(x, u, m), lambda y: _extrapolate(y, m, u)))
         top.set_xlabel("minutes of training")
-    ax.set_ylabel("mean moving steps (of 200)")
-    ax.set_ylim(0, 205)
+    ax.set_ylabel(f"mean moving steps (of {max_steps})")
+    ax.set_ylim(0, max_steps * 1.025)
     ax.grid(alpha=0.3)
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)  # outside: the lines fill the plot
     ax.set_title(title or "mean of consecutive checkpoints' weights, by window")
@@ -328,8 +336,8 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     for i, win in enumerate(todo, 1):
         model = average_models([load_model(p, o.device) for p in win.paths])
         cached = cache.get(model.weights_sha256)
-        if cached is not None:
-            score = dataclasses.replace(cached, end_update=win.end_update)
+        if cached is not None:  # the same weights: this window's checkpoints, not where they were then
+            score = dataclasses.replace(cached, end_update=win.end_update, sources=tuple(str(p) for p in win.paths))
         else:
             setup = setup_evaluation("greedy", world=o.gate_world, model=model, device=o.device)
             gate, worst = steps(setup, o.gate_world, o.seed)
@@ -368,6 +376,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     clock = wall_minutes(run_dir / "stats" / "learner.csv")
     png = save_selection_png(scores, o.out.with_name(o.out.stem + "-windows.png"), gate_min=o.gate_min,
                              gate_start_min=o.gate_start_min, chosen=chosen, gate_world=o.gate_world, clock=clock,
+                             max_steps=o.max_steps,
                              title=f"mean of consecutive checkpoints' weights, by window ({o.protocol.name} protocol)")
     first = min((s for s in scores if s.passes(o.gate_min, o.gate_start_min)), key=lambda s: s.end_update,
                 default=None)

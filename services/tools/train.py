@@ -117,10 +117,10 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     stop = stop or threading.Event()
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
-    save_config(cfg, paths)
     core = LearnerCore(cfg, device=cfg.train.device)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resumed = resume_from(checkpoints, core)
+    save_config(cfg, paths)  # only now: a config that cannot resume the run (or run here) must not replace its own
     if resumed:
         rewind(paths.stats, LearnerRow, core.updates)
         rewind(paths.stats, EpisodeRow, core.updates)

@@ -328,6 +328,12 @@ def episodes_of(results: EvalResults | Mapping[str, Any] | Sequence[EpisodeResul
     return tuple(results)
 
 
+def markdown_cell(text: str) -> str:
+    """``text`` as a Markdown pipe table's cell: its ``|`` escaped, as GFM reads it (in code spans
+    too), so a model named ``a|b`` stays one cell."""
+    return str(text).replace("|", "\\|")
+
+
 def table_markdown(models: Mapping[str, EvalResults | Mapping[str, Any] | Sequence[EpisodeResult]],
                    decimals: int = 1) -> str:
     """The paper's Table III as Markdown: rows Count (mean moving steps) and Distance (mean
@@ -359,7 +365,7 @@ def table_markdown(models: Mapping[str, EvalResults | Mapping[str, Any] | Sequen
                     text = f"{v:.{decimals}f}"
                     bold = len(grid) > 1 and b is not None and f"{b:.{decimals}f}" == text
                     cells.append(f"**{text}**" if bold else text)
-            lines.append(f"| {label if row == 0 else ''} | {name} | " + " | ".join(cells) + " |")
+            lines.append(f"| {label if row == 0 else ''} | {markdown_cell(name)} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

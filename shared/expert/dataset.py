@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -30,7 +29,7 @@ import numpy as np
 
 from shared.config import ACTION_NAMES, NUM_ACTIONS, EnvConfig, SensorConfig
 from shared.expert.expert import CommandExpert, ExpertConfig, SupervisedError
-from shared.files import atomic_write_text
+from shared.files import TMP_MARK, atomic_write_text
 from shared.jsontext import read_json_file
 from shared.rollout import Rollout, Step
 
@@ -44,6 +43,23 @@ MANIFEST = "manifest.json"
 
 
 _ARRAYS = ("depth_mm", "labels", "episodes", "worlds", "poses")
+DATASET_FILES = frozenset({MANIFEST, *(f"{name}.npy" for name in _ARRAYS)})
+"""The files of a dataset folder: all a new dataset may replace there."""
+
+
+def _clear_dataset_files(out: Path) -> None:
+    """Make ``out`` an empty folder for a new dataset. It may hold an earlier dataset's files (they
+    go) and nothing else: a mistyped ``--data`` must not delete a user's folder."""
+    if out.exists() and not out.is_dir():
+        raise SupervisedError(f"{out} is a file, not a dataset folder")
+    if out.is_dir():
+        foreign = sorted(p.name for p in out.iterdir() if p.name not in DATASET_FILES and TMP_MARK not in p.name)
+        if foreign:
+            raise SupervisedError(f"{out} holds what is not a dataset's ({', '.join(foreign[:5])}"
+                                  f"{', ...' if len(foreign) > 5 else ''}): give --data a new or empty folder")
+        for p in out.iterdir():
+            p.unlink()
+    out.mkdir(parents=True, exist_ok=True)
 
 
 MIN_EPISODES = 8
@@ -268,9 +284,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
         raise SupervisedError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
     world_objs = [load_world(w) for w in worlds]  # fail early on an unknown world
     out = Path(out_dir)
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
+    _clear_dataset_files(out)
     h, w = sensor_cfg.height, sensor_cfg.width
     depth = np.lib.format.open_memmap(out / "depth_mm.npy", mode="w+", dtype=np.uint16, shape=(frames, h, w))
     labels = np.zeros(frames, np.uint8)
@@ -309,7 +323,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
     depth.flush()
     del depth
     if episode < 2:
-        shutil.rmtree(out)
+        _clear_dataset_files(out)
         raise SupervisedError(f"only {episode} episode(s) were collected: a split by episode needs two; "
                               "collect more frames or lower the episode cap")
     # The test split: whole episodes, shuffled, until test_fraction of the frames is covered.

@@ -28,6 +28,7 @@ from shared.config import (
     NUM_ACTIONS,
     EnvConfig,
     SensorConfig,
+    is_whole,
     mirror_action,
 )
 from shared.expert.dataset import (
@@ -69,6 +70,8 @@ class TrainSettings:
     these conv layers must use the same one."""
 
     def __post_init__(self) -> None:
+        if not (is_whole(self.seed) and self.seed >= 0):
+            raise SupervisedError(f"seed must be an integer >= 0, got {self.seed!r}")
         if self.depth_encoding not in DEPTH_ENCODINGS:
             raise SupervisedError(f"depth_encoding must be one of {', '.join(DEPTH_ENCODINGS)}, "
                                   f"got {self.depth_encoding!r}")
@@ -219,6 +222,10 @@ def pretrain(out: str | Path, *, worlds: Sequence[str], frames: int, sensor_cfg:
              test_fraction: float = 0.2, progress: bool = True) -> PretrainResult:
     """Generate (or reuse) the data, train, and write the model and its card to ``out``."""
     out = Path(out)
+    if out.suffix != ".safetensors":  # refused now, not after the data and the training
+        raise SupervisedError(f"a supervised model file must end in .safetensors, got {out}")
+    if not (is_whole(seed) and seed >= 0):
+        raise SupervisedError(f"seed must be an integer >= 0, got {seed!r}")
     data_dir = Path(data_dir) if data_dir is not None else out.with_name(out.name.removesuffix(".safetensors") + "-data")
     request = dataset_request(worlds, frames, sensor_cfg, env_cfg, expert_cfg or ExpertConfig(),
                               drive_cfg or DriveConfig(), seed, test_fraction)

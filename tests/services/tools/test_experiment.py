@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -70,7 +73,8 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
     assert "| Model | `corridor` | Mean |" in general
     for label in labels:
         info = json.loads((out / "state.json").read_text())["stages"][f"eval-{label}@corridor"]
-        results = json.loads(Path(info["results"]).read_text())
+        assert not Path(info["results"]).is_absolute()  # the experiment's own files: relative to it
+        results = json.loads((out / info["results"]).read_text())
         assert results["meta"]["world"] == "corridor" and results["meta"]["model"] == label
         assert f"| {label} | " in general and f"{info['mean_steps']:.1f}" in general
     assert (out / "heatmaps-corridor.png").stat().st_size > 1000
@@ -104,9 +108,14 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
     state = json.loads((out / "state.json").read_text())
     assert state["stages"]["drl-40"]["updates"] == 40
 
-    # Nothing left to do: a third invocation only rewrites the report.
-    third = run(out, "20,40")
-    assert third.ran == []
+    # Nothing left to do: a third invocation only rewrites the report, from the experiment's own
+    # files wherever it has moved (the state held absolute paths: a moved one failed, a copy read
+    # the original's results).
+    moved = tmp_path / "moved"
+    out.rename(moved)
+    third = run(moved, "20,40")
+    assert third.ran == [] and "| DRL-40 |" in (moved / "table.md").read_text()
+    moved.rename(out)
     # An unseen world added on resume is evaluated for every model; nothing else reruns.
     fourth = run(out, "20,40", "--unseen-worlds", "corridor,procedural:7")
     assert fourth.ran == [f"eval-{m}@procedural:7" for m in ("SL", "RL", "DRL-20", "DRL-40", "reactive", "random")]
@@ -164,8 +173,18 @@ def test_checkpoint_list_and_options_are_validated(tmp_path, capsys):
     assert not (tmp_path / "y" / "state.json").exists()
 
 
+STATE_HEAD = '{"format": "cogexplore-experiment", "version": 1, "options": {}, "stages": '
+
+
 @pytest.mark.parametrize("state", ["[]", '{"format": "cogexplore-experiment", "version": 1}', "\xff",
-                                   '{"format": "cogexplore-experiment", "version": 1, "options": {}, "stages": []}'])
+                                   STATE_HEAD + "[]}",
+                                   # hand-edited or damaged stages: tracebacks deep in a resumed run before
+                                   STATE_HEAD + '{"rl": {"run": "runs/rl"}}}',
+                                   STATE_HEAD + '{"drl-x": {"seconds": 1, "file": "m", "updates": 5}}}',
+                                   STATE_HEAD + '{"drl-20": {"seconds": 1, "file": "m"}}}',
+                                   STATE_HEAD + '{"eval-SL": {"seconds": 1, "results": null, "mean_steps": 3}}}',
+                                   STATE_HEAD + '{"sl": {"seconds": 1, "model": "m", "accuracy": "high"}}}',
+                                   STATE_HEAD + '{"what": {"seconds": 1}}}'])
 def test_a_damaged_state_file_is_one_line_and_left_as_it_is(state: str, tmp_path, capsys):
     out = tmp_path / "exp"
     out.mkdir()
@@ -174,3 +193,62 @@ def test_a_damaged_state_file_is_one_line_and_left_as_it_is(state: str, tmp_path
     err = capsys.readouterr().err
     assert err.startswith("cogexplore experiment: error: ") and "move it away to start afresh" in err
     assert err.count("\n") == 1 and (out / "state.json").read_bytes() == state.encode("latin-1")
+
+
+def test_an_interrupted_stage_s_time_counts_when_it_is_resumed(tmp_path):
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    options = options_from_args(parser.parse_args([*TINY, "--out", str(tmp_path), "--checkpoints", "20"]))
+    experiment = Experiment(options, echo=lambda _msg: None)
+
+    def interrupted() -> dict:
+        time.sleep(0.3)
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        experiment._stage("drl-20", interrupted)
+    again = Experiment(options, echo=lambda _msg: None)  # a new invocation: from the state file
+    entry = again._stage("drl-20", lambda: {"file": "models/drl-20.safetensors", "updates": 20})
+    assert entry["seconds"] >= 0.3 and "drl-20" not in again.state.data.get("partial_seconds", {})
+
+
+def test_a_negative_seed_is_refused_before_any_stage(tmp_path, capsys):
+    assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--seed", "-1"]) == 2
+    assert "--seed must be >= 0" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def test_an_up_child_is_told_to_stop_when_only_the_experiment_got_the_signal(tmp_path):
+    from services.tools.experiment import _stop_child
+
+    mark = tmp_path / "checkpoint"
+    child = subprocess.Popen([sys.executable, "-c", f"""
+import pathlib, signal, sys, time
+def stop(*_):
+    pathlib.Path({str(mark)!r}).write_text("final checkpoint")
+    sys.exit(0)
+signal.signal(signal.SIGINT, stop)
+print("ready", flush=True)
+time.sleep(60)
+"""], stdout=subprocess.PIPE, text=True)
+    assert child.stdout.readline().strip() == "ready"
+    started = time.monotonic()
+    _stop_child(child, signal_it=True)
+    assert child.returncode == 0 and mark.read_text() == "final checkpoint" and time.monotonic() - started < 30
+
+
+@pytest.mark.parametrize("card", [{"accuracy": "0.9 (held out)"}, {"accuracy": {"held out": 0.9}}, {"accuracy": float("nan")},
+                                  {"accuracy": 0.75}])
+def test_a_given_sl_model_s_card_is_read_as_untrusted(card, tmp_path):
+    # The card is the file's word: a text accuracy was stored, then crashed every report (":.3f").
+    from shared.config import load_preset
+    from shared.learning.checkpoints import save_supervised
+    from shared.learning.model import SupervisedNet
+
+    cfg = load_preset("smoke")
+    model = save_supervised(tmp_path / "sl.safetensors", SupervisedNet(cfg.sensor), card=card)
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    options = options_from_args(parser.parse_args([*TINY, "--out", str(tmp_path / "exp"), "--checkpoints", "20",
+                                                   "--sl-model", str(model)]))
+    accuracy = Experiment(options, echo=lambda _msg: None)._pretrain()["accuracy"]
+    assert accuracy == (0.75 if card == {"accuracy": 0.75} else None)

@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 from services.cli import main
-from services.tools.document import Heading, Paragraph, Table, html_page, markdown
+from services.tools.document import DocumentError, Heading, Paragraph, Table, html_page, markdown
 from services.tools.report import (
     EvalPoint,
     build_report,
@@ -282,7 +282,21 @@ def test_html_page_links_images_too_big_to_inline(tmp_path: Path) -> None:
     page.feed(html_page(doc[:1] + [Paragraph("![small](small.png)")], "t", tmp_path))
     assert page.headings == ["Figures <&>"] and page.images[0][1].startswith("data:image/png;base64,")
     assert markdown(doc) == "# Figures <&>\n\n![big](big.png) and ![small](small.png)\n\n| a | b |\n|---|---:|\n" \
-                            "| `x|y` | **2.0** |\n"
+                            "| `x\\|y` | **2.0** |\n"  # a cell's | escaped, as GFM reads it
+
+
+def test_a_pipe_in_a_model_name_stays_in_its_cell() -> None:
+    # A run or file named a|b shifted every cell after it: start 1's value under "2", the true "All" dropped.
+    from shared.evaluation.results import EpisodeResult, EvalResults, table_markdown
+
+    episodes = tuple(EpisodeResult(start, 0, 10 * (start + 1), False, True, None, 1.0, 2.0, 3.0, 0.1)
+                     for start in range(2))
+    table = Table.from_markdown(table_markdown({"x|y@70": EvalResults(episodes), "z": EvalResults(episodes)}))
+    assert table.header == ("Metric", "Model", "1", "2", "All")
+    assert table.rows[0] == ("Count", "x|y@70", "**10.0**", "**20.0**", "**15.0**")
+    assert Table.from_markdown(markdown([table]).strip()) == table  # written and read back alike
+    with pytest.raises(DocumentError, match="a row of 4 cells in a table of 3 columns"):
+        Table.from_markdown("| a | b | c |\n|---|---|---|\n| x | y | z | w |")
 
 
 # -- the evaluation curve -------------------------------------------------------------------------

@@ -148,6 +148,15 @@ def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_
     again = select(opts, echo=lines.append)
     assert [line.endswith("(cached)") for line in lines[1:5]] == [True, True, True, False]
     assert again["windows"] == 4
+    # the run moved (the original gone): the cached scores lead to this run's checkpoints, not the old
+    # run's paths the cache recorded
+    run.rename(tmp_path / "moved")
+    lines.clear()
+    moved = select(dataclasses.replace(opts, run=tmp_path / "moved"), echo=lines.append)
+    assert all(line.endswith("(cached)") for line in lines[1:5])
+    assert moved["chosen"]["end_update"] == again["chosen"]["end_update"]
+    assert all(Path(p).parent.parent == tmp_path / "moved" for p in moved["chosen"]["sources"])
+    (tmp_path / "moved").rename(run)
     # another protocol is another score: nothing is taken from the cache
     lines.clear()
     select(dataclasses.replace(opts, protocol=PROTOCOLS["paper"], test_worlds=()), echo=lines.append)

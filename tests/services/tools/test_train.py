@@ -162,3 +162,9 @@ def test_train_on_an_existing_run_keeps_its_recipe_unless_told_another(tmp_path:
         == load_preset("paper")
     told = parser.parse_args(["train", "--run", "r", "--preset", "smoke", *common])
     assert train_config(told, run) == load_preset("smoke")
+    # A preset whose network cannot resume the run is refused, and the run's recipe stays: it was
+    # written before the resume was tried, so the run could then not resume at all.
+    saved = run.config.read_bytes()
+    assert main(["train", "--run", "r", "--preset", "smoke", "--updates", "40", *common]) == 2
+    assert "cannot resume" in capsys.readouterr().err and run.config.read_bytes() == saved
+    assert main(["train", "--run", "r", "--updates", "40", *common]) == 0

@@ -277,6 +277,15 @@ def test_dataset_is_reused_only_when_its_request_matches(tmp_path):
     (tmp_path / "d" / "labels.npy").write_bytes(b"garbage")
     with pytest.raises(SupervisedError):
         SupervisedDataset.open(tmp_path / "d")
+    # A folder that holds anything else is no dataset to replace: `pretrain --data ~/thesis` used
+    # to delete it whole.
+    precious = tmp_path / "thesis"
+    (precious / "chapter").mkdir(parents=True)
+    (precious / "notes.txt").write_text("months of work")
+    for folder in (precious, precious / "notes.txt"):
+        with pytest.raises(SupervisedError, match="not a dataset's|is a file"):
+            open_or_generate(folder, dataset_request(*args), progress=False)
+    assert (precious / "notes.txt").read_text() == "months of work" and (precious / "chapter").is_dir()
 
 
 def test_dataset_refuses_bad_requests(tmp_path):
@@ -414,3 +423,17 @@ def test_evaluate_policy_sl_and_rl(trained, tmp_path, capsys):
     assert _evaluate(["--policy", "rl", "--checkpoint", str(path), *common]) == 2
     assert _evaluate(["--policy", "sl", *common]) == 2
     assert "needs --checkpoint" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--out", "sl.pt"], "must end in .safetensors"),
+    (["--out", "sl.safetensors", "--seed", "-1"], "seed must be an integer >= 0"),
+])
+def test_pretrain_refuses_an_output_or_seed_it_cannot_use_before_collecting(argv, message, tmp_path, capsys,
+                                                                         monkeypatch):
+    from services.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "60", "--epochs", "1",
+                 *argv]) == 2
+    assert message in capsys.readouterr().err and list(tmp_path.iterdir()) == []  # no data collected
