@@ -84,8 +84,9 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
     ``cogexplore.COMMAND_NAMES``), with an optional ``reset()`` called at each episode's start.
     A Policy sees its network's camera and plays in its run's world; an ONNX policy
     (:func:`cogexplore.onnx_runner.load_onnx_policy`) sees its network's camera and plays the paper's
-    task in ``paper-indoor``; a callable sees the paper's 160 x 120 camera and plays in ``paper-indoor``. ``world``: a world name (``paper-indoor``,
-    ``procedural:101``, a world XML file...), None for that default. ``episodes_per_start`` (the
+    task in ``paper-indoor``; a callable sees the paper's 160 x 120 camera and plays in
+    ``paper-indoor``. ``world``: a world name (``paper-indoor``, ``procedural:101``, a world XML
+    file...), None for that default. ``episodes_per_start`` (the
     paper's 10: ten different draws under ``robust``; under ``paper`` each repeats exactly, so 1
     gives the same mean) episodes from each of ``starts`` (start indices from 0, as in the results; the tables and
     ``cogexplore evaluate --starts`` number them from 1; None: every start pose), each at most

@@ -64,8 +64,8 @@ from shared.wire.messages import (
     RANGE,
     EpisodeStats,
     FlowControl,
-    MessageError,
     LearnerEpochs,
+    MessageError,
     RejectCounter,
     new_epoch,
 )

@@ -39,9 +39,9 @@ from shared.wire.keys import RunKeys
 from shared.wire.messages import (
     RANGE,
     SHAPE,
+    LearnerEpochs,
     MessageError,
     RejectCounter,
-    LearnerEpochs,
     WeightsMessage,
 )
 

@@ -137,7 +137,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
     """``cogexplore evaluate``: returns a process exit status."""
     apply_cpu_threads(args.threads)
     recorder = None  # only with --rerun-serve, which takes one world
-    done: list[tuple[EvalSetup, EvalResults]] = []
+    done: list[tuple[EvalSetup, EvalResults, ForesightProbe | None, Path | None]] = []
     _check_live_options(args)
     try:
         protocol = protocol_from_args(args)
@@ -153,13 +153,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
             load_world(world)
     for world in worlds:
         setup, results, recorder, probe = _evaluate_one(args, world, model, ensemble, protocol)
-        done.append((setup, results, probe))
-        if args.json_out:  # saved at once: an interrupted run keeps the worlds it finished
-            save_results(results, _json_path(args.json_out, setup.world, several))
+        json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None
+        if json_path is not None:  # saved at once: an interrupted run keeps the worlds it finished
+            save_results(results, json_path)
+        done.append((setup, results, probe, json_path))
         model, ensemble = setup.model, ()  # loaded (and joined into one ensemble) once for every world
     print(f"protocol {protocol.describe()}")
-    for setup, results, probe in done:
-        json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None
+    for setup, results, probe, json_path in done:
         summary = aggregate(results.episodes)["overall"]
         if several:
             print(f"## {setup.world}")
@@ -173,11 +173,11 @@ def run_evaluate(args: argparse.Namespace) -> int:
         if json_path is not None:
             print(f"results: {json_path}")
     if several:
-        per_world = {setup.world: float(results.summary["overall"]["mean_steps"]) for setup, results, _ in done}
+        per_world = {setup.world: float(results.summary["overall"]["mean_steps"]) for setup, results, _, _ in done}
         print(json.dumps({"model": done[0][0].meta()["model"], "protocol": protocol.name, "worlds": len(per_world),
                           "mean_steps_over_worlds": sum(per_world.values()) / len(per_world),
                           "per_world_mean_steps": per_world}))
-        probes = [(probe, results) for _, results, probe in done if probe is not None]
+        probes = [(probe, results) for _, results, probe, _ in done if probe is not None]
         if probes:
             pooled = foresight_summary([e for p, _ in probes for e in p.episodes],
                                        [e.terminated for _, r in probes for e in r.episodes], probes[0][0].horizon)

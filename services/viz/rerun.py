@@ -799,7 +799,8 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
     ``image_every``-th depth image, every step's pose, Q-values/scores, command and trajectory, and
     the summary) and/or live to the viewer at ``rerun_connect`` (one that does not answer is skipped
     with a warning). Neither given: the protocol alone. A run that fails or is cancelled leaves no
-    partial file, and a file of the same name from before as it was. ``protocol``: the other arguments of ``evaluate_policy``."""
+    partial file, and a file of the same name from before as it was. ``protocol``: the other
+    arguments of ``evaluate_policy``."""
     from shared.evaluation.protocol import evaluate_policy, protocol_env_config
 
     rerun_connect = live_viewer_url(rerun_connect, rrd is not None)
