@@ -28,15 +28,16 @@ def setup_logging(level: str = "INFO", logfile: Path | None = None) -> None:
 
 
 def stop_event_on_signals() -> threading.Event:
-    """An Event set by SIGINT or SIGTERM, so loops can finish their step and clean up."""
+    """An Event set by SIGINT, SIGTERM or SIGHUP (a closed terminal), so loops can finish their step
+    and clean up: a learner writes its final checkpoint."""
     stop = threading.Event()
 
     def handler(signum: int, _frame: object) -> None:
         logging.getLogger(__name__).info("signal %s: stopping", signal.Signals(signum).name)
         stop.set()
 
-    signal.signal(signal.SIGINT, handler)
-    signal.signal(signal.SIGTERM, handler)
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(signum, handler)
     return stop
 
 

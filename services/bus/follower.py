@@ -50,9 +50,11 @@ log = logging.getLogger("cogexplore.weights")
 WEIGHTS_ENVELOPE_BYTES = 2**20
 """Room for a weights message's names, shapes and fields beside its tensor bytes."""
 WEIGHTS_QUIET_S = 5.0
-"""How long the followed learner must have sent no weights before another learner's are taken. A
-live learner puts weights at least every 2 s (``services.learner.service.WEIGHTS_REPEAT_S``), new
-ones or its latest again, so only a dead (or cut off) one falls this quiet."""
+"""How long the followed learner must have sent no weights before another learner's are taken (its
+message is kept meanwhile: a restarted learner sends its start-up weights once). A training learner
+puts new weights every few seconds at most; a warming-up one can be quieter, and a message of
+another epoch put then is followed until the learner speaks again and that one has been quiet as
+long: without security, a bounded detour, not a hold for good."""
 
 
 class WeightFollower:

@@ -52,20 +52,13 @@ from shared.wire.messages import (
 )
 
 log = logging.getLogger("cogexplore.learner")
-WEIGHTS_REPEAT_S = 2.0
-"""The latest weights are put again after this long without new ones (under the receivers' quiet time)."""
 
 
 class LatestSender:
-    """Publishes the newest weights on its own thread; older unsent versions are skipped. With
-    nothing new for ``repeat_s`` it puts the latest again, whatever the main loop is doing (a warm-up,
-    a checkpoint being written): a live learner never falls quiet for the receivers, so a message of
-    another learner epoch (a forged one) is never followed in its place
-    (:class:`shared.wire.messages.LearnerEpochs`, ``services.bus.follower.WEIGHTS_QUIET_S``)."""
+    """Publishes the newest weights on its own thread; older unsent versions are skipped."""
 
-    def __init__(self, publisher, name: str = "weights-sender", repeat_s: float = WEIGHTS_REPEAT_S):
+    def __init__(self, publisher, name: str = "weights-sender"):
         self._publisher = publisher
-        self._repeat_s = repeat_s
         self._cond = threading.Condition()
         self._pending: bytes | None = None
         self._closed = False
@@ -82,12 +75,10 @@ class LatestSender:
     def _run(self) -> None:
         while True:
             with self._cond:
-                self._cond.wait_for(lambda: self._pending is not None or self._closed, self._repeat_s)
+                self._cond.wait_for(lambda: self._pending is not None or self._closed)
                 if self._closed:
                     return
-                payload, self._pending = self._pending or self.latest, None
-            if payload is None:  # nothing offered yet
-                continue
+                payload, self._pending = self._pending, None
             try:
                 self._publisher.put(payload)
             except Exception:

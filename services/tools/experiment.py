@@ -156,9 +156,13 @@ def _stage_problem(name: str, stage: Any) -> str | None:
 class Terminated(KeyboardInterrupt):
     """SIGTERM or SIGHUP to the experiment, raised where it runs: stages end as on Ctrl-C."""
 
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
 
 def _raise_terminated(signum: int, _frame: Any) -> None:
-    raise Terminated(signal.Signals(signum).name)
+    raise Terminated(signum)
 
 
 def _stop_child(proc: subprocess.Popen, signal_it: bool) -> None:
@@ -660,13 +664,15 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     for world in (opts.world, *opts.unseen_worlds):
         load_world(world)  # an unknown world fails now, not after the pretraining
     experiment = Experiment(opts)
-    for signum in (signal.SIGTERM, signal.SIGHUP):
-        signal.signal(signum, _raise_terminated)
+    previous = {signum: signal.signal(signum, _raise_terminated) for signum in (signal.SIGTERM, signal.SIGHUP)}
     try:
         report = experiment.run()
     except KeyboardInterrupt as exc:
         print("cogexplore experiment: interrupted; run the same command again to resume", file=sys.stderr)
-        return 143 if isinstance(exc, Terminated) else 130
+        return 128 + exc.signum if isinstance(exc, Terminated) else 130  # as a shell reports the signal
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
     print((experiment.out / "table.md").read_text(), end="")
     print(f"ran: {', '.join(experiment.ran) or 'nothing'}; skipped (done before): "
           f"{', '.join(experiment.skipped) or 'nothing'}")

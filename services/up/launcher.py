@@ -52,6 +52,7 @@ from services.bus.session import (
 )
 from services.process import setup_logging
 from services.runs import RunLock, RunPaths, resolve_config, save_config
+from shared.config import RunConfig
 from shared.errors import CogexploreError
 from shared.learning.stats import LearnerRow, read_csv_records
 from shared.wire.keys import RunKeys, validate_name
@@ -468,7 +469,7 @@ class Launcher:
             overrides["train.keep_checkpoints"] = a.final_average
         if overrides:
             self.config = self.config.with_overrides(overrides)
-        done = checkpoint_updates(self.paths)
+        done = checkpoint_updates(self.paths, self.config)
         finished = done is not None and done >= self.total_updates
         if finished and not getattr(a, "resume", False):
             raise RunStateError(
@@ -484,7 +485,7 @@ class Launcher:
         if done is not None:
             print(resume_line(self.run, self.paths, done, self.total_updates), file=sys.stderr)
         stop = threading.Event()
-        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
               file=sys.stderr)
         try:
@@ -568,14 +569,27 @@ def move_aside(root: Path) -> Path:
     return target
 
 
-def checkpoint_updates(paths: RunPaths) -> int | None:
-    """The updates of the checkpoint the run's learner would resume from (None: it has none)."""
+def checkpoint_updates(paths: RunPaths, config: RunConfig | None = None) -> int | None:
+    """The updates of the checkpoint the run's learner would resume from (None: it has none). With
+    ``config`` (a RunConfig), RunStateError when its agent cannot load that checkpoint: refused here,
+    before the config replaces the run's own (the learner would refuse it, and the run could not
+    resume with its own recipe either)."""
     if not paths.checkpoints.is_dir() or not any(paths.checkpoints.iterdir()):
         return None  # a new run: no need to import torch here
-    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.checkpoints import CheckpointError, CheckpointManager
 
     checkpoint = CheckpointManager(paths.checkpoints).load_latest()
-    return None if checkpoint is None else checkpoint.update_count
+    if checkpoint is None:
+        return None
+    if config is not None:
+        from shared.learning.dqn import DQNAgent
+
+        try:
+            checkpoint.restore(DQNAgent(config.model, config.sensor, config.dqn, device="cpu"))
+        except CheckpointError as exc:
+            raise RunStateError(f"cannot resume run {paths.root.name!r} with this config: {exc}. Drop --preset and "
+                                "--set to train it with its own, or start it over (--fresh, or another --run)") from None
+    return checkpoint.update_count
 
 
 def recorded_update_rate(learner_csv: Path) -> float | None:

@@ -53,7 +53,8 @@ def _clear_dataset_files(out: Path) -> None:
     if out.exists() and not out.is_dir():
         raise SupervisedError(f"{out} is a file, not a dataset folder")
     if out.is_dir():
-        foreign = sorted(p.name for p in out.iterdir() if p.name not in DATASET_FILES and TMP_MARK not in p.name)
+        foreign = sorted(p.name for p in out.iterdir() if not (p.is_file() and (
+            p.name in DATASET_FILES or p.name.startswith(f".{MANIFEST}{TMP_MARK}"))))  # a manifest being written
         if foreign:
             raise SupervisedError(f"{out} holds what is not a dataset's ({', '.join(foreign[:5])}"
                                   f"{', ...' if len(foreign) > 5 else ''}): give --data a new or empty folder")

@@ -85,6 +85,18 @@ def test_fresh_keeps_the_old_run_aside_and_starts_an_empty_one(tmp_path: Path, c
     assert f"is now {old}" in capsys.readouterr().err
 
 
+def test_a_config_that_cannot_resume_the_run_is_refused_before_it_replaces_the_run_s(tmp_path: Path,
+                                                                                       capsys) -> None:
+    # The learner refused it ("cannot resume"), but up had already written it over the run's own:
+    # a plain `up --run` could then not resume the run either.
+    paths = run_at(tmp_path, updates=10, total_updates=20)
+    recipe = paths.config.read_bytes()
+    assert main(["up", "--run", RUN, "--runs-dir", str(tmp_path), "--preset", "paper", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "cannot resume run 'again' with this config" in err and err.count("\n") == 1
+    assert paths.config.read_bytes() == recipe and not list(paths.logs.glob("*.log"))  # nothing started
+
+
 def test_resume_names_a_run_that_exists(tmp_path: Path, capsys) -> None:
     assert main(["up", "--run", "nothing-here", "--runs-dir", str(tmp_path), "--resume", "--quiet"]) == 2
     assert "there is no run 'nothing-here'" in capsys.readouterr().err

@@ -112,7 +112,7 @@ def test_json_round_trip(tmp_path) -> None:
     assert back.protocol == PROTOCOLS["paper"]
     path = save_results(results, tmp_path / "r" / "results.json")
     assert load_results(path).episodes == results.episodes
-    assert not list(path.parent.glob("*.tmp"))
+    assert list(path.parent.iterdir()) == [path]  # no temporary file beside it
 
 
 def _doc() -> dict:

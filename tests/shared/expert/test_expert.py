@@ -286,6 +286,14 @@ def test_dataset_is_reused_only_when_its_request_matches(tmp_path):
         with pytest.raises(SupervisedError, match="not a dataset's|is a file"):
             open_or_generate(folder, dataset_request(*args), progress=False)
     assert (precious / "notes.txt").read_text() == "months of work" and (precious / "chapter").is_dir()
+    # nor does a name that merely looks like a writer's temporary file pass, or a folder named like one
+    for name in ("thesis.tmp-final.docx", "labels.npy.tmp-1"):
+        beside = tmp_path / "beside"
+        beside.mkdir(exist_ok=True)
+        (beside / name).mkdir() if name.endswith("-1") else (beside / name).write_text("keep")
+        with pytest.raises(SupervisedError, match="not a dataset's"):
+            open_or_generate(beside, dataset_request(*args), progress=False)
+        assert (beside / name).exists()
 
 
 def test_dataset_refuses_bad_requests(tmp_path):
