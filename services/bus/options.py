@@ -17,7 +17,7 @@ def add_secure_init_arguments(p: argparse.ArgumentParser) -> None:
                    help="also a CA, the router's certificate and one per role: TLS with client certificates, needed "
                         "wherever the router listens beyond this machine")
     p.add_argument("--host", action="append", default=[], metavar="NAME",
-                   help="a name or address the router's certificate is valid for, besides localhost and 127.0.0.1 "
+                   help="a name or address the router's certificate is valid for, besides localhost, 127.0.0.1 and ::1 "
                         "(repeatable): the one remote actors connect to")
     p.add_argument("--zenohd-dir", default=ZENOHD_DIR, metavar="PATH",
                    help=f"where router-zenohd.json5 expects the folder in the router's container (default {ZENOHD_DIR})")

@@ -51,7 +51,7 @@ from shared.errors import CogexploreError
 from shared.files import write_atomically
 from shared.wire.keys import ROOT, validate_name
 
-DEFAULT_HOSTS: tuple[str, ...] = ("localhost", "127.0.0.1")
+DEFAULT_HOSTS: tuple[str, ...] = ("localhost", "127.0.0.1", "::1")
 """Names the router's TLS certificate is valid for, besides any --host."""
 CERT_DAYS = 365
 PATH_KEYS: tuple[str, ...] = (

@@ -11,6 +11,7 @@ from services.options import (
     add_protocol_arguments,
     add_runs_dir_argument,
     add_tensorboard_argument,
+    count_argument,
     positive_number_argument,
 )
 from shared.config import SPEED_TABLES
@@ -200,7 +201,7 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--run", default=None, help="run name (default: train-<date>-<time>)")
     add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="auto, cpu, cuda, cuda:N")
-    parser.add_argument("--updates", type=int, default=None, help="override train.total_updates")
+    parser.add_argument("--updates", type=count_argument, default=None, help="override train.total_updates")
     parser.add_argument("--minutes", type=positive_number_argument, default=None, help="stop after this many minutes")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     add_tensorboard_argument(parser)

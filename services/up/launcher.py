@@ -296,10 +296,21 @@ class Launcher:
             raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
         self.lock = RunLock(self.paths, "up")  # before anything in the run folder is touched, --fresh included
         try:
+            self.config = self._config()  # a bad option is refused before the folder changes, --fresh's move too
             self._prepare_folder()
         except BaseException:
             self.close()
             raise
+
+    def _config(self) -> RunConfig:
+        """The run's config: --preset, else the run's own (not with --fresh: it goes with the old
+        run), else the default; with --set, --device, --updates and room for the final average."""
+        a = self.args
+        config = resolve_config(a, None if getattr(a, "fresh", False) else self.paths)
+        overrides = {"train.total_updates": a.updates} if a.updates is not None else {}
+        if config.train.keep_checkpoints < a.final_average:  # the final model averages them
+            overrides["train.keep_checkpoints"] = a.final_average
+        return config.with_overrides(overrides) if overrides else config
 
     def close(self) -> None:
         """Let go of the run (another `up` may start it); :meth:`execute` does at its end."""
@@ -307,7 +318,14 @@ class Launcher:
 
     def _prepare_folder(self) -> None:
         args = self.args
-        moved_to = move_aside(self.paths.root) if getattr(args, "fresh", False) and self.paths.root.exists() else None
+        moved_to = None
+        if getattr(args, "fresh", False) and self.paths.root.exists():
+            # A learner of the run started outside up would write its last checkpoint into the new run.
+            learner_lock = RunLock(self.paths, "learner")
+            try:
+                moved_to = move_aside(self.paths.root)
+            finally:
+                learner_lock.release()
         # checked before the run folder exists: a refused start leaves nothing behind
         make_tls = getattr(args, "tls", False)
         try:
@@ -463,12 +481,6 @@ class Launcher:
 
     def _execute(self) -> int:
         a = self.args
-        overrides = {"train.total_updates": a.updates} if a.updates else {}
-        self.config = resolve_config(a, self.paths)
-        if self.config.train.keep_checkpoints < a.final_average:  # the final model averages them
-            overrides["train.keep_checkpoints"] = a.final_average
-        if overrides:
-            self.config = self.config.with_overrides(overrides)
         done = checkpoint_updates(self.paths, self.config)
         finished = done is not None and done >= self.total_updates
         if finished and not getattr(a, "resume", False):
@@ -502,12 +514,14 @@ class Launcher:
         print(f"run {self.run!r} ended: {reason}", file=sys.stderr)
         if reason.startswith("failed"):
             who = reason.split(": ", 1)[1]
-            print(f"see {self.paths.logs / (who + '.log')}", file=sys.stderr)
+            child = next((c for c in self.children if c.name == who), None)
+            why = child.exited() if child is not None else None
+            print(why or f"see {self.paths.logs / (who + '.log')}", file=sys.stderr)
             return 1
         if a.no_report:
             return 0
-        if checkpoint_updates(self.paths) is None:
-            print(f"run {self.run!r} has no checkpoint yet: no final evaluation or report", file=sys.stderr)
+        if not checkpoint_updates(self.paths):  # none, or the learner's at update 0 (stopped in its warm-up)
+            print(f"run {self.run!r} has no trained checkpoint yet: no final evaluation or report", file=sys.stderr)
             return 130 if reason == "interrupted" else 1
         return self.final_report()
 
@@ -627,7 +641,7 @@ def _loopback(endpoint: str) -> bool:
 def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> tuple[tuple[str, ...], str]:
     """(where the router listens, where this machine's processes connect). By default a free
     loopback port; with ``--listen``, those endpoints (TLS wherever they leave the machine) and the
-    first one's port on localhost."""
+    first loopback one among them, else the first one (on localhost when it is every address)."""
     if not listen:
         endpoint = f"tcp/127.0.0.1:{port or free_tcp_port()}"
         return (endpoint,), endpoint
@@ -636,8 +650,13 @@ def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> t
         if not _loopback(e) and not e.startswith("tls/"):
             raise SecurityError(f"--listen {e}: a router reachable from other machines listens with TLS only "
                                 f"(--listen tls/{e.split('/', 1)[1]})")
-    protocol, address = endpoints[0].split("/", 1)
-    return endpoints, f"{protocol}/localhost:{address.rsplit(':', 1)[1]}"
+    loopback = next((e for e in endpoints if _loopback(e)), None)
+    if loopback is not None:  # as it listens: localhost may not name ::1
+        return endpoints, loopback
+    protocol, host, _ = endpoint_host_port(endpoints[0])
+    if host in ("0.0.0.0", "::"):  # every address, this machine's loopback among them
+        return endpoints, f"{protocol}/localhost:{endpoints[0].split('/', 1)[1].rsplit(':', 1)[1]}"
+    return endpoints, endpoints[0]  # one address only: its own (a name the router's certificate holds, --host)
 
 
 def secure_files(root: Path, run: str, tls: bool, *, make_tls: bool = False, hosts: Sequence[str] = ()) -> SecureFiles:

@@ -22,7 +22,8 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                         help="override one config field (repeatable)")
     limit = parser.add_mutually_exclusive_group()
-    limit.add_argument("--updates", type=int, default=None, help="stop after this many learner updates")
+    limit.add_argument("--updates", type=count_argument, default=None,
+                       help="stop after this many learner updates")
     limit.add_argument("--minutes", type=positive_number_argument, default=None, help="stop after this many minutes")
     parser.add_argument("--run", default=None, help="run name (default: run-<date>-<time>)")
     again = parser.add_mutually_exclusive_group()

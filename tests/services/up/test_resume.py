@@ -97,6 +97,50 @@ def test_a_config_that_cannot_resume_the_run_is_refused_before_it_replaces_the_r
     assert paths.config.read_bytes() == recipe and not list(paths.logs.glob("*.log"))  # nothing started
 
 
+def test_fresh_moves_nothing_while_a_learner_holds_the_run_or_an_option_is_refused(tmp_path: Path) -> None:
+    from services.runs import RunInUseError, RunLock
+    from shared.config import ConfigError
+
+    paths = run_at(tmp_path, updates=20, total_updates=20)
+    # A learner started outside up: moved aside, its last checkpoint went into the "fresh" run.
+    held = RunLock(paths, "learner")
+    try:
+        with pytest.raises(RunInUseError, match="its learner is pid"):
+            Launcher(launcher_args(tmp_path, "--fresh"))
+    finally:
+        held.release()
+    # A preset that does not exist: refused with the old run where it was (it was moved, then refused).
+    with pytest.raises(ConfigError):
+        Launcher(launcher_args(tmp_path, "--fresh", "--preset", "no-such-preset"))
+    assert checkpoint_updates(paths) == 20 and not list(tmp_path.glob(f"{RUN}.old-*"))
+
+
+@pytest.mark.timeout(240)
+def test_a_failed_learner_is_reported_with_its_exit_code_and_last_line(tmp_path: Path) -> None:
+    from services.runs import RunLock
+
+    paths = run_at(tmp_path, updates=10, total_updates=20)
+    held = RunLock(paths, "learner")  # a learner of the run already running elsewhere on this machine
+    try:
+        failed = up(tmp_path)
+    finally:
+        held.release()
+    assert failed.returncode == 1, failed.stderr[-3000:]
+    assert f"run {RUN!r} ended: failed: learner" in failed.stderr
+    assert "its learner exited (2): cogexplore learner: error: run 'again' is in use" in failed.stderr
+
+
+def test_the_processes_of_this_machine_connect_where_the_router_listens() -> None:
+    from services.up.launcher import router_endpoints
+
+    assert router_endpoints(["tls/0.0.0.0:7447"], None)[1] == "tls/localhost:7447"
+    assert router_endpoints(["tls/[::]:7447"], None)[1] == "tls/localhost:7447"
+    # localhost may not name ::1, and a single address is not on localhost at all (it never started)
+    assert router_endpoints(["tcp/[::1]:7447"], None)[1] == "tcp/[::1]:7447"
+    assert router_endpoints(["tls/192.0.2.2:7447"], None)[1] == "tls/192.0.2.2:7447"
+    assert router_endpoints(["tls/192.0.2.2:7447", "tcp/127.0.0.1:7448"], None)[1] == "tcp/127.0.0.1:7448"
+
+
 def test_resume_names_a_run_that_exists(tmp_path: Path, capsys) -> None:
     assert main(["up", "--run", "nothing-here", "--runs-dir", str(tmp_path), "--resume", "--quiet"]) == 2
     assert "there is no run 'nothing-here'" in capsys.readouterr().err
