@@ -27,16 +27,23 @@ def setup_logging(level: str = "INFO", logfile: Path | None = None) -> None:
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 
 
+def stop_signals() -> tuple[signal.Signals, ...]:
+    """The signals that stop a process in order: SIGINT, SIGTERM and SIGHUP (a closed terminal),
+    unless SIGHUP is ignored (``nohup``: the process must outlive the terminal)."""
+    hangup = () if signal.getsignal(signal.SIGHUP) == signal.SIG_IGN else (signal.SIGHUP,)
+    return (signal.SIGINT, signal.SIGTERM, *hangup)
+
+
 def stop_event_on_signals() -> threading.Event:
-    """An Event set by SIGINT, SIGTERM or SIGHUP (a closed terminal), so loops can finish their step
-    and clean up: a learner writes its final checkpoint."""
+    """An Event set by :func:`stop_signals`, so loops can finish their step and clean up: a learner
+    writes its final checkpoint."""
     stop = threading.Event()
 
     def handler(signum: int, _frame: object) -> None:
         logging.getLogger(__name__).info("signal %s: stopping", signal.Signals(signum).name)
         stop.set()
 
-    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    for signum in stop_signals():
         signal.signal(signum, handler)
     return stop
 

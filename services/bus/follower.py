@@ -51,10 +51,10 @@ WEIGHTS_ENVELOPE_BYTES = 2**20
 """Room for a weights message's names, shapes and fields beside its tensor bytes."""
 WEIGHTS_QUIET_S = 5.0
 """How long the followed learner must have sent no weights before another learner's are taken (its
-message is kept meanwhile: a restarted learner sends its start-up weights once). A training learner
-puts new weights every few seconds at most; a warming-up one can be quieter, and a message of
-another epoch put then is followed until the learner speaks again and that one has been quiet as
-long: without security, a bounded detour, not a hold for good."""
+message is kept meanwhile: a restarted learner sends its start-up weights once). A learner in its
+warm-up, or one of a slow preset between two weights, can be quieter: a message of another epoch
+put then is followed until it has been quiet as long and the learner speaks again (without
+security, a bounded detour, not a hold for good)."""
 
 
 class WeightFollower:

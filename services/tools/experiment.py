@@ -51,6 +51,7 @@ from typing import Any
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
+from services.process import stop_signals
 from shared.config import (
     ConfigError,
     RunConfig,
@@ -664,7 +665,8 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     for world in (opts.world, *opts.unseen_worlds):
         load_world(world)  # an unknown world fails now, not after the pretraining
     experiment = Experiment(opts)
-    previous = {signum: signal.signal(signum, _raise_terminated) for signum in (signal.SIGTERM, signal.SIGHUP)}
+    previous = {signum: signal.signal(signum, _raise_terminated) for signum in stop_signals()
+                if signum != signal.SIGINT}  # Ctrl-C stays KeyboardInterrupt: it reached the children too
     try:
         report = experiment.run()
     except KeyboardInterrupt as exc:

@@ -50,7 +50,7 @@ from services.bus.session import (
     port_taken,
     subscribe_messages,
 )
-from services.process import setup_logging
+from services.process import setup_logging, stop_signals
 from services.runs import RunLock, RunPaths, resolve_config, save_config
 from shared.config import RunConfig
 from shared.errors import CogexploreError
@@ -497,7 +497,7 @@ class Launcher:
         if done is not None:
             print(resume_line(self.run, self.paths, done, self.total_updates), file=sys.stderr)
         stop = threading.Event()
-        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
+        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in stop_signals()}
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
               file=sys.stderr)
         try:
@@ -597,9 +597,11 @@ def checkpoint_updates(paths: RunPaths, config: RunConfig | None = None) -> int 
         return None
     if config is not None:
         from shared.learning.dqn import DQNAgent
+        from shared.learning.replay import ReplayMemory
 
-        try:
+        try:  # what the learner's resume loads: the agent, and the replay memory if it was kept
             checkpoint.restore(DQNAgent(config.model, config.sensor, config.dqn, device="cpu"))
+            checkpoint.check_replay_fits(ReplayMemory(config.replay, (config.sensor.height, config.sensor.width)))
         except CheckpointError as exc:
             raise RunStateError(f"cannot resume run {paths.root.name!r} with this config: {exc}. Drop --preset and "
                                 "--set to train it with its own, or start it over (--fresh, or another --run)") from None
@@ -641,7 +643,7 @@ def _loopback(endpoint: str) -> bool:
 def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> tuple[tuple[str, ...], str]:
     """(where the router listens, where this machine's processes connect). By default a free
     loopback port; with ``--listen``, those endpoints (TLS wherever they leave the machine) and the
-    first loopback one among them, else the first one (on localhost when it is every address)."""
+    first TLS one among them (on localhost when it is this machine's), else the first one."""
     if not listen:
         endpoint = f"tcp/127.0.0.1:{port or free_tcp_port()}"
         return (endpoint,), endpoint
@@ -650,13 +652,15 @@ def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> t
         if not _loopback(e) and not e.startswith("tls/"):
             raise SecurityError(f"--listen {e}: a router reachable from other machines listens with TLS only "
                                 f"(--listen tls/{e.split('/', 1)[1]})")
-    loopback = next((e for e in endpoints if _loopback(e)), None)
-    if loopback is not None:  # as it listens: localhost may not name ::1
-        return endpoints, loopback
-    protocol, host, _ = endpoint_host_port(endpoints[0])
-    if host in ("0.0.0.0", "::"):  # every address, this machine's loopback among them
-        return endpoints, f"{protocol}/localhost:{endpoints[0].split('/', 1)[1].rsplit(':', 1)[1]}"
-    return endpoints, endpoints[0]  # one address only: its own (a name the router's certificate holds, --host)
+    tls = [e for e in endpoints if e.startswith("tls/")]
+    if not tls:  # loopback only, no TLS: the first as it listens (localhost may not name ::1)
+        return endpoints, endpoints[0]
+    # With TLS the access control admits a role over TLS only, and Zenoh's TLS checks a host name:
+    # localhost for this machine's own addresses, else the name the router listens on (--host).
+    _, host, _ = endpoint_host_port(tls[0])
+    if host in ("0.0.0.0", "::", "127.0.0.1", "::1", "localhost"):
+        return endpoints, f"tls/localhost:{tls[0].split('/', 1)[1].rsplit(':', 1)[1]}"
+    return endpoints, tls[0]
 
 
 def secure_files(root: Path, run: str, tls: bool, *, make_tls: bool = False, hosts: Sequence[str] = ()) -> SecureFiles:

@@ -193,6 +193,15 @@ class Checkpoint:
         if replay is not None:
             self.restore_replay(replay)
 
+    def check_replay_fits(self, replay: ReplayMemory) -> None:
+        """CheckpointError when the replay memory kept with this checkpoint would not load into
+        ``replay``; read from the file's header, not its arrays. Nothing to check without one."""
+        if self.replay_path is None or not self.replay_path.exists():
+            return
+        mismatch = replay.state_mismatch(_read_meta(self.replay_path, FORMAT + "-replay").get("replay"))
+        if mismatch is not None:
+            raise CheckpointError(f"{self.replay_path} does not fit this replay memory: {mismatch}")
+
     def restore_replay(self, replay: ReplayMemory) -> None:
         """Load the replay memory saved with this checkpoint into ``replay``."""
         if self.replay_path is None:

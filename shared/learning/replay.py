@@ -520,13 +520,19 @@ class ReplayMemory:
         }
         return arrays, meta
 
-    def load_state_dict(self, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
-        """Restore from ``state_dict`` output; the memory must have the same shape and options."""
+    def state_mismatch(self, meta: Any) -> str | None:
+        """Why a saved state (``state_dict``'s meta) cannot load into this memory (another shape
+        or options), or None when it can."""
         want = {"capacity": self.capacity, "frame_capacity": self.frame_capacity,
                 "frame_shape": list(self.frame_shape), "prioritized": self.cfg.prioritized}
-        got = {k: meta.get(k) for k in want}
-        if got != want:
-            raise ReplayError(f"replay state does not fit this memory: saved {got}, memory {want}")
+        got = {k: meta.get(k) for k in want} if isinstance(meta, dict) else meta
+        return None if got == want else f"saved {got}, memory {want}"
+
+    def load_state_dict(self, arrays: dict[str, np.ndarray], meta: dict[str, Any]) -> None:
+        """Restore from ``state_dict`` output; the memory must have the same shape and options."""
+        mismatch = self.state_mismatch(meta)
+        if mismatch is not None:
+            raise ReplayError(f"replay state does not fit this memory: {mismatch}")
         try:
             frames = arrays["frames"]
             self._frames[: frames.shape[0]] = frames

@@ -135,10 +135,43 @@ def test_the_processes_of_this_machine_connect_where_the_router_listens() -> Non
 
     assert router_endpoints(["tls/0.0.0.0:7447"], None)[1] == "tls/localhost:7447"
     assert router_endpoints(["tls/[::]:7447"], None)[1] == "tls/localhost:7447"
-    # localhost may not name ::1, and a single address is not on localhost at all (it never started)
+    # localhost may not name ::1 (it never started), nor a name the router listens on alone
     assert router_endpoints(["tcp/[::1]:7447"], None)[1] == "tcp/[::1]:7447"
-    assert router_endpoints(["tls/192.0.2.2:7447"], None)[1] == "tls/192.0.2.2:7447"
-    assert router_endpoints(["tls/192.0.2.2:7447", "tcp/127.0.0.1:7448"], None)[1] == "tcp/127.0.0.1:7448"
+    assert router_endpoints(["tls/robot.lan:7447"], None)[1] == "tls/robot.lan:7447"
+    # with TLS, the access control admits a role over TLS only: never the plain loopback beside it
+    assert router_endpoints(["tls/0.0.0.0:7447", "tcp/127.0.0.1:7448"], None)[1] == "tls/localhost:7447"
+    assert router_endpoints(["tcp/127.0.0.1:7448", "tls/[::1]:7447"], None)[1] == "tls/localhost:7447"
+
+
+def test_a_replay_memory_the_config_cannot_hold_is_refused_before_the_config_is_saved(tmp_path: Path) -> None:
+    from services.up.launcher import RunStateError
+
+    cfg = load_preset("smoke")
+    paths = RunPaths(tmp_path / RUN).make()
+    core = LearnerCore(cfg, device="cpu")
+    CheckpointManager(paths.checkpoints).save(core.agent, replay=core.replay, config=cfg.to_dict())
+    assert checkpoint_updates(paths, cfg) == 0
+    with pytest.raises(RunStateError, match="does not fit this replay memory"):
+        checkpoint_updates(paths, cfg.with_overrides({"replay.capacity": cfg.replay.capacity + 1000}))
+
+
+def test_nohup_keeps_a_service_alive_when_its_terminal_closes() -> None:
+    import signal
+
+    from services.process import stop_event_on_signals, stop_signals
+
+    previous = signal.getsignal(signal.SIGHUP)
+    try:
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)  # what nohup does
+        assert signal.SIGHUP not in stop_signals()
+        stop_event_on_signals()
+        assert signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)
+        assert signal.SIGHUP in stop_signals()
+    finally:
+        signal.signal(signal.SIGHUP, previous)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, signal.SIG_DFL)
 
 
 def test_resume_names_a_run_that_exists(tmp_path: Path, capsys) -> None:
