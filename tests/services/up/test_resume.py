@@ -160,7 +160,7 @@ def test_nohup_keeps_a_service_alive_when_its_terminal_closes() -> None:
 
     from services.process import stop_event_on_signals, stop_signals
 
-    previous = signal.getsignal(signal.SIGHUP)
+    previous = {s: signal.getsignal(s) for s in (signal.SIGHUP, signal.SIGINT, signal.SIGTERM)}
     try:
         signal.signal(signal.SIGHUP, signal.SIG_IGN)  # what nohup does
         assert signal.SIGHUP not in stop_signals()
@@ -169,9 +169,8 @@ def test_nohup_keeps_a_service_alive_when_its_terminal_closes() -> None:
         signal.signal(signal.SIGHUP, signal.SIG_DFL)
         assert signal.SIGHUP in stop_signals()
     finally:
-        signal.signal(signal.SIGHUP, previous)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
-        signal.signal(signal.SIGTERM, signal.SIG_DFL)
+        for s, handler in previous.items():
+            signal.signal(s, handler)
 
 
 def test_resume_names_a_run_that_exists(tmp_path: Path, capsys) -> None:
