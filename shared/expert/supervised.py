@@ -38,7 +38,7 @@ from shared.expert.dataset import (
     open_or_generate,
 )
 from shared.expert.expert import ExpertConfig, SupervisedError
-from shared.learning.checkpoints import save_supervised
+from shared.learning.checkpoints import save_supervised, supervised_model_path
 from shared.learning.model import (
     SupervisedNet,
     mirror_images,
@@ -221,9 +221,7 @@ def pretrain(out: str | Path, *, worlds: Sequence[str], frames: int, sensor_cfg:
              expert_cfg: ExpertConfig | None = None, drive_cfg: DriveConfig | None = None, seed: int = 0,
              test_fraction: float = 0.2, progress: bool = True) -> PretrainResult:
     """Generate (or reuse) the data, train, and write the model and its card to ``out``."""
-    out = Path(out)
-    if out.suffix != ".safetensors":  # refused now, not after the data and the training
-        raise SupervisedError(f"a supervised model file must end in .safetensors, got {out}")
+    out = supervised_model_path(out)  # refused now, not after the data and the training
     if not (is_whole(seed) and seed >= 0):
         raise SupervisedError(f"seed must be an integer >= 0, got {seed!r}")
     data_dir = Path(data_dir) if data_dir is not None else out.with_name(out.name.removesuffix(".safetensors") + "-data")

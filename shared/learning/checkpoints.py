@@ -503,12 +503,18 @@ def card_path(model_path: str | Path) -> Path:
     return p.with_name(p.name.removesuffix(".safetensors") + ".card.json")
 
 
-def save_supervised(path: str | Path, net: SupervisedNet, card: Mapping[str, Any] | None = None) -> Path:
-    """Write the model as safetensors (weights, sensor config, fingerprint, card in the metadata,
-    atomically, with a digest) and its card as ``<stem>.card.json``."""
+def supervised_model_path(path: str | Path) -> Path:
+    """``path`` as a supervised model's file; CheckpointError unless it ends in .safetensors."""
     path = Path(path)
     if path.suffix != ".safetensors":
         raise CheckpointError(f"a supervised model file must end in .safetensors, got {path}")
+    return path
+
+
+def save_supervised(path: str | Path, net: SupervisedNet, card: Mapping[str, Any] | None = None) -> Path:
+    """Write the model as safetensors (weights, sensor config, fingerprint, card in the metadata,
+    atomically, with a digest) and its card as ``<stem>.card.json``."""
+    path = supervised_model_path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = {"format": MODEL_FORMAT, "version": VERSION, "fingerprint": architecture_fingerprint(net),
             "sensor": asdict(net.sensor_cfg), "depth_encoding": net.trunk.depth_encoding,
