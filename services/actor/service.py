@@ -42,7 +42,6 @@ from services.bus.session import (
     declare_alive,
     declare_reliable_publisher,
     open_service_session,
-    subscribe_messages,
     zenoh_settings,
 )
 from services.process import default_process_id, lower_priority, setup_logging, stop_event_on_signals
@@ -287,10 +286,9 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
         log.info("streaming every %d-th episode to the Rerun viewer at %s", rerun_every_episodes, rerun_url)
 
     with open_service_session(settings) as session, TensorBoardLog(tensorboard) as board, \
-            follower.following(session, keys):
+            follower.following(session, keys, on_flow=gate.on_flow):
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
         learners = LivelinessWatch(session, keys.all_alive("learner"))
-        flow_sub = subscribe_messages(session, keys.flow, FlowControl, gate.on_flow, rejects)  # noqa: F841
         outbox = Outbox(actor_id, TransitionBatcher(actor_id, batch_steps, actor_epoch),
                         declare_reliable_publisher(session, keys.transitions(actor_id)),
                         session.declare_publisher(keys.episode_stats(actor_id)), gate, guide, env.main_world.name,

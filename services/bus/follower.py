@@ -7,7 +7,8 @@ receiver's architecture, so a slow receiver skips versions instead of queueing t
 (learner epoch, update), and one learner process is followed at a time
 (:class:`shared.wire.messages.LearnerEpochs`): a restarted learner's weights replace the dead one's
 once the dead one has been quiet for ``WEIGHTS_QUIET_S``, a message of another epoch among the live
-learner's is ignored, and an epoch from the future is refused. The
+learner's is ignored, and an epoch from the future is refused. The learner's flow control (every
+0.1 s) also says it is alive, so it is never quiet between two weights while it runs. The
 receiver's own loop ``take``\\s it when it is ready and ``load``\\s it into its network; a message
 that does not fit (another fingerprint, or tensors that do not load despite it) is counted by
 cause in ``rejects`` and dropped, never raised.
@@ -39,6 +40,7 @@ from shared.wire.keys import RunKeys
 from shared.wire.messages import (
     RANGE,
     SHAPE,
+    FlowControl,
     LearnerEpochs,
     MessageError,
     RejectCounter,
@@ -50,11 +52,11 @@ log = logging.getLogger("cogexplore.weights")
 WEIGHTS_ENVELOPE_BYTES = 2**20
 """Room for a weights message's names, shapes and fields beside its tensor bytes."""
 WEIGHTS_QUIET_S = 5.0
-"""How long the followed learner must have sent no weights before another learner's are taken (its
-message is kept meanwhile: a restarted learner sends its start-up weights once). A learner in its
-warm-up, or one of a slow preset between two weights, can be quieter: a message of another epoch
-put then is followed until it has been quiet as long and the learner speaks again (without
-security, a bounded detour, not a hold for good)."""
+"""How long the followed learner must have sent neither weights nor flow control before another
+learner's weights are taken (its message is kept meanwhile: a restarted learner sends its start-up
+weights once). A live learner puts flow control every 0.1 s, through its warm-up and between two
+weights of a slow preset, so only a learner whose loop stalls this long (or a dead one) can be
+replaced."""
 
 
 class WeightFollower:
@@ -108,13 +110,28 @@ class WeightFollower:
             self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
                                                     "in the future"), key or None)
 
-    def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Any:
-        """Follow the run's weights stream, then ask the learner for its newest weights on a thread
-        of its own (:meth:`fetch_latest`); returns the subscriber (undeclared with the session)."""
-        subscriber = subscribe_messages(session, keys.weights, WeightsMessage, self.offer, self.rejects,
-                                        max_bytes=self.max_bytes)
+    def on_flow(self, message: FlowControl, _key: str = "") -> None:
+        """The learner's flow control: the followed learner is alive (nothing else is read from it)."""
+        with self._arrived:
+            self._epochs.heard(message.learner_epoch)
+
+    def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0,
+                  on_flow: Callable[[FlowControl, str], None] | None = None) -> list[Any]:
+        """Follow the run's weights stream and the learner's flow control (its pulse), then ask the
+        learner for its newest weights on a thread of its own (:meth:`fetch_latest`); returns the
+        subscribers (undeclared with the session). ``on_flow`` also gets each flow message (an
+        actor's credit gate: one subscription, each bad message counted once)."""
+
+        def flow(message: FlowControl, key: str) -> None:
+            self.on_flow(message, key)
+            if on_flow is not None:
+                on_flow(message, key)
+
+        subscribers = [subscribe_messages(session, keys.weights, WeightsMessage, self.offer, self.rejects,
+                                          max_bytes=self.max_bytes),
+                       subscribe_messages(session, keys.flow, FlowControl, flow, self.rejects)]
         self.fetch_latest(session, keys, query_timeout_s, background=True)
-        return subscriber
+        return subscribers
 
     def fetch_latest(self, session: Any, keys: RunKeys, timeout_s: float = 5.0, *, background: bool = False) -> None:
         """Query the learner's latest-weights queryable and offer the reply (none: the stream will
@@ -139,7 +156,8 @@ class WeightFollower:
             self.offer(message, keys.weights_latest)
 
     @contextmanager
-    def following(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0) -> Iterator[Any]:
+    def following(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0,
+                  on_flow: Callable[[FlowControl, str], None] | None = None) -> Iterator[list[Any]]:
         """``subscribe`` for the length of a ``with`` block, inside the session's own ``with``; leaving
         it closes the session, which ends the queries at once, and waits for their threads.
 
@@ -149,9 +167,9 @@ class WeightFollower:
         interpreter shuts down: before Python 3.14 that thread is ended with pthread_exit inside
         Zenoh's Rust code, which aborts the process ("FATAL: exception not rethrown", status -6)
         instead of letting it exit with its own status."""
-        subscriber = self.subscribe(session, keys, query_timeout_s)
+        subscribers = self.subscribe(session, keys, query_timeout_s, on_flow)
         try:
-            yield subscriber
+            yield subscribers
         finally:
             session.close()
             with self._arrived:

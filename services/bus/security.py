@@ -18,7 +18,7 @@ Every file is readable by its owner only (0600). The access control list starts 
 ``default_permission: "deny"`` and allows each role exactly its part of the run's key space
 (``cogexplore/<run>/...``): only the learner puts weights and flow control, answers the weights
 and configuration queries and declares the learner's liveliness token; actors only put transitions
-and episode stats and declare their own liveliness; the evaluator only reads weights and writes
+and episode stats and declare their own liveliness; the evaluator only reads weights (and flow control, the learner's pulse) and writes
 results (both may ask the two queries); a viewer
 (the launcher's progress bar, dashboards) only reads statistics and liveliness. Each permission is
 given on the flow it travels: ``ingress`` for what a subject sends to the router, ``egress`` for what
@@ -106,8 +106,8 @@ def _grants(run: str) -> dict[str, list[tuple[str, list[str], list[str]]]]:
             ("egress", [token], [alive["learner"]]),
         ],
         "evaluator": [
-            ("ingress", [sub], [weights]),
-            ("egress", [pub], [weights]),
+            ("ingress", [sub], [weights, flow]),  # flow control: the learner's pulse
+            ("egress", [pub], [weights, flow]),
             ("ingress", ["query"], [latest, config]),
             ("egress", ["declare_queryable", "reply"], [latest, config]),
             ("ingress", [pub], [f"{p}/stats/eval/*"]),

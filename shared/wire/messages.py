@@ -130,6 +130,12 @@ class LearnerEpochs:
         self.follow(epoch)
         return self.NEW
 
+    def heard(self, epoch: int) -> None:
+        """The followed learner said something on another stream (its flow control, every 0.1 s):
+        it is alive, however long since its last message here. Any other epoch changes nothing."""
+        if self.followed is not None and epoch == self.followed:
+            self._heard_s = self.clock()
+
     def quiet(self) -> bool:
         """No learner followed, or the followed one has said nothing for ``quiet_s``."""
         return self.followed is None or self.clock() - self._heard_s >= self.quiet_s

@@ -207,3 +207,66 @@ def test_a_follower_with_the_networks_shapes_refuses_a_misshapen_message_on_arri
     follower.offer(good)
     follower.offer(bad)  # newer, but misshapen: never parked over the good one
     assert follower.rejects.counts == {"shape": 1} and follower.take().policy_version == 4
+
+
+def flow_of(epoch: int) -> "FlowControl":
+    from shared.wire.messages import FlowControl
+
+    return FlowControl(learner_id="l", updates=0, transitions_received=0, transitions_wanted=0, learner_epoch=epoch)
+
+
+def test_the_learners_flow_control_keeps_it_followed_through_a_long_silence_in_weights():
+    # Warm-up or a slow preset leaves minutes between two weights; weights of another epoch put then
+    # were followed. The learner's flow control (every 0.1 s) says it is alive: they are not now.
+    from shared.wire.messages import new_epoch
+
+    net = network(0)
+    clock = Clock()
+    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
+                              quiet_s=5.0, clock=clock)
+    learner, forged = new_epoch(), new_epoch() + 1
+    follower.offer(to_message(net, 0, learner_epoch=learner))  # its start-up weights
+    assert follower.take().version == (learner, 0)
+    for _ in range(60):  # a minute of warm-up: flow control, no weights
+        clock.t += 1.0
+        follower.on_flow(flow_of(learner))
+        follower.on_flow(flow_of(forged))  # another epoch's flow control is no pulse of the followed one
+        follower.offer(to_message(net, 0, learner_epoch=forged))
+        assert follower.take() is None
+    clock.t += 1.0
+    follower.offer(to_message(net, 1000, learner_epoch=learner))
+    assert follower.take().version == (learner, 1000)
+    # A learner that stops altogether (weights and flow) is replaced after the quiet time, as before.
+    clock.t += 5.0
+    follower.on_flow(flow_of(forged))
+    follower.offer(to_message(net, 7, learner_epoch=forged))
+    assert follower.take().version == (forged, 7)
+
+
+def test_the_pulse_travels_with_the_followers_own_subscription_through_a_real_router():
+    from services.bus.session import declare_reliable_publisher
+    from shared.wire.messages import new_epoch
+
+    net, keys = network(0), RunKeys("pulse")
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    learner_epoch, forged = new_epoch(), new_epoch() + 1
+    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
+                              quiet_s=1.0)
+    gate_saw: list[int] = []
+    with open_router([endpoint]), open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as learner, \
+            open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as actor:
+        weights = declare_reliable_publisher(learner, keys.weights)
+        with follower.following(actor, keys, query_timeout_s=1.0, on_flow=lambda m, k: gate_saw.append(m.learner_epoch)):
+            deadline = time.monotonic() + 10
+            while follower.take() is None and time.monotonic() < deadline:  # until the route is up
+                weights.put(to_message(net, 1, learner_epoch=learner_epoch).encode())
+                time.sleep(0.1)
+            for _ in range(20):  # 2 s of flow control only: twice the quiet time without weights
+                learner.put(keys.flow, flow_of(learner_epoch).encode())
+                time.sleep(0.1)
+            weights.put(to_message(net, 0, learner_epoch=forged).encode())
+            time.sleep(0.3)
+            assert follower.take() is None and gate_saw and set(gate_saw) == {learner_epoch}
+            time.sleep(1.2)  # the learner quiet on both streams now: another epoch is followed
+            weights.put(to_message(net, 2, learner_epoch=forged).encode())
+            assert follower.take(timeout_s=2.0).learner_epoch == forged

@@ -113,6 +113,7 @@ def test_each_role_does_its_part_and_nothing_more(bus: Bus):
     actor_weights = bus.listen("actor", KEYS.weights)
     evaluator_weights = bus.listen("evaluator", KEYS.weights)
     actor_flow = bus.listen("actor", KEYS.flow)
+    evaluator_flow = bus.listen("evaluator", KEYS.flow)  # the learner's pulse
     stats = bus.listen("viewer", KEYS.all_stats())
     settle()
     s["learner"].put(KEYS.weights, b"real")
@@ -126,9 +127,10 @@ def test_each_role_does_its_part_and_nothing_more(bus: Bus):
     s["learner"].put(KEYS.learner_stats("l"), b"learner stats")
     s["evaluator"].put(KEYS.eval_results("e"), b"eval")
     s["actor"].put(KEYS.episode_stats("a1"), b"episode")
-    settle(lambda: len(stats) >= 3 and evaluator_weights and actor_weights and actor_flow and transitions)
+    settle(lambda: len(stats) >= 3 and evaluator_weights and actor_weights and actor_flow and evaluator_flow
+           and transitions)
     settle(timeout_s=0.5)  # and a little more, for anything that should not come
-    assert evaluator_weights == actor_weights == [b"real"] and actor_flow == [b"credit"]
+    assert evaluator_weights == actor_weights == [b"real"] and actor_flow == evaluator_flow == [b"credit"]
     assert transitions == [b"step"] and sorted(stats) == [b"episode", b"eval", b"learner stats"]
     for session in s.values():
         session.close()
