@@ -35,7 +35,7 @@ from services.process import setup_logging, stop_event_on_signals
 from services.runs import RunLock, RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointManager
-from shared.learning.learner import LearnerCore, RateMeter, resume_from
+from shared.learning.learner import LearnerCore, RateMeter, check_start_sources, resume_from
 from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
 from shared.learning.weights import to_message
@@ -242,6 +242,7 @@ def run_learner_command(args: argparse.Namespace) -> int:
     if args.updates is not None:
         cfg = cfg.with_overrides({"train.total_updates": args.updates})
     if not paths.config.exists():
+        check_start_sources(cfg)  # a transfer or demonstration file it cannot read: no config for a run that never ran
         save_config(cfg, paths)
     pipeline = args.pipeline == "on" or (args.pipeline == "auto"
                                          and resolve_device(cfg.train.device).type == "cpu")

@@ -489,6 +489,8 @@ class Launcher:
                 f"({self.paths.checkpoints}); --resume redoes its final evaluation and report (with --updates N "
                 f"above {done} it trains on to N), --fresh moves it aside to {self.paths.root.name}.old-<time> "
                 "and starts over")
+        if not finished:
+            check_learner_sources(self.run, self.config)
         save_config(self.config, self.paths)
         if finished:
             print(f"run {self.run!r} has finished training ({done}/{self.total_updates} updates)"
@@ -606,6 +608,21 @@ def checkpoint_updates(paths: RunPaths, config: RunConfig | None = None) -> int 
             raise RunStateError(f"cannot resume run {paths.root.name!r} with this config: {exc}. Drop --preset and "
                                 "--set to train it with its own, or start it over (--fresh, or another --run)") from None
     return checkpoint.update_count
+
+
+def check_learner_sources(run: str, config: RunConfig) -> None:
+    """RunStateError when the learner of ``config`` could not start: a transfer file or a
+    demonstration file that is missing or does not fit (checked before the config is saved)."""
+    if not (config.train.init_from or config.train.init_conv_from or config.train.demo_paths):
+        return  # nothing to read: no need to import torch here
+    from shared.learning.checkpoints import CheckpointError
+    from shared.learning.demos import DemoError
+    from shared.learning.learner import check_start_sources
+
+    try:
+        check_start_sources(config)
+    except (CheckpointError, DemoError) as exc:
+        raise RunStateError(f"run {run!r} cannot start its learner: {exc}") from None
 
 
 def recorded_update_rate(learner_csv: Path) -> float | None:

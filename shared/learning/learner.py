@@ -33,7 +33,7 @@ from shared.learning.checkpoints import (
     init_agent_conv,
     init_agent_weights,
 )
-from shared.learning.demos import demo_replay, load_demonstrations
+from shared.learning.demos import Demonstration, demo_replay, load_demonstrations
 from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
 from shared.learning.pipeline import TargetPipeline
 from shared.learning.replay import Batch, ReplayError, ReplayMemory, concat_batches
@@ -59,6 +59,30 @@ class ActorRecord:
     seen_s: float = field(default_factory=time.monotonic)
 
 
+def transfer_weights(agent: DQNAgent, cfg: RunConfig) -> None:
+    """The run's transfer into a new agent: ``train.init_from`` (the whole network) or else
+    ``train.init_conv_from`` (the supervised conv layers); CheckpointError when a file is missing
+    or does not fit."""
+    if cfg.train.init_from:  # fine-tuning: the whole network, conv layers included
+        init_agent_weights(agent, cfg.train.init_from)
+    elif cfg.train.init_conv_from:
+        init_agent_conv(agent, cfg.train.init_conv_from)
+
+
+def run_demonstrations(cfg: RunConfig) -> list[Demonstration]:
+    """The run's planner demonstrations (``train.demos``), read and checked (DemoError)."""
+    frame_shape = (cfg.sensor.height, cfg.sensor.width)
+    return [d for p in cfg.train.demo_paths for d in load_demonstrations(p, frame_shape)]
+
+
+def check_start_sources(cfg: RunConfig) -> None:
+    """Load what a learner of ``cfg`` reads from files at every start besides its checkpoint (the
+    transfer's weights, the demonstrations), so that a launcher refuses a missing or unfit one
+    before it saves the config, not in the learner after. Raises CheckpointError or DemoError."""
+    transfer_weights(DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu"), cfg)
+    run_demonstrations(cfg)
+
+
 class LearnerCore:
     """Replay memory, agent and the replay-ratio rule. ``pipeline``: compute each update's TD targets
     on a second thread during the update before it (:class:`shared.learning.pipeline.TargetPipeline`;
@@ -70,17 +94,14 @@ class LearnerCore:
         # its copies of the nets are refreshed at every batch, so a later resume or transfer reaches them
         self._pipeline = TargetPipeline(self.agent) if pipeline else None
         # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
-        if cfg.train.init_from:  # fine-tuning: the whole network, conv layers included
-            init_agent_weights(self.agent, cfg.train.init_from)
-        elif cfg.train.init_conv_from:
-            init_agent_conv(self.agent, cfg.train.init_conv_from)
+        transfer_weights(self.agent, cfg)
         frame_shape = (cfg.sensor.height, cfg.sensor.width)
         self.replay = ReplayMemory(cfg.replay, frame_shape, seed=cfg.train.seed)
         # Planner demonstrations (train.demos) live apart and are never overwritten; they are
         # read from their files at every start, so checkpoints do not carry them.
         self.demo_replay: ReplayMemory | None = None
-        if cfg.train.demo_paths:
-            demos = [d for p in cfg.train.demo_paths for d in load_demonstrations(p, frame_shape)]
+        demos = run_demonstrations(cfg)
+        if demos:
             self.demo_replay = demo_replay(demos, frame_shape, seed=cfg.train.seed + 3)
         self.received = 0
         self.actors: collections.OrderedDict[str, ActorRecord] = collections.OrderedDict()

@@ -22,7 +22,7 @@ from shared.config import ModelConfig, SensorConfig
 from shared.learning.model import QNetwork, architecture_fingerprint
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys
-from shared.wire.messages import RejectCounter, WeightsMessage
+from shared.wire.messages import FlowControl, RejectCounter, WeightsMessage
 
 SENSOR = SensorConfig(width=32, height=24)
 
@@ -209,9 +209,7 @@ def test_a_follower_with_the_networks_shapes_refuses_a_misshapen_message_on_arri
     assert follower.rejects.counts == {"shape": 1} and follower.take().policy_version == 4
 
 
-def flow_of(epoch: int) -> "FlowControl":
-    from shared.wire.messages import FlowControl
-
+def flow_of(epoch: int) -> FlowControl:
     return FlowControl(learner_id="l", updates=0, transitions_received=0, transitions_wanted=0, learner_epoch=epoch)
 
 

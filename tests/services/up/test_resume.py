@@ -359,3 +359,28 @@ def test_a_child_that_exited_says_how_from_its_log(tmp_path: Path) -> None:
     finally:
         sleeper.process.kill()
         sleeper.process.wait()
+
+
+def test_a_transfer_or_demonstration_file_the_learner_cannot_read_is_refused_before_the_config_is_saved(
+        tmp_path: Path, capsys) -> None:
+    # The resume check passed a missing train.init_conv_from; the learner then failed on it at every
+    # start (it transfers before it resumes), with the config already saved over the run's own.
+    paths = run_at(tmp_path, updates=10, total_updates=20)
+    recipe = paths.config.read_bytes()
+    for override, said in (("train.init_conv_from=missing.safetensors", "init_conv_from = 'missing.safetensors'"),
+                           ("train.init_from=missing.safetensors", "init_from = 'missing.safetensors'"),
+                           ("train.demos=missing.npz", "missing.npz: no such demonstration file")):
+        extra = ["--set", "dqn.demo_batch=2"] if override.startswith("train.demos") else []
+        assert main(["up", "--run", RUN, "--runs-dir", str(tmp_path), "--set", override, *extra, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"run {RUN!r} cannot start its learner" in err and said in err and err.count("\n") == 1, err
+        assert paths.config.read_bytes() == recipe and not list(paths.logs.glob("*.log"))  # nothing started
+    # a new run too: refused before anything starts
+    assert main(["up", "--run", "new", "--runs-dir", str(tmp_path), "--preset", "smoke", "--set",
+                 "train.init_conv_from=missing.safetensors", "--quiet"]) == 2
+    assert "cannot start its learner" in capsys.readouterr().err
+    assert not (tmp_path / "new" / "config.toml").exists()
+    # the learner service on its own (docker compose): no config for a run that never ran
+    assert main(["learner", "--run", "solo", "--runs-dir", str(tmp_path), "--preset", "smoke", "--set",
+                 "train.init_conv_from=missing.safetensors"]) == 2
+    assert "no such file" in capsys.readouterr().err and not (tmp_path / "solo" / "config.toml").exists()
