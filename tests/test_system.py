@@ -65,6 +65,20 @@ class Watch:
         return self.stats.extra.get(f"received.{actor}", 0.0) if self.stats else 0.0
 
 
+def latest_batch(watch: Watch) -> TransitionBatch:
+    """A real actor's batch, as heard on the bus (a valid message to put on a hostile key)."""
+    with watch.lock:
+        return watch.batches[-1]
+
+
+def flood_batch(like: TransitionBatch, steps: int = 64) -> bytes:
+    """A valid batch of ``steps`` physical transitions with ``like``'s frames (an outsider's flood)."""
+    frame = like.depth_mm[0]
+    return TransitionBatch.from_steps(
+        actor_id="intruder", episode=0, first_step=0, start_index=0, depth=[frame] * steps, next_depth=frame,
+        action=[0] * steps, reward=[1.0] * steps, policy_version=[0] * steps, pose=[(0, 0, 0)] * steps).encode()
+
+
 @pytest.mark.timeout(300)
 def test_router_learner_two_actors_churn_and_bad_input(tmp_path: Path):
     port = free_tcp_port()
@@ -118,16 +132,38 @@ def test_router_learner_two_actors_churn_and_bad_input(tmp_path: Path):
                 policy_version=[0], pose=[(0, 0, 0)]).encode()]  # wrong frame size for the sensor
             for payload in bad:
                 put_reliable(session, keys.transitions("actor-evil"), payload)
-            watch.wait(lambda w: w.stats.transitions_rejected >= rejected_then + len(bad), 30, "rejects counted")
+            # a key the transitions wildcard takes but no actor id can be: counted, not a traceback per message
+            put_reliable(session, f"{keys.prefix}/transitions/actor~evil", latest_batch(watch).encode())
+            watch.wait(lambda w: w.stats.transitions_rejected >= rejected_then + len(bad) + 1, 30, "rejects counted")
             with watch.lock:
                 assert watch.received("actor-evil") == 0
                 assert watch.stats.replay_size >= replay_then
-                assert {"garbage", "truncated", "shape"} <= set(watch.stats.rejects)
+                assert {"garbage", "truncated", "shape", "range"} <= set(watch.stats.rejects)
             assert procs["learner"].poll() is None, "the learner survived bad input"
+            assert "failed on a message" not in (tmp_path / RUN / "logs" / "learner-service.log").read_text()
 
-        # SIGTERM: the learner writes a final checkpoint and exits 0.
-        procs["learner"].send_signal(signal.SIGTERM)
-        assert procs["learner"].wait(60) == 0
+            # A flood of valid batches, faster than the learner takes them in: its loop still gives
+            # flow control, and SIGTERM in the middle of it ends the learner (it took them in until
+            # its inbox was empty: neither, for as long as the flood lasted).
+            flows: list[float] = []
+            flow_sub = subscribe_messages(session, keys.flow, None,  # noqa: F841
+                                          lambda _m, _k: flows.append(time.monotonic()), RejectCounter("t"))
+            flood = flood_batch(latest_batch(watch))
+            publisher = session.declare_publisher(keys.transitions("intruder"))
+            started = time.monotonic()
+            while time.monotonic() - started < 3.0:
+                publisher.put(flood)
+                time.sleep(0.002)
+            during = [t for t in flows if t > started + 0.5]
+            assert during and max(b - a for a, b in zip([started + 0.5, *during], [*during, time.monotonic()])) < 2.0
+            procs["learner"].send_signal(signal.SIGTERM)
+            terminated = time.monotonic()
+            while procs["learner"].poll() is None and time.monotonic() - terminated < 3.0:
+                publisher.put(flood)
+                time.sleep(0.002)
+            assert procs["learner"].wait(60) == 0 and time.monotonic() - terminated < 30.0
+
+        # SIGTERM: the learner wrote a final checkpoint and exited 0.
         assert (tmp_path / RUN / "checkpoints" / "latest").exists()
     finally:
         for name, p in procs.items():

@@ -285,7 +285,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                robot_radius_m=cfg.env.robot_radius_m)
         log.info("streaming every %d-th episode to the Rerun viewer at %s", rerun_every_episodes, rerun_url)
 
-    with open_service_session(settings) as session, TensorBoardLog(tensorboard) as board, \
+    with open_service_session(settings, stop) as session, TensorBoardLog(tensorboard) as board, \
             follower.following(session, keys, on_flow=gate.on_flow):
         token = declare_alive(session, keys.alive("actor", actor_id))  # noqa: F841  (kept alive)
         learners = LivelinessWatch(session, keys.all_alive("learner"))

@@ -33,11 +33,12 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from services.bus.session import query_latest, subscribe_messages
+from services.bus.session import query_replies, subscribe_messages
 from shared.learning.model import ModelError
 from shared.learning.weights import load_message
 from shared.wire.keys import RunKeys
 from shared.wire.messages import (
+    OVERSIZE,
     RANGE,
     SHAPE,
     FlowControl,
@@ -57,6 +58,9 @@ learner's weights are taken (its message is kept meanwhile: a restarted learner 
 weights once). A live learner puts flow control every 0.1 s, through its warm-up and between two
 weights of a slow preset, so only a learner whose loop stalls this long (or a dead one) can be
 replaced."""
+PULSE_SLACK_UPDATES = 100
+"""How far weights may be numbered ahead of the followed learner's last flow control (sent at
+every update: its weights of update v can overtake its flow control of v)."""
 
 
 class WeightFollower:
@@ -110,10 +114,26 @@ class WeightFollower:
             self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
                                                     "in the future"), key or None)
 
-    def on_flow(self, message: FlowControl, _key: str = "") -> None:
-        """The learner's flow control: the followed learner is alive (nothing else is read from it)."""
+    def on_flow(self, message: FlowControl, key: str = "") -> None:
+        """The learner's flow control, its pulse: the followed learner is alive, at ``updates``.
+
+        Weights numbered more than :data:`PULSE_SLACK_UPDATES` ahead of it did not come from it (a
+        learner's version is its update count): a parked one is dropped and counted, and a taken
+        one no longer holds the learner's real weights off as "older" (one forged message
+        numbered 2^40 - 1 did, for the rest of the learner's life)."""
+        forged = None
         with self._arrived:
             self._epochs.heard(message.learner_epoch)
+            if message.learner_epoch != self._epochs.followed:
+                return
+            ahead = (message.learner_epoch, message.updates + PULSE_SLACK_UPDATES)
+            if self._newest is not None and self._newest.version > ahead:
+                forged, self._newest = self._newest, None
+            if self._taken_version > ahead:
+                self._taken_version = (message.learner_epoch, message.updates)
+        if forged is not None:
+            self.rejects.reject(MessageError(RANGE, f"weights v{forged.policy_version} are ahead of their learner, "
+                                                    f"at update {message.updates}"), key or None)
 
     def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0,
                   on_flow: Callable[[FlowControl, str], None] | None = None) -> list[Any]:
@@ -143,17 +163,22 @@ class WeightFollower:
                 self._queries = [q for q in self._queries if q.is_alive()] + [query]
             query.start()
             return
-        try:
-            payload = query_latest(session, keys.weights_latest, timeout_s=timeout_s)
+        def oversize(size: int) -> None:
+            self.rejects.reject(MessageError(OVERSIZE, f"a {size}-byte answer, more than this network's weights"),
+                                keys.weights_latest)
+
+        try:  # every reply, each judged as a message of the stream is (epoch, version): not the first on trust
+            payloads = query_replies(session, keys.weights_latest, self.max_bytes or WeightsMessage.MAX_BYTES,
+                                     timeout_s=timeout_s, oversize=oversize)
         except zenoh.ZError as exc:  # the session closed first: the receiver is stopping
             log.debug("no query for the latest weights: %s", exc)
             return
-        if payload is None:
+        if not payloads:
             log.info("no answer from %s yet: waiting for the weights stream", keys.weights_latest)
-            return
-        message = self.rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
-        if message is not None:
-            self.offer(message, keys.weights_latest)
+        for payload in payloads:
+            message = self.rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
+            if message is not None:
+                self.offer(message, keys.weights_latest)
 
     @contextmanager
     def following(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0,

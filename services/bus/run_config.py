@@ -16,7 +16,7 @@ import time
 
 import zenoh
 
-from services.bus.session import TransportError, ZenohSettings, open_service_session, query_latest
+from services.bus.session import TransportError, ZenohSettings, open_service_session, query_replies
 from services.runs import RunPaths, resolve_config
 from shared.config import ConfigError, ConfigMismatchError, RunConfig, require_same_run
 from shared.wire.keys import RunKeys
@@ -31,15 +31,35 @@ PROGRESS_EVERY_S = 10.0
 
 def ask_run_config(session: zenoh.Session, keys: RunKeys,
                    timeout_s: float = QUERY_TIMEOUT_S) -> RunConfigMessage | None:
-    """The learner's answer on ``keys.config``, or None when no learner answers."""
-    payload = query_latest(session, keys.config, timeout_s=timeout_s)
-    if payload is None:
+    """The learner's answer on ``keys.config``, or None when no learner answers.
+
+    Every reply is read, not the first: without the access control anyone may answer too. A reply
+    this build cannot read is skipped while another can be read (one only: another build of
+    cogexplore, a ConfigError); readable replies that differ are refused (a ConfigError naming
+    both learners), never one of them taken on trust."""
+    payloads = query_replies(session, keys.config, RunConfigMessage.MAX_BYTES, timeout_s=timeout_s,
+                             oversize=lambda size: log.warning("a %d-byte answer on %s: skipped", size, keys.config))
+    messages, unreadable = [], []
+    for payload in payloads:
+        try:
+            messages.append(RunConfigMessage.decode(payload))
+        except MessageError as exc:
+            unreadable.append(exc)
+    if not messages:
+        if unreadable:  # only the learner may answer here with security on: another build of cogexplore
+            raise ConfigError(f"the learner of run {keys.run!r} answered {keys.config} with a configuration this "
+                              f"build cannot read ({unreadable[0]}): run the same cogexplore version on both sides")
         return None
-    try:
-        return RunConfigMessage.decode(payload)
-    except MessageError as exc:  # only the learner may answer here: another build of cogexplore
-        raise ConfigError(f"the learner of run {keys.run!r} answered {keys.config} with a configuration this "
-                          f"build cannot read ({exc}): run the same cogexplore version on both sides") from None
+    if unreadable:
+        log.warning("%d answer(s) on %s this build cannot read, beside a readable one: skipped (%s)",
+                    len(unreadable), keys.config, unreadable[0])
+    first = messages[0]
+    other = next((m for m in messages[1:] if m.run_config != first.run_config), None)
+    if other is not None:
+        raise ConfigError(f"run {keys.run!r} has several answers on {keys.config} that differ (learners "
+                          f"{first.learner_id!r} and {other.learner_id!r}): only the run's learner should answer "
+                          "there; with the access control on (cogexplore secure) no one else can")
+    return first
 
 
 def fetch_run_config(settings: ZenohSettings, keys: RunKeys, wait_s: float) -> RunConfigMessage:
@@ -87,7 +107,7 @@ class RunConfigCheck:
 
     def _run(self, settings: ZenohSettings, stop: threading.Event) -> None:
         try:
-            with open_service_session(settings) as session:
+            with open_service_session(settings, stop) as session:
                 self._check(session, stop)
         except TransportError:
             pass  # no router: the service's own session says so

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import errno
+import itertools
 import json
 import logging
 import os
@@ -251,10 +252,21 @@ def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0,
             time.sleep(min(0.2, remaining))
 
 
-def open_service_session(settings: ZenohSettings) -> zenoh.Session:
+class StoppedWaiting(TransportError):
+    """A stop (SIGTERM, Ctrl-C) came while a service waited for its router: it ends, as asked."""
+
+
+def open_service_session(settings: ZenohSettings, stop: threading.Event | None = None) -> zenoh.Session:
     """A service's session: :func:`open_session`, retrying ``settings.router_wait_s`` while no router
-    answers (``--router-wait``)."""
-    return open_session(settings, wait_s=settings.router_wait_s)
+    answers (``--router-wait``); StoppedWaiting as soon as ``stop`` is set meanwhile (a service
+    asked to stop waited out the whole wait, then failed)."""
+    try:
+        return open_session(settings, wait_s=settings.router_wait_s,
+                            give_up=None if stop is None else lambda: "stopped" if stop.is_set() else None)
+    except TransportError as exc:
+        if stop is not None and stop.is_set():
+            raise StoppedWaiting(f"stopped while waiting for the router ({settings.describe()})") from None
+        raise exc
 
 
 # ---------------------------------------------------------------------------------------------
@@ -283,9 +295,11 @@ def subscribe_messages(session: zenoh.Session, key_expr: str, cls: type[Message]
     ``max_bytes`` (default: what ``cls`` allows) is refused before it is even copied out of Zenoh:
     a receiver that knows what it expects (weights of its own network, frames of its own sensor)
     passes that, so that 50 MB of garbage costs it nothing. An exception raised by ``on_message``
-    is logged and the subscription carries on.
+    is logged (the first with its traceback, then one line in a thousand: a message that keeps
+    failing must not flood the log) and the subscription carries on.
     """
     limit = max_bytes if max_bytes is not None else (cls.MAX_BYTES if cls is not None else MAX_MESSAGE_BYTES)
+    failures = itertools.count(1)
 
     def on_sample(sample: zenoh.Sample) -> None:
         key = str(sample.key_expr)
@@ -298,8 +312,12 @@ def subscribe_messages(session: zenoh.Session, key_expr: str, cls: type[Message]
             return
         try:
             on_message(message, key)
-        except Exception:
-            log.exception("handler for %s failed on a message from %s", key_expr, key)
+        except Exception as exc:
+            n = next(failures)
+            if n == 1:
+                log.exception("handler for %s failed on a message from %s", key_expr, key)
+            elif n % 1000 == 0:
+                log.error("handler for %s failed %d times, last on a message from %s: %s", key_expr, n, key, exc)
 
     return session.declare_subscriber(key_expr, on_sample)
 
@@ -330,6 +348,30 @@ def query_latest(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) 
             return reply.ok.payload.to_bytes()
         log.debug("error reply to %s: %s", key_expr, reply.err)
     return None
+
+
+MAX_REPLIES = 16
+"""Replies to one query that are read at most (one queryable answers a cogexplore query)."""
+
+
+def query_replies(session: zenoh.Session, key_expr: str, max_bytes: int, timeout_s: float = 2.0,
+                  oversize: Callable[[int], None] | None = None) -> list[bytes]:
+    """The payloads of every successful reply to a get on ``key_expr`` (the first
+    :data:`MAX_REPLIES`), for a caller that must not take the first answer on trust: without the
+    access control anyone may answer, first. A payload over ``max_bytes`` is left in Zenoh
+    (``oversize(size)`` is told)."""
+    payloads = []
+    # every queryable, and no consolidation (by default Zenoh keeps one reply per key: the forger's, maybe)
+    for reply in session.get(key_expr, timeout=timeout_s, target=zenoh.QueryTarget.ALL,
+                             consolidation=zenoh.ConsolidationMode.NONE):
+        if reply.ok is None:
+            log.debug("error reply to %s: %s", key_expr, reply.err)
+        elif len(reply.ok.payload) > max_bytes:
+            if oversize is not None:
+                oversize(len(reply.ok.payload))
+        elif len(payloads) < MAX_REPLIES:
+            payloads.append(reply.ok.payload.to_bytes())
+    return payloads
 
 
 # ---------------------------------------------------------------------------------------------

@@ -149,7 +149,7 @@ def run_drive_command(args: argparse.Namespace) -> int:
     stop = stop_event_on_signals()
     settings = ros2_settings(args)
     try:
-        with open_service_session(settings) as session:
+        with open_service_session(settings, stop) as session:
             node = DriveNode(session, args, policy, recorder)
             atexit.register(node.stop_at_exit)  # an exception on the way out still stops the robot
             log.info("driving %s with %s (%s, %s speeds, watchdog %.2f s) on %s", args.robot, policy.label,

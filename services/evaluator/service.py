@@ -152,12 +152,13 @@ class EvaluatorService:
 
     def due(self, message: WeightsMessage) -> bool:
         """The first weights of each learner process (a restarted learner's at once), then each that
-        enters a new multiple of ``every_updates``."""
+        enters a new multiple of ``every_updates``; and weights numbered below the last evaluated
+        (a learner's versions only rise: the last was a forged one, which must not hold off the rest)."""
         epoch, update = message.version
         if self.last_version is None or epoch != self.last_version[0]:
             return True
         last = self.last_version[1]
-        return update > last and update // self.every_updates > last // self.every_updates
+        return update < last or (update > last and update // self.every_updates > last // self.every_updates)
 
     # -- one evaluation -------------------------------------------------------------------------
 
@@ -227,7 +228,7 @@ class EvaluatorService:
     def run(self, stop: threading.Event, once: bool = False, wait_weights_s: float = 60.0) -> int:
         """Evaluate until ``stop`` is set (or, with ``once``, the latest weights once). Returns
         a process exit status: 0, or 1 when ``once`` found no weights within ``wait_weights_s``."""
-        with open_service_session(self.settings) as session, \
+        with open_service_session(self.settings, stop) as session, \
                 self.weights.following(session, self.keys, self.query_timeout_s):
             # Announced once subscribed: whoever sees the token can publish weights to us.
             token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))

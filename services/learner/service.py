@@ -39,7 +39,7 @@ from shared.learning.learner import LearnerCore, RateMeter, check_start_sources,
 from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
 from shared.learning.weights import to_message
-from shared.wire.keys import RunKeys, parse_key
+from shared.wire.keys import KeyExprError, RunKeys, parse_key
 from shared.wire.messages import (
     MAX_BATCH_STEPS,
     FlowControl,
@@ -52,6 +52,11 @@ from shared.wire.messages import (
 )
 
 log = logging.getLogger("cogexplore.learner")
+
+INBOX_BYTES = 256 * 2**20
+"""Received transition batches waiting for the learner's loop, at most (by their largest size)."""
+INGEST_BUDGET_S = 0.05
+"""Time one pass of the learner's loop spends taking batches in before its update and flow control."""
 
 
 class LatestSender:
@@ -110,14 +115,23 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     def save_checkpoint() -> None:
         checkpoints.save(core.agent, replay=core.replay if save_replay else None, config=config_dict,
                          extra=core.checkpoint_extra())
-    inbox: queue.Queue[TransitionBatch] = queue.Queue(maxsize=4096)
+    # a batch of this sensor's frames at most: anything longer is refused before it is copied
+    batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
+    # Bounded in bytes, not only in batches: 4096 batches of 160 x 120 frames held 10 GB. Flow
+    # control keeps a few hundred transitions in flight; the rest is a flood, refused and counted.
+    inbox: queue.Queue[TransitionBatch] = queue.Queue(maxsize=max(64, min(4096, INBOX_BYTES // batch_bytes)))
     rejects = RejectCounter("transition batch", log)
     flow_slack = flow_slack if flow_slack is not None else max(256, 4 * cfg.dqn.batch_size)
     update_rate, transition_rate = RateMeter(), RateMeter()
     started = time.monotonic()
 
     def on_batch(batch: TransitionBatch, key: str) -> None:
-        if parse_key(key).source != batch.actor_id:
+        try:
+            source = parse_key(key).source
+        except KeyExprError as exc:  # a chunk the wildcard takes but no actor id can be ("a0~x")
+            rejects.reject(MessageError("range", str(exc)), key)
+            return
+        if source != batch.actor_id:
             rejects.reject(MessageError("inconsistent", f"actor id {batch.actor_id!r} sent on {key}"), key)
             return
         try:
@@ -125,15 +139,13 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         except queue.Full:
             rejects.reject(MessageError("oversize", "learner inbox full"), key)
 
-    with open_service_session(settings) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
+    with open_service_session(settings, stop) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
             TensorBoardLog(tensorboard) as board:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
         run_config = RunConfigMessage(learner_id=learner_id, config=cfg).encode()  # what actors without a preset take
         config_queryable = serve_latest(session, keys.config, lambda: run_config)  # noqa: F841
-        # a batch of this sensor's frames at most: anything longer is refused before it is copied
-        batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
         sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects,  # noqa: F841
                                  max_bytes=batch_bytes)
         flow_pub = session.declare_publisher(keys.flow)
@@ -181,9 +193,10 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
 
         while not stop.is_set() and not core.done:
             pass_started = time.monotonic()
-            # 1. data in
+            # 1. data in, for INGEST_BUDGET_S at most: a flood must not hold the updates, flow
+            # control and a stop request off (the loop ingested until the inbox was empty)
             drained = 0
-            while True:
+            while not stop.is_set() and time.monotonic() - pass_started < INGEST_BUDGET_S:
                 try:
                     batch = inbox.get_nowait()
                 except queue.Empty:

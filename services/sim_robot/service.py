@@ -181,7 +181,7 @@ def run_sim_robot_command(args: argparse.Namespace) -> int:
     setup_logging(args.log_level)
     stop = stop_event_on_signals()
     settings = ros2_settings(args)
-    with open_service_session(settings) as session:
+    with open_service_session(settings, stop) as session:
         robot = SimRobot(session, args)
         log.info("sim-robot %s in %s from start %d (%s, %s, %s)", args.robot, robot.env.world.name, args.start,
                  args.ros2_format, args.encoding, "lock step" if args.lockstep else "real time")

@@ -296,7 +296,10 @@ def _array_from_wire(obj: Any, name: str) -> np.ndarray:
     if expected != len(data):
         raise MessageError(SHAPE, f"{name}: shape {shape} x {dtype.itemsize} bytes = {expected} "
                                   f"but data holds {len(data)} bytes")
-    return np.frombuffer(data, dtype=dtype).reshape(shape)
+    try:
+        return np.frombuffer(data, dtype=dtype).reshape(shape)
+    except ValueError as exc:  # an empty array of absurd dimensions ([0, 2**40, 2**40]): numpy's limits
+        raise MessageError(SHAPE, f"{name}: shape {shape}: {exc}") from None
 
 
 def _unpack(data: bytes | bytearray | memoryview, max_bytes: int) -> dict[str, Any]:
@@ -941,12 +944,16 @@ class RejectCounter:
 
     def decode(self, data: bytes | bytearray | memoryview, cls: type[M] | None = None,
                source: str | None = None) -> M | Message | None:
-        """Decode ``data`` as ``cls`` (any type if None); on MessageError count it and return None."""
+        """Decode ``data`` as ``cls`` (any type if None); on MessageError count it and return None.
+        Any other exception is a decoder bug that bytes from the network reached: counted as
+        garbage, never raised into a Zenoh thread (which logs a traceback per message, uncounted)."""
         try:
             return cls.decode(data) if cls is not None else decode_message(data)
         except MessageError as exc:
             self.reject(exc, source)
-            return None
+        except Exception as exc:  # noqa: BLE001 (see above)
+            self.reject(MessageError(GARBAGE, f"undecodable ({type(exc).__name__}: {exc})"), source)
+        return None
 
     @property
     def counts(self) -> dict[str, int]:

@@ -268,3 +268,34 @@ def test_the_pulse_travels_with_the_followers_own_subscription_through_a_real_ro
             time.sleep(1.2)  # the learner quiet on both streams now: another epoch is followed
             weights.put(to_message(net, 2, learner_epoch=forged).encode())
             assert follower.take(timeout_s=2.0).learner_epoch == forged
+
+
+def test_weights_numbered_ahead_of_their_learners_pulse_never_hold_its_real_weights_off():
+    # One forged message in the learner's own epoch, numbered 2^40 - 1, made every later real
+    # weights message "older": followers stayed on it for the rest of the learner's life.
+    from shared.wire.messages import MAX_POLICY_VERSION, new_epoch
+
+    net = network(0)
+    follower = follower_for(net)
+    learner = new_epoch()
+    for update in (25, 50):
+        follower.on_flow(FlowControl(learner_id="l", updates=update, transitions_received=0, transitions_wanted=0,
+                                     learner_epoch=learner))
+        follower.offer(to_message(net, update, learner_epoch=learner))
+    assert follower.take().version == (learner, 50)
+    follower.offer(to_message(net, MAX_POLICY_VERSION - 1, learner_epoch=learner))
+    assert follower.take().policy_version == MAX_POLICY_VERSION - 1  # taken: the pulse had not come yet
+    follower.on_flow(FlowControl(learner_id="l", updates=60, transitions_received=0, transitions_wanted=0,
+                                 learner_epoch=learner))
+    follower.offer(to_message(net, 75, learner_epoch=learner))
+    assert follower.take().version == (learner, 75)  # the learner's own again
+    # parked, not yet taken, when the pulse comes: dropped and counted
+    follower.offer(to_message(net, 10**6, learner_epoch=learner))
+    follower.on_flow(FlowControl(learner_id="l", updates=80, transitions_received=0, transitions_wanted=0,
+                                 learner_epoch=learner))
+    assert follower.take() is None and follower.rejects.counts == {"range": 1}
+    # a real message overtaking its flow control (updates 80 -> weights 100) is within the slack
+    follower.offer(to_message(net, 100, learner_epoch=learner))
+    follower.on_flow(FlowControl(learner_id="l", updates=99, transitions_received=0, transitions_wanted=0,
+                                 learner_epoch=learner))
+    assert follower.take().version == (learner, 100) and follower.rejects.counts == {"range": 1}

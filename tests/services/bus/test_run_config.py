@@ -107,6 +107,31 @@ def test_a_named_preset_is_checked_once_a_learner_answers(router: str, tmp_path:
         assert same.finish() is None and not stop.is_set()
 
 
+def test_an_answer_beside_the_learners_neither_stops_a_process_nor_is_taken_on_trust(router: str) -> None:
+    # The first reply was taken: garbage from anyone stopped every new actor ("a configuration this
+    # build cannot read"), and a readable config from anyone was taken when it came first.
+    from services.bus.run_config import ask_run_config
+    from shared.config import ConfigError
+
+    settings = ZenohSettings(connect=(router,))
+    real = RunConfigMessage(learner_id="learner", config=load_preset("smoke")).encode()
+    forged = RunConfigMessage(learner_id="learner", config=load_preset("smoke").with_overrides(
+        {"explore.eps_end": 1.0})).encode()
+    with open_session(settings) as learner, open_session(settings) as outsider, open_session(settings) as actor:
+        queryables = [serve_latest(learner, KEYS.config, lambda: real)]
+        for reply in (b"\x00garbage", bytes(RunConfigMessage.MAX_BYTES + 1)):
+            queryables.append(serve_latest(outsider, KEYS.config, lambda reply=reply: reply))
+        time.sleep(0.3)  # the queryables reach the router
+        for _ in range(3):
+            assert ask_run_config(actor, KEYS).run_config == load_preset("smoke")
+        queryables.append(serve_latest(outsider, KEYS.config, lambda: forged))
+        time.sleep(0.3)
+        with pytest.raises(ConfigError, match="several answers on cogexplore/cfg/config that differ"):
+            ask_run_config(actor, KEYS)
+        for queryable in queryables:
+            queryable.undeclare()
+
+
 def test_one_default_preset_for_up_and_the_services(tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("COGEXPLORE_PRESET", "")  # what docker-compose.yml sets by default: unset
     fresh = RunPaths(tmp_path / "fresh")

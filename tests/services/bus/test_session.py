@@ -209,6 +209,19 @@ def test_a_service_waits_for_its_router_as_long_as_it_is_told() -> None:
     assert 1.0 <= time.monotonic() - started < 15.0  # the 30 s default would not end here
 
 
+def test_a_service_asked_to_stop_while_it_waits_for_its_router_stops_at_once() -> None:
+    # SIGTERM set the stop event, but the wait went on for --router-wait (30 s), then failed.
+    from services.bus.session import StoppedWaiting, open_service_session
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    stop = threading.Event()
+    threading.Timer(0.5, stop.set).start()
+    started = time.monotonic()
+    with pytest.raises(StoppedWaiting, match="stopped while waiting for the router"):
+        open_service_session(ZenohSettings(connect=(endpoint,), router_wait_s=60.0), stop)
+    assert time.monotonic() - started < 10.0
+
+
 def test_client_without_router_fails_clearly_and_can_wait_for_one() -> None:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     settings = ZenohSettings(mode="client", connect=(endpoint,))

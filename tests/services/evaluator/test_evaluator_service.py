@@ -205,3 +205,17 @@ def test_a_preset_the_runs_weights_do_not_fit_stops_the_evaluator_in_one_line(ro
     assert proc.returncode == 2 and "Traceback" not in out, out
     assert last.startswith("cogexplore evaluator: error: this evaluator's sensor.width=64 differs from the run's 40 "
                            "(learner 'learner' of run 'proc'"), last
+
+
+def test_weights_numbered_below_the_last_evaluated_are_due_a_forged_version_holds_nothing_off(tmp_path: Path) -> None:
+    # A learner's versions only rise: one forged message numbered 2^40 - 1, once evaluated, made
+    # every real version "not due" for the rest of the learner's life.
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    service = EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", every_updates=10,
+                               episodes_per_start=1, max_steps=5)
+    net = small_net()
+    service.last_version = (1, 2**40 - 1)
+    assert service.due(to_message(net, 25, learner_epoch=1))
+    service.last_version = (1, 25)
+    assert not service.due(to_message(net, 27, learner_epoch=1)) and service.due(to_message(net, 30, learner_epoch=1))
+    assert not service.due(to_message(net, 25, learner_epoch=1))  # the same version again: not twice

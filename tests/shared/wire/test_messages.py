@@ -259,6 +259,13 @@ def test_wrong_shape_is_rejected() -> None:
     assert cause_of(rewrite(good, _set_array("next_depth_mm", np.zeros((H, W + 2), np.uint16)))) == m.SHAPE
     # hostile shapes do not overflow
     assert cause_of(rewrite(good, lambda o: o["depth_mm"].update(shape=[2**40, 2**40, 2**40]))) == m.SHAPE
+    # nor do empty arrays of absurd dimensions (numpy refused them with a ValueError, uncounted)
+    for shape in ([2**63, 0], [0, 2**40, 2**40], [2**31, 2**31, 0]):
+        empty = lambda o, shape=shape: o["depth_mm"].update(shape=shape, data=b"")  # noqa: E731
+        assert cause_of(rewrite(good, empty)) == m.SHAPE
+        weights = rewrite(make_weights().encode(), lambda o, shape=shape: o["tensors"]["fc.bias"].update(
+            shape=shape, data=b""))
+        assert cause_of(weights, WeightsMessage) == m.SHAPE
     # the receiver's own sensor shape
     with pytest.raises(MessageError) as info:
         make_batch().require_frame_shape(120, 160)
@@ -414,3 +421,16 @@ def test_reject_counter_counts_by_cause_and_logs_each_cause_once(caplog: pytest.
     assert len(records) == 3  # one per cause
     assert "k/1" in records[0].getMessage() and "garbage" in records[0].getMessage()
     assert isinstance(counter.decode(make_weights().encode()), WeightsMessage)  # any type
+
+
+def test_reject_counter_counts_a_decoder_bug_as_garbage_and_never_raises() -> None:
+    # Bytes from the network that reach a bug in a decoder must not raise into a Zenoh thread,
+    # which logs a traceback for every such message and counts nothing.
+    class Buggy(TransitionBatch):
+        @classmethod
+        def decode(cls, data: bytes) -> TransitionBatch:
+            raise ValueError("numpy: array is too big")
+
+    counter = RejectCounter("transition batch", logging.getLogger("test.rejects"))
+    assert counter.decode(make_batch().encode(), Buggy, source="k/1") is None
+    assert counter.counts == {m.GARBAGE: 1}
