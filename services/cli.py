@@ -6,7 +6,9 @@ dataclasses, a few constants), so ``cogexplore --help`` and every ``cogexplore C
 start in a fraction of a second, and a command imports only what it runs. A user-facing error
 (:class:`shared.errors.CogexploreError`: a bad setting, file, world, checkpoint, endpoint...) is
 caught here, once, and printed as one line with exit status 2; so is an OSError (a path that is a
-folder, no permission, a full disk), whose traceback goes to the log at debug level.
+folder, no permission, a full disk), whose traceback goes to the log at debug level. A reader of
+stdout that goes away (``cogexplore bench env | head -1``) ends the command quietly, as it ends
+``yes | head -1``.
 """
 
 from __future__ import annotations
@@ -106,7 +108,8 @@ COMMANDS: dict[str, Command | Group] = {
                           "certificate and the run's CA): no other role's password, no CA key",
                           "services.bus.options:add_secure_export_arguments", "services.bus.security:run_secure_export"),
     }),
-    "bench": Group("benchmarks (print JSON)", "TARGET", {
+    "bench": Group("benchmarks: their figures as JSON (indented with --json; bench system without it: a summary)",
+                   "TARGET", {
         "env": Command("environment steps/s and depth-frame time on one core",
                        "services.bench.options:add_env_arguments", "services.bench.env:run_command"),
         "learner": Command("DQN update time, forward time and FLOP utilisation",
@@ -158,24 +161,55 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    from shared.errors import CogexploreError
+SIGPIPE_STATUS = 128 + 13
+"""The exit status of a command whose stdout reader went away, as a shell shows one killed by SIGPIPE."""
+
+
+def error_line(command: str, error: BaseException | str) -> str:
+    """``cogexplore COMMAND: error: MESSAGE`` in one line, even where a library's message has several
+    (MuJoCo's compiler names the element below, Zenoh's parser draws the line it stopped at: its
+    lines of bars and carets alone are left out)."""
+    message = "; ".join(line.strip() for line in str(error).splitlines() if any(c.isalnum() for c in line))
+    return f"cogexplore {command}: error: {message}"
+
+
+def _stdout_reader_gone() -> bool:
+    """Whether stdout is a pipe nobody reads any more (a write to it fails with EPIPE)."""
+    import select
 
     try:
-        return int(_function(args._entry)(args) or 0)
+        poller = select.poll()
+        poller.register(sys.stdout.fileno(), select.POLLOUT)
+    except (AttributeError, OSError, ValueError):  # no real stdout (captured, closed)
+        return False
+    return any(events & select.POLLERR for _fd, events in poller.poll(0))
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from shared.errors import CogexploreError, StopRequested
+
+    try:
+        status = int(_function(args._entry)(args) or 0)
+        sys.stdout.flush()  # a reader that went away shows here, not as a message at interpreter exit
+        return status
     except KeyboardInterrupt:
         return 130
+    except StopRequested as exc:
+        print(f"cogexplore {args._command}: {exc}", file=sys.stderr)
+        return 0
     except CogexploreError as exc:
-        # one line even where a library's message has several (MuJoCo's compiler names the element below)
-        message = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
-        print(f"cogexplore {args._command}: error: {message}", file=sys.stderr)
+        print(error_line(args._command, exc), file=sys.stderr)
         return 2
     except OSError as exc:  # a path that is a folder, no permission, a full disk: the user's to fix, in one line
+        if isinstance(exc, BrokenPipeError) and _stdout_reader_gone():
+            # what is still buffered for stdout would fail again at exit: send it nowhere
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+            return SIGPIPE_STATUS
         import logging
 
         logging.getLogger("cogexplore").debug("%s failed", args._command, exc_info=True)
-        print(f"cogexplore {args._command}: error: {exc}", file=sys.stderr)
+        print(error_line(args._command, exc), file=sys.stderr)
         return 2
 
 

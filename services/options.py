@@ -43,23 +43,27 @@ positive_number_argument = _number_argument(strict=True)
 """argparse ``type`` of a duration that must pass: a finite number > 0 (minutes, a window, a period)."""
 
 
-def whole_number_argument(minimum: int) -> Callable[[str], int]:
-    """argparse ``type`` of a whole number >= ``minimum``."""
+def whole_number_argument(minimum: int, maximum: int | None = None) -> Callable[[str], int]:
+    """argparse ``type`` of a whole number >= ``minimum`` (and <= ``maximum`` where given)."""
+    span = f">= {minimum}" if maximum is None else f"in {minimum}..{maximum}"
+
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             value = minimum - 1
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be a whole number >= {minimum}, got {text!r}")
+        if value < minimum or (maximum is not None and value > maximum):
+            raise argparse.ArgumentTypeError(f"must be a whole number {span}, got {text!r}")
         return value
 
-    parse.__name__ = f"whole number >= {minimum}"
+    parse.__name__ = f"whole number {span}"
     return parse
 
 
 count_argument = whole_number_argument(1)
 """argparse ``type`` of a count of at least one (episodes, updates between evaluations, steps)."""
+port_argument = whole_number_argument(1, 65535)
+"""argparse ``type`` of a TCP port."""
 
 
 def add_router_wait_argument(group: argparse._ArgumentGroup | argparse.ArgumentParser) -> None:

@@ -74,6 +74,17 @@ class RunInUseError(CogexploreError):
     """Another process already holds the run in the role asked for (two `up`, two learners)."""
 
 
+class RunsDirError(CogexploreError):
+    """The folder that should hold the runs is something else (a file)."""
+
+
+def check_runs_folder(folder: Path) -> None:
+    """RunsDirError when ``folder``, the one that holds the runs, exists and is not a folder: the
+    errors further on would name a file in it instead ("File exists", "Not a directory")."""
+    if folder.exists() and not folder.is_dir():
+        raise RunsDirError(f"the runs folder {folder} is not a folder (--runs-dir)")
+
+
 class RunLock:
     """An exclusive hold on a run for one role (``up``, ``learner``): ``<runs>/.<run>.<role>.lock``, a
     lock the system drops when the process ends however it ends. Two learners writing one run's
@@ -83,6 +94,7 @@ class RunLock:
 
     def __init__(self, paths: RunPaths, role: str):
         self.path = paths.root.parent / f".{paths.root.name}.{role}.lock"
+        check_runs_folder(paths.root.parent)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file: IO[str] | None = open(self.path, "a+")
@@ -112,6 +124,7 @@ class RunLock:
 
 def run_paths(args: argparse.Namespace) -> RunPaths:
     validate_name(args.run, "run name")
+    check_runs_folder(Path(args.runs_dir))
     return RunPaths(Path(args.runs_dir) / args.run)
 
 

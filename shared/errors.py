@@ -17,6 +17,11 @@ class CogexploreError(ValueError):
     message names what and why."""
 
 
+class StopRequested(CogexploreError):
+    """A stop (SIGTERM, Ctrl-C) that came while a command was still getting ready (waiting for its
+    router): not a failure; the command line says so in one line and exits 0."""
+
+
 class PolicyError(CogexploreError):
     """A policy that cannot be built or fed: bad schedule parameters or actor index, an unknown
     policy name, a missing network, a wrong-sized image."""

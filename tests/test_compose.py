@@ -43,6 +43,8 @@ EXTRA_ENV = ("COGEXPLORE_RERUN_URL", "COGEXPLORE_RERUN_EVERY_EPISODES")
 and which share of its episodes each actor streams."""
 RERUN_ENV_READERS = ("actor", "evaluator")
 """Services whose ``--rerun-connect`` defaults to ``COGEXPLORE_RERUN_URL``."""
+ACTOR_ENV = ("COGEXPLORE_NUM_ACTORS",)
+"""Read by the actors alone: the fleet's size (``--num-actors``), which a replica cannot count."""
 
 # The flags of zenohd 1.x (zenohd/src/main.rs): the router service runs the official image,
 # whose entrypoint passes the compose `command` to zenohd.
@@ -182,7 +184,8 @@ def test_every_service_environment_variable_is_set(services: dict[str, dict]) ->
         env = service_env(services[name])
         missing = [v for v in SERVICE_ENV if v not in env]
         assert not missing, f"{name} lacks {missing}"
-        unknown = [v for v in env if v.startswith("COGEXPLORE_") and v not in SERVICE_ENV + EXTRA_ENV]
+        known = SERVICE_ENV + EXTRA_ENV + (ACTOR_ENV if name == "actor" else ())
+        unknown = [v for v in env if v.startswith("COGEXPLORE_") and v not in known]
         assert not unknown, f"{name} sets unknown variables {unknown} (a typo?)"
         assert env["RERUN_ANALYTICS"] == "0" and env["MUJOCO_GL"] == "egl", name
         assert env["COGEXPLORE_RUN"], name
@@ -199,6 +202,38 @@ def test_actor_scales(services: dict[str, dict]) -> None:
     for key in ("container_name", "ports", "hostname"):
         assert key not in actor, f"actor sets {key}: it cannot scale"
     assert "--actor-id" not in actor["command"]
+
+
+def test_scaled_actors_are_told_the_fleet_size(services: dict[str, dict], monkeypatch) -> None:
+    """`up --actors N` passes --num-actors N; compose cannot, so every replica reads the size from
+    COGEXPLORE_NUM_ACTORS, which the user sets beside --scale (its epsilon decays over the fleet's
+    steps, an Ape-X schedule spreads over N, each builds 1/N of the extra worlds)."""
+    from services.cli import build_parser
+
+    raw = yaml.safe_load(COMPOSE_FILE.read_text())["services"]["actor"]["environment"]
+    assert raw["COGEXPLORE_NUM_ACTORS"] == "${COGEXPLORE_NUM_ACTORS:-1}"  # what the user sets reaches the actors
+    actor = services["actor"]
+    assert "--num-actors" not in actor["command"]  # an option would win over the variable
+    for name in ("learner", "evaluator"):
+        assert "COGEXPLORE_NUM_ACTORS" not in service_env(services[name]), name
+    env = service_env(actor)
+    # the merge left the shared environment whole
+    assert {k: v for k, v in env.items() if k != "COGEXPLORE_NUM_ACTORS"} == service_env(services["learner"])
+    for key, value in env.items():  # the container's environment, with compose's default
+        monkeypatch.setenv(key, value)
+    assert build_parser().parse_args(actor["command"][1:]).num_actors == 1
+    monkeypatch.setenv("COGEXPLORE_NUM_ACTORS", "4")  # COGEXPLORE_NUM_ACTORS=4 docker compose up --scale actor=4
+    args = build_parser().parse_args(actor["command"][1:])
+    assert args.num_actors == 4 and args.actor_index is None
+    # wherever the project shows how to scale the actors, it sets the size to the same N
+    shown = 0
+    for doc in (COMPOSE_FILE, ROOT / "README.md", ROOT / "docs" / "distributed.md"):
+        for line in doc.read_text().splitlines():
+            for n in re.findall(r"--scale actor=(\d+)", line):
+                if "docker compose" in line:
+                    shown += 1
+                    assert f"COGEXPLORE_NUM_ACTORS={n} " in line, f"{doc.name}: {line.strip()}"
+    assert shown >= 3
 
 
 def test_image_services_share_one_image_and_build(services: dict[str, dict]) -> None:

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
 import subprocess
 import sys
 import threading
@@ -23,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bench import print_json
 from services.bus.options import DEFAULT_CMD_VEL_TOPIC, DEFAULT_IMAGE_TOPIC
 from services.bus.ros2 import Ros2Node
 from services.bus.session import ZenohSettings, free_tcp_port, open_router, open_session
@@ -135,5 +135,5 @@ def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int 
 def run_command(args: argparse.Namespace) -> int:
     result = run(checkpoint=args.checkpoint, onnx=args.onnx, images=args.images, width=args.width,
                  height=args.height, encoding=args.encoding, ros2_format=args.ros2_format)
-    print(json.dumps(result, indent=2) if args.json else result)
+    print_json(result, args.json)
     return 0

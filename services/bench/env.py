@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 
 import numpy as np
 
-from shared.config import SensorConfig
+from services.bench import print_json
+from shared.config import ConfigError, SensorConfig
 from shared.expert.expert import ExpertGuide
 from shared.sim.env import ExploreEnv
 
@@ -18,7 +18,11 @@ def run(world: str = "paper-indoor", steps: int = 2000, backend: str = "raycast"
         allow_columns: bool = True, pin_cpu: int | None = 0, seed: int = 0, expert_labels: bool = False) -> dict:
     """Random-policy rollouts; times every depth capture and every physics step separately.
     ``expert_labels``: also the map expert's label at every pose of the end-to-end rollout (what an
-    actor pays per step at ``explore.expert_label_prob`` = 1)."""
+    actor pays per step at ``explore.expert_label_prob`` = 1). ``allow_columns=False`` (``--per-pixel``)
+    is for the ray caster: the gl backend has no column fast path to turn off."""
+    if backend != "raycast" and not allow_columns:
+        raise ConfigError(f"--per-pixel times the ray caster's per-pixel rays: the {backend} backend renders "
+                          "every pixel anyway (leave out one of them)")
     if pin_cpu is not None and hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {pin_cpu})
     env = ExploreEnv(world=world, sensor=SensorConfig(backend=backend))
@@ -80,5 +84,5 @@ def run_command(args: argparse.Namespace) -> int:
     """``cogexplore bench env``."""
     result = run(world=args.world, steps=args.steps, backend=args.backend, allow_columns=not args.per_pixel,
                  pin_cpu=None if args.no_pin else 0, expert_labels=args.expert_labels)
-    print(json.dumps(result, indent=2, default=float) if args.json else result)
+    print_json(result, args.json)
     return 0

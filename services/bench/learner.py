@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import platform
 import statistics
 import time
@@ -32,6 +31,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from services.bench import print_json
 from shared.config import (
     DEFAULT_PRESET,
     MAX_ACTION_HISTORY,
@@ -202,5 +202,5 @@ def run_command(args: argparse.Namespace) -> int:
     config = load_preset(preset).with_overrides(dict(parse_override(o) for o in args.overrides)) if preset else None
     result = run(device=args.device, repeats=args.repeats, threads=args.threads, baseline=args.baseline,
                  config=config, preset=preset)
-    print(json.dumps(result, indent=2, default=float) if args.json else result)
+    print_json(result, args.json)
     return 0

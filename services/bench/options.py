@@ -1,31 +1,38 @@
-"""The options of ``cogexplore bench env|learner|transport`` (``bench system``: services.up.options)."""
+"""The options of ``cogexplore bench env|learner|transport|drive`` (``bench system``: services.up.options).
+
+Every benchmark prints its figures as JSON on stdout, indented with ``--json`` and on one line
+without it (a line a script can append to a log)."""
 
 from __future__ import annotations
 
 import argparse
 
 from services.bus.options import ROS2_FORMATS
-from services.options import positive_number_argument
+from services.options import count_argument, positive_number_argument, whole_number_argument
+from shared.wire.messages import MAX_BATCH_STEPS, MAX_FRAME_PIXELS
+
+JSON_HELP = "print the JSON indented (default: on one line)"
 
 
 def add_env_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--world", default="paper-indoor", help="the world stepped (default paper-indoor)")
-    p.add_argument("--steps", type=int, default=2000, help="env steps timed (default 2000)")
+    p.add_argument("--steps", type=count_argument, default=2000, help="env steps timed (default 2000)")
     p.add_argument("--backend", choices=["raycast", "gl"], default="raycast",
                    help="the depth renderer: MuJoCo ray casts or OpenGL (default raycast)")
     p.add_argument("--per-pixel", action="store_true",
-                   help="cast every pixel's ray (disable the exact column fast path)")
+                   help="cast every pixel's ray (disable the exact column fast path; raycast only: the gl "
+                        "backend renders every pixel anyway)")
     p.add_argument("--no-pin", action="store_true", help="do not pin the process to CPU 0")
     p.add_argument("--expert-labels", action="store_true",
                    help="also time the map expert's label at every step (explore.expert_label_prob's cost; "
                         "steps_per_s then includes it)")
-    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--json", action="store_true", help=JSON_HELP)
 
 
 def add_learner_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
-    p.add_argument("--repeats", type=int, default=8, help="timed updates per variant (default 8)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--repeats", type=count_argument, default=8, help="timed updates per variant (default 8)")
+    p.add_argument("--threads", type=count_argument, default=None, help="torch threads (default: torch's)")
     p.add_argument("--baseline", action="store_true",
                    help="also time a plain PyTorch update (the paper network only: not with --preset or --set)")
     p.add_argument("--preset", default=None,
@@ -33,28 +40,31 @@ def add_learner_arguments(p: argparse.ArgumentParser) -> None:
                         "instead of the paper network's in float32")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                    help="override one config field of --preset (default preset: the shipped recipe's), repeatable")
-    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--json", action="store_true", help=JSON_HELP)
 
 
 def add_transport_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seconds", type=positive_number_argument, default=5.0,
                    help="duration of each measurement (default 5)")
-    p.add_argument("--batch-steps", type=int, default=16, help="transitions per batch (default 16)")
-    p.add_argument("--height", type=int, default=120, help="image height (default 120)")
-    p.add_argument("--width", type=int, default=160, help="image width (default 160)")
+    p.add_argument("--batch-steps", type=count_argument, default=16,
+                   help=f"transitions per batch (default 16; at most {MAX_BATCH_STEPS}, the wire's limit)")
+    p.add_argument("--height", type=count_argument, default=120,
+                   help=f"image height (default 120; height x width at most {MAX_FRAME_PIXELS} pixels, the "
+                        "wire's limit)")
+    p.add_argument("--width", type=count_argument, default=160, help="image width (default 160)")
     p.add_argument("--threads", action="store_true",
                    help="publisher and subscriber as threads of this process, not spawned processes")
-    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--json", action="store_true", help=JSON_HELP)
 
 
 def add_drive_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default="pretrained", help="the policy drive runs (default pretrained)")
     p.add_argument("--onnx", default=None, metavar="FILE", help="time `drive --onnx FILE` instead")
-    p.add_argument("--images", type=int, default=300, help="images timed (default 300)")
-    p.add_argument("--width", type=int, default=None,
+    p.add_argument("--images", type=whole_number_argument(10), default=300, help="images timed (default 300)")
+    p.add_argument("--width", type=count_argument, default=None,
                    help="image width sent (default: the network's, 40 for the shipped model; a Kinect sends 640)")
-    p.add_argument("--height", type=int, default=None, help="image height sent (default: the network's)")
+    p.add_argument("--height", type=count_argument, default=None, help="image height sent (default: the network's)")
     p.add_argument("--encoding", choices=("32FC1", "16UC1"), default="16UC1",
                    help="image encoding sent (default 16UC1, what depth drivers publish)")
     p.add_argument("--ros2-format", choices=ROS2_FORMATS, default="rmw_zenoh", help="wire format")
-    p.add_argument("--json", action="store_true", help="print JSON")
+    p.add_argument("--json", action="store_true", help=JSON_HELP)

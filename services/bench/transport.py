@@ -15,7 +15,6 @@ Three figures for one realistic TransitionBatch (default 16 steps of 160x120 dep
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import queue
 import threading
@@ -24,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from services.bench import print_json
 from services.bus.session import (
     ZenohSettings,
     declare_reliable_publisher,
@@ -33,11 +33,25 @@ from services.bus.session import (
     subscribe_messages,
 )
 from shared.config import ConfigError
+from shared.errors import CogexploreError
 from shared.wire.keys import RunKeys
-from shared.wire.messages import RejectCounter, TransitionBatch
+from shared.wire.messages import MAX_BATCH_STEPS, MAX_FRAME_PIXELS, RejectCounter, TransitionBatch
 
 _RUN = "bench-transport"
 _ACTOR = "bench-actor"
+_REPORT_SLACK_S = 120.0
+"""How long past the measurement a side may take to start, finish and report."""
+
+
+class TransportBenchError(CogexploreError, RuntimeError):
+    """The publisher or the subscriber did not report in time (it died, or the router failed)."""
+
+
+def _report(results: Any, timeout_s: float, what: str) -> Any:
+    try:
+        return results.get(timeout=timeout_s)
+    except queue.Empty:
+        raise TransportBenchError(f"no word from the {what} in {timeout_s:.0f} s: it died or hangs") from None
 
 
 def make_batch(steps: int = 16, height: int = 120, width: int = 160, seed: int = 0) -> TransitionBatch:
@@ -74,8 +88,9 @@ def _codec(batch: TransitionBatch, seconds: float) -> dict[str, float]:
             "encode_ms": encode_s / n * 1e3, "decode_ms": decode_s / n * 1e3, "batches": n}
 
 
-def _subscriber(endpoint: str, ready: Any, control: Any, results: Any) -> None:
-    """Count and validate every batch; report when told how many were sent."""
+def _subscriber(endpoint: str, seconds: float, ready: Any, control: Any, results: Any) -> None:
+    """Count and validate every batch; report when told how many were sent (after the
+    ``seconds`` the publisher measures)."""
     lock = threading.Lock()
     stats = {"received": 0, "bytes": 0, "first": 0.0, "last": 0.0}
     rejects = RejectCounter("transition batch")
@@ -92,7 +107,7 @@ def _subscriber(endpoint: str, ready: Any, control: Any, results: Any) -> None:
     with open_session(settings, wait_s=5.0) as session:
         subscribe_messages(session, RunKeys(_RUN).all_transitions, TransitionBatch, on_batch, rejects)
         ready.put("ready")
-        expected = control.get(timeout=120)
+        expected = control.get(timeout=seconds + _REPORT_SLACK_S)
         deadline = time.monotonic() + 30
         while time.monotonic() < deadline:
             with lock:
@@ -129,23 +144,24 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
         if processes:
             ctx = multiprocessing.get_context("spawn")
             ready, control, results = ctx.Queue(), ctx.Queue(), ctx.Queue()
-            workers: list[Any] = [ctx.Process(target=_subscriber, args=(endpoint, ready, control, results))]
+            sub_args = (endpoint, seconds, ready, control, results)
+            workers: list[Any] = [ctx.Process(target=_subscriber, args=sub_args)]
         else:
             ready, control, results = queue.Queue(), queue.Queue(), queue.Queue()
-            workers = [threading.Thread(target=_subscriber, args=(endpoint, ready, control, results))]
+            workers = [threading.Thread(target=_subscriber, args=(endpoint, seconds, ready, control, results))]
         workers[0].start()
         try:
-            ready.get(timeout=60)
+            _report(ready, 60, "subscriber (starting)")
             pub_args = (endpoint, steps, height, width, seconds, results)
             pub = (ctx.Process(target=_publisher, args=pub_args) if processes
                    else threading.Thread(target=_publisher, args=pub_args))
             workers.append(pub)
             pub.start()
-            first = results.get(timeout=seconds + 60)
+            first = _report(results, seconds + _REPORT_SLACK_S, "publisher")
             if first["role"] != "publisher":
-                raise RuntimeError(f"subscriber ended before the publisher: {first}")
+                raise TransportBenchError(f"the subscriber ended before the publisher: {first}")
             control.put(first["sent"])
-            sub = results.get(timeout=60)
+            sub = _report(results, 60, "subscriber")
         finally:
             for worker in workers:
                 worker.join(timeout=30)
@@ -165,6 +181,12 @@ def run(seconds: float = 3.0, *, batch_steps: int = 16, height: int = 120, width
     """Codec-only and loopback-router throughput for one batch shape (see the module doc)."""
     if not seconds > 0:
         raise ConfigError(f"--seconds must be > 0, got {seconds}")
+    if not 1 <= batch_steps <= MAX_BATCH_STEPS:
+        raise ConfigError(f"--batch-steps must be in 1..{MAX_BATCH_STEPS} (the wire's limit), got {batch_steps}")
+    if height < 1 or width < 1 or height * width > MAX_FRAME_PIXELS:
+        # before the batch is drawn: 100000 x 100000 would ask for hundreds of GiB
+        raise ConfigError(f"--height x --width must be 1..{MAX_FRAME_PIXELS} pixels (the wire's limit), "
+                          f"got {height} x {width}")
     batch = make_batch(batch_steps, height, width)
     wire_bytes = len(batch.encode())
     return {
@@ -181,5 +203,5 @@ def run_command(args: argparse.Namespace) -> int:
     """``cogexplore bench transport``."""
     result = run(args.seconds, batch_steps=args.batch_steps, height=args.height, width=args.width,
                  processes=not args.threads)
-    print(json.dumps(result, indent=2, default=float) if args.json else result)
+    print_json(result, args.json)
     return 0

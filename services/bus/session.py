@@ -49,7 +49,7 @@ from services.bus import (
 from services.bus.security import PATH_KEYS, SecureFiles
 from services.runs import run_paths
 from shared.config import parse_number
-from shared.errors import CogexploreError
+from shared.errors import CogexploreError, StopRequested
 from shared.wire.messages import (
     MAX_MESSAGE_BYTES,
     OVERSIZE,
@@ -252,7 +252,7 @@ def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0,
             time.sleep(min(0.2, remaining))
 
 
-class StoppedWaiting(TransportError):
+class StoppedWaiting(TransportError, StopRequested):
     """A stop (SIGTERM, Ctrl-C) came while a service waited for its router: it ends, as asked."""
 
 

@@ -191,7 +191,8 @@ class EvaluatorService:
                "world": self.world, "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
                "max_steps": self.max_steps,
                "seed": self.seed, "duration_s": round(duration, 3), "summary": summary["overall"],
-               "per_start": summary["per_start"], "recording": str(rrd) if rrd is not None else None,
+               "per_start": summary["per_start"],
+               "recording": str(rrd) if rrd is not None and rrd.is_file() else None,  # None: it could not be written
                "streamed_to": live,
                "rejected_weights": self.rejects.counts}
         stats.mkdir(parents=True, exist_ok=True)

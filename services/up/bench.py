@@ -334,10 +334,17 @@ def run_command(args: argparse.Namespace) -> int:
     signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, _interrupt)
     actors = args.actors if args.actors is not None else (2 if args.compare_single_process else 1)
-    if actors < 1:
-        raise ConfigError(f"--actors must be >= 1, got {actors}")
     if args.compare_single_process:
         from services.up.compare import compare
+
+        # compare() starts `up` and `train` with the same --set and environment and no other option:
+        # these two would reach neither run, so the figures would not be of what was asked
+        instead = {"--device": "--set train.device=DEVICE", "--learner-threads": "OMP_NUM_THREADS=N in the environment"}
+        given = [o for o, value in (("--device", args.device), ("--learner-threads", args.learner_threads))
+                 if value is not None]
+        if given:
+            raise ConfigError(f"{' and '.join(given)} do not reach --compare-single-process's runs: give "
+                              f"{' and '.join(instead[o] for o in given)} instead, which both runs read")
 
         result = compare(args.minutes, actors=actors, preset=args.preset or DEFAULT_PRESET,
                          overrides=args.overrides, episodes_per_start=args.episodes_per_start, runs_dir=args.runs_dir)

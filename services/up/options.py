@@ -8,6 +8,7 @@ from services.options import (
     add_runs_dir_argument,
     add_tensorboard_argument,
     count_argument,
+    port_argument,
     positive_number_argument,
     seconds_argument,
 )
@@ -36,7 +37,8 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
     add_tensorboard_argument(parser)  # passed on to the learner, actors and evaluator
-    parser.add_argument("--port", type=int, default=None, help="router port on loopback (default: a free port)")
+    parser.add_argument("--port", type=port_argument, default=None,
+                        help="router port on loopback (default: a free port)")
     parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                         help="where the router listens instead: tls/0.0.0.0:7447 with --tls so that actors on "
                              "other machines can join (beyond loopback TLS only), tcp/127.0.0.1:PORT for actors "
@@ -64,7 +66,7 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--actors", type=int, default=None,
+    parser.add_argument("--actors", type=count_argument, default=None,
                         help="actor processes (default: 1; with --compare-single-process 2, as `up`)")
     parser.add_argument("--seconds", type=positive_number_argument, default=60.0, help="measurement window (default: 60)")
     parser.add_argument("--warmup-s", type=seconds_argument, default=5.0,
@@ -84,9 +86,12 @@ def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
                          help="with --compare-single-process: wall time of each run (default 5)")
     compare.add_argument("--episodes-per-start", type=count_argument, default=2,
                          help="with --compare-single-process: test episodes per start for each score (default 2)")
-    parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
-    parser.add_argument("--learner-threads", type=int, default=None,
-                        help="OMP_NUM_THREADS for the started processes (default: inherited)")
+    parser.add_argument("--device", default=None,
+                        help="learner device: auto, cpu, cuda (not with --compare-single-process, whose runs "
+                             "take the preset's)")
+    parser.add_argument("--learner-threads", type=count_argument, default=None,
+                        help="OMP_NUM_THREADS for the started processes (default: inherited; not with "
+                             "--compare-single-process)")
     parser.add_argument("--startup-timeout-s", type=positive_number_argument, default=600.0,
                         help="give up if the system is not in its steady state in this time (default: 600)")
     parser.add_argument("--runs-dir", default=None,

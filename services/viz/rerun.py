@@ -12,7 +12,6 @@ results JSON); episodes keep their 0-based index::
                                   LineStrips3D: the episode's path so far, re-logged each step
     camera                        static Pinhole (the sensor's intrinsics, RDF)
     camera/depth                  DepthImage, uint16 millimetres (meter = 1000)
-    camera/receptive              SegmentationImage: the top-10 % receptive-field mask (purple)
     policy/q/<command>            Scalars, one series per command (left ... right)
     policy/action                 Scalars: the chosen command's index
     eval/episode/<metric>         Scalars per finished episode (steps, distance_m, ...)
@@ -41,6 +40,8 @@ the training actors, whose env loop must never wait on a viewer.
 
 from __future__ import annotations
 
+import fcntl
+import glob
 import logging
 import math
 import os
@@ -65,6 +66,7 @@ from shared.config import ACTION_NAMES, EnvConfig, SensorConfig
 from shared.depth import MM_PER_M
 from shared.errors import CogexploreError
 from shared.evaluation import PAPER_MAX_STEPS
+from shared.files import TMP_MARK
 from shared.sim.maps import OccupancyGrid, occupancy_grid
 from shared.sim.world import World, load_world
 
@@ -83,7 +85,6 @@ ROBOT = "world/robot"
 TRAJECTORY = "world/trajectory"
 CAMERA = "camera"
 DEPTH = "camera/depth"
-RECEPTIVE = "camera/receptive"
 Q_PREFIX = "policy/q"
 ACTION = "policy/action"
 EPISODE_LOG = "log/episodes"
@@ -206,7 +207,7 @@ def default_blueprint(world: World | None = None) -> rrb.Blueprint:
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial3DView(origin="world", name="Map, robot, trajectories", eye_controls=eye),
-                rrb.Spatial2DView(origin=CAMERA, name="Depth camera + receptive field"),
+                rrb.Spatial2DView(origin=CAMERA, name="Depth camera"),
                 row_shares=[3, 2],
             ),
             rrb.Vertical(
@@ -225,6 +226,70 @@ def default_blueprint(world: World | None = None) -> rrb.Blueprint:
     )
 
 
+class RecordingFile:
+    """An ``.rrd`` written under a temporary name beside ``path`` that takes its name only when the
+    recording is whole (:meth:`commit`, :meth:`finish`): a recording that fails, is cancelled or is
+    killed leaves the file it would have replaced (an earlier evaluation of the same version) as it
+    was. The temporary is named as :func:`shared.files.write_atomically` names its own
+    (``.<name>.tmp-<pid>-<n>``) and held under an exclusive ``flock`` while it is written, so the one a
+    killed process left, which nobody holds, is removed when a recorder next opens for ``path``; one
+    another live process is writing is left alone. RerunLogError when ``path`` is a folder."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        if self.path.is_dir():
+            # now, not at the rename that names the file: that comes after the whole run was played
+            raise RerunLogError(f"the recording {self.path} is a folder: name a file in it, e.g. "
+                                f"{self.path / 'recording.rrd'}")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._remove_stale()
+        self.partial: Path | None = self.path.with_name(
+            f".{self.path.name}{TMP_MARK}{os.getpid()}-{uuid.uuid4().hex[:8]}")
+        self._lock: Any = open(self.partial, "wb")  # Rerun's sink then writes into this same file
+        fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+
+    def _remove_stale(self) -> None:
+        for stale in self.path.parent.glob(f".{glob.escape(self.path.name)}{TMP_MARK}*"):
+            try:
+                with open(stale, "rb") as held:
+                    fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    stale.unlink()
+            except OSError:  # being written (the lock is taken), or gone in the meantime
+                continue
+            log.info("removed %s, a recording its process left unfinished", stale)
+
+    def commit(self) -> None:
+        """Give the file its name now (a sink may go on writing into it)."""
+        if self.partial is None:
+            return
+        try:
+            self.partial.replace(self.path)
+        except BaseException:
+            self.discard()
+            raise
+        self.partial = None
+
+    def discard(self) -> None:
+        """Delete the unfinished file and drop the lock."""
+        if self.partial is not None:
+            self.partial.unlink(missing_ok=True)
+            self.partial = None
+        self.release()
+
+    def finish(self, keep: bool) -> None:
+        """Name the file (``keep``) or delete it; either way the temporary is gone afterwards."""
+        try:
+            if keep:
+                self.commit()
+        finally:
+            self.discard()
+
+    def release(self) -> None:
+        if self._lock is not None:
+            self._lock.close()  # closing drops the lock
+            self._lock = None
+
+
 class EvalRecorder:
     """Logs evaluation episodes (and optionally training metrics) to a Rerun recording.
 
@@ -241,9 +306,9 @@ class EvalRecorder:
     actors' streams). ``image_every`` logs every n-th depth image only (a full 12 x 10 x
     200-step protocol is 24,000 images, ~0.9 GB of millimetres).
 
-    The file is written as ``<path>.partial`` and takes its name at :meth:`commit` or
-    ``close(keep=True)``: a recording that fails or is cancelled leaves the file it would have
-    replaced (an earlier evaluation of the same version) as it was.
+    The file is written under a temporary name (:class:`RecordingFile`) and takes its name at
+    :meth:`commit` or ``close(keep=True)``: a recording that fails or is cancelled leaves the file
+    it would have replaced (an earlier evaluation of the same version) as it was.
     """
 
     def __init__(self, target: str | Path | rr.RecordingStream | None, world: World, grid: OccupancyGrid | None,
@@ -259,8 +324,8 @@ class EvalRecorder:
         self.sensor_cfg = sensor_cfg
         self.image_every = image_every
         self.path: Path | None = None
-        """The recording's file (being written while ``partial_path`` exists)."""
-        self.partial_path: Path | None = None
+        """The recording's file (its final name: it exists once committed)."""
+        self.file: RecordingFile | None = None
         self.server_uri: str | None = None
         self.viewer_url: str | None = None
         """Where a viewer on this machine connects to the served stream (``serve``)."""
@@ -281,31 +346,17 @@ class EvalRecorder:
                 check_port_free(serve_port, "the Rerun gRPC port")
             if serve_web:
                 check_port_free(web_port, "the Rerun web viewer port")
-            sinks: list[Any] = []
+            if target is None and not self.live:
+                raise RerunLogError("nothing to log to: give a file path, connect_url or serve=True")
             if target is not None:
                 self.path = Path(target)
-                self.partial_path = self.path.with_name(self.path.name + ".partial")
-                self.path.parent.mkdir(parents=True, exist_ok=True)
-                sinks.append(rr.FileSink(self.partial_path))
-            if connect_url:
-                sinks.append(rr.GrpcSink(connect_url))
-            if serve or serve_web:
-                server = rr.GrpcServerSink(port=serve_port)
-                self.server_uri = server.uri
-                self.viewer_url = local_viewer_url(serve_port)
-                sinks.append(server)
-            if not sinks:
-                raise RerunLogError("nothing to log to: give a file path, connect_url or serve=True")
-            if serve_web:
-                assert self.viewer_url is not None
-                try:  # before the sinks: a web port taken in the meantime leaves nothing open
-                    rr.serve_web_viewer(web_port=web_port, connect_to=self.viewer_url, open_browser=False)
-                except RuntimeError as exc:
-                    raise RerunLogError(f"cannot serve the Rerun web viewer on port {web_port}: {exc}") from None
-                self.web_url = web_viewer_address(self.viewer_url, web_port)
-            self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-            self._owns_stream = True
-            self.rec.set_sinks(*sinks, default_blueprint=bp)
+                self.file = RecordingFile(self.path)
+            try:
+                self._open_stream(connect_url, serve or serve_web, serve_port, serve_web, web_port, recording_id, bp)
+            except BaseException:
+                if self.file is not None:
+                    self.file.discard()
+                raise
         if recording_name:
             self.rec.send_recording_name(recording_name)
         self._closed = False
@@ -315,6 +366,29 @@ class EvalRecorder:
         self._trajectory: list[tuple[float, float]] = []
         self._step = 0
         self._log_static(robot_radius_m)
+
+    def _open_stream(self, connect_url: str | None, serve: bool, serve_port: int, serve_web: bool, web_port: int,
+                     recording_id: str | None, bp: rrb.Blueprint) -> None:
+        sinks: list[Any] = []
+        if self.file is not None:
+            sinks.append(rr.FileSink(self.file.partial))
+        if connect_url:
+            sinks.append(rr.GrpcSink(connect_url))
+        if serve:
+            server = rr.GrpcServerSink(port=serve_port)
+            self.server_uri = server.uri
+            self.viewer_url = local_viewer_url(serve_port)
+            sinks.append(server)
+        if serve_web:
+            assert self.viewer_url is not None
+            try:  # before the sinks: a web port taken in the meantime leaves nothing open
+                rr.serve_web_viewer(web_port=web_port, connect_to=self.viewer_url, open_browser=False)
+            except RuntimeError as exc:
+                raise RerunLogError(f"cannot serve the Rerun web viewer on port {web_port}: {exc}") from None
+            self.web_url = web_viewer_address(self.viewer_url, web_port)
+        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
+        self._owns_stream = True
+        self.rec.set_sinks(*sinks, default_blueprint=bp)
 
     # -- static scene --------------------------------------------------------------------
 
@@ -355,8 +429,6 @@ class EvalRecorder:
         rec.log(CAMERA, rr.Pinhole(focal_length=[fx, fy], principal_point=[cx, cy],
                                    resolution=[self.sensor_cfg.width, self.sensor_cfg.height],
                                    camera_xyz=rr.ViewCoordinates.RDF), static=True)
-        rec.log(RECEPTIVE, rr.AnnotationContext([(0, "", (0, 0, 0, 0)),
-                                                 (1, "top 10 % of pool3", (148, 0, 211, 140))]), static=True)
         for a, name in enumerate(ACTION_NAMES):
             rec.log(q_entity(a), rr.SeriesLines(names=name, colors=_COMMAND_COLORS[a]), static=True)
         rec.log(ACTION, rr.SeriesPoints(names="command", markers="circle", marker_sizes=4.0), static=True)
@@ -451,16 +523,6 @@ class EvalRecorder:
         color = _COMMAND_COLORS[self._episode[0] % len(_COMMAND_COLORS)]
         self.rec.log(trajectory_entity(*self._episode), rr.LineStrips3D([strip], colors=[color], radii=0.02))
 
-    def log_receptive(self, mask: np.ndarray) -> None:
-        """The receptive-field mask (H, W) bool of the current step, drawn over the depth."""
-        self._check_open()
-        m = np.asarray(mask)
-        want = (self.sensor_cfg.height, self.sensor_cfg.width)
-        if m.shape != want:
-            raise RerunLogError(f"mask must be {want}, got {m.shape}")
-        self._set_episode_time(self._step)
-        self.rec.log(RECEPTIVE, rr.SegmentationImage(m.astype(np.uint8)))
-
     def end_episode(self, summary: Any) -> None:
         """Close the current episode with its result (an ``EpisodeResult`` or a mapping with
         its fields): the final path is logged from ``trajectory_xy`` when it has one, and the
@@ -544,11 +606,10 @@ class EvalRecorder:
     def commit(self) -> None:
         """Flush, and give the file its name while the stream stays open (a served recording is
         complete on disk before its server goes away); nothing to do without a file."""
-        if self.partial_path is None or self._closed:
+        if self.file is None or self._closed:
             return
         self._flush()
-        self.partial_path.replace(self.path)  # the open sink writes on into the renamed file
-        self.partial_path = None
+        self.file.commit()  # the open sink writes on into the renamed file
 
     def close(self, keep: bool = True) -> None:
         """Flush everything and close the sinks this recorder opened; a stream passed in by the
@@ -563,14 +624,12 @@ class EvalRecorder:
             self._flush()
             flushed = True
         finally:
-            if self._owns_stream:
-                self.rec.disconnect()
-            if self.partial_path is not None:
-                if keep and flushed:
-                    self.partial_path.replace(self.path)
-                else:
-                    self.partial_path.unlink(missing_ok=True)
-                self.partial_path = None
+            try:
+                if self._owns_stream:
+                    self.rec.disconnect()
+            finally:
+                if self.file is not None:
+                    self.file.finish(keep and flushed)  # a failed rename deletes the temporary too
 
     def __enter__(self) -> EvalRecorder:
         return self
@@ -780,7 +839,10 @@ def open_recorder(world: Any, sensor_cfg: SensorConfig, env_cfg: EnvConfig, rrd:
                   web_port: int = 9090, image_every: int = 1, recording_name: str | None = None) -> Any:
     """An ``EvalRecorder`` for the protocol in ``world`` (a World or its name): a file, a live
     viewer, a hosted gRPC server + web viewer (``serve``), or several; RerunLogError for bad
-    options (a malformed URL, a port in use)."""
+    options (a malformed URL, a port in use, a folder for ``rrd``)."""
+    if not (isinstance(image_every, int) and not isinstance(image_every, bool) and image_every >= 1):
+        # named as the option of the commands that record the protocol (evaluate, the evaluator)
+        raise RerunLogError(f"--image-every must be a whole number >= 1, got {image_every!r}")
     world_obj = load_world(world) if isinstance(world, str) else world
     try:
         return EvalRecorder(rrd, world_obj, occupancy_grid(world_obj), sensor_cfg, connect_url=connect_url,
@@ -799,8 +861,10 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
     ``image_every``-th depth image, every step's pose, Q-values/scores, command and trajectory, and
     the summary) and/or live to the viewer at ``rerun_connect`` (one that does not answer is skipped
     with a warning). Neither given: the protocol alone. A run that fails or is cancelled leaves no
-    partial file, and a file of the same name from before as it was. ``protocol``: the other
-    arguments of ``evaluate_policy``."""
+    partial file, and a file of the same name from before as it was. A recording that cannot be
+    finished once the protocol has (a full disk) is logged as an error and the results are returned
+    all the same: they cost the whole evaluation, the recording is a view of them. ``protocol``:
+    the other arguments of ``evaluate_policy``."""
     from shared.evaluation.protocol import evaluate_policy, protocol_env_config
 
     rerun_connect = live_viewer_url(rerun_connect, rrd is not None)
@@ -808,15 +872,23 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
     if rrd is not None or rerun_connect is not None:
         recorder = open_recorder(world, sensor_cfg, protocol_env_config(env_cfg, world, max_steps), rrd,
                                  connect_url=rerun_connect, image_every=image_every, recording_name=recording_name)
-    ok = False
     try:
         results = evaluate_policy(policy_fn, world=world, sensor_cfg=sensor_cfg, env_cfg=env_cfg,
                                   max_steps=max_steps, recorder=recorder, **protocol)
-        ok = True
-        return results
-    finally:
+    except BaseException:
         if recorder is not None:
-            recorder.close(keep=ok)
+            try:
+                recorder.close(keep=False)
+            except Exception as exc:  # noqa: BLE001  the evaluation's own error is the one to report
+                log.warning("closing the recording failed too: %s", exc)
+        raise
+    if recorder is not None:
+        try:
+            recorder.close()
+        except (OSError, RuntimeError, CogexploreError) as exc:
+            log.error("the evaluation finished but its recording %s could not be written: %s",
+                      rrd if rrd is not None else rerun_connect, exc)
+    return results
 
 
 TIMELINE_DECISION = "decision"
@@ -826,22 +898,27 @@ DRIVE = "drive"
 class DriveRecorder:
     """What ``cogexplore drive`` sees and decides, to a Rerun file and/or a live viewer: on a
     ``decision`` timeline, the depth image the policy read, the command (or the stop and its
-    reason), each Q-value, the nearest valid depth and the image-to-command latency."""
+    reason), each Q-value, the nearest valid depth and the image-to-command latency. The file is
+    written as :class:`EvalRecorder` writes its own (:class:`RecordingFile`): it takes its name at
+    :meth:`close`, so an earlier recording of the same name stays until this one is whole."""
 
     def __init__(self, rrd: str | Path | None, *, connect_url: str | None = None, robot: str = "robot"):
-        sinks: list[Any] = []
+        self.link = ViewerLink(connect_url, "drive streaming") if connect_url else None  # a bad URL: before the file
         self.path = Path(rrd) if rrd is not None else None
-        if self.path is not None:
-            self.path.parent.mkdir(parents=True, exist_ok=True)
-            sinks.append(rr.FileSink(self.path))
-        self.link = ViewerLink(connect_url, "drive streaming") if connect_url else None
-        if self.link is not None and self.link.up():
-            sinks.append(rr.GrpcSink(connect_url))
-        self.live = self.link is not None
-        self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"drive-{robot}-{uuid.uuid4().hex[:8]}")
-        if sinks:
-            self.rec.set_sinks(*sinks)
-        self.rec.send_recording_name(f"drive {robot}")
+        self.file = RecordingFile(self.path) if self.path is not None else None
+        try:
+            sinks: list[Any] = [rr.FileSink(self.file.partial)] if self.file is not None else []
+            if self.link is not None and self.link.up():
+                sinks.append(rr.GrpcSink(connect_url))
+            self.live = self.link is not None
+            self.rec = rr.RecordingStream(APPLICATION_ID, recording_id=f"drive-{robot}-{uuid.uuid4().hex[:8]}")
+            if sinks:
+                self.rec.set_sinks(*sinks)
+            self.rec.send_recording_name(f"drive {robot}")
+        except BaseException:
+            if self.file is not None:
+                self.file.discard()
+            raise
         self._closed = not sinks
 
     def log_decision(self, diagnostics: Any, depth_m: np.ndarray | None) -> None:
@@ -867,13 +944,22 @@ class DriveRecorder:
             rec.log(f"{DRIVE}/latency_ms", rr.Scalars(d.latency_ms))
 
     def close(self) -> None:
+        """Flush and close the sinks; the file takes its name (it is deleted when its flush fails)."""
         if self._closed:
             return
         self._closed = True
+        flushed = False
         try:
-            self.rec.flush(timeout_sec=10.0)
-        except RuntimeError as exc:
-            if not self.live:
-                raise
-            log.warning("Rerun live stream failed (%s); the recording file, if any, is complete", exc)
-        self.rec.disconnect()
+            try:
+                self.rec.flush(timeout_sec=10.0)
+            except RuntimeError as exc:
+                if not self.live:
+                    raise
+                log.warning("Rerun live stream failed (%s); the recording file, if any, is complete", exc)
+            flushed = True
+        finally:
+            try:
+                self.rec.disconnect()
+            finally:
+                if self.file is not None:
+                    self.file.finish(flushed)

@@ -42,6 +42,10 @@ def test_every_error_class_of_the_project_derives_from_the_one_base():
     (["learner", "--run", "a/b"], "cogexplore learner: error: run name 'a/b' contains a slash"),
     (["evaluate", "--policy", "random", "--world", "nowhere", "--quiet"], "cogexplore evaluate: error: "),
     (["model", "export", "no-such-checkpoint", "--out", "x.safetensors"], "cogexplore model export: error: "),
+    (["evaluate", "--policy", "random", "--world", "box-room", "--image-every", "0", "--rrd", "never.rrd", "--quiet"],
+     "cogexplore evaluate: error: --image-every must be a whole number >= 1, got 0"),
+    (["bench", "env", "--world", "nowhere", "--steps", "1", "--no-pin"], "cogexplore bench env: error: "),
+    (["bench", "env", "--backend", "gl", "--per-pixel", "--no-pin"], "cogexplore bench env: error: --per-pixel "),
 ])
 def test_a_bad_input_is_one_line_and_exit_status_2(argv: list[str], message: str, tmp_path: Path, capsys) -> None:
     assert main([*argv, *(["--runs-dir", str(tmp_path)] if argv[0] in ("actor", "learner") else [])]) == 2
@@ -81,6 +85,12 @@ def test_evaluate_report_and_model_select_play_on_one_cpu_thread_unless_told(cap
     ["evaluator", "--query-timeout", "0"], ["actor", "--batch-steps", "0"], ["actor", "--config-wait", "nan"],
     ["drive", "--control-period", "-1"], ["drive", "--watchdog", "nan"], ["sim-robot", "--cmd-timeout", "inf"],
     ["bench", "system", "--seconds", "nan"], ["bench", "transport", "--seconds", "nan"],
+    # these gave tracebacks (a zero division, torch's thread check, a negative array size)
+    ["bench", "env", "--steps", "0"], ["bench", "learner", "--repeats", "0"], ["bench", "learner", "--threads", "0"],
+    ["bench", "transport", "--batch-steps", "-2"], ["bench", "transport", "--height", "-1"],
+    ["bench", "transport", "--width", "0"], ["bench", "drive", "--images", "9"], ["bench", "drive", "--width", "0"],
+    ["bench", "system", "--learner-threads", "0"], ["bench", "system", "--actors", "0"],
+    ["up", "--port", "70000"], ["up", "--port", "-1"], ["up", "--port", "0"],
 ])
 def test_a_count_or_time_that_cannot_be_one_is_refused_before_anything_starts(argv: list[str], capsys) -> None:
     # a NaN deadline never passes (`up --minutes nan` trained on, `--config-wait nan` waited forever),
@@ -187,3 +197,34 @@ def test_a_world_file_mujoco_cannot_compile_is_one_line_naming_the_element(tmp_p
     assert main(["evaluate", "--policy", "random", "--world", str(world), "--quiet"]) == 2
     err = capsys.readouterr().err
     assert err.startswith("cogexplore evaluate: error: ") and err.count("\n") == 1 and "wall" in err, err
+
+
+def test_a_router_config_that_cannot_be_used_is_one_line_naming_the_file(tmp_path: Path, capsys) -> None:
+    # `up` shows the last line of its router's log: Zenoh's parser message had six, and the folder
+    # given as --config was said "not to exist"
+    bad = tmp_path / "bad.json5"
+    bad.write_text("{ not json\n")
+    for config, said in ((bad, f"Zenoh config file {bad} is invalid: "),
+                         (tmp_path, f"--config {tmp_path} is not a file"),
+                         (tmp_path / "missing.json5", f"Zenoh config file {tmp_path / 'missing.json5'} does not exist")):
+        assert main(["router", "--config", str(config), "--listen", "tcp/127.0.0.1:0"]) == 2
+        captured = capsys.readouterr()
+        assert captured.err.startswith(f"cogexplore router: error: {said}") and captured.err.count("\n") == 1, \
+            captured.err
+        assert "cogexplore router ready" not in captured.out
+    assert main(["router", "--listen", "nowhere"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore router: error: --listen ") and err.count("\n") == 1, err
+
+
+def test_a_reader_that_stops_reading_ends_the_command_quietly(tmp_path: Path) -> None:
+    """`cogexplore bench env --json | head -1` said "error: [Errno 32] Broken pipe" with status 2."""
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "worlds", "list"], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env={**os.environ, "RERUN_ANALYTICS": "0"})
+    proc.stdout.close()  # the reader is gone before the command writes its first line
+    err = proc.stderr.read().decode()
+    assert proc.wait(120) == 141 and err == "", err
+    # an error that is not stdout's still says what it is
+    done = subprocess.run([sys.executable, "-m", "services.cli", "worlds", "list"], cwd=REPO, capture_output=True,
+                          text=True, timeout=120, env={**os.environ, "RERUN_ANALYTICS": "0"})
+    assert done.returncode == 0 and "box-room" in done.stdout

@@ -18,6 +18,7 @@ from shared.evaluation import PROTOCOLS
 from shared.evaluation.results import load_results
 from shared.learning.dqn import update_flops
 from shared.learning.model import QNetwork
+from shared.wire.messages import MAX_BATCH_STEPS, MAX_FRAME_PIXELS
 
 REPO = Path(__file__).resolve().parents[3]
 
@@ -129,3 +130,49 @@ def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path
         with open(tmp_path / run / "stats" / "learner.csv", newline="") as f:
             lrs = [float(r["lr"]) for r in csv.DictReader(f) if r["lr"]]
         assert lrs == sorted(lrs, reverse=True) and lrs[0] <= 1e-3 and lrs[-1] == pytest.approx(1e-4), run
+
+
+def test_a_benchmark_prints_json_without_json_too() -> None:
+    # the group's help says "(print JSON)": without --json it printed a Python repr
+    env = dict(os.environ, RERUN_ANALYTICS="0")
+    proc = subprocess.run([sys.executable, "-m", "services.cli", "bench", "env", "--world", "box-room", "--steps", "5",
+                           "--no-pin"], cwd=REPO, env=env, capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert proc.stdout.count("\n") == 1 and json.loads(proc.stdout)["steps"] == 5  # one line a script can append
+
+
+@pytest.mark.parametrize("argv,said", [
+    (["--height", "100000", "--width", "100000"], f"--height x --width must be 1..{MAX_FRAME_PIXELS} pixels"),
+    (["--height", str(MAX_FRAME_PIXELS // 640 + 1), "--width", "640"],
+     f"--height x --width must be 1..{MAX_FRAME_PIXELS} pixels"),
+    (["--batch-steps", str(MAX_BATCH_STEPS + 1)], f"--batch-steps must be in 1..{MAX_BATCH_STEPS}"),
+])
+def test_bench_transport_refuses_a_batch_the_wire_would_not_carry(argv: list[str], said: str, capsys) -> None:
+    from services.cli import main
+
+    # 100000 x 100000 asked numpy for 317 GiB before anything was measured
+    assert main(["bench", "transport", "--seconds", "0.1", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"cogexplore bench transport: error: {said}") and err.count("\n") == 1, err
+
+
+def test_a_side_of_the_transport_bench_that_never_reports_is_an_error_not_a_traceback() -> None:
+    import queue
+
+    from services.bench.transport import _REPORT_SLACK_S, TransportBenchError, _report, _subscriber
+    from shared.errors import CogexploreError
+
+    with pytest.raises(TransportBenchError, match="no word from the subscriber in 0 s") as raised:
+        _report(queue.Queue(), 0.01, "subscriber")
+    assert isinstance(raised.value, CogexploreError)
+    # the subscriber waits for the publisher's count as long as the publisher is given (it waited a
+    # fixed 120 s, so `--seconds 125` lost it) and the publisher's count then arrives
+    ready, control, results = queue.Queue(), queue.Queue(), queue.Queue()
+    control.put(0)
+    from services.bus.session import free_tcp_port, open_router
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        _subscriber(endpoint, 0.5, ready, control, results)
+    assert ready.get_nowait() == "ready" and results.get_nowait()["received"] == 0
+    assert _REPORT_SLACK_S >= 60

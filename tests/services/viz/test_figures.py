@@ -165,6 +165,49 @@ def test_loss_curve_png(tmp_path) -> None:
     assert linear.read_bytes() != out.read_bytes()
 
 
+def test_a_figure_rewritten_on_a_full_disk_keeps_the_one_before(tmp_path) -> None:
+    """A report rewritten while the disk fills (here: a file size limit, in a child process) keeps
+    its earlier PNGs whole, and no temporary file is left beside them."""
+    import subprocess
+    import sys
+
+    script = f"""
+import resource, signal
+from pathlib import Path
+from services.viz.figures import save_heatmaps_side_by_side, save_loss_curve_png
+from shared.evaluation.results import EpisodeResult
+from shared.sim.maps import occupancy_grid
+from shared.sim.world import load_world
+
+out = Path({str(tmp_path)!r})
+rows = [{{"update": i, "loss": 1.0 / (i + 1)}} for i in range(2000)]
+world = load_world("box-room")
+grid = occupancy_grid(world)
+res = [EpisodeResult(0, 0, 19, False, True, None, 0.0, 0.0, 0.0, 0.0,
+                     tuple((-1.2 + 0.1 * i, -1.2 + 0.1 * i) for i in range(20)))]
+draw = [lambda: save_loss_curve_png(rows, out / "loss.png"),
+        lambda: save_heatmaps_side_by_side(world, grid, {{"A": res, "B": res}}, out / "side.png")]
+for write in draw:
+    write()
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY))
+for write in draw:
+    try:
+        write()
+        print("written")
+    except OSError as exc:
+        print("failed", exc.errno)
+"""
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["failed", "27", "failed", "27"]  # EFBIG: the limit was hit
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loss.png", "side.png"]
+    for name in ("loss.png", "side.png"):
+        png = (tmp_path / name).read_bytes()
+        assert png[:8] == PNG_MAGIC and png[-8:-4] == b"IEND", name
+        assert mpimg.imread(tmp_path / name).shape[0] > 100
+
+
 # -- Table II --------------------------------------------------------------------------------
 
 

@@ -16,10 +16,13 @@ from rerun.chunk import RrdReader
 from services.viz.rerun import (
     ACTION,
     DEPTH,
-    RECEPTIVE,
     ROBOT,
+    DriveRecorder,
     EvalRecorder,
+    RecordingFile,
     RerunLogError,
+    default_blueprint,
+    evaluate_recorded,
     q_entity,
     trajectory_entity,
 )
@@ -88,7 +91,6 @@ def test_recording_holds_every_step(tmp_path, world, grid) -> None:
                 rec.log_step(step, pose, depth, q, action)
                 logged.append((frame, start, episode, step, depth, q, action, pose))
                 frame += 1
-            rec.log_receptive(np.arange(120 * 160).reshape(120, 160) % 10 == 0)
             rec.end_episode({"steps": n_steps, "distance_m": 0.5, "terminated": True,
                              "collision_cause": "depth", "trajectory_xy": traj + [(9.0, 9.0)]})
             frame += 1
@@ -132,9 +134,8 @@ def test_recording_holds_every_step(tmp_path, world, grid) -> None:
         assert len(final) == n_steps + 1 and final[-1][:2] == [9.0, 9.0]
     assert trajectory_entity(0, 0) == "world/trajectory/start_1/episode_0"
 
-    # Robot pose, receptive mask, learner metrics, static scene.
+    # Robot pose, learner metrics, static scene.
     assert frames(rows[ROBOT]) == step_frames
-    assert len(rows[RECEPTIVE]) == 2
     assert rows["train/loss"][0]["update"] == 120 and rows["train/loss"][0]["Scalars:scalars"] == [3.5]
     assert "episode" not in rows["train/loss"][0]  # no episode timeline leaks into learner metrics
     assert {f"train/{k}" for k in ("mean_q", "epsilon", "updates_per_s", "episode_length")} <= set(rows)
@@ -170,6 +171,22 @@ def test_protocol_with_recorder_logs_every_step(tmp_path, world, grid) -> None:
         last = max(traj, key=lambda r: r["eval_frame"])["LineStrips3D:strips"][0]
         np.testing.assert_allclose(np.array(last)[:, :2], np.array(e.trajectory_xy), atol=1e-5)
     assert len(rows["eval/episode/steps"]) == len(results.episodes)
+    # every view the blueprint names shows something a recording holds: the camera view once
+    # promised a receptive-field layer that nothing logged
+    logged = " ".join(e for e in rows if not e.startswith("static:"))
+    views = list(_views(default_blueprint(world).root_container))
+    assert any(origin == "camera" for origin, _ in views)
+    for origin, name in views:
+        assert "receptive" not in name.lower() or "receptive" in logged, name
+
+
+def _views(item):
+    """(origin, name) of every view under a blueprint container."""
+    for child in getattr(item, "contents", None) or []:
+        if hasattr(child, "origin"):
+            yield str(child.origin), str(child.name)
+        else:
+            yield from _views(child)
 
 
 def test_recorder_on_callers_stream_and_misuse(tmp_path, world) -> None:
@@ -234,3 +251,98 @@ def test_the_drive_recorder_logs_each_decision_and_reads_back(tmp_path) -> None:
     assert len(rows["drive/command"]) == 6 and len(rows["drive/latency_ms"]) == 5
     assert all(len(rows[f"drive/q/{name}"]) == 5 for name in ACTION_NAMES)
     assert sorted(r["decision"] for r in rows["drive/command"]) == list(range(1, 7))
+
+
+def _decision(i: int):
+    from shared.wire.robot import DriveDiagnostics
+
+    return DriveDiagnostics("bot", i, 2, 0.25, 0.0, None, 1.5, 3.0, tuple(float(q) for q in range(5)))
+
+
+def test_a_folder_given_for_a_recording_is_refused_when_the_recorder_opens(tmp_path, world, grid, capsys) -> None:
+    folder = tmp_path / "out.rrd"
+    folder.mkdir()
+    for open_one in (lambda: EvalRecorder(folder, world, grid, SensorConfig()), lambda: DriveRecorder(folder)):
+        with pytest.raises(RerunLogError, match="is a folder"):
+            open_one()
+    # the command stops before it evaluates (it used to play every episode, then fail at the rename
+    # and lose the --json results too)
+    from services.cli import main
+
+    out = tmp_path / "results.json"
+    assert main(["evaluate", "--policy", "random", "--world", "box-room", "--max-steps", "400", "--quiet",
+                 "--rrd", str(folder), "--json", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore evaluate: error: the recording ") and "is a folder" in err
+    assert err.count("\n") == 1 and list(folder.iterdir()) == [] and sorted(tmp_path.iterdir()) == [folder]
+    assert main(["drive", "--rrd", str(folder)]) == 2  # a traceback from Rerun's file sink before
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore drive: error: the recording ") and err.count("\n") == 1, err
+
+
+def test_a_recording_that_cannot_take_its_name_leaves_no_temporary(tmp_path, world, grid) -> None:
+    path = tmp_path / "eval.rrd"
+    rec = EvalRecorder(path, world, grid, SensorConfig())
+    path.mkdir()  # the name is taken by a folder while the recording runs
+    with pytest.raises(OSError):
+        rec.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval.rrd"] and list(path.iterdir()) == []
+
+
+def test_the_results_survive_a_recording_that_cannot_be_finished(tmp_path, caplog) -> None:
+    path = tmp_path / "eval.rrd"
+
+    def policy(depth):
+        path.mkdir(exist_ok=True)  # the recording's name is taken while the protocol plays
+        return 0, None
+
+    results = evaluate_recorded(policy, world="box-room", sensor_cfg=SensorConfig(width=64, height=48),
+                                max_steps=3, rrd=path, starts=[0], episodes_per_start=1, progress=False)
+    assert len(results.episodes) == 1 and results.episodes[0].steps >= 1
+    assert "could not be written" in caplog.text
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eval.rrd"]  # no temporary left
+
+
+def test_a_temporary_left_by_a_killed_recorder_is_removed_at_the_next_open(tmp_path, world) -> None:
+    import fcntl
+
+    path = tmp_path / "eval.rrd"
+    killed = tmp_path / ".eval.rrd.tmp-4194305-0a1b2c3d"  # nobody holds its lock: its process is gone
+    killed.write_bytes(b"half a recording")
+    writing = tmp_path / ".eval.rrd.tmp-1-feedbeef"  # another live recorder's, locked
+    writing.write_bytes(b"being written")
+    other = tmp_path / ".other.rrd.tmp-7-00000000"  # another recording's
+    other.write_bytes(b"not ours")
+    with open(writing, "rb") as held:
+        fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        file = RecordingFile(path)
+        assert not killed.exists() and writing.exists() and other.exists()
+        assert file.partial is not None and file.partial.exists() and file.partial.name.startswith(".eval.rrd.tmp-")
+        file.finish(keep=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([writing.name, other.name])
+    # the writer let go of its lock (it ended without a rename): the next open removes that one too;
+    # this process's own recorders hold theirs as well, so a second one for the same name leaves the first's
+    first = EvalRecorder(path, world, None, SensorConfig())
+    second = EvalRecorder(path, world, None, SensorConfig())
+    assert not writing.exists() and first.file.partial.exists() and second.file.partial.exists()
+    second.close()
+    first.close()
+    verify(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, other.name])
+
+
+def test_the_drive_recording_replaces_an_earlier_one_only_when_it_is_whole(tmp_path) -> None:
+    path = tmp_path / "drive.rrd"
+    depth = np.full((30, 40), 2.0, np.float32)
+    first = DriveRecorder(path, robot="bot")
+    first.log_decision(_decision(1), depth)
+    first.close()
+    whole = path.read_bytes()
+    second = DriveRecorder(path, robot="bot")
+    for i in range(1, 4):
+        second.log_decision(_decision(i), depth)
+    assert path.read_bytes() == whole  # written to its temporary, not over the earlier recording
+    second.close()
+    verify(path)
+    assert len(read_rows(path)["drive/command"]) == 3
+    assert [p.name for p in tmp_path.iterdir()] == ["drive.rrd"]
