@@ -805,7 +805,9 @@ class RunConfig:
 _SECTIONS: dict[str, type] = {f.name: f.default_factory().__class__ for f in fields(RunConfig)}  # type: ignore[misc]
 
 
-def _section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: str) -> Any:
+def section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: str) -> Any:
+    """``base`` (a config section of type ``cls``) with the fields in ``data`` over it, as a preset's
+    ``[section]`` is read: ConfigError for an unknown field or a value of the wrong type."""
     hints = get_type_hints(cls)
     known = {f.name for f in fields(cls)}
     unknown = sorted(set(data) - known)
@@ -839,7 +841,7 @@ def from_dict(data: Mapping[str, Any], base: RunConfig | None = None) -> RunConf
         part = data.get(name, {})
         if not isinstance(part, Mapping):
             raise ConfigError(f"[{name}] must be a table, got {type(part).__name__}")
-        sections[name] = _section_from_dict(_SECTIONS[name], part, getattr(base, name), name)
+        sections[name] = section_from_dict(_SECTIONS[name], part, getattr(base, name), name)
     return RunConfig(**sections)
 
 

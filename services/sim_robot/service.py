@@ -42,15 +42,13 @@ from shared.ros2.messages import (
     encode_odometry,
 )
 from shared.sim.env import ExploreEnv
+from shared.sim.robot import MAX_TWIST_MPS, MAX_TWIST_RPS
 from shared.wire.keys import RobotKeys
 from shared.wire.messages import RejectCounter
 from shared.wire.robot import SimRobotStatus
 
 log = logging.getLogger("cogexplore.sim_robot")
 NODE_NAME = "cogexplore_sim_robot"
-MAX_TWIST_MPS = 2.0
-MAX_TWIST_RPS = 6.0
-"""Commands beyond these are refused (a TurtleBot 3 does 0.26 m/s and 1.8 rad/s)."""
 
 
 class SimRobot:

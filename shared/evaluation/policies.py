@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from shared.config import NUM_ACTIONS, EnvConfig, SensorConfig
+from shared.config import NUM_ACTIONS, EnvConfig, SensorConfig, is_whole
 from shared.evaluation import POLICY_NAMES
 from shared.learning.policy import PolicyError
 
@@ -107,6 +107,8 @@ class RandomPolicy:
     name = "random"
 
     def __init__(self, seed: int = 0):
+        if not is_whole(seed) or seed < 0:  # numpy's own refusal is a traceback
+            raise PolicyError(f"the random policy's seed must be an integer >= 0, got {seed!r}")
         self.seed = seed
         self.rng = np.random.default_rng(seed)
 

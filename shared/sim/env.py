@@ -40,12 +40,15 @@ from shared.config import (
     SPEED_TABLES,
     EnvConfig,
     SensorConfig,
+    section_from_dict,
+    is_finite_number,
 )
+from shared.depth import range_gate
 from shared.errors import CogexploreError
 from shared.sim.gym_register import ENV_ID  # noqa: F401  (re-exported; the import registers the ids)
-from shared.sim.robot import Robot, build_model
-from shared.sim.sensor import DepthCamera
-from shared.sim.world import World, WorldError, load_world
+from shared.sim.robot import MAX_TWIST_MPS, MAX_TWIST_RPS, Robot, build_model
+from shared.sim.sensor import DepthCamera, floor_depths_m
+from shared.sim.world import World, WorldError, canonical_world_name, check_starts_fit, load_world
 
 MAP_RESOLUTION_M = 0.05
 """Cell side of the occupancy grid that random starts and ``rgb_array`` frames use."""
@@ -75,6 +78,19 @@ def _start_jitter(value: Any) -> tuple[float, float] | None:
         raise EnvError(f"start_jitter {value!r}: expected (metres, degrees), both finite and >= 0")
     jitter_m, jitter_deg = float(value[0]), float(value[1])
     return (jitter_m, jitter_deg) if jitter_m > 0 or jitter_deg > 0 else None
+
+
+def _check_floor(cfg: EnvConfig, sensor: SensorConfig) -> None:
+    """EnvError if a bare floor reads nearer than the collision distance anywhere in the image:
+    every step would end in a depth collision."""
+    seen = range_gate(floor_depths_m(sensor), sensor.min_range_m, sensor.max_range_m)
+    seen = seen[seen > 0]
+    if seen.size and float(seen.min()) < cfg.collision_distance_m:
+        raise EnvError(f"the bare floor reads {float(seen.min()):.2f} m in the depth image (camera "
+                       f"{sensor.mount_height_m:g} m high, vfov_deg {sensor.vfov_deg:g}), nearer than "
+                       f"collision_distance_m {cfg.collision_distance_m:g}, so every step would end in a "
+                       "collision: raise sensor.mount_height_m, narrow sensor.vfov_deg or lower "
+                       "env.collision_distance_m")
 
 
 def min_valid_depth(depth_m: np.ndarray) -> float:
@@ -110,6 +126,8 @@ class _Scene:
 
     @classmethod
     def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
+        """The scene of ``world``; WorldError if the robot would start in contact somewhere."""
+        check_starts_fit(world, cfg.robot_radius_m)
         model = build_model(world.mjcf, cfg, sensor)
         data = mujoco.MjData(model)
         return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
@@ -154,7 +172,8 @@ class ExploreEnv(gym.Env):
     Construct with an ``EnvConfig`` and/or keyword overrides of its fields
     (``world=``, ``speed_table=``, ``start_index=``, ``max_episode_steps=``, ...) and an
     optional ``SensorConfig`` (or a dict of its fields). ``world`` may also be a prebuilt
-    :class:`World`.
+    :class:`World`. Refused at construction, in one line: an unknown field, a camera that sees the
+    bare floor nearer than ``collision_distance_m``, a robot radius that puts it in contact at a start.
 
     ``reset`` options: ``start_index`` (a named start; default the config's, else a random one)
     and ``start_jitter`` ``(metres, degrees)``: the start moved by a uniform draw within
@@ -181,11 +200,17 @@ class ExploreEnv(gym.Env):
             overrides["world"] = world_obj.name
         elif world_obj is not None:
             overrides["world"] = world_obj
-        cfg = dataclasses.replace(config or EnvConfig(), **overrides)
+        if not isinstance(config, (EnvConfig, type(None))):
+            raise EnvError(f"config must be an EnvConfig, got {type(config).__name__}")
+        if not isinstance(sensor, (SensorConfig, dict, type(None))):
+            raise EnvError(f"sensor must be a SensorConfig or a dict of its fields, got {type(sensor).__name__}")
+        # As a preset's sections are read: an unknown field is a ConfigError, not a TypeError.
+        cfg = section_from_dict(EnvConfig, overrides, config or EnvConfig(), "env")
         if isinstance(sensor, dict):
-            sensor = SensorConfig(**sensor)
+            sensor = section_from_dict(SensorConfig, sensor, SensorConfig(), "sensor")
         self.env_config = cfg
         self.sensor_config = sensor or SensorConfig()
+        _check_floor(cfg, self.sensor_config)
         self.metadata = {**type(self).metadata, "render_fps": 1.0 / cfg.control_period_s}
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise EnvError(f"render_mode {render_mode!r} not in {self.metadata['render_modes']}")
@@ -197,7 +222,10 @@ class ExploreEnv(gym.Env):
                              f"has {len(world.starts)} starts")
         self._main_scene = _Scene.build(world, cfg, self.sensor_config)
         self._scenes = {world.name: self._main_scene}  # extra worlds are built when first drawn
-        self._extra_world_names = cfg.extra_world_names if cfg.extra_world_prob > 0 else ()
+        # Under the names their Worlds carry ('procedural:007' is 'procedural:7'), by which scenes
+        # and remembered failures are found.
+        self._extra_world_names = tuple(dict.fromkeys(canonical_world_name(n) for n in cfg.extra_world_names)) \
+            if cfg.extra_world_prob > 0 else ()
         for name in self._extra_world_names:
             if not name.startswith(PROCEDURAL_PREFIX):  # procedural names are checked by the config
                 load_world(name)  # a bad name or a broken file fails here, not episodes into a run
@@ -304,9 +332,12 @@ class ExploreEnv(gym.Env):
     def step_twist(self, linear_mps: float, angular_rps: float):
         """One control period at any (forward m/s, turn rad/s) command, with :meth:`step`'s return
         and collision rule: what a robot base does with a ROS ``cmd_vel`` Twist (``cogexplore
-        sim-robot``). ``step(a)`` is ``step_twist`` at the speed table's command ``a``."""
-        if not (math.isfinite(linear_mps) and math.isfinite(angular_rps)):
-            raise EnvError(f"twist ({linear_mps!r} m/s, {angular_rps!r} rad/s) must be finite")
+        sim-robot``). ``step(a)`` is ``step_twist`` at the speed table's command ``a``. EnvError beyond
+        the robot's ``MAX_TWIST_MPS`` and ``MAX_TWIST_RPS``."""
+        if not (is_finite_number(linear_mps) and is_finite_number(angular_rps)
+                and abs(linear_mps) <= MAX_TWIST_MPS and abs(angular_rps) <= MAX_TWIST_RPS):
+            raise EnvError(f"twist ({linear_mps!r} m/s, {angular_rps!r} rad/s): both must be numbers within "
+                           f"±{MAX_TWIST_MPS:g} m/s and ±{MAX_TWIST_RPS:g} rad/s")
         cfg = self.env_config
         touched = self.robot.drive(float(linear_mps), float(angular_rps), cfg.substeps)
         self._depth = self.camera.capture(self.data)

@@ -20,6 +20,7 @@ import numpy as np
 
 from shared.config import SensorConfig
 from shared.errors import CogexploreError
+from shared.files import save_png
 from shared.sim.robot import FLOOR_GEOM
 from shared.sim.sensor import column_angles
 
@@ -575,8 +576,6 @@ def render_map_png(world: Mappable, grid: OccupancyGrid, out_path: str | Path,
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
     xmin, ymin, xmax, ymax = grid.extent
     w, h = xmax - xmin, ymax - ymin
     fig = Figure(figsize=(6.5 * min(2.0, max(0.5, w / h)) + (1.2 if heatmap is not None else 0.0), 6.5))
@@ -586,5 +585,4 @@ def render_map_png(world: Mappable, grid: OccupancyGrid, out_path: str | Path,
     if im is not None:
         fig.colorbar(im, ax=ax, fraction=0.046, pad=0.04, label="normalised visits")
     fig.tight_layout()
-    fig.savefig(out, dpi=dpi)
-    return out
+    return save_png(fig, out_path, dpi)

@@ -27,25 +27,50 @@ ROBOT_HEIGHT_M = 0.30  # TurtleBot 2 base + plates; the camera sits above it
 _KV_LINEAR = 3000.0
 _KV_ANGULAR = 300.0
 _MASS_KG = 6.0
+ROBOT_CONTACT_BITS = 1
+"""The robot geom's contype and conaffinity: an obstacle collides with it only if its own contype or
+conaffinity shares a bit with these."""
+ROBOT_GEOM_GROUP = 5
+"""The robot body's geom group, which no world geom may use: the GL depth camera hides this group
+(the robot must not see itself) and would hide a world geom in it too."""
+MAX_TWIST_MPS = 2.0
+MAX_TWIST_RPS = 6.0
+"""The fastest command the robot takes (a TurtleBot 3 does 0.26 m/s and 1.8 rad/s); tens of m/s
+would carry the disc through a wall between two contact checks."""
+
+# A spec nobody edits: MuJoCo's built-in <option>, <size>, <compiler> mass settings and <default>
+# values. The robot and its physics take these, not a world file's, which could otherwise disable
+# contacts or actuation, limit the robot's joints or starve it of memory.
+_BUILTIN = mujoco.MjSpec()
+_OPTION_FIELDS = tuple(f for f in dir(_BUILTIN.option) if not f.startswith("_"))
+_SIZE_FIELDS = ("memory", "nstack", "njmax", "nconmax")
+_MASS_FIELDS = ("settotalmass", "boundmass", "boundinertia", "balanceinertia", "inertiafromgeom")
 
 
 def add_robot(spec: mujoco.MjSpec, env: EnvConfig, sensor: SensorConfig) -> None:
-    """Add the robot body, joints, actuators and camera site to ``spec`` (in place)."""
-    body = spec.worldbody.add_body(name=ROBOT_BODY, pos=[0.0, 0.0, 0.0])
-    body.add_joint(name="robot_x", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1, 0, 0], damping=0.0)
-    body.add_joint(name="robot_y", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 1, 0], damping=0.0)
-    body.add_joint(name="robot_yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=0.0)
+    """Add the robot body, joints, actuators and camera site to ``spec`` (in place), each element
+    from MuJoCo's built-in defaults, not the world's ``<default>``."""
+    base = _BUILTIN.default
+    body = spec.worldbody.add_body(default=base, name=ROBOT_BODY, pos=[0.0, 0.0, 0.0])
+    unlimited = mujoco.mjtLimited.mjLIMITED_FALSE
+    body.add_joint(default=base, name="robot_x", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[1, 0, 0], damping=0.0,
+                   limited=unlimited)
+    body.add_joint(default=base, name="robot_y", type=mujoco.mjtJoint.mjJNT_SLIDE, axis=[0, 1, 0], damping=0.0,
+                   limited=unlimited)
+    body.add_joint(default=base, name="robot_yaw", type=mujoco.mjtJoint.mjJNT_HINGE, axis=[0, 0, 1], damping=0.0,
+                   limited=unlimited)
     r = env.robot_radius_m
     body.add_geom(
+        default=base,
         name=ROBOT_GEOM,
         type=mujoco.mjtGeom.mjGEOM_CYLINDER,
         size=[r, ROBOT_HEIGHT_M / 2, 0.0],
         pos=[0.0, 0.0, ROBOT_HEIGHT_M / 2 + 0.01],  # 1 cm clearance: no floor contact
         mass=_MASS_KG,
         rgba=[0.2, 0.2, 0.25, 1.0],
-        contype=1,
-        conaffinity=1,
-        group=3,
+        contype=ROBOT_CONTACT_BITS,
+        conaffinity=ROBOT_CONTACT_BITS,
+        group=ROBOT_GEOM_GROUP,
     )
     # The camera looks along the body's +x axis (the heading). MuJoCo cameras look along
     # their local -z with +y up, hence the rotation (xyaxes).
@@ -54,6 +79,7 @@ def add_robot(spec: mujoco.MjSpec, env: EnvConfig, sensor: SensorConfig) -> None
     fx = (sensor.width / 2) / math.tan(math.radians(sensor.hfov_deg) / 2)
     fy = (sensor.height / 2) / math.tan(math.radians(sensor.vfov_deg) / 2)
     body.add_camera(
+        default=base,
         name=CAMERA_NAME,
         pos=[sensor.mount_forward_m, 0.0, sensor.mount_height_m],
         xyaxes=[0, -1, 0, 0, 0, 1],
@@ -63,15 +89,23 @@ def add_robot(spec: mujoco.MjSpec, env: EnvConfig, sensor: SensorConfig) -> None
         principal_pixel=[0.0, 0.0],
     )
     for joint, kv in (("robot_x", _KV_LINEAR), ("robot_y", _KV_LINEAR), ("robot_yaw", _KV_ANGULAR)):
-        act = spec.add_actuator(name=f"vel_{joint}", target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
+        act = spec.add_actuator(default=base, name=f"vel_{joint}", target=joint, trntype=mujoco.mjtTrn.mjTRN_JOINT)
         act.set_to_velocity(kv=kv)
         act.ctrllimited = False
         act.forcelimited = False
 
 
 def build_model(world_mjcf: str, env: EnvConfig, sensor: SensorConfig) -> mujoco.MjModel:
-    """Compile a world's static scene with the robot added."""
+    """Compile a world's static scene with the robot added, under MuJoCo's built-in physics options
+    and sizes whatever the world's MJCF sets (its ``<option>`` and ``<size>`` only concern moving
+    bodies, and the robot is the only one)."""
     spec = mujoco.MjSpec.from_string(world_mjcf)
+    for field in _OPTION_FIELDS:
+        setattr(spec.option, field, getattr(_BUILTIN.option, field))
+    for field in _SIZE_FIELDS:
+        setattr(spec, field, getattr(_BUILTIN, field))
+    for field in _MASS_FIELDS:
+        setattr(spec.compiler, field, getattr(_BUILTIN.compiler, field))
     spec.option.timestep = env.physics_timestep_s
     spec.option.gravity = [0.0, 0.0, 0.0]  # planar robot: no need to carry its weight
     # Stiff velocity servos on a light disc are unstable under explicit Euler; the implicit
@@ -127,7 +161,7 @@ class Robot:
 
         The world-frame velocity targets follow the heading every step, so the disc
         moves along the arc a real differential drive would. Returns True if the robot
-        body touched an obstacle at any step.
+        body touched an obstacle at any step, its final pose included.
         """
         m, d = self.model, self.data
         qadr, act = self._qadr, self._act
@@ -141,6 +175,10 @@ class Robot:
             if not touched and d.ncon:
                 touched = self.touching_obstacle()
         mujoco.mj_forward(m, d)  # kinematics of the final state, for the camera
+        # mj_step detects contacts before it integrates, so the motion of the last step is only
+        # checked by the closing mj_forward's collision pass.
+        if not touched and d.ncon:
+            touched = self.touching_obstacle()
         return touched
 
     def touching_obstacle(self) -> bool:

@@ -30,12 +30,20 @@ import numpy as np
 
 from shared.config import SensorConfig
 from shared.depth import range_gate
-from shared.sim.robot import CAMERA_NAME, FLOOR_GEOM, ROBOT_BODY
+from shared.errors import CogexploreError
+from shared.sim.robot import CAMERA_NAME, FLOOR_GEOM, ROBOT_BODY, ROBOT_GEOM_GROUP
 
 GL_TOLERANCE_M = 0.02
+GL_NEAR_M = 0.01
+"""The GL camera's near clip plane (m), or min_range_m where that is nearer: nothing the camera
+should see is clipped."""
 KINECT_NOISE_OFFSET_M = 0.4
 """Distance (m) below which the depth noise no longer shrinks (``SensorConfig.noise_quadratic_per_m``):
 the z0 of Nguyen et al. 2012's fit sigma(z) = 0.0012 + 0.0019 (z - 0.4)^2 m, valid from ~0.5 m."""
+
+
+class SensorError(CogexploreError):
+    """The depth camera cannot work here (the 'gl' backend without an OpenGL context)."""
 
 
 def intrinsics(cfg: SensorConfig) -> tuple[float, float, float, float]:
@@ -61,6 +69,15 @@ def ray_directions_body(cfg: SensorConfig) -> tuple[np.ndarray, np.ndarray]:
     dirs = np.stack([np.ones_like(left), left, up], axis=-1).reshape(-1, 3)
     norm = np.linalg.norm(dirs, axis=1)
     return dirs / norm[:, None], 1.0 / norm
+
+
+def floor_depths_m(cfg: SensorConfig) -> np.ndarray:
+    """Axial depth (m) at which each image row's rays meet a bare floor, top row first; inf at and
+    above the horizon."""
+    _, fy, _, cy = intrinsics(cfg)
+    up = (cy - (np.arange(cfg.height) + 0.5)) / fy
+    with np.errstate(divide="ignore"):
+        return np.where(up < 0, cfg.mount_height_m / -up, np.inf)
 
 
 def _columns_exact(model: mujoco.MjModel, cfg: SensorConfig, robot_body: int) -> bool:
@@ -109,7 +126,7 @@ class DepthCamera:
         self.mode = "gl" if cfg.backend == "gl" else (
             "columns" if allow_columns and _columns_exact(model, cfg, self.body_id) else "pixels")
         if self.mode == "columns":
-            fx, fy, cx, cy = intrinsics(cfg)
+            fx, _, cx, _ = intrinsics(cfg)
             left = (cx - (np.arange(cfg.width) + 0.5)) / fx
             self._col_dirs_body = np.stack([np.ones_like(left), left, np.zeros_like(left)], axis=1)
             self._col_axial = 1.0 / np.linalg.norm(self._col_dirs_body, axis=1)
@@ -117,11 +134,7 @@ class DepthCamera:
             self._col_vec = np.empty((cfg.width, 3))
             self._col_dist = np.empty(cfg.width)
             self._col_geomid = np.empty(cfg.width, dtype=np.int32)
-            # Axial depth at which each row's rays meet the floor (inf at and above the horizon).
-            up = (cy - (np.arange(cfg.height) + 0.5)) / fy
-            with np.errstate(divide="ignore"):
-                floor = np.where(up < 0, cfg.mount_height_m / -up, np.inf)
-            self._floor_depth = floor[:, None]
+            self._floor_depth = floor_depths_m(cfg)[:, None]
 
     def reseed(self, seed: int | None) -> None:
         """Restart the noise generator (the env calls this on reset with a seed)."""
@@ -184,13 +197,21 @@ class DepthCamera:
             try:
                 self._renderer = mujoco.Renderer(self.model, height=cfg.height, width=cfg.width)
             except Exception as exc:  # no GL context: say how to get one
-                raise RuntimeError(
+                raise SensorError(
                     "the 'gl' depth backend needs an OpenGL context: set MUJOCO_GL=egl (or osmesa) "
-                    f"before importing mujoco, or use backend='raycast' ({exc})") from exc
+                    f"before importing mujoco, or use backend='raycast' ({' '.join(str(exc).split())})") from None
             self._renderer.enable_depth_rendering()
-            # Hide the robot's own body: the raycast backend excludes it the same way.
+            # Every world geom group in view (MuJoCo shows only 0-2 by default), the robot's own body
+            # hidden: the raycast backend sees the same.
             self._scene_option = mujoco.MjvOption()
-            self._scene_option.geomgroup[3] = 0
+            self._scene_option.geomgroup[:] = 1
+            self._scene_option.geomgroup[ROBOT_GEOM_GROUP] = 0
+            # MuJoCo scales its clip planes by the model's extent (near = 1% of it: 2 m in a 100 m
+            # world, hiding every nearer obstacle); the camera's own range sets them instead.
+            near = min(cfg.min_range_m, GL_NEAR_M) if cfg.min_range_m > 0 else GL_NEAR_M
+            extent = self.model.stat.extent
+            self.model.vis.map.znear = near / extent
+            self.model.vis.map.zfar = 1.01 * cfg.max_range_m / extent
         self._renderer.update_scene(data, camera=self.camera_id, scene_option=self._scene_option)
         # The depth buffer holds distance along the optical axis already.
         depth = self._renderer.render().astype(np.float32)

@@ -13,6 +13,7 @@ every world passes :func:`validate_starts` (one implementation for all kinds).
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 from dataclasses import dataclass
@@ -25,7 +26,7 @@ import numpy as np
 from shared.config import PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig, is_procedural_seed
 from shared.errors import CogexploreError
 from shared.sim import maps
-from shared.sim.robot import FLOOR_GEOM, ROBOT_BODY, Robot, build_model
+from shared.sim.robot import FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, Robot, build_model
 from shared.sim.sensor import DepthCamera
 
 # 2 m: taller than any ray of the 0.35 m high camera climbs within its 4 m range, so every
@@ -156,6 +157,8 @@ class StartCheck:
     min_view_depth_m: float
     """Nearest valid depth in the start's depth image (inf if none)."""
     problems: tuple[str, ...]
+    touching: bool = False
+    """The robot is inside or touching an obstacle (or the pose is not finite); ``problems[0]`` says so."""
 
     @property
     def ok(self) -> bool:
@@ -175,12 +178,7 @@ class StartChecker:
     def __init__(self, world: World, env_cfg: EnvConfig | None = None, sensor_cfg: SensorConfig | None = None):
         self.world = world
         self.env_cfg = env_cfg or EnvConfig()
-        sensor = sensor_cfg or SensorConfig()
-        # The check must not depend on a noise draw.
-        self.sensor_cfg = SensorConfig(width=sensor.width, height=sensor.height, hfov_deg=sensor.hfov_deg,
-                                       vfov_deg=sensor.vfov_deg, max_range_m=sensor.max_range_m,
-                                       min_range_m=sensor.min_range_m, mount_height_m=sensor.mount_height_m,
-                                       mount_forward_m=sensor.mount_forward_m)
+        self.sensor_cfg = checked_sensor(sensor_cfg or SensorConfig())
         try:
             self.model = build_model(world.mjcf, self.env_cfg, self.sensor_cfg)
         except ValueError as exc:
@@ -197,6 +195,9 @@ class StartChecker:
         return self.model.geom(g).name or f"geom #{g}"
 
     def check(self, x: float, y: float, yaw: float) -> StartCheck:
+        if not all(math.isfinite(v) for v in (x, y, yaw)):  # MuJoCo would go on with NaN physics
+            return StartCheck(clearance_m=math.nan, nearest_geom="", free_ahead_m=math.nan, min_view_depth_m=math.nan,
+                              problems=(f"at a pose that is not finite ({x}, {y}, {yaw})",), touching=True)
         m, d, r = self.model, self.data, self.env_cfg.robot_radius_m
         self.robot.set_pose(x, y, yaw)
         clearance, nearest = math.inf, ""
@@ -229,7 +230,7 @@ class StartChecker:
             problems.append(f"nearest depth in view {min_view:.2f} m (needs >= {need_view:.2f} m, or the "
                             "first step may end in a depth collision)")
         return StartCheck(clearance_m=float(clearance), nearest_geom=nearest, free_ahead_m=float(free_ahead),
-                          min_view_depth_m=min_view, problems=tuple(problems))
+                          min_view_depth_m=min_view, problems=tuple(problems), touching=touching)
 
     def unsafe_first_actions(self, x: float, y: float, yaw: float,
                              speed_tables: tuple[str, ...] = tuple(SPEED_TABLES)) -> list[tuple[str, int]]:
@@ -260,10 +261,41 @@ def validate_starts(world: World, env_cfg: EnvConfig | None = None,
     checker = StartChecker(world, env_cfg, sensor_cfg)
     checks = tuple(checker.check(s.x, s.y, s.yaw) for s in world.starts)
     bad = [f"start {i} '{s.name}' at ({s.x:.2f}, {s.y:.2f}): {'; '.join(c.problems)}"
-           for i, (s, c) in enumerate(zip(world.starts, checks)) if c.problems]
+           for i, (s, c) in enumerate(zip(world.starts, checks), start=1) if c.problems]
     if bad:
         raise WorldError(f"{world.label}: invalid start(s): " + " | ".join(bad))
     return checks
+
+
+def checked_sensor(sensor_cfg: SensorConfig) -> SensorConfig:
+    """The camera a start is checked with: ``sensor_cfg`` without noise (a check must not depend
+    on a draw) and ray-cast (no OpenGL needed)."""
+    return dataclasses.replace(sensor_cfg.noise_free(), backend="raycast")
+
+
+def check_starts_fit(world: World, robot_radius_m: float) -> None:
+    """WorldError unless the robot, at this radius, begins clear of every obstacle at every start
+    of ``world`` (touching, every episode from there would end at its first step). A world's starts
+    are checked (:func:`validate_starts`) for the default robot when it is made; a larger one can
+    stand in a wall. Checked once per world and radius."""
+    bad = _starts_touching(world, robot_radius_m)
+    if bad:
+        raise WorldError(f"{world.label}: with robot_radius_m {robot_radius_m:g} the robot starts inside or touching "
+                         f"an obstacle at {len(bad)} of its {len(world.starts)} starts: {_listed(bad)}")
+
+
+@functools.lru_cache(maxsize=256)
+def _starts_touching(world: World, robot_radius_m: float) -> tuple[str, ...]:
+    checker = StartChecker(world, dataclasses.replace(EnvConfig(), robot_radius_m=robot_radius_m))
+    checks = ((i, s, checker.check(s.x, s.y, s.yaw)) for i, s in enumerate(world.starts, start=1))
+    return tuple(f"{i} '{s.name}' (geom '{c.nearest_geom}')" if c.nearest_geom else f"{i} '{s.name}'"
+                 for i, s, c in checks if c.touching)
+
+
+def _listed(items: list[str] | tuple[str, ...], most: int = 4) -> str:
+    """The first ``most`` items, comma-separated, and how many more: one line however many."""
+    more = f" and {len(items) - most} more" if len(items) > most else ""
+    return ", ".join(items[:most]) + more
 
 
 # ---------------------------------------------------------------------------
@@ -623,7 +655,11 @@ def _pick_starts(scene: World, regions: list[tuple[str, tuple[float, float, floa
 def load_world_file(path: str | Path, name: str | None = None) -> World:
     """A world from an MJCF file: static geoms, starts from sites named ``start_*`` (x, y
     from the site position, heading from the site's x axis). A floor plane named 'floor'
-    is added unless the file has one (a horizontal plane with another name is renamed)."""
+    is added unless the file has one (an upward plane at z = 0 with another name is renamed).
+
+    Refused, besides what MuJoCo refuses: moving bodies, physics options that would reach the robot
+    (:func:`_check_options`), geoms the robot or its camera would treat unlike an obstacle
+    (:func:`_check_geoms`), a non-finite start and a 'floor' that is no floor."""
     p = Path(path)
     label = f"MJCF file '{path}'"
     if not p.is_file():
@@ -648,27 +684,38 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
                          for j in range(model.njnt)})
         raise WorldError(f"{label}: bodies with joints are not static: {moving}; a world may hold only "
                          "static geoms (no joints, no free bodies)")
-    data = mujoco.MjData(model)
-    mujoco.mj_kinematics(model, data)
+    _check_options(model, label)
+    try:
+        data = mujoco.MjData(model)
+        mujoco.mj_kinematics(model, data)
+    except mujoco.FatalError as exc:  # e.g. a <size memory> too small for the scene
+        raise WorldError(f"{label}: MuJoCo cannot simulate it: {' '.join(str(exc).split())}") from None
     starts = []
     for i in range(model.nsite):
         site = model.site(i).name
         if site.startswith("start_"):
             x, y = (float(v) for v in data.site_xpos[i][:2])
             xmat = data.site_xmat[i]
-            starts.append(StartPose(x, y, float(math.atan2(xmat[3], xmat[0])), site))
+            start = StartPose(x, y, float(math.atan2(xmat[3], xmat[0])), site)
+            if not all(math.isfinite(v) for v in (start.x, start.y, start.yaw)):
+                raise WorldError(f"{label}: start site '{site}' has no finite position and heading "
+                                 f"(x {start.x}, y {start.y}, yaw {start.yaw})")
+            starts.append(start)
     if not starts:
         raise WorldError(f"{label} has no start sites: add sites named start_<something> "
                          "(position = start, site x axis = initial heading)")
-    # The floor: keep one named 'floor', else rename the first horizontal plane, else add one.
-    plane = int(mujoco.mjtGeom.mjGEOM_PLANE)
+    # The floor: keep one named 'floor', else rename the first upward plane at z = 0, else add one.
     floor_ids = [g for g in range(model.ngeom) if model.geom(g).name == FLOOR_GEOM]
+    if floor_ids and not _is_floor_plane(model, data, floor_ids[0]):
+        raise WorldError(f"{label}: geom '{FLOOR_GEOM}' is not a floor (a plane at z = 0 facing up); the robot "
+                         "would treat it as one, not as an obstacle: rename it or make it that plane")
     if not floor_ids:
         for g in range(model.ngeom):
-            if int(model.geom_type[g]) == plane and data.geom_xmat[g][8] > 0.999:
+            if _is_floor_plane(model, data, g):
                 next(sg for sg in spec.geoms if sg.id == g).name = FLOOR_GEOM
                 floor_ids = [g]
                 break
+    _check_geoms(model, label, set(floor_ids))
     extent = _geom_extent(model, data, set(floor_ids), starts)
     if not floor_ids:
         xmin, ymin, xmax, ymax = extent
@@ -678,6 +725,70 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
     world = World(name=name or str(path), mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file")
     validate_starts(world)
     return world
+
+
+_FLAG_BITS = [(bit, "disable") for bit in mujoco.mjtDisableBit.__members__.values()
+              if bit.name.startswith("mjDSBL_")] + \
+             [(bit, "enable") for bit in mujoco.mjtEnableBit.__members__.values() if bit.name.startswith("mjENBL_")]
+
+
+def _check_options(model: mujoco.MjModel, label: str) -> None:
+    """WorldError naming the ``<option>`` settings that would change how the robot moves or
+    collides (flags such as contact="disable", disabled actuator groups, a medium). The robot
+    never takes them (``shared.sim.robot.build_model`` compiles under MuJoCo's built-in options),
+    so a world that sets them would not be the world its author meant."""
+    opt = model.opt
+    settings = [f'<flag {bit.name.split("_", 1)[1].lower()}="{value}">' for bit, value in _FLAG_BITS
+                if (opt.disableflags if value == "disable" else opt.enableflags) & int(bit)]
+    if opt.disableactuator:
+        settings.append(f"actuatorgroupdisable (mask {opt.disableactuator})")
+    settings += [name for name in ("wind", "density", "viscosity") if np.any(np.asarray(getattr(opt, name)) != 0)]
+    if settings:
+        raise WorldError(f"{label}: <option> sets {', '.join(settings)}, which would change the robot's physics; "
+                         "remove it (a world holds static geoms and start sites; the robot's physics is cogexplore's)")
+
+
+def _is_floor_plane(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> bool:
+    """Whether geom ``g`` is a plane at z = 0 facing up, the only geom the robot may treat as the floor."""
+    return (int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE) and abs(data.geom_xpos[g][2]) < 1e-6
+            and data.geom_xmat[g][8] > 1 - 1e-6)
+
+
+def _check_geoms(model: mujoco.MjModel, label: str, floor: set[int]) -> None:
+    """WorldError naming the geoms the robot and its depth camera would treat unlike the obstacles
+    the map marks: one fully transparent (ray casts pass through alpha 0), one in the robot's own
+    geom group (which the GL camera hides), an obstacle whose contype and conaffinity never meet
+    the robot's (it would drive through it), one with a contact margin (it would stop the robot
+    short of its surface, where no contact is reported)."""
+    invisible, hidden, intangible, cushioned = [], [], [], []
+    for g in range(model.ngeom):
+        name = f"'{model.geom(g).name}'" if model.geom(g).name else f"#{g}"
+        matid = int(model.geom_matid[g])
+        if (model.mat_rgba[matid][3] if matid >= 0 else model.geom_rgba[g][3]) == 0:
+            invisible.append(name)
+        if int(model.geom_group[g]) == ROBOT_GEOM_GROUP:
+            hidden.append(name)
+        contype, conaffinity = int(model.geom_contype[g]), int(model.geom_conaffinity[g])
+        if g not in floor and not (contype & ROBOT_CONTACT_BITS or conaffinity & ROBOT_CONTACT_BITS):
+            intangible.append(f"{name} (contype {contype}, conaffinity {conaffinity})")
+        if model.geom_margin[g] > 0:
+            cushioned.append(f"{name} ({model.geom_margin[g]:g} m)")
+    problems = []
+    if invisible:
+        problems.append(f"geom(s) {_listed(invisible)} fully transparent (rgba alpha 0): the depth camera "
+                        "cannot see them; give them a visible colour")
+    if hidden:
+        problems.append(f"geom(s) {_listed(hidden)} in group {ROBOT_GEOM_GROUP}, the robot's own, which the GL "
+                        "depth camera hides; use another group")
+    if intangible:
+        problems.append(f"geom(s) {_listed(intangible)} that never collide with the robot (its contype and "
+                        f"conaffinity are {ROBOT_CONTACT_BITS}): it would drive through them; give them contype "
+                        f"or conaffinity {ROBOT_CONTACT_BITS}")
+    if cushioned:
+        problems.append(f"geom(s) {_listed(cushioned)} with a contact margin, which would stop the robot short "
+                        "of them with no contact to end the episode; remove the margin")
+    if problems:
+        raise WorldError(f"{label} has " + "; and ".join(problems))
 
 
 def _geom_extent(model: mujoco.MjModel, data: mujoco.MjData, skip: set[int],
@@ -716,6 +827,15 @@ def _cached_world(name: str) -> World:
     return procedural_world(int(seed_text))
 
 
+def canonical_world_name(name: str) -> str:
+    """The name ``load_world(name)``'s World carries: ``procedural:007`` is ``procedural:7``; every
+    other name as written."""
+    seed_text = name[len(PROCEDURAL_PREFIX):]
+    if name.startswith(PROCEDURAL_PREFIX) and is_procedural_seed(seed_text):
+        return f"{PROCEDURAL_PREFIX}{int(seed_text)}"
+    return name
+
+
 def load_world(name: str) -> World:
     """Resolve a built-in name, ``procedural:<seed>`` or an MJCF path to a World.
 
@@ -723,7 +843,7 @@ def load_world(name: str) -> World:
     if not isinstance(name, str) or not name:
         raise WorldError(f"a world name must be a non-empty string, got {name!r}")
     if name in BUILTIN_WORLDS or name.startswith(PROCEDURAL_PREFIX):
-        return _cached_world(name)
+        return _cached_world(canonical_world_name(name))
     if name.lower().endswith(".xml") or Path(name).is_file():
         return load_world_file(name)
     raise WorldError(f"unknown world {name!r}: use a built-in world {sorted(BUILTIN_WORLDS)}, "

@@ -170,8 +170,9 @@ def test_a_jittered_start_never_touches_or_faces_an_obstacle_too_near() -> None:
 
 
 def test_a_start_with_no_clear_draw_is_named_in_the_error(tmp_path: Path, capsys) -> None:
-    # A collision distance beyond every wall of the room: no drawn pose can be clear.
-    env = ExploreEnv(world="box-room", sensor=SENSOR, collision_distance_m=5.0)
+    # A collision distance the bare floor passes (0.89 m at its nearest) but no drawn view keeps
+    # (a start needs it plus a margin: 0.95 m, nearer than the floor): no drawn pose can be clear.
+    env = ExploreEnv(world="box-room", sensor=SENSOR, collision_distance_m=0.85)
     with pytest.raises(EnvError, match=r"start 2 of world 'box-room': none of 100 poses drawn within ±0.05 m and "
                                        r"±3° of it keeps 0.18 m from obstacles"):
         env.reset(seed=1, options={"start_index": 1, "start_jitter": (0.05, 3.0)})
@@ -179,7 +180,7 @@ def test_a_start_with_no_clear_draw_is_named_in_the_error(tmp_path: Path, capsys
         with pytest.raises(EnvError, match="start_jitter"):
             env.reset(seed=1, options={"start_index": 1, "start_jitter": bad})
     env.close()
-    assert main(["evaluate", "--policy", "reactive", "--world", "box-room", "--set", "env.collision_distance_m=5",
+    assert main(["evaluate", "--policy", "reactive", "--world", "box-room", "--set", "env.collision_distance_m=0.85",
                  "--episodes-per-start", "1", "--max-steps", "3", "--quiet"]) == 2
     assert "start 1 of world 'box-room'" in capsys.readouterr().err
 

@@ -1,5 +1,6 @@
 """The Gymnasium environment: motion, reward, episode end, determinism."""
 
+import dataclasses
 import math
 
 import gymnasium as gym
@@ -8,9 +9,12 @@ import pytest
 from gymnasium.utils.env_checker import check_env
 
 import shared.sim.env  # noqa: F401  (registers cogexplore/Explore-v0)
-from shared.config import SPEED_TABLES, EnvConfig
-from shared.sim.env import ENV_ID, ExploreEnv
-from shared.sim.world import SceneBuilder, StartPose
+from shared.config import SPEED_TABLES, EnvConfig, SensorConfig
+from shared.errors import PolicyError
+from shared.evaluation.policies import RandomPolicy
+from shared.sim.env import ENV_ID, EnvError, ExploreEnv
+from shared.sim.robot import MAX_TWIST_MPS, MAX_TWIST_RPS
+from shared.sim.world import SceneBuilder, StartPose, WorldError
 
 
 def _corridor_world(face_distances: list[float]):
@@ -127,6 +131,50 @@ def test_bad_action_and_start_are_clear_errors():
         env.reset(options={"start_index": 99})
     with pytest.raises(ValueError, match="start_index"):
         ExploreEnv(world="box-room", start_index=99)
+
+
+def test_a_twist_beyond_the_robots_limits_or_not_a_number_is_a_clear_error():
+    env = ExploreEnv(world=_corridor_world([6.0]), start_index=0)
+    env.reset(seed=0)
+    for linear, angular in ((80.0, 0.0), (1e12, 0.0), (-MAX_TWIST_MPS - 0.01, 0.0), (0.0, MAX_TWIST_RPS + 0.01),
+                            (float("nan"), 0.0), (0.0, float("inf")), ("0.2", 0.0), (0.2, None), (True, 0.0)):
+        with pytest.raises(EnvError, match="twist"):
+            env.step_twist(linear, angular)
+    assert env.robot.pose() == pytest.approx((0.0, 0.0, 0.0))  # nothing was driven
+    *_, terminated, _, info = env.step_twist(MAX_TWIST_MPS, -MAX_TWIST_RPS)
+    assert not terminated and info["path_length_m"] > 0.5
+    env.close()
+
+
+def test_a_robot_too_large_for_the_worlds_starts_is_refused_at_construction():
+    with pytest.raises(WorldError) as err:
+        ExploreEnv(world="box-room", robot_radius_m=0.8)
+    msg = str(err.value)
+    assert "world 'box-room'" in msg and "robot_radius_m 0.8" in msg and "1 'sw'" in msg and "\n" not in msg
+    assert "inside or touching an obstacle at 3 of its 4 starts" in msg and "centre" not in msg
+    ExploreEnv(world="box-room", robot_radius_m=0.25).close()  # a little larger still fits
+
+
+@pytest.mark.parametrize("sensor", [SensorConfig(vfov_deg=80.0), SensorConfig(mount_height_m=0.15),
+                                    SensorConfig(width=40, height=30, vfov_deg=80.0)])
+def test_a_camera_that_sees_the_floor_as_a_collision_is_refused_at_construction(sensor):
+    with pytest.raises(EnvError) as err:
+        ExploreEnv(world="box-room", sensor=sensor)
+    assert "the bare floor reads" in str(err.value) and "collision_distance_m 0.55" in str(err.value)
+    # Gated out by min_range_m, the near floor is no return, and no collision.
+    gated = dataclasses.replace(sensor, min_range_m=0.6)
+    env = ExploreEnv(world="box-room", sensor=gated, start_index=2)
+    env.reset(seed=0)
+    assert not env.step(2)[2]
+    env.close()
+
+
+def test_a_random_policy_with_a_negative_seed_is_a_clear_error():
+    # The seed reaches numpy's generator, whose own refusal is a traceback (evaluate --seed -1).
+    for seed in (-1, 1.5, "3"):
+        with pytest.raises(PolicyError, match="seed"):
+            RandomPolicy(seed)
+    assert RandomPolicy(3)(np.zeros((30, 40), np.float32))[0] in range(5)
 
 
 def test_info_tracks_distance_and_path_length():

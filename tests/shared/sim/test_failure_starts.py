@@ -4,6 +4,7 @@ never for a start the caller fixes, and nothing drawn when off (real env, real M
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -68,6 +69,22 @@ def test_an_episode_starts_a_few_steps_before_an_earlier_collision_in_its_world_
     assert info["failure_start"] is False and info["world"] == "box-room"
     assert info["pose"] == pytest.approx((named.x, named.y, named.yaw), abs=1e-9)
     env.close()
+
+
+def test_a_procedural_world_written_with_leading_zeros_is_one_world() -> None:
+    # 'procedural:007' is the World 'procedural:7': its collisions must be found under that name.
+    cfg = EnvConfig(world="box-room", extra_worlds="procedural:007", extra_world_prob=1.0, failure_start_prob=1.0,
+                    max_episode_steps=400)
+    env = ExploreEnv(cfg, SENSOR)
+    env.reset(seed=0)
+    world, _ = drive_straight_into_a_wall(env)
+    assert world == "procedural:7" and set(env._scenes) == {"box-room", "procedural:7"}
+    _, info = env.reset(seed=1)
+    assert info["failure_start"] is True and info["world"] == "procedural:7"
+    env.close()
+    both = ExploreEnv(dataclasses.replace(cfg, extra_worlds="procedural:007, procedural:7"), SENSOR)
+    assert both._extra_world_names == ("procedural:7",)  # one world, drawn as often as any other
+    both.close()
 
 
 def test_off_it_draws_nothing_and_remembers_nothing() -> None:

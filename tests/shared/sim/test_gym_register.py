@@ -9,6 +9,7 @@ import gymnasium as gym
 import pytest
 
 from shared.config import EnvConfig
+from shared.errors import CogexploreError
 from shared.evaluation import PAPER_MAX_STEPS
 from shared.sim.gym_register import ENV_ID, IMAGE_ENV_ID, register_envs
 from shared.sim.world import SceneBuilder, StartPose
@@ -81,3 +82,16 @@ def test_one_truncation_ends_the_episode(make_kwargs, env_cap, length):
     assert flags[-1] == (False, True, length)
     assert not any(t or tr for t, tr, _ in flags[:-1])
     env.close()
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"sensor": {"widht": 40}}, r"unknown field\(s\) \['widht'\]"),
+    ({"speed": "test"}, r"unknown field\(s\) \['speed'\]"),
+    ({"sensor": [1, 2]}, "sensor must be a SensorConfig"),
+    ({"config": {"world": "box-room"}}, "config must be an EnvConfig"),
+    ({"sensor": {"width": "40"}}, "width"),
+])
+def test_a_typo_in_makes_keywords_is_a_clear_error(kwargs, match):
+    for env_id in (ENV_ID, IMAGE_ENV_ID):
+        with pytest.raises(CogexploreError, match=match):
+            gym.make(env_id, world="box-room", **kwargs)

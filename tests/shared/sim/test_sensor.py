@@ -1,6 +1,10 @@
 """The depth camera against known geometry, with real MuJoCo."""
 
+import json
 import math
+import os
+import subprocess
+import sys
 
 import mujoco
 import numpy as np
@@ -8,7 +12,7 @@ import pytest
 
 from shared.config import EnvConfig, SensorConfig
 from shared.sim.robot import Robot, build_model
-from shared.sim.sensor import GL_TOLERANCE_M, DepthCamera, column_angles, intrinsics
+from shared.sim.sensor import GL_TOLERANCE_M, DepthCamera, SensorError, column_angles, floor_depths_m, intrinsics
 from shared.sim.world import SceneBuilder, StartPose
 
 TALL = 2.0  # obstacles taller than any in-range ray: the camera may use its column fast path
@@ -96,9 +100,77 @@ def test_gl_backend_agrees_with_raycast():
     robot.set_pose(0.3, 0.2, 0.25)
     try:
         gl = DepthCamera(model, SensorConfig(backend="gl")).capture(data)
-    except RuntimeError as exc:
+    except SensorError as exc:
         pytest.skip(f"no OpenGL context here: {exc}")
     ray = DepthCamera(model, SensorConfig()).capture(data)
     both = (gl > 0) & (ray > 0)
     assert ((gl > 0) != (ray > 0)).mean() < 0.01, "valid-pixel masks differ only at edges"
     assert np.percentile(np.abs(gl[both] - ray[both]), 99) < GL_TOLERANCE_M
+
+
+def test_the_gl_backend_without_opengl_is_a_one_line_error():
+    # GLFW with no display to open a window on: no OpenGL context (a fresh interpreter, as MUJOCO_GL
+    # is read when mujoco is imported).
+    code = _GL_PROBE.replace("print(json.dumps({\"skip\": str(exc)}))",
+                             "print(json.dumps({\"error\": type(exc).__name__, \"message\": str(exc)}))")
+    env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          env={**env, "MUJOCO_GL": "glfw"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    if "gl" in out:
+        pytest.skip("GLFW opened a context here")
+    # A CogexploreError: the command line prints it in one line, with no traceback.
+    assert out["error"] == "SensorError" and "MUJOCO_GL=egl" in out["message"] and "\n" not in out["message"]
+
+
+_GL_PROBE = """
+import json
+import mujoco
+from shared.config import EnvConfig, SensorConfig
+from shared.sim.robot import Robot, build_model
+from shared.sim.sensor import DepthCamera, SensorError
+# A far marker makes the model's extent 400 m (MuJoCo's default near plane: 4 m); the wall 1 m
+# ahead covers the right of the view, a pillar in group 3 the left.
+xml = ('<mujoco><worldbody><geom name="floor" type="plane" size="0 0 1"/>'
+       '<geom name="marker" type="box" pos="200 0 1" size="0.1 0.1 1"/>'
+       '<geom name="wall" type="box" pos="1.05 -1 1" size="0.05 1 1"/>'
+       '<geom name="pillar" type="box" pos="1.55 1 1" size="0.05 1 1" group="3"/></worldbody></mujoco>')
+sensor = SensorConfig(width=40, height=30)
+model = build_model(xml, EnvConfig(), sensor)
+data = mujoco.MjData(model)
+Robot(model, data).set_pose(0.0, 0.0, 0.0)
+try:
+    gl = DepthCamera(model, SensorConfig(width=40, height=30, backend="gl")).capture(data)
+except SensorError as exc:
+    print(json.dumps({"skip": str(exc)}))
+else:
+    ray = DepthCamera(model, sensor).capture(data)
+    print(json.dumps({"gl": gl.tolist(), "ray": ray.tolist()}))
+"""
+
+
+def test_the_gl_backend_sees_what_the_raycast_sees_near_and_in_any_world_group():
+    # MUJOCO_GL must be set before mujoco is imported: a fresh interpreter.
+    done = subprocess.run([sys.executable, "-c", _GL_PROBE], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "MUJOCO_GL": "egl"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    images = json.loads(done.stdout.strip().splitlines()[-1])
+    if "skip" in images:
+        pytest.skip(f"no EGL context here: {images['skip']}")
+    gl, ray = np.array(images["gl"]), np.array(images["ray"])
+    assert ray[15, 35] == pytest.approx(1.0, abs=0.01) and ray[15, 5] == pytest.approx(1.5, abs=0.01)
+    both = (gl > 0) & (ray > 0)
+    assert ((gl > 0) != (ray > 0)).mean() < 0.02, "valid-pixel masks differ only at edges"
+    assert np.percentile(np.abs(gl[both] - ray[both]), 99) < GL_TOLERANCE_M
+
+
+def test_floor_depths_are_where_each_rows_ray_meets_the_floor():
+    sensor = SensorConfig(width=40, height=30)
+    floor = floor_depths_m(sensor)
+    _, fy, _, cy = intrinsics(sensor)
+    assert np.all(np.isinf(floor[:15])) and np.all(np.diff(floor[15:]) < 0)
+    assert floor[-1] == pytest.approx(sensor.mount_height_m * fy / (29.5 - cy))
+    model, data, _, _ = _room(wall_x=50.0)  # nothing in range but the floor
+    depth = DepthCamera(model, sensor).capture(data)
+    np.testing.assert_allclose(depth[-1], floor[-1], rtol=1e-5)

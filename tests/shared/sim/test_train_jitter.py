@@ -24,6 +24,7 @@ from shared.sim.env import (
     ExploreEnv,
     min_valid_depth,
 )
+from shared.sim.sensor import floor_depths_m
 
 SENSOR = SensorConfig(width=40, height=30)
 JITTER = {"start_jitter_m": 0.3, "start_jitter_deg": 45.0}  # wide: box-room's start 4 is 0.26 m from a wall
@@ -103,8 +104,10 @@ def test_callers_that_fix_the_start_or_the_jitter_win_over_the_config() -> None:
 
 
 def test_a_start_with_no_clear_draw_is_played_exact_in_training_and_an_error_for_the_caller(caplog) -> None:
-    # A collision distance beyond every wall of the room: no drawn pose can be clear.
-    env = ExploreEnv(EnvConfig(world="box-room", collision_distance_m=5.0, **JITTER), SENSOR)
+    # A collision distance just short of the floor's nearest reading, so that the env takes it, but
+    # within START_DEPTH_MARGIN_M of it: no drawn pose can be clear.
+    collision_m = float(floor_depths_m(SENSOR).min()) - START_DEPTH_MARGIN_M / 2
+    env = ExploreEnv(EnvConfig(world="box-room", collision_distance_m=collision_m, **JITTER), SENSOR)
     with caplog.at_level(logging.WARNING, logger="cogexplore.env"):
         infos = [env.reset(seed=seed)[1] for seed in range(6)]
     assert all(is_named_exactly(env, info) for info in infos)

@@ -8,13 +8,16 @@ import pytest
 from shared.config import EnvConfig
 from shared.sim import maps
 from shared.sim.env import ExploreEnv
+from shared.sim.robot import ROBOT_GEOM_GROUP
 from shared.sim.world import (
     BUILTIN_WORLDS,
     NUM_STARTS,
     SceneBuilder,
+    StartChecker,
     StartPose,
     World,
     WorldError,
+    canonical_world_name,
     load_world,
     obstacle_geom_count,
     procedural_world,
@@ -128,6 +131,23 @@ def test_validate_starts_names_each_bad_start():
     assert "'facing-wall'" in msg and "straight ahead" in msg
     assert "'in-wall'" in msg and "inside or touching" in msg
     assert "'too-close'" in msg and "needs >= 0.1 m" in msg
+    # Numbered from 1, as every table and `worlds starts` number them.
+    assert "start 2 'facing-wall'" in msg and "start 3 'in-wall'" in msg and "start 4 'too-close'" in msg
+
+
+def test_a_pose_that_is_not_finite_is_no_valid_start():
+    checker = StartChecker(load_world("box-room"))
+    for pose in ((math.nan, 0.0, 0.0), (0.0, math.inf, 0.0), (0.0, 0.0, math.nan)):
+        check = checker.check(*pose)
+        assert not check.ok and check.touching and "not finite" in check.problems[0]
+    assert checker.check(0.0, 0.0, -math.pi / 2).ok  # the checker goes on as before
+
+
+def test_canonical_world_names_load_one_world():
+    assert canonical_world_name("procedural:007") == "procedural:7"
+    assert canonical_world_name("procedural:0") == "procedural:0"
+    assert canonical_world_name("box-room") == "box-room" and canonical_world_name("procedural:x") == "procedural:x"
+    assert load_world("procedural:007") is load_world("procedural:7")
 
 
 # ---------------------------------------------------------------------------
@@ -137,6 +157,7 @@ def test_validate_starts_names_each_bad_start():
 _ROOM = """
 <mujoco model="user-room">
   <compiler angle="degree"/>
+  {head}
   <worldbody>
     {floor}
     <geom name="north" type="box" pos="0 3 1" size="3 0.1 1"/>
@@ -151,9 +172,9 @@ _ROOM = """
 
 
 def _write(tmp_path: Path, name: str, sites: str, floor: str = '<geom name="ground" type="plane" size="0 0 1"/>',
-           extra: str = "") -> Path:
+           extra: str = "", head: str = "") -> Path:
     path = tmp_path / name
-    path.write_text(_ROOM.format(floor=floor, sites=sites + extra))
+    path.write_text(_ROOM.format(floor=floor, sites=sites + extra, head=head))
     return path
 
 
@@ -238,6 +259,115 @@ def test_bodies_that_can_move_are_rejected(tmp_path, body, what):
     with pytest.raises(WorldError) as err:
         load_world(str(path))
     assert str(path) in str(err.value) and "not static" in str(err.value) and what in str(err.value)
+
+
+@pytest.mark.parametrize("head, setting", [
+    ('<option><flag contact="disable"/></option>', '<flag contact="disable">'),
+    ('<option><flag actuation="disable"/></option>', '<flag actuation="disable">'),
+    ('<option><flag constraint="disable"/></option>', '<flag constraint="disable">'),
+    ('<option><flag override="enable"/></option>', '<flag override="enable">'),
+    ('<option actuatorgroupdisable="0"/>', "actuatorgroupdisable"),
+    ('<option wind="5 0 0"/>', "wind"),
+    ('<option density="1.2" viscosity="0.1"/>', "density, viscosity"),
+])
+def test_physics_options_that_would_reach_the_robot_are_refused(tmp_path, head, setting):
+    path = _write(tmp_path, "option.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', head=head)
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and f"<option> sets {setting}" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
+def test_options_the_robot_does_not_take_are_accepted(tmp_path):
+    # The env sets the timestep, gravity and integrator itself; a world may say what it likes.
+    path = _write(tmp_path, "timestep.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+                  head='<option timestep="0.002" gravity="0 0 -1" integrator="RK4"/>')
+    assert load_world(str(path)).starts[0].name == "start_a"
+
+
+@pytest.mark.parametrize("attrs, what", [
+    ('contype="2" conaffinity="2"', "contype 2, conaffinity 2"),
+    ('contype="0" conaffinity="0"', "contype 0, conaffinity 0"),
+])
+def test_an_obstacle_the_robot_would_drive_through_is_refused(tmp_path, attrs, what):
+    path = _write(tmp_path, "ghost.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+                  extra=f'<geom name="kerb" type="box" pos="-1 0 0.025" size="0.5 0.5 0.025" {attrs}/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert f"'kerb' ({what})" in str(err.value) and "never collide with the robot" in str(err.value)
+    # Either bit shared with the robot's is a collision.
+    for ok in ('contype="3" conaffinity="0"', 'contype="0" conaffinity="1"'):
+        _write(tmp_path, "solid.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+               extra=f'<geom name="kerb" type="box" pos="-1 0 0.025" size="0.5 0.5 0.025" {ok}/>')
+        assert load_world(str(tmp_path / "solid.xml")).kind == "file"
+
+
+def test_an_obstacle_that_would_stop_the_robot_short_of_it_is_refused(tmp_path):
+    path = _write(tmp_path, "margin.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+                  extra='<geom name="cushion" type="box" pos="-1 0 1" size="0.3 0.3 1" margin="0.5"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "'cushion' (0.5 m)" in str(err.value) and "contact margin" in str(err.value)
+
+
+@pytest.mark.parametrize("extra, what", [
+    ('<geom name="glass" type="box" pos="-1 0 1" size="0.5 0.5 1" rgba="1 1 1 0"/>', "'glass'"),
+    ('<geom name="glass" type="box" pos="-1 0 1" size="0.5 0.5 1" material="clear"/>', "'glass'"),
+])
+def test_an_obstacle_the_camera_cannot_see_is_refused(tmp_path, extra, what):
+    head = '<asset><material name="clear" rgba="1 1 1 0"/></asset>'
+    path = _write(tmp_path, "glass.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', extra=extra, head=head)
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert what in str(err.value) and "fully transparent" in str(err.value)
+
+
+def test_a_geom_in_the_robots_group_is_refused(tmp_path):
+    path = _write(tmp_path, "group.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+                  extra=f'<geom name="pillar2" type="box" pos="-1 0 1" size="0.3 0.3 1" group="{ROBOT_GEOM_GROUP}"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "'pillar2'" in str(err.value) and f"group {ROBOT_GEOM_GROUP}" in str(err.value)
+    # Group 3, which the robot used to take (and many MJCF files use for collision geoms), is a world's.
+    _write(tmp_path, "group3.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+           extra='<geom name="pillar2" type="box" pos="-1 0 1" size="0.3 0.3 1" group="3"/>')
+    assert load_world(str(tmp_path / "group3.xml")).kind == "file"
+
+
+@pytest.mark.parametrize("floor", [
+    '<geom name="floor" type="box" pos="0 0 1" size="0.05 2 1"/>',   # a wall the robot would not touch
+    '<geom name="floor" type="plane" pos="0 0 0.2" size="0 0 1"/>',  # a floor above the robot's wheels
+    '<geom name="floor" type="plane" euler="180 0 0" size="0 0 1"/>',  # facing down
+])
+def test_a_floor_that_is_no_floor_is_refused(tmp_path, floor):
+    path = _write(tmp_path, "floor.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', floor=floor)
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "geom 'floor' is not a floor" in str(err.value)
+
+
+def test_a_start_site_that_is_not_finite_is_refused(tmp_path):
+    path = _write(tmp_path, "nan.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>'
+                                       '<site name="start_nan" pos="nan 0 0"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "start site 'start_nan'" in str(err.value) and "finite" in str(err.value)
+
+
+def test_a_size_the_robot_cannot_live_with_does_not_reach_it(tmp_path):
+    # Memory for the static scene, not for the robot's contacts: the robot gets MuJoCo's default.
+    path = _write(tmp_path, "memory.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+                  head='<size memory="2K"/>')
+    env = ExploreEnv(world=str(path), start_index=0)
+    try:
+        env.reset(seed=0)
+        for _ in range(30):
+            *_, terminated, _, info = env.step(2)
+            if terminated:
+                break
+        assert terminated and info["collision_cause"] in ("depth", "contact")
+    finally:
+        env.close()
 
 
 def test_a_body_named_robot_is_rejected(tmp_path):
