@@ -48,3 +48,12 @@ def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
 def atomic_write_text(path: str | Path, text: str) -> Path:
     """Write ``text`` to ``path`` via :func:`write_atomically`."""
     return write_atomically(path, lambda tmp: tmp.write_text(text))
+
+
+def save_png(figure: Any, out_path: str | Path, dpi: int) -> Path:
+    """A matplotlib ``figure`` as a PNG at ``out_path`` (its folder made), written whole or not at
+    all: a report or map being rewritten keeps its old figure when the disk fills."""
+    out = Path(out_path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    # the format is named: matplotlib would read it from the temporary file's name
+    return write_atomically(out, lambda tmp: figure.savefig(tmp, dpi=dpi, format="png"))

@@ -273,7 +273,7 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     rejects = RejectCounter("weights message", log)
     follower = WeightFollower(architecture_fingerprint(net), rejects, shapes=named_shapes(net))
     actor_epoch = new_epoch()  # this process: the learner's allowance for it starts from nothing
-    gate = FlowGate(actor_id, actor_epoch=actor_epoch, rejects=rejects)
+    gate = FlowGate(actor_id, actor_epoch=actor_epoch)  # a bad flow message is counted once, by the follower
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
     stream = None

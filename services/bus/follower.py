@@ -46,6 +46,7 @@ from shared.wire.messages import (
     MessageError,
     RejectCounter,
     WeightsMessage,
+    epoch_from_the_future,
 )
 
 log = logging.getLogger("cogexplore.weights")
@@ -121,6 +122,9 @@ class WeightFollower:
         learner's version is its update count): a parked one is dropped and counted, and a taken
         one no longer holds the learner's real weights off as "older" (one forged message
         numbered 2^40 - 1 did, for the rest of the learner's life)."""
+        if epoch_from_the_future(message.learner_epoch):  # not a late word of a dead learner: an impossible one
+            self.rejects.reject(MessageError(RANGE, "flow control of a learner started in the future"), key or None)
+            return
         forged = None
         with self._arrived:
             self._epochs.heard(message.learner_epoch)

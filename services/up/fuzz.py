@@ -7,7 +7,7 @@ must reject it, count it and carry on:
     key                         from      listened to by
     transitions/<id>            actor     the learner
     stats/episode/<id>          actor     this bench (a viewer, as the launcher's progress bar)
-    weights, flow               learner   the actor (both), the evaluator (weights)
+    weights, flow               learner   the actor and the evaluator (both: flow control is the learner's pulse)
     stats/learner/<id>          learner   this bench
     stats/eval/<id>             evaluator this bench
     weights/latest (queries)    actor     the learner's queryable (payloads it must ignore)
@@ -337,12 +337,12 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
         "rejects": {
             "learner (transitions)": counted.get("learner", {}).get("rejects", {}),
             "actor-0 (weights + flow)": counted.get("actor-0", {}).get("rejected_weights"),
-            "evaluator (weights)": counted.get("evaluator", {}),
+            "evaluator (weights + flow)": counted.get("evaluator", {}),
             "viewer (stats)": stats_rejects.counts,
         },
         "expected_rejects": {"learner (transitions)": sent["transitions"],
                              "actor-0 (weights + flow)": sent["weights"] + sent["flow"],
-                             "evaluator (weights)": sent["weights"],
+                             "evaluator (weights + flow)": sent["weights"] + sent["flow"],
                              "viewer (stats)": sent["stats/learner"] + sent["stats/episode"] + sent["stats/eval"]},
         "weights_query_answered_after": answered,
         "drain_s": round(drain_s, 1),

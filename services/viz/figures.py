@@ -21,7 +21,7 @@ import numpy as np
 
 from shared.errors import CogexploreError
 from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of, markdown_cell
-from shared.files import write_atomically
+from shared.files import save_png
 from shared.jsontext import parse_json
 from shared.learning.stats import read_csv_records
 from shared.sim.maps import (
@@ -117,16 +117,7 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
     for ax in list(axes.flat)[n:]:
         ax.set_axis_off()
     fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02, label="normalised visits")
-    return _save_png(fig, out_path, dpi)
-
-
-def _save_png(fig: Any, out_path: str | Path, dpi: int) -> Path:
-    """``fig`` as a PNG at ``out_path``, written whole or not at all (a report being rewritten
-    keeps its old figure when the disk fills)."""
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # the format is named: matplotlib would read it from the temporary file's name
-    return write_atomically(out, lambda tmp: fig.savefig(tmp, dpi=dpi, format="png"))
+    return save_png(fig, out_path, dpi)
 
 
 # ---------------------------------------------------------------------------
@@ -260,7 +251,7 @@ def save_loss_curve_png(log: Any, out_path: str | Path, smooth_window: int | Non
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    return _save_png(fig, out_path, dpi)
+    return save_png(fig, out_path, dpi)
 
 
 # ---------------------------------------------------------------------------

@@ -299,3 +299,6 @@ def test_weights_numbered_ahead_of_their_learners_pulse_never_hold_its_real_weig
     follower.on_flow(FlowControl(learner_id="l", updates=99, transitions_received=0, transitions_wanted=0,
                                  learner_epoch=learner))
     assert follower.take().version == (learner, 100) and follower.rejects.counts == {"range": 1}
+    follower.on_flow(FlowControl(learner_id="l", updates=0, transitions_received=0, transitions_wanted=0,
+                                 learner_epoch=2**62))  # a learner "started" in the next century: counted
+    assert follower.rejects.counts == {"range": 2}

@@ -176,7 +176,7 @@ import resource, signal
 from pathlib import Path
 from services.viz.figures import save_heatmaps_side_by_side, save_loss_curve_png
 from shared.evaluation.results import EpisodeResult
-from shared.sim.maps import occupancy_grid
+from shared.sim.maps import occupancy_grid, render_map_png
 from shared.sim.world import load_world
 
 out = Path({str(tmp_path)!r})
@@ -186,7 +186,8 @@ grid = occupancy_grid(world)
 res = [EpisodeResult(0, 0, 19, False, True, None, 0.0, 0.0, 0.0, 0.0,
                      tuple((-1.2 + 0.1 * i, -1.2 + 0.1 * i) for i in range(20)))]
 draw = [lambda: save_loss_curve_png(rows, out / "loss.png"),
-        lambda: save_heatmaps_side_by_side(world, grid, {{"A": res, "B": res}}, out / "side.png")]
+        lambda: save_heatmaps_side_by_side(world, grid, {{"A": res, "B": res}}, out / "side.png"),
+        lambda: render_map_png(world, grid, out / "map.png")]
 for write in draw:
     write()
 signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
@@ -200,9 +201,9 @@ for write in draw:
 """
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.split() == ["failed", "27", "failed", "27"]  # EFBIG: the limit was hit
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["loss.png", "side.png"]
-    for name in ("loss.png", "side.png"):
+    assert proc.stdout.split() == ["failed", "27"] * 3  # EFBIG: the limit was hit
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["loss.png", "map.png", "side.png"]
+    for name in ("loss.png", "map.png", "side.png"):
         png = (tmp_path / name).read_bytes()
         assert png[:8] == PNG_MAGIC and png[-8:-4] == b"IEND", name
         assert mpimg.imread(tmp_path / name).shape[0] > 100
