@@ -278,7 +278,9 @@ def check_starts_fit(world: World, robot_radius_m: float) -> None:
     of ``world`` (touching, every episode from there would end at its first step). A world's starts
     are checked (:func:`validate_starts`) for the default robot when it is made; a larger one can
     stand in a wall. Checked once per world and radius."""
-    bad = _starts_touching(world, robot_radius_m)
+    # as a cache key: a World built with lists (dataclasses.replace(w, starts=[...])) is not hashable
+    bad = _starts_touching(dataclasses.replace(world, starts=tuple(world.starts), extent=tuple(world.extent)),
+                           robot_radius_m)
     if bad:
         raise WorldError(f"{world.label}: with robot_radius_m {robot_radius_m:g} the robot starts inside or touching "
                          f"an obstacle at {len(bad)} of its {len(world.starts)} starts: {_listed(bad)}")
@@ -706,9 +708,10 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
                          "(position = start, site x axis = initial heading)")
     # The floor: keep one named 'floor', else rename the first upward plane at z = 0, else add one.
     floor_ids = [g for g in range(model.ngeom) if model.geom(g).name == FLOOR_GEOM]
-    if floor_ids and not _is_floor_plane(model, data, floor_ids[0]):
-        raise WorldError(f"{label}: geom '{FLOOR_GEOM}' is not a floor (a plane at z = 0 facing up); the robot "
-                         "would treat it as one, not as an obstacle: rename it or make it that plane")
+    if floor_ids and _top_z(model, data, floor_ids[0]) > FLOOR_TOLERANCE_M:
+        raise WorldError(f"{label}: geom '{FLOOR_GEOM}' rises above z = 0 (an upward plane or a slab whose top is "
+                         f"within {FLOOR_TOLERANCE_M * 100:g} cm of it is a floor); the robot would pass through it "
+                         "as through the floor: rename it (an obstacle) or lower it")
     if not floor_ids:
         for g in range(model.ngeom):
             if _is_floor_plane(model, data, g):
@@ -727,16 +730,18 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
     return world
 
 
-_FLAG_BITS = [(bit, "disable") for bit in mujoco.mjtDisableBit.__members__.values()
-              if bit.name.startswith("mjDSBL_")] + \
-             [(bit, "enable") for bit in mujoco.mjtEnableBit.__members__.values() if bit.name.startswith("mjENBL_")]
+# The <option> flags that would change whether the robot collides or moves (contacts, constraints,
+# actuation, overridden contact parameters); the solver's own (warmstart, energy, sleep, ...) cannot.
+_FLAG_BITS = [(mujoco.mjtDisableBit.mjDSBL_CONTACT, "disable"), (mujoco.mjtDisableBit.mjDSBL_CONSTRAINT, "disable"),
+              (mujoco.mjtDisableBit.mjDSBL_ACTUATION, "disable"), (mujoco.mjtEnableBit.mjENBL_OVERRIDE, "enable")]
 
 
 def _check_options(model: mujoco.MjModel, label: str) -> None:
-    """WorldError naming the ``<option>`` settings that would change how the robot moves or
-    collides (flags such as contact="disable", disabled actuator groups, a medium). The robot
-    never takes them (``shared.sim.robot.build_model`` compiles under MuJoCo's built-in options),
-    so a world that sets them would not be the world its author meant."""
+    """WorldError naming the ``<option>`` settings a world's author would expect to change how the
+    robot collides or moves (contact="disable", disabled actuator groups, a medium). The robot never
+    takes any of the world's options (``shared.sim.robot.build_model`` compiles under MuJoCo's
+    built-in ones), so a world that relies on these would not be the world its author meant; the
+    others are ignored."""
     opt = model.opt
     settings = [f'<flag {bit.name.split("_", 1)[1].lower()}="{value}">' for bit, value in _FLAG_BITS
                 if (opt.disableflags if value == "disable" else opt.enableflags) & int(bit)]
@@ -744,14 +749,26 @@ def _check_options(model: mujoco.MjModel, label: str) -> None:
         settings.append(f"actuatorgroupdisable (mask {opt.disableactuator})")
     settings += [name for name in ("wind", "density", "viscosity") if np.any(np.asarray(getattr(opt, name)) != 0)]
     if settings:
-        raise WorldError(f"{label}: <option> sets {', '.join(settings)}, which would change the robot's physics; "
+        raise WorldError(f"{label}: <option> sets {', '.join(settings)}, which cogexplore's robot never takes; "
                          "remove it (a world holds static geoms and start sites; the robot's physics is cogexplore's)")
 
 
+FLOOR_TOLERANCE_M = 0.01
+"""How far from z = 0 a floor's top may lie (the robot's disc clears z = 0 by 1 cm)."""
+
+
+def _top_z(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> float:
+    """The highest point of geom ``g`` (inf for a plane that does not face up: a wall or a ceiling)."""
+    if int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE):
+        return float(data.geom_xpos[g][2]) if data.geom_xmat[g][8] > 1 - 1e-6 else math.inf
+    center, half = model.geom_aabb[g][:3], model.geom_aabb[g][3:]
+    corners = center + half * np.array([[i, j, k] for i in (-1, 1) for j in (-1, 1) for k in (-1, 1)])
+    return float((data.geom_xpos[g] + corners @ data.geom_xmat[g].reshape(3, 3).T)[:, 2].max())
+
+
 def _is_floor_plane(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> bool:
-    """Whether geom ``g`` is a plane at z = 0 facing up, the only geom the robot may treat as the floor."""
-    return (int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE) and abs(data.geom_xpos[g][2]) < 1e-6
-            and data.geom_xmat[g][8] > 1 - 1e-6)
+    """Whether geom ``g`` is an upward plane at z = 0 (what an unnamed floor is recognised by)."""
+    return int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE) and abs(_top_z(model, data, g)) <= FLOOR_TOLERANCE_M
 
 
 def _check_geoms(model: mujoco.MjModel, label: str, floor: set[int]) -> None:
@@ -771,7 +788,7 @@ def _check_geoms(model: mujoco.MjModel, label: str, floor: set[int]) -> None:
         contype, conaffinity = int(model.geom_contype[g]), int(model.geom_conaffinity[g])
         if g not in floor and not (contype & ROBOT_CONTACT_BITS or conaffinity & ROBOT_CONTACT_BITS):
             intangible.append(f"{name} (contype {contype}, conaffinity {conaffinity})")
-        if model.geom_margin[g] > 0:
+        if model.geom_margin[g] != 0:  # < 0: no contact until the robot is that deep inside
             cushioned.append(f"{name} ({model.geom_margin[g]:g} m)")
     problems = []
     if invisible:
@@ -783,10 +800,11 @@ def _check_geoms(model: mujoco.MjModel, label: str, floor: set[int]) -> None:
     if intangible:
         problems.append(f"geom(s) {_listed(intangible)} that never collide with the robot (its contype and "
                         f"conaffinity are {ROBOT_CONTACT_BITS}): it would drive through them; give them contype "
-                        f"or conaffinity {ROBOT_CONTACT_BITS}")
+                        f"or conaffinity {ROBOT_CONTACT_BITS}, or, for visual-only geoms, add <compiler "
+                        "discardvisual=\"true\"/> (the camera would see them as obstacles)")
     if cushioned:
         problems.append(f"geom(s) {_listed(cushioned)} with a contact margin, which would stop the robot short "
-                        "of them with no contact to end the episode; remove the margin")
+                        "of them with no contact to end the episode (or, below 0, let it into them); remove it")
     if problems:
         raise WorldError(f"{label} has " + "; and ".join(problems))
 

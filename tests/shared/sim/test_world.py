@@ -279,9 +279,11 @@ def test_physics_options_that_would_reach_the_robot_are_refused(tmp_path, head, 
 
 
 def test_options_the_robot_does_not_take_are_accepted(tmp_path):
-    # The env sets the timestep, gravity and integrator itself; a world may say what it likes.
+    # The env sets the timestep, gravity and integrator itself; a world may say what it likes, and
+    # the solver's own flags cannot change whether the robot collides.
     path = _write(tmp_path, "timestep.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
-                  head='<option timestep="0.002" gravity="0 0 -1" integrator="RK4"/>')
+                  head='<option timestep="0.002" gravity="0 0 -1" integrator="RK4">'
+                       '<flag warmstart="disable" energy="enable" invdiscrete="enable"/></option>')
     assert load_world(str(path)).starts[0].name == "start_a"
 
 
@@ -302,12 +304,13 @@ def test_an_obstacle_the_robot_would_drive_through_is_refused(tmp_path, attrs, w
         assert load_world(str(tmp_path / "solid.xml")).kind == "file"
 
 
-def test_an_obstacle_that_would_stop_the_robot_short_of_it_is_refused(tmp_path):
+@pytest.mark.parametrize("margin", ["0.5", "-0.1"])  # short of it, or (below 0) into it
+def test_an_obstacle_that_would_stop_the_robot_short_of_it_or_let_it_in_is_refused(tmp_path, margin):
     path = _write(tmp_path, "margin.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
-                  extra='<geom name="cushion" type="box" pos="-1 0 1" size="0.3 0.3 1" margin="0.5"/>')
+                  extra=f'<geom name="cushion" type="box" pos="-1 0 1" size="0.3 0.3 1" margin="{margin}"/>')
     with pytest.raises(WorldError) as err:
         load_world(str(path))
-    assert "'cushion' (0.5 m)" in str(err.value) and "contact margin" in str(err.value)
+    assert f"'cushion' ({float(margin):g} m)" in str(err.value) and "contact margin" in str(err.value)
 
 
 @pytest.mark.parametrize("extra, what", [
@@ -343,7 +346,24 @@ def test_a_floor_that_is_no_floor_is_refused(tmp_path, floor):
     path = _write(tmp_path, "floor.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', floor=floor)
     with pytest.raises(WorldError) as err:
         load_world(str(path))
-    assert "geom 'floor' is not a floor" in str(err.value)
+    assert "geom 'floor' rises above z = 0" in str(err.value)
+
+
+@pytest.mark.parametrize("floor", [
+    '<geom name="floor" type="box" pos="0 0 -0.05" size="5 5 0.05"/>',  # a slab whose top is z = 0
+    '<geom name="floor" type="plane" pos="0 0 -0.0001" size="0 0 1"/>',  # a hair below
+    '<geom name="ground" type="plane" pos="0 0 -0.0001" size="0 0 1"/>',  # unnamed: taken as the floor
+])
+def test_a_floor_written_as_a_slab_or_a_hair_below_zero_is_a_floor(tmp_path, floor):
+    path = _write(tmp_path, "floor.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', floor=floor)
+    env = ExploreEnv(world=str(path), start_index=0)
+    try:
+        env.reset(seed=0)
+        for _ in range(5):
+            *_, terminated, _, info = env.step(2)  # 0.6 m straight ahead in an open room
+            assert not terminated, info
+    finally:
+        env.close()
 
 
 def test_a_start_site_that_is_not_finite_is_refused(tmp_path):
@@ -404,3 +424,17 @@ def test_world_summary_reports_plain_facts():
     assert 70.0 < summary["free_area_m2"] < 140.0 and summary["connected"] is True
     assert world_summary("procedural:2")["kind"] == "procedural"
     assert all(type(v) in (str, int, float, bool, list) for v in summary.values())  # JSON-ready
+
+
+def test_a_world_built_with_lists_still_makes_an_env():
+    # The starts-fit check is cached per world: a World whose starts or extent are lists is not
+    # hashable, and ExploreEnv raised TypeError for one.
+    import dataclasses
+
+    box = load_world("box-room")
+    world = dataclasses.replace(box, starts=list(box.starts), extent=list(box.extent))
+    env = ExploreEnv(world=world, start_index=0)
+    try:
+        assert env.reset(seed=0)[1]["pose"] is not None
+    finally:
+        env.close()
