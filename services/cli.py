@@ -108,7 +108,8 @@ COMMANDS: dict[str, Command | Group] = {
                           "certificate and the run's CA): no other role's password, no CA key",
                           "services.bus.options:add_secure_export_arguments", "services.bus.security:run_secure_export"),
     }),
-    "bench": Group("benchmarks: their figures as JSON (indented with --json; bench system without it: a summary)",
+    "bench": Group("benchmarks: their figures as JSON (env, learner, transport, drive: on one line unless --json; "
+                   "bench system without --json: a summary)",
                    "TARGET", {
         "env": Command("environment steps/s and depth-frame time on one core",
                        "services.bench.options:add_env_arguments", "services.bench.env:run_command"),
@@ -191,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         status = int(_function(args._entry)(args) or 0)
-        sys.stdout.flush()  # a reader that went away shows here, not as a message at interpreter exit
+        if sys.stdout is not None:  # None: started with stdout closed
+            sys.stdout.flush()  # a reader that went away shows here, not as a message at interpreter exit
         return status
     except KeyboardInterrupt:
         return 130

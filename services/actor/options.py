@@ -22,13 +22,14 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
                         help="index i of this actor among --num-actors: its epsilon in a per-actor (Ape-X) "
                              "schedule, its seed, and which of the extra worlds it builds; default: a hash of the "
                              "actor id modulo --num-actors, so replicas that cannot be numbered (compose's "
-                             "--scale) may share an index (their seeds still differ)")
+                             "--scale) may share an index (their seeds still differ), and each then builds every "
+                             "extra world (a shared index would leave another's worlds unplayed)")
     # A string default goes through the type: a bad env value is an option error, not a traceback.
     parser.add_argument("--num-actors", type=count_argument, default=os.environ.get("COGEXPLORE_NUM_ACTORS") or "1",
                         help="number of actors N in the run: the epsilon schedule runs over the fleet's steps, "
-                             "a per-actor schedule spreads over N, and each actor builds 1/N of the extra worlds "
-                             "(env COGEXPLORE_NUM_ACTORS, which docker-compose.yml passes on: set it to the "
-                             "--scale of actor; default 1)")
+                             "a per-actor schedule spreads over N, and with --actor-index each actor builds 1/N of "
+                             "the extra worlds (env COGEXPLORE_NUM_ACTORS, which docker-compose.yml passes on: set "
+                             "it to the --scale of actor; default 1)")
     parser.add_argument("--batch-steps", type=count_argument, default=16, help="transitions per published batch")
     parser.add_argument("--max-steps", type=count_argument, default=None, help="stop after this many env steps")
     parser.add_argument("--nice", type=int, default=DEFAULT_NICENESS, metavar="N",

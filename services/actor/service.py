@@ -252,25 +252,28 @@ class LiveEpisodes:
 
 
 def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
-              actor_index: int = 0, num_actors: int = 1, batch_steps: int = 16,
+              actor_index: int = 0, num_actors: int = 1, share_worlds: bool = True, batch_steps: int = 16,
               max_steps: int | None = None, seed: int | None = None, rerun_url: str | None = None,
               rerun_every_episodes: int = DEFAULT_RERUN_EVERY_EPISODES,
               rerun_image_every: int = DEFAULT_RERUN_IMAGE_EVERY, tensorboard: Path | None = None) -> dict:
     """The actor loop; returns counters when ``stop`` is set (or after ``max_steps`` env steps).
-    ``rerun_url``: stream every ``rerun_every_episodes``-th episode live to that Rerun viewer.
+    ``share_worlds``: build only this actor's 1/``num_actors`` of the extra worlds (its index is its
+    own: a hashed index may be another actor's too, and the worlds of an index no one has would
+    never be played). ``rerun_url``: stream every ``rerun_every_episodes``-th episode live to that Rerun viewer.
     ``tensorboard``: a folder for its episodes as TensorBoard events."""
     keys = RunKeys(run)
     device = resolve_device(cfg.train.device if cfg.train.device != "auto" else "cpu")
     torch.set_num_threads(1)  # several actors share the machine's cores with the learner
     seed = cfg.train.seed * 1000 + actor_index + 1 if seed is None else seed
     env = ExploreEnv(cfg.env, cfg.sensor)
-    env.share_extra_worlds(actor_index % num_actors, num_actors)  # a world costs ~0.2 s of CPU to build
+    if share_worlds:
+        env.share_extra_worlds(actor_index % num_actors, num_actors)  # a world costs ~0.2 s of CPU to build
     net = QNetwork(cfg.model, cfg.sensor).to(device).eval()  # it only acts: no dropout, no mode switch per step
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=seed + 7_919,
                         label_prob=cfg.explore.expert_label_prob, safe_prob=cfg.explore.safe_label_prob)
     policy = EpsilonGreedyPolicy(net, EpsilonSchedule(cfg.explore, actor_index, num_actors), seed=seed,
                                  guide=guide, step_scale=num_actors)
-    rejects = RejectCounter("weights message", log)
+    rejects = RejectCounter("weights or flow message", log)
     follower = WeightFollower(architecture_fingerprint(net), rejects, shapes=named_shapes(net))
     actor_epoch = new_epoch()  # this process: the learner's allowance for it starts from nothing
     gate = FlowGate(actor_id, actor_epoch=actor_epoch)  # a bad flow message is counted once, by the follower
@@ -368,7 +371,7 @@ def run_actor_command(args: argparse.Namespace) -> int:
         check.start(settings, stop)  # a preset the run's data cannot use stops the actor
     seed = cfg.train.seed * 1000 + (index if args.actor_index is not None else digest % 100_000) + 1
     counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=index,
-                         num_actors=args.num_actors, batch_steps=args.batch_steps, max_steps=args.max_steps,
+                         num_actors=args.num_actors, share_worlds=args.actor_index is not None, batch_steps=args.batch_steps, max_steps=args.max_steps,
                          seed=seed, rerun_url=args.rerun_connect, rerun_every_episodes=args.rerun_every_episodes,
                          rerun_image_every=args.rerun_image_every,
                          tensorboard=paths.tensorboard_folder(actor_id) if args.tensorboard else None)

@@ -84,6 +84,9 @@ class WeightFollower:
         self._waiting: tuple[WeightsMessage, float] | None = None  # another learner's newest, and its arrival
         self._newest: WeightsMessage | None = None
         self._taken_version: tuple[int, int] = (-1, -1)
+        self._pulse: tuple[int, int] | None = None
+        """(epoch, updates + PULSE_SLACK_UPDATES) of the followed learner's last flow control: the
+        highest version its weights can have."""
         self._queries: list[threading.Thread] = []
 
     # -- Zenoh threads -------------------------------------------------------------------------
@@ -104,8 +107,12 @@ class WeightFollower:
             return
         with self._arrived:
             verdict = self._epochs.admit(message.learner_epoch)
+            ahead = (verdict == LearnerEpochs.SAME and self._pulse is not None
+                     and self._pulse[0] == message.learner_epoch and message.version > self._pulse)
             newest = self._newest.version if self._newest is not None else self._taken_version
-            if verdict == LearnerEpochs.NEW or (verdict == LearnerEpochs.SAME and message.version > newest):
+            if ahead:
+                pass  # counted below: not its learner's
+            elif verdict == LearnerEpochs.NEW or (verdict == LearnerEpochs.SAME and message.version > newest):
                 self._newest = message
                 self._waiting = None if verdict == LearnerEpochs.NEW else self._waiting
                 self._arrived.notify_all()
@@ -114,14 +121,18 @@ class WeightFollower:
         if verdict == LearnerEpochs.FUTURE:
             self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
                                                     "in the future"), key or None)
+        elif ahead:
+            self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} are ahead of their learner, "
+                                                    f"at update {self._pulse[1] - PULSE_SLACK_UPDATES}"), key or None)
 
     def on_flow(self, message: FlowControl, key: str = "") -> None:
         """The learner's flow control, its pulse: the followed learner is alive, at ``updates``.
 
         Weights numbered more than :data:`PULSE_SLACK_UPDATES` ahead of it did not come from it (a
-        learner's version is its update count): a parked one is dropped and counted, and a taken
-        one no longer holds the learner's real weights off as "older" (one forged message
-        numbered 2^40 - 1 did, for the rest of the learner's life)."""
+        learner's version is its update count): they are refused on arrival from then on, one
+        parked before is dropped, both counted, and one taken before the first pulse no longer
+        holds the learner's real weights off as "older" (one forged message numbered 2^40 - 1 did,
+        for the rest of the learner's life)."""
         if epoch_from_the_future(message.learner_epoch):  # not a late word of a dead learner: an impossible one
             self.rejects.reject(MessageError(RANGE, "flow control of a learner started in the future"), key or None)
             return
@@ -130,7 +141,7 @@ class WeightFollower:
             self._epochs.heard(message.learner_epoch)
             if message.learner_epoch != self._epochs.followed:
                 return
-            ahead = (message.learner_epoch, message.updates + PULSE_SLACK_UPDATES)
+            ahead = self._pulse = (message.learner_epoch, message.updates + PULSE_SLACK_UPDATES)
             if self._newest is not None and self._newest.version > ahead:
                 forged, self._newest = self._newest, None
             if self._taken_version > ahead:
@@ -171,18 +182,19 @@ class WeightFollower:
             self.rejects.reject(MessageError(OVERSIZE, f"a {size}-byte answer, more than this network's weights"),
                                 keys.weights_latest)
 
+        answers = 0
         try:  # every reply, each judged as a message of the stream is (epoch, version): not the first on trust
-            payloads = query_replies(session, keys.weights_latest, self.max_bytes or WeightsMessage.MAX_BYTES,
-                                     timeout_s=timeout_s, oversize=oversize)
+            for payload in query_replies(session, keys.weights_latest, self.max_bytes or WeightsMessage.MAX_BYTES,
+                                         timeout_s=timeout_s, oversize=oversize):
+                answers += 1
+                message = self.rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
+                if message is not None:
+                    self.offer(message, keys.weights_latest)
         except zenoh.ZError as exc:  # the session closed first: the receiver is stopping
             log.debug("no query for the latest weights: %s", exc)
             return
-        if not payloads:
+        if not answers:
             log.info("no answer from %s yet: waiting for the weights stream", keys.weights_latest)
-        for payload in payloads:
-            message = self.rejects.decode(payload, WeightsMessage, source=keys.weights_latest)
-            if message is not None:
-                self.offer(message, keys.weights_latest)
 
     @contextmanager
     def following(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0,

@@ -37,24 +37,30 @@ def ask_run_config(session: zenoh.Session, keys: RunKeys,
     this build cannot read is skipped while another can be read (one only: another build of
     cogexplore, a ConfigError); readable replies that differ are refused (a ConfigError naming
     both learners), never one of them taken on trust."""
-    payloads = query_replies(session, keys.config, RunConfigMessage.MAX_BYTES, timeout_s=timeout_s,
-                             oversize=lambda size: log.warning("a %d-byte answer on %s: skipped", size, keys.config))
-    messages, unreadable = [], []
-    for payload in payloads:
+    first: RunConfigMessage | None = None
+    other: RunConfigMessage | None = None  # a readable answer that differs from the first
+    unreadable: list[MessageError] = []
+    for payload in query_replies(session, keys.config, RunConfigMessage.MAX_BYTES, timeout_s=timeout_s,
+                                 oversize=lambda size: log.warning("a %d-byte answer on %s: skipped", size,
+                                                                   keys.config)):
         try:
-            messages.append(RunConfigMessage.decode(payload))
+            message = RunConfigMessage.decode(payload)
         except MessageError as exc:
-            unreadable.append(exc)
-    if not messages:
+            if not unreadable:
+                unreadable.append(exc)
+            continue
+        if first is None:
+            first = message
+        elif other is None and message.run_config != first.run_config:
+            other = message
+    if first is None:
         if unreadable:  # only the learner may answer here with security on: another build of cogexplore
-            raise ConfigError(f"the learner of run {keys.run!r} answered {keys.config} with a configuration this "
-                              f"build cannot read ({unreadable[0]}): run the same cogexplore version on both sides")
+            raise ConfigError(f"no answer on {keys.config} for run {keys.run!r} is a configuration this build can "
+                              f"read ({unreadable[0]}): run the same cogexplore version on both sides")
         return None
     if unreadable:
-        log.warning("%d answer(s) on %s this build cannot read, beside a readable one: skipped (%s)",
-                    len(unreadable), keys.config, unreadable[0])
-    first = messages[0]
-    other = next((m for m in messages[1:] if m.run_config != first.run_config), None)
+        log.warning("answer(s) on %s this build cannot read, beside a readable one: skipped (%s)", keys.config,
+                    unreadable[0])
     if other is not None:
         raise ConfigError(f"run {keys.run!r} has several answers on {keys.config} that differ (learners "
                           f"{first.learner_id!r} and {other.learner_id!r}): only the run's learner should answer "

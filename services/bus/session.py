@@ -31,7 +31,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from typing import Callable, Iterator, Mapping, Sequence
 
 import zenoh
 
@@ -350,17 +350,12 @@ def query_latest(session: zenoh.Session, key_expr: str, timeout_s: float = 2.0) 
     return None
 
 
-MAX_REPLIES = 16
-"""Replies to one query that are read at most (one queryable answers a cogexplore query)."""
-
-
 def query_replies(session: zenoh.Session, key_expr: str, max_bytes: int, timeout_s: float = 2.0,
-                  oversize: Callable[[int], None] | None = None) -> list[bytes]:
-    """The payloads of every successful reply to a get on ``key_expr`` (the first
-    :data:`MAX_REPLIES`), for a caller that must not take the first answer on trust: without the
-    access control anyone may answer, first. A payload over ``max_bytes`` is left in Zenoh
-    (``oversize(size)`` is told)."""
-    payloads = []
+                  oversize: Callable[[int], None] | None = None) -> Iterator[bytes]:
+    """The payloads of every successful reply to a get on ``key_expr``, as they come, for a caller
+    that must not take the first answer on trust (without the access control anyone may answer,
+    first and as often as they like): the caller reads each and keeps what it can use. A payload
+    over ``max_bytes`` is left in Zenoh (``oversize(size)`` is told)."""
     # every queryable, and no consolidation (by default Zenoh keeps one reply per key: the forger's, maybe)
     for reply in session.get(key_expr, timeout=timeout_s, target=zenoh.QueryTarget.ALL,
                              consolidation=zenoh.ConsolidationMode.NONE):
@@ -369,9 +364,8 @@ def query_replies(session: zenoh.Session, key_expr: str, max_bytes: int, timeout
         elif len(reply.ok.payload) > max_bytes:
             if oversize is not None:
                 oversize(len(reply.ok.payload))
-        elif len(payloads) < MAX_REPLIES:
-            payloads.append(reply.ok.payload.to_bytes())
-    return payloads
+        else:
+            yield reply.ok.payload.to_bytes()
 
 
 # ---------------------------------------------------------------------------------------------

@@ -65,7 +65,7 @@ from services.process import default_process_id, lower_priority, setup_logging, 
 from services.runs import run_paths
 from services.viz.rerun import ViewerLink, evaluate_recorded
 from shared.config import ConfigError, RunConfig
-from shared.errors import CogexploreError
+from shared.errors import CogexploreError, StopRequested
 from shared.evaluation import (
     DEFAULT_PROTOCOL,
     PAPER_EPISODES_PER_START,
@@ -140,7 +140,7 @@ class EvaluatorService:
         self.net = QNetwork(cfg.model, cfg.sensor).to(self.device).eval()
         self.fingerprint = architecture_fingerprint(self.net)
         self.policy = GreedyPolicy(self.net)
-        self.rejects = RejectCounter("weights message", log)
+        self.rejects = RejectCounter("weights or flow message", log)
         self.weights = WeightFollower(self.fingerprint, self.rejects, shapes=named_shapes(self.net))
         """The newest weights the learner has published (parked by Zenoh threads, taken by the loop)."""
         self.last_version: tuple[int, int] | None = None
@@ -192,7 +192,7 @@ class EvaluatorService:
                "max_steps": self.max_steps,
                "seed": self.seed, "duration_s": round(duration, 3), "summary": summary["overall"],
                "per_start": summary["per_start"],
-               "recording": str(rrd) if rrd is not None and rrd.is_file() else None,  # None: it could not be written
+               "recording": results.meta.get("recording"),  # None: not recorded, or it could not be written
                "streamed_to": live,
                "rejected_weights": self.rejects.counts}
         stats.mkdir(parents=True, exist_ok=True)
@@ -300,10 +300,14 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
     # core take it from the learner (py-spy on a 2-core `up`: inference was 63% of its time).
     torch.set_num_threads(1)
     stop = stop if stop is not None else stop_event_on_signals()
+    log.info("evaluator %s for run %r via %s", evaluator_id, args.run, settings.describe())
     if check is not None:
         check.start(settings, stop)  # a preset the run's weights do not fit stops the evaluator
     try:
         status = service.run(stop, once=args.once, wait_weights_s=args.wait_weights)
+    except StopRequested as exc:  # asked to stop before its router answered: as asked, not a failure
+        log.info("%s", exc)
+        return 0
     except TransportError as exc:
         log.error("%s", exc)
         return 1

@@ -13,13 +13,14 @@ with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIG
 from __future__ import annotations
 
 import argparse
+import collections
 import json
 import logging
-import queue
 import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from services.bus.session import (
@@ -54,9 +55,42 @@ from shared.wire.messages import (
 log = logging.getLogger("cogexplore.learner")
 
 INBOX_BYTES = 256 * 2**20
-"""Received transition batches waiting for the learner's loop, at most (by their largest size)."""
+"""Received transition batches waiting for the learner's loop, at most (their arrays' bytes)."""
+INBOX_BATCHES = 4096
 INGEST_BUDGET_S = 0.05
 """Time one pass of the learner's loop spends taking batches in before its update and flow control."""
+
+
+class BatchInbox:
+    """Transition batches from the Zenoh threads to the learner's loop, bounded by their bytes
+    (``max_bytes``) and count: 4096 batches of 160 x 120 frames held 10 GB. Flow control keeps a
+    few hundred transitions per actor in flight; beyond that it is a flood, refused (the caller
+    counts it)."""
+
+    def __init__(self, max_bytes: int = INBOX_BYTES, max_batches: int = INBOX_BATCHES):
+        self.max_bytes, self.max_batches = max_bytes, max_batches
+        self._batches: collections.deque[tuple[TransitionBatch, int]] = collections.deque()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def put(self, batch: TransitionBatch) -> bool:
+        """Queue ``batch``; False (nothing queued) when the inbox is full."""
+        size = sum(v.nbytes for v in vars(batch).values() if isinstance(v, np.ndarray))
+        with self._lock:
+            if len(self._batches) >= self.max_batches or self._bytes + size > self.max_bytes:
+                return False
+            self._batches.append((batch, size))
+            self._bytes += size
+            return True
+
+    def get(self) -> TransitionBatch | None:
+        """The oldest queued batch, or None."""
+        with self._lock:
+            if not self._batches:
+                return None
+            batch, size = self._batches.popleft()
+            self._bytes -= size
+            return batch
 
 
 class LatestSender:
@@ -117,9 +151,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                          extra=core.checkpoint_extra())
     # a batch of this sensor's frames at most: anything longer is refused before it is copied
     batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
-    # Bounded in bytes, not only in batches: 4096 batches of 160 x 120 frames held 10 GB. Flow
-    # control keeps a few hundred transitions in flight; the rest is a flood, refused and counted.
-    inbox: queue.Queue[TransitionBatch] = queue.Queue(maxsize=max(64, min(4096, INBOX_BYTES // batch_bytes)))
+    inbox = BatchInbox()
     rejects = RejectCounter("transition batch", log)
     flow_slack = flow_slack if flow_slack is not None else max(256, 4 * cfg.dqn.batch_size)
     update_rate, transition_rate = RateMeter(), RateMeter()
@@ -134,9 +166,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         if source != batch.actor_id:
             rejects.reject(MessageError("inconsistent", f"actor id {batch.actor_id!r} sent on {key}"), key)
             return
-        try:
-            inbox.put_nowait(batch)
-        except queue.Full:
+        if not inbox.put(batch):
             rejects.reject(MessageError("oversize", "learner inbox full"), key)
 
     with open_service_session(settings, stop) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
@@ -197,9 +227,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             # control and a stop request off (the loop ingested until the inbox was empty)
             drained = 0
             while not stop.is_set() and time.monotonic() - pass_started < INGEST_BUDGET_S:
-                try:
-                    batch = inbox.get_nowait()
-                except queue.Empty:
+                batch = inbox.get()
+                if batch is None:
                     break
                 try:
                     drained += core.ingest(batch)

@@ -69,6 +69,7 @@ from shared.evaluation.results import (
     table_markdown,
 )
 from shared.evaluation.setup import EvalSetup, setup_evaluation
+from shared.files import save_png
 from shared.jsontext import parse_json
 from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
 from shared.learning.stats import TrainingSummary, summarize_learner_log
@@ -278,9 +279,7 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_path, dpi=dpi)
-    return out_path
+    return save_png(fig, out_path, dpi)
 
 
 # ---------------------------------------------------------------------------------------------

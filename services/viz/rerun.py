@@ -40,6 +40,7 @@ the training actors, whose env loop must never wait on a viewer.
 
 from __future__ import annotations
 
+import dataclasses
 import fcntl
 import glob
 import logging
@@ -232,31 +233,46 @@ class RecordingFile:
     killed leaves the file it would have replaced (an earlier evaluation of the same version) as it
     was. The temporary is named as :func:`shared.files.write_atomically` names its own
     (``.<name>.tmp-<pid>-<n>``) and held under an exclusive ``flock`` while it is written, so the one a
-    killed process left, which nobody holds, is removed when a recorder next opens for ``path``; one
-    another live process is writing is left alone. RerunLogError when ``path`` is a folder."""
+    killed process left, which nobody holds, is dealt with when a recorder next opens for ``path``
+    (``orphans``: "remove" it, or "keep" it as ``<stem>.unfinished-<n><suffix>``, for a log whose
+    every step until a kill counts, as drive's); one another live process is writing is left alone.
+    RerunLogError when ``path`` is a folder."""
 
-    def __init__(self, path: str | Path):
+    def __init__(self, path: str | Path, orphans: str = "remove"):
         self.path = Path(path)
         if self.path.is_dir():
             # now, not at the rename that names the file: that comes after the whole run was played
             raise RerunLogError(f"the recording {self.path} is a folder: name a file in it, e.g. "
                                 f"{self.path / 'recording.rrd'}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._remove_stale()
-        self.partial: Path | None = self.path.with_name(
-            f".{self.path.name}{TMP_MARK}{os.getpid()}-{uuid.uuid4().hex[:8]}")
-        self._lock: Any = open(self.partial, "wb")  # Rerun's sink then writes into this same file
+        self._handle_orphans(orphans)
+        tag = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        # Locked under a name the orphan search does not match, then renamed (the lock goes with the
+        # file): created under the temporary's name, another recorder could take it for an orphan
+        # between the open and the lock, and delete it.
+        locking = self.path.with_name(f".{self.path.name}.lock-{tag}")
+        self._lock: Any = open(locking, "wb")  # Rerun's sink then writes into this same file
         fcntl.flock(self._lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        self.partial: Path | None = self.path.with_name(f".{self.path.name}{TMP_MARK}{tag}")
+        locking.rename(self.partial)
 
-    def _remove_stale(self) -> None:
-        for stale in self.path.parent.glob(f".{glob.escape(self.path.name)}{TMP_MARK}*"):
+    def _handle_orphans(self, orphans: str) -> None:
+        for orphan in self.path.parent.glob(f".{glob.escape(self.path.name)}{TMP_MARK}*"):
             try:
-                with open(stale, "rb") as held:
+                with open(orphan, "rb") as held:
                     fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    stale.unlink()
+                    if orphans == "keep":
+                        kept = self.path.with_name(f"{self.path.stem}.unfinished-{orphan.name.rsplit('-', 2)[-2]}"
+                                                   f"{self.path.suffix}")
+                        orphan.rename(kept)
+                    else:
+                        orphan.unlink()
             except OSError:  # being written (the lock is taken), or gone in the meantime
                 continue
-            log.info("removed %s, a recording its process left unfinished", stale)
+            if orphans == "keep":
+                log.warning("%s, a recording its process left unfinished (killed?), is now %s", orphan, kept)
+            else:
+                log.info("removed %s, a recording its process left unfinished", orphan)
 
     def commit(self) -> None:
         """Give the file its name now (a sink may go on writing into it)."""
@@ -888,6 +904,9 @@ def evaluate_recorded(policy_fn: Any, *, world: str, sensor_cfg: SensorConfig, e
         except (OSError, RuntimeError, CogexploreError) as exc:
             log.error("the evaluation finished but its recording %s could not be written: %s",
                       rrd if rrd is not None else rerun_connect, exc)
+            return results
+        if rrd is not None:  # the results name their recording only once it is whole (an earlier one may be there)
+            return dataclasses.replace(results, meta={**results.meta, "recording": str(rrd)})
     return results
 
 
@@ -905,7 +924,8 @@ class DriveRecorder:
     def __init__(self, rrd: str | Path | None, *, connect_url: str | None = None, robot: str = "robot"):
         self.link = ViewerLink(connect_url, "drive streaming") if connect_url else None  # a bad URL: before the file
         self.path = Path(rrd) if rrd is not None else None
-        self.file = RecordingFile(self.path) if self.path is not None else None
+        # a log of a drive: what a killed drive recorded is kept for the next drive to name
+        self.file = RecordingFile(self.path, orphans="keep") if self.path is not None else None
         try:
             sinks: list[Any] = [rr.FileSink(self.file.partial)] if self.file is not None else []
             if self.link is not None and self.link.up():

@@ -209,8 +209,9 @@ def test_a_follower_with_the_networks_shapes_refuses_a_misshapen_message_on_arri
     assert follower.rejects.counts == {"shape": 1} and follower.take().policy_version == 4
 
 
-def flow_of(epoch: int) -> FlowControl:
-    return FlowControl(learner_id="l", updates=0, transitions_received=0, transitions_wanted=0, learner_epoch=epoch)
+def flow_of(epoch: int, updates: int = 0) -> FlowControl:
+    return FlowControl(learner_id="l", updates=updates, transitions_received=0, transitions_wanted=0,
+                       learner_epoch=epoch)
 
 
 def test_the_learners_flow_control_keeps_it_followed_through_a_long_silence_in_weights():
@@ -232,6 +233,7 @@ def test_the_learners_flow_control_keeps_it_followed_through_a_long_silence_in_w
         follower.offer(to_message(net, 0, learner_epoch=forged))
         assert follower.take() is None
     clock.t += 1.0
+    follower.on_flow(flow_of(learner, updates=1000))
     follower.offer(to_message(net, 1000, learner_epoch=learner))
     assert follower.take().version == (learner, 1000)
     # A learner that stops altogether (weights and flow) is replaced after the quiet time, as before.
@@ -276,29 +278,29 @@ def test_weights_numbered_ahead_of_their_learners_pulse_never_hold_its_real_weig
     from shared.wire.messages import MAX_POLICY_VERSION, new_epoch
 
     net = network(0)
-    follower = follower_for(net)
     learner = new_epoch()
-    for update in (25, 50):
-        follower.on_flow(FlowControl(learner_id="l", updates=update, transitions_received=0, transitions_wanted=0,
-                                     learner_epoch=learner))
-        follower.offer(to_message(net, update, learner_epoch=learner))
+    follower = follower_for(net)  # a receiver that has not heard the learner's pulse yet
+    follower.offer(to_message(net, 50, learner_epoch=learner))
     assert follower.take().version == (learner, 50)
     follower.offer(to_message(net, MAX_POLICY_VERSION - 1, learner_epoch=learner))
-    assert follower.take().policy_version == MAX_POLICY_VERSION - 1  # taken: the pulse had not come yet
-    follower.on_flow(FlowControl(learner_id="l", updates=60, transitions_received=0, transitions_wanted=0,
-                                 learner_epoch=learner))
+    assert follower.take().policy_version == MAX_POLICY_VERSION - 1  # taken: nothing to tell it by yet
+    follower.on_flow(flow_of(learner, updates=60))
     follower.offer(to_message(net, 75, learner_epoch=learner))
     assert follower.take().version == (learner, 75)  # the learner's own again
-    # parked, not yet taken, when the pulse comes: dropped and counted
-    follower.offer(to_message(net, 10**6, learner_epoch=learner))
-    follower.on_flow(FlowControl(learner_id="l", updates=80, transitions_received=0, transitions_wanted=0,
-                                 learner_epoch=learner))
+    # after a pulse, weights ahead of it are refused on arrival: never taken, not even once
+    follower.offer(to_message(net, MAX_POLICY_VERSION - 1, learner_epoch=learner))
     assert follower.take() is None and follower.rejects.counts == {"range": 1}
     # a real message overtaking its flow control (updates 80 -> weights 100) is within the slack
+    follower.on_flow(flow_of(learner, updates=80))
     follower.offer(to_message(net, 100, learner_epoch=learner))
-    follower.on_flow(FlowControl(learner_id="l", updates=99, transitions_received=0, transitions_wanted=0,
-                                 learner_epoch=learner))
     assert follower.take().version == (learner, 100) and follower.rejects.counts == {"range": 1}
-    follower.on_flow(FlowControl(learner_id="l", updates=0, transitions_received=0, transitions_wanted=0,
-                                 learner_epoch=2**62))  # a learner "started" in the next century: counted
+    follower.on_flow(flow_of(2**62))  # a learner "started" in the next century: counted
     assert follower.rejects.counts == {"range": 2}
+
+    # parked before the first pulse, not yet taken: dropped and counted when it comes
+    fresh = follower_for(net)
+    fresh.offer(to_message(net, 10**6, learner_epoch=learner))
+    fresh.on_flow(flow_of(learner, updates=100))
+    assert fresh.take() is None and fresh.rejects.counts == {"range": 1}
+    fresh.offer(to_message(net, 125, learner_epoch=learner))
+    assert fresh.take().version == (learner, 125)

@@ -119,7 +119,8 @@ def test_an_answer_beside_the_learners_neither_stops_a_process_nor_is_taken_on_t
         {"explore.eps_end": 1.0})).encode()
     with open_session(settings) as learner, open_session(settings) as outsider, open_session(settings) as actor:
         queryables = [serve_latest(learner, KEYS.config, lambda: real)]
-        for reply in (b"\x00garbage", bytes(RunConfigMessage.MAX_BYTES + 1)):
+        # twenty unreadable answers (the first sixteen replies were all that was read) and an oversized one
+        for reply in [b"\x00garbage"] * 20 + [bytes(RunConfigMessage.MAX_BYTES + 1)]:
             queryables.append(serve_latest(outsider, KEYS.config, lambda reply=reply: reply))
         time.sleep(0.3)  # the queryables reach the router
         for _ in range(3):

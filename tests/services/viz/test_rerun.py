@@ -301,6 +301,11 @@ def test_the_results_survive_a_recording_that_cannot_be_finished(tmp_path, caplo
     assert len(results.episodes) == 1 and results.episodes[0].steps >= 1
     assert "could not be written" in caplog.text
     assert sorted(p.name for p in tmp_path.iterdir()) == ["eval.rrd"]  # no temporary left
+    # the results name no recording (the evaluator's row named the path, an earlier file's maybe)
+    assert "recording" not in results.meta
+    written = evaluate_recorded(lambda depth: (0, None), world="box-room", sensor_cfg=SensorConfig(width=64, height=48),
+                                max_steps=3, rrd=tmp_path / "ok.rrd", starts=[0], episodes_per_start=1, progress=False)
+    assert written.meta["recording"] == str(tmp_path / "ok.rrd")
 
 
 def test_a_temporary_left_by_a_killed_recorder_is_removed_at_the_next_open(tmp_path, world) -> None:
@@ -329,6 +334,26 @@ def test_a_temporary_left_by_a_killed_recorder_is_removed_at_the_next_open(tmp_p
     first.close()
     verify(path)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, other.name])
+
+
+def test_what_a_killed_drive_recorded_is_kept_under_a_name_of_its_own(tmp_path) -> None:
+    # A drive killed mid-run (SIGKILL, the OOM killer, a power cut) left its log in a hidden
+    # temporary, which the next drive deleted: every step until the kill counts in a drive's log.
+    path = tmp_path / "drive.rrd"
+    depth = np.full((30, 40), 2.0, np.float32)
+    killed = DriveRecorder(path, robot="bot")
+    killed.log_decision(_decision(1), depth)
+    killed.rec.flush(timeout_sec=10.0)
+    orphan = killed.file.partial
+    killed.file.release()  # its process is gone: nobody holds the lock
+    killed.file.partial = None
+    DriveRecorder(path, robot="bot").close()
+    kept = tmp_path / f"drive.unfinished-{orphan.name.rsplit('-', 2)[-2]}.rrd"
+    assert not orphan.exists() and kept.exists() and path.exists()
+    # unfinished (no footer), but every chunk written before the kill reads back
+    stats = subprocess.run([str(RERUN_CLI), "rrd", "stats", str(kept)], capture_output=True, text=True,
+                           env={**os.environ, "RERUN_ANALYTICS": "0"}, timeout=60)
+    assert stats.returncode == 0 and "num_chunks" in stats.stdout, stats.stderr
 
 
 def test_the_drive_recording_replaces_an_earlier_one_only_when_it_is_whole(tmp_path) -> None:
