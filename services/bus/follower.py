@@ -111,7 +111,7 @@ class WeightFollower:
                      and self._pulse[0] == message.learner_epoch and message.version > self._pulse)
             newest = self._newest.version if self._newest is not None else self._taken_version
             if ahead:
-                pass  # counted below: not its learner's
+                pass  # not its learner's: counted below, outside the lock
             elif verdict == LearnerEpochs.NEW or (verdict == LearnerEpochs.SAME and message.version > newest):
                 self._newest = message
                 self._waiting = None if verdict == LearnerEpochs.NEW else self._waiting
@@ -169,8 +169,9 @@ class WeightFollower:
         return subscribers
 
     def fetch_latest(self, session: Any, keys: RunKeys, timeout_s: float = 5.0, *, background: bool = False) -> None:
-        """Query the learner's latest-weights queryable and offer the reply (none: the stream will
-        bring weights); ``background``: on a daemon thread, so the caller never waits on it."""
+        """Query the learner's latest-weights queryable and offer every reply (each judged as the
+        stream's messages are; none: the stream will bring weights); ``background``: on a daemon
+        thread, so the caller never waits on it."""
         if background:
             query = threading.Thread(target=self.fetch_latest, args=(session, keys, timeout_s), name="weights-query",
                                      daemon=True)
@@ -178,6 +179,7 @@ class WeightFollower:
                 self._queries = [q for q in self._queries if q.is_alive()] + [query]
             query.start()
             return
+
         def oversize(size: int) -> None:
             self.rejects.reject(MessageError(OVERSIZE, f"a {size}-byte answer, more than this network's weights"),
                                 keys.weights_latest)

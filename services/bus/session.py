@@ -263,10 +263,10 @@ def open_service_session(settings: ZenohSettings, stop: threading.Event | None =
     try:
         return open_session(settings, wait_s=settings.router_wait_s,
                             give_up=None if stop is None else lambda: "stopped" if stop.is_set() else None)
-    except TransportError as exc:
+    except TransportError:
         if stop is not None and stop.is_set():
             raise StoppedWaiting(f"stopped while waiting for the router ({settings.describe()})") from None
-        raise exc
+        raise
 
 
 # ---------------------------------------------------------------------------------------------

@@ -124,13 +124,18 @@ class Clock:
         return self.t
 
 
+def clocked_follower(net: QNetwork, clock: Clock) -> WeightFollower:
+    """A follower on an injected clock, with the service's 5 s quiet time."""
+    return WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
+                          quiet_s=5.0, clock=clock)
+
+
 def test_a_restarted_learner_takes_over_once_the_dead_one_is_quiet_and_one_message_never_holds_a_follower():
     from shared.wire.messages import MessageError, new_epoch
 
     net = network(0)
     clock = Clock()
-    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
-                              quiet_s=5.0, clock=clock)
+    follower = clocked_follower(net, clock)
     dead, restarted = new_epoch(), new_epoch() + 1
     follower.offer(to_message(net, 1450, learner_epoch=dead))
     assert follower.take().policy_version == 1450
@@ -173,8 +178,7 @@ def test_a_restarted_learners_start_up_weights_are_kept_until_the_dead_one_is_qu
 
     net = network(0)
     clock = Clock()
-    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
-                              quiet_s=5.0, clock=clock)
+    follower = clocked_follower(net, clock)
     dead, restarted, forged = new_epoch(), new_epoch() + 1, new_epoch() + 2
     follower.offer(to_message(net, 1450, learner_epoch=dead))
     assert follower.take().version == (dead, 1450)
@@ -221,8 +225,7 @@ def test_the_learners_flow_control_keeps_it_followed_through_a_long_silence_in_w
 
     net = network(0)
     clock = Clock()
-    follower = WeightFollower(architecture_fingerprint(net), RejectCounter("weights message", logging.getLogger("t")),
-                              quiet_s=5.0, clock=clock)
+    follower = clocked_follower(net, clock)
     learner, forged = new_epoch(), new_epoch() + 1
     follower.offer(to_message(net, 0, learner_epoch=learner))  # its start-up weights
     assert follower.take().version == (learner, 0)
