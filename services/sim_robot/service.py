@@ -15,6 +15,9 @@ Two clocks:
 A collision (the task's rule: the body touches, or the nearest depth falls below the collision
 distance) ends the episode: the robot holds still and says so until a put on
 ``cogexplore/@robot/<robot>/reset`` puts it back at its start pose.
+
+A pixel without a return is 0 in ``16UC1`` and NaN in ``32FC1``, as REP 117 asks of depth drivers
+(0.0 m there reads as an obstacle at the lens to a consumer that follows it).
 """
 
 from __future__ import annotations
@@ -25,6 +28,8 @@ import logging
 import queue
 import threading
 import time
+
+import numpy as np
 
 from services.bus.ros2 import Ros2Node, ros2_settings
 from services.bus.session import open_service_session
@@ -49,6 +54,14 @@ from shared.wire.robot import SimRobotStatus
 
 log = logging.getLogger("cogexplore.sim_robot")
 NODE_NAME = "cogexplore_sim_robot"
+
+
+def ros_depth(depth_m: np.ndarray, encoding: str) -> np.ndarray:
+    """The env's depth image (0 = no return) as a ROS depth driver sends it in ``encoding``: in
+    ``32FC1`` a pixel without a measurement is NaN (REP 117); ``16UC1`` keeps 0."""
+    if encoding != "32FC1":
+        return depth_m
+    return np.where(depth_m > 0, depth_m, np.float32(np.nan)).astype(np.float32)
 
 
 class SimRobot:
@@ -124,7 +137,8 @@ class SimRobot:
         stamp = time.time_ns()
         x, y, yaw = self.env.robot.pose()
         linear, angular = self.twist if self.collision_cause is None else (0.0, 0.0)
-        self.image_pub.put(encode_depth_image(self.env.render(), encoding=self.args.encoding, stamp_ns=stamp))
+        encoding = self.args.encoding
+        self.image_pub.put(encode_depth_image(ros_depth(self.env.render(), encoding), encoding=encoding, stamp_ns=stamp))
         self.odom_pub.put(encode_odometry(x, y, yaw, linear, angular, stamp_ns=stamp))
         self.status_pub.put(SimRobotStatus(
             robot=self.args.robot, world=self.env.world.name, episode=self.episode, step=self.step, x=x, y=y,

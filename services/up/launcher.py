@@ -545,7 +545,23 @@ class Launcher:
         return out
 
     def final_report(self) -> int:
-        """Evaluate the final model (:meth:`final_model`) with the test protocol and write the report."""
+        """Evaluate the final model (:meth:`final_model`) with the test protocol and write the report.
+        A stop signal meanwhile ends it (the child it runs goes with it) with a line saying how to
+        redo it, and exit status 128 + the signal's number (it ended without a word)."""
+
+        def stopped(signum: int, _frame: object) -> None:
+            print(f"run {self.run!r}: {signal.Signals(signum).name} during the final evaluation and report; "
+                  f"`cogexplore up --run {self.run} --resume` redoes them", file=sys.stderr)
+            raise SystemExit(128 + signum)  # subprocess.run kills its child on the way out
+
+        previous = {s: signal.signal(s, stopped) for s in stop_signals()}
+        try:
+            return self._final_report()
+        finally:
+            for s, handler in previous.items():
+                signal.signal(s, handler)
+
+    def _final_report(self) -> int:
         a = self.args
         model = str(self.final_model())
         # the services have stopped: evaluation and report have the machine to themselves (--threads 0: every core)

@@ -384,3 +384,34 @@ def test_a_transfer_or_demonstration_file_the_learner_cannot_read_is_refused_bef
     assert main(["learner", "--run", "solo", "--runs-dir", str(tmp_path), "--preset", "smoke", "--set",
                  "train.init_conv_from=missing.safetensors"]) == 2
     assert "no such file" in capsys.readouterr().err and not (tmp_path / "solo" / "config.toml").exists()
+
+
+def test_a_stop_during_the_final_report_says_so_and_takes_the_report_with_it(tmp_path: Path) -> None:
+    # SIGTERM then ended `up` without a word (the handlers were restored before the report).
+    import signal
+    import time
+
+    run_at(tmp_path, updates=20, total_updates=20)
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--run", RUN, "--runs-dir", str(tmp_path),
+                             "--resume", "--final-episodes", "1", "--quiet"], cwd=REPO, env=ENV,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        line = proc.stderr.readline()  # type: ignore[union-attr]
+        assert "redoing its final evaluation and report" in line, line
+        time.sleep(1.0)  # into the evaluation's child process
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 128 + signal.SIGTERM
+        err = proc.stderr.read()  # type: ignore[union-attr]
+        assert f"run {RUN!r}: SIGTERM during the final evaluation and report" in err and "--resume" in err
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    # its child went with it: nothing of this run is still running
+    time.sleep(0.5)
+    running = []
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            running.append(cmdline.read_bytes().replace(b"\0", b" ").decode(errors="replace"))
+        except OSError:
+            continue
+    assert not [c for c in running if str(tmp_path) in c and "services.cli" in c]
