@@ -297,7 +297,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     Returns the summary that ``cogexplore model select`` prints."""
     from shared.evaluation.protocol import evaluate_policy
     from shared.evaluation.setup import setup_evaluation
-    from shared.learning.checkpoints import average_models, export_weights, load_model
+    from shared.learning.checkpoints import CheckpointError, average_models, export_weights, load_model
     from shared.sim.world import load_world
 
     echo = echo or (lambda _msg: None)
@@ -333,8 +333,14 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     def mean_steps(setup: Any, world: str, seed: int) -> float:
         return steps(setup, world, seed)[0]
 
+    skipped: list[str] = []
     for i, win in enumerate(todo, 1):
-        model = average_models([load_model(p, o.device) for p in win.paths])
+        try:
+            model = average_models([load_model(p, o.device) for p in win.paths])
+        except CheckpointError as exc:  # one damaged file must not end hours of scoring: its windows go
+            skipped.append(f"{win.end_update}: {exc}")
+            echo(f"[{i}/{len(todo)}] window ending at {win.end_update}: skipped, a checkpoint cannot be read ({exc})")
+            continue
         cached = cache.get(model.weights_sha256)
         if cached is not None:  # the same weights: this window's checkpoints, not where they were then
             score = dataclasses.replace(cached, end_update=win.end_update, sources=tuple(str(p) for p in win.paths))
@@ -358,12 +364,16 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
         worst = "" if score.gate_worst_start is None else f" (worst start {score.gate_worst_start:.1f})"
         echo(f"[{i}/{len(todo)}] window ending at {win.end_update}: {o.gate_world} {score.gate:.1f}{worst}{val}"
              + (" (cached)" if cached is not None else ""))
+    if not scores:
+        raise SelectionError(f"no window could be read: {skipped[0]}" + (f" (and {len(skipped) - 1} more)"
+                                                                          if len(skipped) > 1 else ""))
     chosen, rule = choose(scores, o.gate_min, o.gate_start_min)
     model = average_models([load_model(p, o.device) for p in chosen.sources])
     selection = {"rule": rule, "window": o.window, "end_update": chosen.end_update, "gate_world": o.gate_world,
                  "gate_min": o.gate_min, "gate_start_min": o.gate_start_min, "gate": chosen.gate,
                  "gate_worst_start": chosen.gate_worst_start, "validation_worlds": list(o.validation_worlds),
-                 "validation": chosen.validation, "windows_scored": len(scores), "protocol": o.protocol.to_dict(),
+                 "validation": chosen.validation, "windows_scored": len(scores), "windows_skipped": skipped,
+                 "protocol": o.protocol.to_dict(),
                  "seed": o.seed}
     if o.test_worlds:
         echo(f"testing the window ending at {chosen.end_update} on {len(o.test_worlds)} test world(s)")
@@ -386,7 +396,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
               "first_gate_minutes": None if first is None else minutes(first.end_update)}
     return {"out": str(out), "protocol": o.protocol.name, "chosen": chosen.to_json(), "rule": rule,
             "test": selection.get("test"), **timing,
-            "windows": len(scores),
+            "windows": len(scores), "windows_skipped": skipped,
             "figure": str(png), "scores": str(cache_path),
             "table": window_rows_markdown(scores, chosen, o.gate_world)}
 

@@ -163,6 +163,24 @@ def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_
     assert lines[0].startswith("protocol paper") and not any(line.endswith("(cached)") for line in lines)
 
 
+def test_a_window_with_a_checkpoint_that_cannot_be_read_is_skipped_and_said(tmp_path: Path) -> None:
+    # One damaged checkpoint ended the whole selection (hours of scoring on a long run).
+    run = make_run(tmp_path / "run", (100, 200, 300))
+    damaged = sorted((run / "checkpoints").glob("ckpt-*200*"))[0]
+    damaged.write_bytes(b"not a checkpoint")
+    said: list[str] = []
+    summary = select(SelectOptions(run=run, out=tmp_path / "best.safetensors", window=1, gate_world="box-room",
+                                   gate_min=1e9, validation_worlds=("corridor",), max_steps=3), echo=said.append)
+    assert summary["windows"] == 2 and len(summary["windows_skipped"]) == 1
+    assert summary["windows_skipped"][0].startswith("200: ") and summary["chosen"]["end_update"] in (100, 300)
+    assert any("window ending at 200: skipped" in line for line in said)
+    for path in (run / "checkpoints").glob("ckpt-*"):
+        path.write_bytes(b"not a checkpoint")
+    with pytest.raises(SelectionError, match="no window could be read: 100: .*and 2 more"):
+        select(SelectOptions(run=run, out=tmp_path / "none.safetensors", window=1, gate_world="box-room",
+                             validation_worlds=("corridor",), max_steps=3))
+
+
 def test_select_falls_back_to_the_best_gate_score_without_playing_validation(tmp_path: Path) -> None:
     run = make_run(tmp_path / "run", (100, 200, 300))
     (run / "stats").mkdir()
