@@ -7,7 +7,10 @@ import os
 import signal
 import socket
 import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Any
 
 from shared.config import ConfigError
 
@@ -32,6 +35,18 @@ def stop_signals() -> tuple[signal.Signals, ...]:
     unless SIGHUP is ignored (``nohup``: the process must outlive the terminal)."""
     hangup = () if signal.getsignal(signal.SIGHUP) == signal.SIG_IGN else (signal.SIGHUP,)
     return (signal.SIGINT, signal.SIGTERM, *hangup)
+
+
+@contextmanager
+def stop_signals_handled(handler: Callable[[int, Any], None], *, keep_interrupt: bool = False) -> Iterator[None]:
+    """``handler`` for each of :func:`stop_signals` while the block runs (``keep_interrupt``: not for
+    SIGINT, which stays KeyboardInterrupt), and the handlers from before it afterwards."""
+    previous = {s: signal.signal(s, handler) for s in stop_signals() if not (keep_interrupt and s == signal.SIGINT)}
+    try:
+        yield
+    finally:
+        for s, earlier in previous.items():
+            signal.signal(s, earlier)
 
 
 def stop_event_on_signals() -> threading.Event:

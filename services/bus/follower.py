@@ -122,8 +122,7 @@ class WeightFollower:
             self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
                                                     "in the future"), key or None)
         elif ahead:
-            self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} are ahead of their learner, "
-                                                    f"at update {self._pulse[1] - PULSE_SLACK_UPDATES}"), key or None)
+            self._reject_ahead(message, self._pulse[1] - PULSE_SLACK_UPDATES, key)
 
     def on_flow(self, message: FlowControl, key: str = "") -> None:
         """The learner's flow control, its pulse: the followed learner is alive, at ``updates``.
@@ -147,8 +146,11 @@ class WeightFollower:
             if self._taken_version > ahead:
                 self._taken_version = (message.learner_epoch, message.updates)
         if forged is not None:
-            self.rejects.reject(MessageError(RANGE, f"weights v{forged.policy_version} are ahead of their learner, "
-                                                    f"at update {message.updates}"), key or None)
+            self._reject_ahead(forged, message.updates, key)
+
+    def _reject_ahead(self, message: WeightsMessage, learner_updates: int, key: str) -> None:
+        self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} are ahead of their learner, "
+                                                f"at update {learner_updates}"), key or None)
 
     def subscribe(self, session: Any, keys: RunKeys, query_timeout_s: float = 5.0,
                   on_flow: Callable[[FlowControl, str], None] | None = None) -> list[Any]:

@@ -39,28 +39,27 @@ def ask_run_config(session: zenoh.Session, keys: RunKeys,
     both learners), never one of them taken on trust."""
     first: RunConfigMessage | None = None
     other: RunConfigMessage | None = None  # a readable answer that differs from the first
-    unreadable: list[MessageError] = []
+    unreadable: MessageError | None = None  # the first answer this build cannot read
     for payload in query_replies(session, keys.config, RunConfigMessage.MAX_BYTES, timeout_s=timeout_s,
                                  oversize=lambda size: log.warning("a %d-byte answer on %s: skipped", size,
                                                                    keys.config)):
         try:
             message = RunConfigMessage.decode(payload)
         except MessageError as exc:
-            if not unreadable:
-                unreadable.append(exc)
+            unreadable = exc if unreadable is None else unreadable
             continue
         if first is None:
             first = message
         elif other is None and message.run_config != first.run_config:
             other = message
     if first is None:
-        if unreadable:  # only the learner may answer here with security on: another build of cogexplore
+        if unreadable is not None:  # only the learner may answer here with security on: another build of cogexplore
             raise ConfigError(f"no answer on {keys.config} for run {keys.run!r} is a configuration this build can "
-                              f"read ({unreadable[0]}): run the same cogexplore version on both sides")
+                              f"read ({unreadable}): run the same cogexplore version on both sides")
         return None
-    if unreadable:
+    if unreadable is not None:
         log.warning("answer(s) on %s this build cannot read, beside a readable one: skipped (%s)", keys.config,
-                    unreadable[0])
+                    unreadable)
     if other is not None:
         raise ConfigError(f"run {keys.run!r} has several answers on {keys.config} that differ (learners "
                           f"{first.learner_id!r} and {other.learner_id!r}): only the run's learner should answer "

@@ -51,7 +51,7 @@ from typing import Any
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
-from services.process import stop_signals
+from services.process import stop_signals_handled
 from shared.config import (
     ConfigError,
     RunConfig,
@@ -665,16 +665,13 @@ def run_experiment_command(args: argparse.Namespace) -> int:
     for world in (opts.world, *opts.unseen_worlds):
         load_world(world)  # an unknown world fails now, not after the pretraining
     experiment = Experiment(opts)
-    previous = {signum: signal.signal(signum, _raise_terminated) for signum in stop_signals()
-                if signum != signal.SIGINT}  # Ctrl-C stays KeyboardInterrupt: it reached the children too
     try:
-        report = experiment.run()
+        # Ctrl-C stays KeyboardInterrupt: it reached the children too
+        with stop_signals_handled(_raise_terminated, keep_interrupt=True):
+            report = experiment.run()
     except KeyboardInterrupt as exc:
         print("cogexplore experiment: interrupted; run the same command again to resume", file=sys.stderr)
         return 128 + exc.signum if isinstance(exc, Terminated) else 130  # as a shell reports the signal
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
     print((experiment.out / "table.md").read_text(), end="")
     print(f"ran: {', '.join(experiment.ran) or 'nothing'}; skipped (done before): "
           f"{', '.join(experiment.skipped) or 'nothing'}")

@@ -50,7 +50,7 @@ from services.bus.session import (
     port_taken,
     subscribe_messages,
 )
-from services.process import setup_logging, stop_signals
+from services.process import setup_logging, stop_signals_handled
 from services.runs import RunLock, RunPaths, resolve_config, save_config
 from shared.config import RunConfig
 from shared.errors import CogexploreError
@@ -499,20 +499,18 @@ class Launcher:
         if done is not None:
             print(resume_line(self.run, self.paths, done, self.total_updates), file=sys.stderr)
         stop = threading.Event()
-        previous = {s: signal.signal(s, lambda *_: stop.set()) for s in stop_signals()}
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
               file=sys.stderr)
-        try:
-            self.start()
-            reason = self.monitor(stop)
-        finally:
-            # Order matters: the learner writes its final checkpoint first, then the
-            # producers and the evaluator go, the router last.
-            self.stop(("learner",), timeout_s=60.0)
-            self.stop(("actor", "evaluator"))
-            self.stop(("router",))
-            for s, handler in previous.items():
-                signal.signal(s, handler)
+        with stop_signals_handled(lambda *_: stop.set()):
+            try:
+                self.start()
+                reason = self.monitor(stop)
+            finally:
+                # Order matters: the learner writes its final checkpoint first, then the
+                # producers and the evaluator go, the router last.
+                self.stop(("learner",), timeout_s=60.0)
+                self.stop(("actor", "evaluator"))
+                self.stop(("router",))
         print(f"run {self.run!r} ended: {reason}", file=sys.stderr)
         if reason.startswith("failed"):
             who = reason.split(": ", 1)[1]
@@ -554,12 +552,8 @@ class Launcher:
                   f"`cogexplore up --run {self.run} --resume` redoes them", file=sys.stderr)
             raise SystemExit(128 + signum)  # subprocess.run kills its child on the way out
 
-        previous = {s: signal.signal(s, stopped) for s in stop_signals()}
-        try:
+        with stop_signals_handled(stopped):
             return self._final_report()
-        finally:
-            for s, handler in previous.items():
-                signal.signal(s, handler)
 
     def _final_report(self) -> int:
         a = self.args
