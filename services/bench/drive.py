@@ -37,6 +37,9 @@ from shared.wire.robot import DriveDiagnostics
 
 TARGET_P99_MS = 20.0
 """The goal (issue 21): well inside the 0.5 s control period."""
+MAX_SENT_PIXELS = 1920 * 1080
+"""The largest image ``--width`` x ``--height`` may ask for: beyond every depth camera's stream
+(a Kinect sends 640 x 480, a RealSense 1280 x 720), and 64 distinct ones stay within 0.6 GB."""
 
 
 def sample_images(count: int, width: int | None, height: int | None, seed: int = 0) -> list[np.ndarray]:
@@ -65,6 +68,10 @@ def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int 
         raise CogexploreError(f"--images must be >= 10, got {images}")
     if (width is None) != (height is None):
         raise CogexploreError("give both --width and --height, or neither")
+    if width is not None and height is not None and width * height > MAX_SENT_PIXELS:
+        # an unbounded size allocated 64 such images before the first was sent (or died of memory)
+        raise CogexploreError(f"--width x --height is {width} x {height}: at most {MAX_SENT_PIXELS} pixels "
+                              "(1920 x 1080)")
     frames = sample_images(images, width, height)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     robot = "bench"

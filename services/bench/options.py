@@ -62,7 +62,8 @@ def add_drive_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--onnx", default=None, metavar="FILE", help="time `drive --onnx FILE` instead")
     p.add_argument("--images", type=whole_number_argument(10), default=300, help="images timed (default 300)")
     p.add_argument("--width", type=count_argument, default=None,
-                   help="image width sent (default: the network's, 40 for the shipped model; a Kinect sends 640)")
+                   help="image width sent (default: the network's, 40 for the shipped model; a Kinect sends 640; "
+                        "width x height at most 1920 x 1080 pixels)")
     p.add_argument("--height", type=count_argument, default=None, help="image height sent (default: the network's)")
     p.add_argument("--encoding", choices=("32FC1", "16UC1"), default="16UC1",
                    help="image encoding sent (default 16UC1, what depth drivers publish)")

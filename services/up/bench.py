@@ -284,6 +284,20 @@ def _steady(observed: _Observed, actor_ids: list[str], train: Any, span_s: float
     return d_transitions > 0 and 0.5 <= d_updates / d_transitions / ratio <= 2.0
 
 
+def _given_or(value: Any, default: Any) -> Any:
+    return default if value is None else value
+
+
+def _refuse_given(args: argparse.Namespace, instead: dict[str, str | None], where: str) -> None:
+    """Refuse the options in ``instead`` (flag -> what to give instead, or None) that were given."""
+    from shared.config import ConfigError
+
+    given = [flag for flag in instead if getattr(args, flag.lstrip("-").replace("-", "_")) is not None]
+    if given:
+        hints = [f"{flag}: give {instead[flag]} instead" for flag in given if instead[flag]]
+        raise ConfigError(f"{', '.join(given)} {'does' if len(given) == 1 else 'do'} not reach {where}" + (f" ({'; '.join(hints)})" if hints else ""))
+
+
 def _sleep_checking(seconds: float, check_alive: Any) -> None:
     end = time.monotonic() + seconds
     while (left := end - time.monotonic()) > 0:
@@ -338,21 +352,20 @@ def run_command(args: argparse.Namespace) -> int:
         from services.up.compare import compare
 
         # compare() starts `up` and `train` with the same --set and environment and no other option:
-        # these two would reach neither run, so the figures would not be of what was asked
-        instead = {"--device": "--set train.device=DEVICE", "--learner-threads": "OMP_NUM_THREADS=N in the environment"}
-        given = [o for o, value in (("--device", args.device), ("--learner-threads", args.learner_threads))
-                 if value is not None]
-        if given:
-            raise ConfigError(f"{' and '.join(given)} do not reach --compare-single-process's runs: give "
-                              f"{' and '.join(instead[o] for o in given)} instead, which both runs read")
-
-        result = compare(args.minutes, actors=actors, preset=args.preset or DEFAULT_PRESET,
-                         overrides=args.overrides, episodes_per_start=args.episodes_per_start, runs_dir=args.runs_dir)
+        # these would reach neither run, so the figures would not be of what was asked
+        instead = {"--device": "--set train.device=DEVICE", "--learner-threads": "OMP_NUM_THREADS=N in the environment",
+                   "--seconds": "--minutes", "--warmup-s": None, "--startup-timeout-s": None}
+        _refuse_given(args, instead, "--compare-single-process's runs")
+        result = compare(_given_or(args.minutes, 5.0), actors=actors, preset=args.preset or DEFAULT_PRESET,
+                         overrides=args.overrides, episodes_per_start=_given_or(args.episodes_per_start, 2),
+                         runs_dir=args.runs_dir)
         print(json.dumps(result, indent=2))
         return 0
+    _refuse_given(args, {"--minutes": "--seconds", "--episodes-per-start": None},
+                  "a measurement without --compare-single-process")
     try:
-        result = run(actors, args.seconds, preset=args.preset or "fast", overrides=args.overrides,
-                     warmup_s=args.warmup_s, startup_timeout_s=args.startup_timeout_s,
+        result = run(actors, _given_or(args.seconds, 60.0), preset=args.preset or "fast", overrides=args.overrides,
+                     warmup_s=_given_or(args.warmup_s, 5.0), startup_timeout_s=_given_or(args.startup_timeout_s, 600.0),
                      runs_dir=args.runs_dir, device=args.device, learner_threads=args.learner_threads)
     except (BenchError, ValueError) as exc:
         if isinstance(exc, ConfigError):

@@ -68,9 +68,12 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
 def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--actors", type=count_argument, default=None,
                         help="actor processes (default: 1; with --compare-single-process 2, as `up`)")
-    parser.add_argument("--seconds", type=positive_number_argument, default=60.0, help="measurement window (default: 60)")
-    parser.add_argument("--warmup-s", type=seconds_argument, default=5.0,
-                        help="seconds to wait once the system is in its steady state (default: 5)")
+    # Options of one mode default to None so that one given to the other mode is refused, not dropped.
+    parser.add_argument("--seconds", type=positive_number_argument, default=None,
+                        help="measurement window (default: 60; not with --compare-single-process)")
+    parser.add_argument("--warmup-s", type=seconds_argument, default=None,
+                        help="seconds to wait once the system is in its steady state (default: 5; not with "
+                             "--compare-single-process)")
     parser.add_argument("--preset", default=None,
                         help=f"preset name or TOML path (default: fast; with --compare-single-process {DEFAULT_PRESET}, "
                              "the shipped recipe)")
@@ -82,9 +85,9 @@ def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
                          help="run `cogexplore up` (with --actors) and then `cogexplore train`, each for --minutes, and "
                               "print both runs' updates/s, env steps/s and scores under both protocols, and their "
                               "ratios (services/up/compare.py)")
-    compare.add_argument("--minutes", type=positive_number_argument, default=5.0,
+    compare.add_argument("--minutes", type=positive_number_argument, default=None,
                          help="with --compare-single-process: wall time of each run (default 5)")
-    compare.add_argument("--episodes-per-start", type=count_argument, default=2,
+    compare.add_argument("--episodes-per-start", type=count_argument, default=None,
                          help="with --compare-single-process: test episodes per start for each score (default 2)")
     parser.add_argument("--device", default=None,
                         help="learner device: auto, cpu, cuda (not with --compare-single-process, whose runs "
@@ -92,8 +95,9 @@ def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--learner-threads", type=count_argument, default=None,
                         help="OMP_NUM_THREADS for the started processes (default: inherited; not with "
                              "--compare-single-process)")
-    parser.add_argument("--startup-timeout-s", type=positive_number_argument, default=600.0,
-                        help="give up if the system is not in its steady state in this time (default: 600)")
+    parser.add_argument("--startup-timeout-s", type=positive_number_argument, default=None,
+                        help="give up if the system is not in its steady state in this time (default: 600; not "
+                             "with --compare-single-process)")
     parser.add_argument("--runs-dir", default=None,
                         help="keep the run folder (logs, stats) here; default: a temporary folder, removed")
     parser.add_argument("--json", action="store_true", help="print JSON")

@@ -176,3 +176,13 @@ def test_a_side_of_the_transport_bench_that_never_reports_is_an_error_not_a_trac
         _subscriber(endpoint, 0.5, ready, control, results)
     assert ready.get_nowait() == "ready" and results.get_nowait()["received"] == 0
     assert _REPORT_SLACK_S >= 60
+
+
+def test_bench_drive_refuses_an_image_no_camera_sends(capsys) -> None:
+    from services.cli import main
+
+    # 100000 x 100000 asked the resize for 37 GiB per image, 64 of them, before anything was sent
+    assert main(["bench", "drive", "--images", "10", "--width", "100000", "--height", "100000"]) != 0
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore bench drive: error: --width x --height is 100000 x 100000: at most 2073600 "
+                          "pixels") and err.count("\n") == 1, err

@@ -23,7 +23,10 @@ def test_a_runs_dir_that_is_a_file_is_named_as_such(tmp_path: Path, capsys) -> N
 @pytest.mark.parametrize("extra,named", [
     (["--device", "cuda"], "--device"),
     (["--learner-threads", "4"], "--learner-threads"),
-    (["--device", "cpu", "--learner-threads", "1"], "--device and --learner-threads"),
+    (["--device", "cpu", "--learner-threads", "1"], "--device, --learner-threads"),
+    (["--seconds", "30"], "--seconds"),
+    (["--warmup-s", "0"], "--warmup-s"),
+    (["--startup-timeout-s", "60", "--seconds", "5"], "--seconds, --startup-timeout-s"),
 ])
 def test_compare_single_process_refuses_the_options_its_runs_would_not_get(extra: list[str], named: str,
                                                                           tmp_path: Path, capsys) -> None:
@@ -31,8 +34,22 @@ def test_compare_single_process_refuses_the_options_its_runs_would_not_get(extra
     assert main(["bench", "system", "--compare-single-process", "--minutes", "0.01", "--runs-dir", str(tmp_path),
                  *extra]) == 2
     err = capsys.readouterr().err
-    assert err.startswith(f"cogexplore bench system: error: {named} do not reach --compare-single-process"), err
+    assert err.startswith(f"cogexplore bench system: error: {named} do{'' if ',' in named else 'es'} not reach "
+                          "--compare-single-process"), err
     assert err.count("\n") == 1 and list(tmp_path.iterdir()) == []  # refused before either run started
+
+
+@pytest.mark.parametrize("extra,named", [
+    (["--minutes", "2"], "--minutes"),
+    (["--episodes-per-start", "1"], "--episodes-per-start"),
+])
+def test_a_measurement_refuses_the_comparison_options(extra: list[str], named: str, tmp_path: Path, capsys) -> None:
+    # they were dropped silently: `bench system --minutes 5` measured the default 60 s
+    assert main(["bench", "system", "--runs-dir", str(tmp_path), *extra]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"cogexplore bench system: error: {named} does not reach a measurement without "
+                          "--compare-single-process"), err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_up_takes_a_port_in_range() -> None:
