@@ -50,6 +50,7 @@ import queue
 import re
 import socket
 import threading
+import time
 import uuid
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, is_dataclass
@@ -72,6 +73,9 @@ from shared.sim.maps import OccupancyGrid, occupancy_grid
 from shared.sim.world import World, load_world
 
 log = logging.getLogger("cogexplore.rerun")
+LEGACY_PARTIAL_STALE_S = 600.0
+"""How long a ``<name>.partial`` (an unlocked temporary of an earlier release) must lie untouched
+before a recorder opening ``<name>`` deals with it as an orphan."""
 
 APPLICATION_ID = "cogexplore"
 TIMELINE_STEP = "episode_step"
@@ -257,13 +261,22 @@ class RecordingFile:
         locking.rename(self.partial)
 
     def _handle_orphans(self, orphans: str) -> None:
-        for orphan in self.path.parent.glob(f".{glob.escape(self.path.name)}{TMP_MARK}*"):
+        legacy = self.path.with_name(f"{self.path.name}.partial")
+        try:
+            # Releases before the lock wrote ``<name>.partial`` unlocked: one untouched for
+            # LEGACY_PARTIAL_STALE_S has no writer left (a live one writes every few seconds).
+            stale = time.time() - legacy.stat().st_mtime > LEGACY_PARTIAL_STALE_S
+        except OSError:
+            stale = False
+        candidates = self.path.parent.glob(f".{glob.escape(self.path.name)}{TMP_MARK}*")
+        for orphan in [*candidates, *([legacy] if stale else [])]:
             try:
                 with open(orphan, "rb") as held:
                     fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
                     if orphans == "keep":
-                        kept = self.path.with_name(f"{self.path.stem}.unfinished-{orphan.name.rsplit('-', 2)[-2]}"
-                                                   f"{self.path.suffix}")
+                        # named by the writer's pid (an earlier release's name carries none)
+                        writer = orphan.name.rsplit("-", 2)[-2] if orphan != legacy else "earlier"
+                        kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}{self.path.suffix}")
                         orphan.rename(kept)
                     else:
                         orphan.unlink()

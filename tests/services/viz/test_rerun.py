@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -334,6 +335,26 @@ def test_a_temporary_left_by_a_killed_recorder_is_removed_at_the_next_open(tmp_p
     first.close()
     verify(path)
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([path.name, other.name])
+
+
+def test_an_earlier_releases_partial_recording_is_cleared_once_stale(tmp_path) -> None:
+    # Releases before the locked temporaries wrote <name>.partial; nothing ever removed one a kill left.
+    from services.viz.rerun import LEGACY_PARTIAL_STALE_S
+
+    path = tmp_path / "eval.rrd"
+    stale, fresh = tmp_path / "eval.rrd.partial", tmp_path / "other.rrd.partial"
+    for legacy in (stale, fresh):
+        legacy.write_bytes(b"half a recording")
+    old = time.time() - LEGACY_PARTIAL_STALE_S - 5
+    os.utime(stale, (old, old))
+    RecordingFile(tmp_path / "other.rrd").finish(keep=False)  # fresh: maybe still written, left
+    assert fresh.exists()
+    RecordingFile(path).finish(keep=False)
+    assert not stale.exists()
+    stale.write_bytes(b"a drive's log")  # drive keeps what it finds
+    os.utime(stale, (old, old))
+    RecordingFile(tmp_path / "eval.rrd", orphans="keep").finish(keep=False)
+    assert not stale.exists() and (tmp_path / "eval.unfinished-earlier.rrd").read_bytes() == b"a drive's log"
 
 
 def test_what_a_killed_drive_recorded_is_kept_under_a_name_of_its_own(tmp_path) -> None:
