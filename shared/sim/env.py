@@ -126,8 +126,8 @@ class _Scene:
 
     @classmethod
     def build(cls, world: World, cfg: EnvConfig, sensor: SensorConfig) -> "_Scene":
-        """The scene of ``world``; WorldError if the robot would start in contact somewhere."""
-        check_starts_fit(world, cfg.robot_radius_m)
+        """The scene of ``world``; WorldError if an episode would end at its first step somewhere."""
+        check_starts_fit(world, cfg, sensor)
         model = build_model(world.mjcf, cfg, sensor)
         data = mujoco.MjData(model)
         return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
@@ -173,7 +173,8 @@ class ExploreEnv(gym.Env):
     (``world=``, ``speed_table=``, ``start_index=``, ``max_episode_steps=``, ...) and an
     optional ``SensorConfig`` (or a dict of its fields). ``world`` may also be a prebuilt
     :class:`World`. Refused at construction, in one line: an unknown field, a camera that sees the
-    bare floor nearer than ``collision_distance_m``, a robot radius that puts it in contact at a start.
+    bare floor nearer than ``collision_distance_m``, a robot radius that puts it in contact at a start
+    or a camera that sees an obstacle nearer than ``collision_distance_m`` from one.
 
     ``reset`` options: ``start_index`` (a named start; default the config's, else a random one)
     and ``start_jitter`` ``(metres, degrees)``: the start moved by a uniform draw within

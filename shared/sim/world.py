@@ -273,25 +273,36 @@ def checked_sensor(sensor_cfg: SensorConfig) -> SensorConfig:
     return dataclasses.replace(sensor_cfg.noise_free(), backend="raycast")
 
 
-def check_starts_fit(world: World, robot_radius_m: float) -> None:
-    """WorldError unless the robot, at this radius, begins clear of every obstacle at every start
-    of ``world`` (touching, every episode from there would end at its first step). A world's starts
-    are checked (:func:`validate_starts`) for the default robot when it is made; a larger one can
-    stand in a wall. Checked once per world and radius."""
+def check_starts_fit(world: World, env_cfg: EnvConfig, sensor_cfg: SensorConfig) -> None:
+    """WorldError unless the robot of ``env_cfg`` begins every episode of ``world`` clear: not
+    inside or touching an obstacle (at its radius) and not with an obstacle nearer than
+    ``collision_distance_m`` in its first image (this camera's, without noise). Either way every
+    episode from that start would end at its first step. A world's starts are checked
+    (:func:`validate_starts`) for the default robot and camera when it is made; a larger robot can
+    stand in a wall, a wider or lower camera see one. Checked once per world, robot and camera."""
     # as a cache key: a World built with lists (dataclasses.replace(w, starts=[...])) is not hashable
-    bad = _starts_touching(dataclasses.replace(world, starts=tuple(world.starts), extent=tuple(world.extent)),
-                           robot_radius_m)
+    bad = _starts_ending_at_once(dataclasses.replace(world, starts=tuple(world.starts), extent=tuple(world.extent)),
+                                 env_cfg.robot_radius_m, env_cfg.collision_distance_m, checked_sensor(sensor_cfg))
     if bad:
-        raise WorldError(f"{world.label}: with robot_radius_m {robot_radius_m:g} the robot starts inside or touching "
-                         f"an obstacle at {len(bad)} of its {len(world.starts)} starts: {_listed(bad)}")
+        raise WorldError(f"{world.label}: with robot_radius_m {env_cfg.robot_radius_m:g}, collision_distance_m "
+                         f"{env_cfg.collision_distance_m:g} and this camera, the first step ends in a collision at "
+                         f"{len(bad)} of its {len(world.starts)} starts: {_listed(bad)}")
 
 
 @functools.lru_cache(maxsize=256)
-def _starts_touching(world: World, robot_radius_m: float) -> tuple[str, ...]:
-    checker = StartChecker(world, dataclasses.replace(EnvConfig(), robot_radius_m=robot_radius_m))
-    checks = ((i, s, checker.check(s.x, s.y, s.yaw)) for i, s in enumerate(world.starts, start=1))
-    return tuple(f"{i} '{s.name}' (geom '{c.nearest_geom}')" if c.nearest_geom else f"{i} '{s.name}'"
-                 for i, s, c in checks if c.touching)
+def _starts_ending_at_once(world: World, robot_radius_m: float, collision_distance_m: float,
+                           sensor_cfg: SensorConfig) -> tuple[str, ...]:
+    env_cfg = dataclasses.replace(EnvConfig(), robot_radius_m=robot_radius_m, collision_distance_m=collision_distance_m)
+    checker = StartChecker(world, env_cfg, sensor_cfg)
+    bad = []
+    for i, start in enumerate(world.starts, start=1):
+        check = checker.check(start.x, start.y, start.yaw)
+        if check.touching:
+            bad.append(f"{i} '{start.name}' (touching geom '{check.nearest_geom}')" if check.nearest_geom
+                       else f"{i} '{start.name}' (touching)")
+        elif check.min_view_depth_m < collision_distance_m:
+            bad.append(f"{i} '{start.name}' (sees {check.min_view_depth_m:.2f} m)")
+    return tuple(bad)
 
 
 def _listed(items: list[str] | tuple[str, ...], most: int = 4) -> str:

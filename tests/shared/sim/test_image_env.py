@@ -40,8 +40,9 @@ def test_the_observation_is_an_sb3_image():
     (2.0, round(255 * INVERSE_DEPTH_NEAR_M / 2.0)),
 ])
 def test_near_is_bright_as_in_the_inverse_depth_encoding(distance_m, value):
+    # a collision distance below the nearest wall's: a start that sees a collision is refused
     env = DepthImageObservation(gym.make("cogexplore/Explore-v0", world=_wall_ahead(distance_m), start_index=0,
-                                         sensor={"width": 40, "height": 30}).unwrapped)
+                                         collision_distance_m=0.3, sensor={"width": 40, "height": 30}).unwrapped)
     obs, _ = env.reset(seed=0)
     assert obs[0, 15, 20] == pytest.approx(value, abs=1)  # the centre pixel looks straight at the wall
     env.close()
