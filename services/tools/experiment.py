@@ -56,6 +56,7 @@ from shared.config import (
     ConfigError,
     RunConfig,
     is_finite_number,
+    is_whole,
     load_preset,
     parse_override,
     parse_world_list,
@@ -121,6 +122,9 @@ class Options:
     device: str | None
     quiet: bool
     protocol: ProtocolConfig = PROTOCOLS["paper"]
+    rl_updates_given: bool = True
+    """``--rl-updates`` was given; without it ``rl_updates`` is the last checkpoint's of the experiment
+    as it began (a resumed one keeps its own, whatever checkpoints are added)."""
 
     def fixed(self) -> dict[str, Any]:
         return json.loads(json.dumps({k: getattr(self, k).to_dict() if k == "protocol" else getattr(self, k)
@@ -204,6 +208,11 @@ class ExperimentState:
                     raise ExperimentError(f"{path}: stage {name!r} {problem}: move it away to start afresh")
             # State files from before the protocol was an option were evaluated under the paper's.
             old["options"].setdefault("protocol", PROTOCOLS["paper"].to_dict())
+            # Without --rl-updates the RL baseline trains as long as the last checkpoint of the
+            # experiment as it began: adding a checkpoint when resuming must not change it.
+            began = old["options"].get("rl_updates")
+            if not options.rl_updates_given and is_whole(began) and began >= 1:
+                options.rl_updates = self.data["options"]["rl_updates"] = began
             differ = sorted(k for k in FIXED_OPTIONS if old["options"].get(k) != self.data["options"][k])
             if differ:
                 was = {k: old["options"].get(k) for k in differ}
@@ -270,9 +279,12 @@ class Experiment:
                                   + ("it" if len(seen) == 1 else "them") + "; choose worlds never trained on")
 
     def _eval_overrides(self) -> list[str]:
-        """The sensor and env overrides, less the sensor noise: training's noise is training's, the
-        test's is the protocol's."""
-        owned = tuple(f"sensor.{f}" for f in PROTOCOL_SENSOR_FIELDS)
+        """The sensor and env overrides, less the sensor noise and the env fields the protocol sets:
+        training's noise, world, speeds and episode cap are training's, the test's the protocol's."""
+        from shared.evaluation.setup import PROTOCOL_ENV_FIELDS
+
+        owned = (*(f"sensor.{f}" for f in PROTOCOL_SENSOR_FIELDS), *PROTOCOL_ENV_FIELDS,
+                 "env.start_jitter_m", "env.start_jitter_deg")  # refused by setup_evaluation, after the training
         return [x for x in self.o.overrides if x.strip().startswith(("sensor.", "env."))
                 and parse_override(x)[0] not in owned]
 
@@ -653,7 +665,7 @@ def options_from_args(args: argparse.Namespace) -> Options:
                    rl_updates=args.rl_updates or checkpoints[-1],
                    unseen_worlds=list(parse_world_list(args.unseen_worlds)), episodes_per_start=args.episodes_per_start,
                    max_steps=args.max_steps, seed=args.seed, device=args.device, quiet=args.quiet,
-                   protocol=protocol)
+                   protocol=protocol, rl_updates_given=args.rl_updates is not None)
 
 
 def run_experiment_command(args: argparse.Namespace) -> int:

@@ -37,6 +37,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from shared.config import is_finite_number
 from shared.errors import CogexploreError
 from shared.evaluation import (
     DEFAULT_PROTOCOL,
@@ -88,10 +89,19 @@ class WindowScore:
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> "WindowScore":
-        return cls(int(d["end_update"]), str(d["weights_sha256"]), float(d["gate"]),
-                   None if d["validation"] is None else float(d["validation"]),
-                   {str(k): float(v) for k, v in d["per_world"].items()}, tuple(d["sources"]),
-                   None if d.get("gate_worst_start") is None else float(d["gate_worst_start"]))
+        """A cached score; ValueError for one no scoring writes (a NaN, an integer too large for a
+        float, a string where a number goes), which would decide ``choose`` by chance."""
+        return cls(int(d["end_update"]), str(d["weights_sha256"]), _steps(d["gate"]),
+                   None if d["validation"] is None else _steps(d["validation"]),
+                   {str(k): _steps(v) for k, v in d["per_world"].items()}, tuple(d["sources"]),
+                   None if d.get("gate_worst_start") is None else _steps(d["gate_worst_start"]))
+
+
+def _steps(value: Any) -> float:
+    """A cached mean of moving steps: a finite number >= 0, else ValueError."""
+    if not (is_finite_number(value) and value >= 0):
+        raise ValueError(f"{value!r} is not a mean number of steps")
+    return float(value)
 
 
 def windows(checkpoints: Sequence[tuple[int, Path]], size: int, *, first_end: int = 0,
@@ -271,7 +281,7 @@ def _load_cache(path: Path, key: dict[str, Any]) -> dict[str, WindowScore]:
             if d.get("protocol") != key:
                 continue
             score = WindowScore.from_json(d["score"])
-        except (ValueError, KeyError, TypeError, AttributeError) as exc:
+        except (ValueError, KeyError, TypeError, AttributeError, OverflowError) as exc:  # int(1e999) overflows
             log.warning("%s line %d skipped: %s", path, n, exc)
             continue
         cache[score.weights_sha256] = score

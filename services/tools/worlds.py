@@ -86,6 +86,8 @@ def run_demo(args: argparse.Namespace) -> int:
     if args.episodes < 1 or (args.episodes > 1 and not protocol.jittered):
         raise ConfigError(f"--episodes {args.episodes}: give 1, or more with --protocol robust (the {protocol.name} "
                           "protocol's starts are exact: every episode would be the same)")
+    if args.seed < 0:  # numpy's refusal, in the first draw, was a traceback
+        raise ConfigError(f"--seed must be an integer >= 0, got {args.seed}")
     rc = load_preset(args.preset)
     # The protocol's env (fixed starts: no random poses or extra worlds) and sensor noise, at
     # --speed, with a step cap the horizon cannot reach.

@@ -11,12 +11,11 @@ conditions (:class:`ProtocolConfig`).
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from shared.config import ConfigError, SensorConfig
+from shared.config import ConfigError, SensorConfig, is_finite_number
 
 PAPER_MAX_STEPS = 200
 """Moving steps per test episode at most (the paper's cap)."""
@@ -85,11 +84,11 @@ class ProtocolConfig:
         for name, top in (("start_jitter_m", 2.0), ("start_jitter_deg", 180.0), ("sensor_noise_std_m", 1.0),
                           ("sensor_noise_quadratic_per_m", 1.0)):
             value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-                    and 0 <= value <= top):
+            # is_finite_number: a results file's integer of hundreds of digits is refused, not an OverflowError
+            if not (is_finite_number(value) and 0 <= value <= top):
                 raise ConfigError(f"protocol {self.name!r}: {name} = {value!r} is invalid: a number in [0, {top:g}]")
         p = self.sensor_dropout_prob
-        if not (isinstance(p, (int, float)) and not isinstance(p, bool) and 0 <= p < 1):
+        if not (is_finite_number(p) and 0 <= p < 1):
             raise ConfigError(f"protocol {self.name!r}: sensor_dropout_prob = {p!r} is invalid: a probability "
                               "in [0, 1)")
 

@@ -34,6 +34,7 @@ class ForesightProbe:
 
         self.policy_fn = policy_fn
         self.reset = getattr(policy_fn, "reset", None)
+        self.seed_episode = getattr(policy_fn, "seed_episode", None)  # the protocol seeds what it wraps
         self.name = getattr(policy_fn, "name", "policy")
         self.experts = ExpertsByWorld(sensor_cfg, env_cfg)
         most = ExpertConfig().horizon_steps

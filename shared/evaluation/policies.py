@@ -3,7 +3,9 @@
 Every policy is a callable ``policy(depth_m) -> (action, scores or None)`` as
 ``results.run_protocol`` wants it, with ``depth_m`` a float32 (H, W) image in metres
 (0 = no return) and ``action`` an index into ``shared.config.ACTION_NAMES``. A policy with
-memory across steps also has ``reset()``, which the protocol calls at each episode's start.
+memory across steps also has ``reset()``, which the protocol calls at each episode's start; one
+that draws random numbers has ``seed_episode(seed)``, which the protocol calls before each episode
+with its reset seed.
 
 - ``greedy``: argmax of a QNetwork's Q-values, dropout off (the paper's test protocol); a
   ``QEnsemble`` plays the same way, on the mean of its networks' Q-values.
@@ -13,7 +15,7 @@ memory across steps also has ``reset()``, which the protocol calls at each episo
   layers were copied from the supervised model and frozen (``train.init_conv_from`` + ``dqn.
   conv_lr_scale = 0``), only the fully connected layers trained. The same computation as
   ``greedy``; the name labels it.
-- ``random``: a uniformly random command from a seeded generator.
+- ``random``: a uniformly random command from a seeded generator, reseeded per episode.
 - ``reactive``: a non-learned obstacle avoider in the spirit of vector-field histograms
   (VFH, Borenstein & Koren 1991): the image columns are split into five sectors, one per
   command (column 0 is the leftmost, like command 0 = left); each sector is scored by how
@@ -102,7 +104,10 @@ class SupervisedPolicy:
 
 
 class RandomPolicy:
-    """A uniformly random command; the generator is seeded, so a protocol run repeats."""
+    """A uniformly random command; the generator is seeded, so a protocol run repeats. Under the
+    protocol each episode draws from (``seed``, the episode's reset seed) alone
+    (:meth:`seed_episode`), so an episode is the same whatever ran before it: a subset of the
+    starts, another world or protocol first, a reused policy object (``cogexplore report``)."""
 
     name = "random"
 
@@ -111,6 +116,11 @@ class RandomPolicy:
             raise PolicyError(f"the random policy's seed must be an integer >= 0, got {seed!r}")
         self.seed = seed
         self.rng = np.random.default_rng(seed)
+
+    def seed_episode(self, episode_seed: int) -> None:
+        """Draw the next episode's commands from (``seed``, ``episode_seed``) (the protocol calls it
+        before each episode). Not ``episode_seed`` alone: that is the env's stream (start jitter)."""
+        self.rng = np.random.default_rng([self.seed, int(episode_seed)])
 
     def __call__(self, depth_m: np.ndarray) -> tuple[int, None]:
         return int(self.rng.integers(NUM_ACTIONS)), None

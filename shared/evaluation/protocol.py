@@ -132,8 +132,9 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
     training jitter). ``starts``
     are start indices (None: all of the world's). Each episode stops at a collision or after
     ``max_steps`` steps, whichever comes first; a ``policy_fn`` with a ``reset()`` method (one that
-    remembers its last command) is reset before each episode. ``recorder`` (an ``EvalRecorder``) gets
-    ``begin_episode`` / ``log_step`` / ``end_episode``. Deterministic for a deterministic policy.
+    remembers its last command) is reset before each episode, and one with a ``seed_episode(seed)``
+    method (one that draws random numbers) is given the episode's reset seed. ``recorder`` (an
+    ``EvalRecorder``) gets ``begin_episode`` / ``log_step`` / ``end_episode``. Deterministic for a deterministic policy.
     ``stop``: when set, the run ends within one step with :class:`EvaluationCancelled`.
     """
     if not (is_whole(episodes_per_start) and episodes_per_start >= 1):
@@ -170,6 +171,7 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
         reset_options: dict[str, Any] = {
             "start_jitter": (protocol.start_jitter_m, protocol.start_jitter_deg) if protocol.jittered else None}
         trace = _Trace(env)
+        seed_policy = getattr(policy_fn, "seed_episode", None)
         loop = Rollout(env, _ProtocolPolicy(policy_fn, stop),
                        [trace] + ([_RecorderSteps(recorder)] if recorder is not None else []),
                        max_steps=max_steps, check_action=_check_action)
@@ -180,7 +182,10 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
                 for k in range(episodes_per_start):
                     if recorder is not None:
                         recorder.begin_episode(start_index, k)
-                    episode = loop.run_episode(seed=episode_seed(seed, start_index, k),
+                    reset_seed = episode_seed(seed, start_index, k)
+                    if seed_policy is not None:  # its draws: this episode's, whatever ran before it
+                        seed_policy(reset_seed)
+                    episode = loop.run_episode(seed=reset_seed,
                                                options={"start_index": start_index, **reset_options})
                     info = episode.info
                     area, fraction = trace.coverage()

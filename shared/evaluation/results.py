@@ -285,6 +285,34 @@ def _close(a: Any, b: Any, where: str) -> None:
         raise ResultsError(f"{where}: {a!r} does not match {b!r} recomputed from the episodes")
 
 
+def _check_run(meta: Mapping[str, Any], episodes: Sequence[EpisodeResult]) -> None:
+    """The episodes a protocol run's meta promises (``starts``, ``episodes_per_start``,
+    ``max_steps``, where it records them): every (start, episode) once and no step past the cap.
+    A report reuses results by their meta; one missing episodes or over the cap would stand for a
+    full run it is not."""
+    cap = meta.get("max_steps")
+    if cap is not None:
+        if not (is_whole(cap) and cap >= 1):
+            raise ResultsError(f"meta.max_steps: expected an integer >= 1, got {cap!r}")
+        over = next((i for i, e in enumerate(episodes) if e.steps > cap), None)
+        if over is not None:
+            raise ResultsError(f"episodes[{over}].steps: {episodes[over].steps} is past meta.max_steps = {cap}")
+    starts, per = meta.get("starts"), meta.get("episodes_per_start")
+    if starts is None or per is None:
+        return
+    if not (isinstance(starts, list) and starts and all(is_whole(s) and s >= 0 for s in starts)):
+        raise ResultsError(f"meta.starts: expected a non-empty list of start indices, got {starts!r}")
+    if not (is_whole(per) and per >= 1):
+        raise ResultsError(f"meta.episodes_per_start: expected an integer >= 1, got {per!r}")
+    have = {(e.start_index, e.episode) for e in episodes}
+    # bounded by the episodes, not by a hostile episodes_per_start
+    missing = sorted((s, k) for s in set(starts) for k in range(min(per, len(episodes) + 1)) if (s, k) not in have)
+    extra = sorted((s, k) for s, k in have if s not in starts or k >= per)
+    if missing or extra or len(episodes) != len(set(starts)) * per:
+        raise ResultsError(f"episodes: {len(episodes)} for meta.starts {starts} x {per} per start; "
+                           f"(start, episode) missing {missing[:5]}, unexpected {extra[:5]}")
+
+
 def validate_results_json(data: str | bytes | Mapping[str, Any]) -> EvalResults:
     """Check a results document (JSON text or the parsed object) against the schema and
     return it as :class:`EvalResults`; a :class:`ResultsError` names the first problem."""
@@ -307,6 +335,7 @@ def validate_results_json(data: str | bytes | Mapping[str, Any]) -> EvalResults:
     if not isinstance(data["episodes"], list) or not data["episodes"]:
         raise ResultsError("episodes: expected a non-empty list")
     episodes = [EpisodeResult.from_dict(e, f"episodes[{i}]") for i, e in enumerate(data["episodes"])]
+    _check_run(data["meta"], episodes)
     results = EvalResults(tuple(episodes), dict(data["meta"]))
     if not isinstance(data["summary"], Mapping):
         raise ResultsError(f"summary: expected an object, got {type(data['summary']).__name__}")

@@ -26,6 +26,15 @@ from shared.learning.checkpoints import LoadedModel, ensemble_models, load_model
 log = logging.getLogger("cogexplore.evaluate")
 
 
+PROTOCOL_ENV_FIELDS: dict[str, str] = {
+    "env.world": "the world is --world's",
+    "env.speed_table": "the test protocol drives at the test speeds",
+    "env.max_episode_steps": "the test protocol's cap is --max-steps",
+    "env.start_index": "the test protocol plays every start, or --starts",
+}
+"""``--set`` fields the test protocol sets itself (``protocol_env_config``), and what sets them."""
+
+
 class EvaluateError(CogexploreError):
     """A checkpoint that cannot be found or used, or options that do not fit together."""
 
@@ -105,6 +114,11 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     if jitter:  # training's jitter: the protocol never reads it, so the override would silently do nothing
         raise EvaluateError(f"{', '.join(jitter)}: the test protocol sets the start jitter; use --protocol or "
                             "--start-jitter-m / --start-jitter-deg")
+    # The protocol's own env fields (protocol_env_config): an override would silently do nothing too
+    # (--set env.world=corridor played the checkpoint's world).
+    protocol_owned = sorted(k for k in parsed if k in PROTOCOL_ENV_FIELDS)
+    if protocol_owned:
+        raise EvaluateError(", ".join(f"{k}: {PROTOCOL_ENV_FIELDS[k]}" for k in protocol_owned))
     cfg = base.with_overrides(parsed) if parsed else base
     if model is not None and (cfg.sensor.width, cfg.sensor.height) != (model.net.sensor_cfg.width,
                                                                         model.net.sensor_cfg.height):

@@ -23,6 +23,7 @@ from services.tools.experiment import (
 )
 from services.tools.options import add_experiment_arguments
 from shared.evaluation import PROTOCOLS
+from shared.evaluation.setup import setup_evaluation
 
 
 def main(argv: list[str]) -> int:
@@ -152,6 +153,31 @@ def test_the_protocol_is_fixed_with_the_experiment(tmp_path):
     noisy = Experiment.__new__(Experiment)
     noisy.o = options("--set", "sensor.noise_std_m=0.02", "--set", "sensor.width=40", "--set", "dqn.lr=1e-4")
     assert noisy._eval_overrides() == ["sensor.width=40"]
+    # So are training's episode cap, speeds and start jitter, which setup_evaluation refuses after the training.
+    noisy.o = options("--set", "env.max_episode_steps=300", "--set", "env.speed_table=train", "--set",
+                      "env.start_jitter_m=0.1", "--set", "env.robot_radius_m=0.2")
+    assert noisy._eval_overrides() == ["env.robot_radius_m=0.2"]
+    setup_evaluation("random", world="box-room", overrides=noisy._eval_overrides())
+
+
+def test_a_checkpoint_added_on_resume_keeps_the_default_rl_baseline(tmp_path):
+    from services.tools.experiment import ExperimentState
+
+    def options(checkpoints: str, *extra: str):
+        parser = argparse.ArgumentParser()
+        add_experiment_arguments(parser)
+        argv = [a for a in TINY if a not in ("--rl-updates", "20")]  # the default: the last checkpoint's
+        return options_from_args(parser.parse_args([*argv, "--out", str(tmp_path), "--checkpoints", checkpoints,
+                                                    *extra]))
+
+    path = tmp_path / "state.json"
+    ExperimentState(path, options("20")).save()
+    # Refused before as "other options ({'rl_updates': 20})", though --rl-updates was never given.
+    resumed = options("20,40")
+    ExperimentState(path, resumed)
+    assert resumed.rl_updates == 20  # the RL baseline the experiment began with
+    with pytest.raises(ExperimentError, match="other options.*'rl_updates'"):
+        ExperimentState(path, options("20,40", "--rl-updates", "40"))  # given: it must match
 
 
 def test_checkpoint_list_and_options_are_validated(tmp_path, capsys):

@@ -85,6 +85,22 @@ def test_a_worst_start_gate_keeps_only_windows_whose_every_start_reaches_it() ->
     assert WindowScore.from_json(scores[1].to_json()) == scores[1]
 
 
+def test_a_cached_score_no_scoring_writes_is_skipped_not_a_traceback_or_a_nan(tmp_path: Path, caplog) -> None:
+    from services.tools.selection import _load_cache, _protocol_key
+
+    key = _protocol_key(SelectOptions(run=tmp_path, out=tmp_path / "o.safetensors"))
+    good = score(300, 120.0, 90.0, 40.0).to_json()
+    lines = [{**good, "weights_sha256": "huge", "gate": 10 ** 400},  # was an OverflowError out of select()
+             {**good, "weights_sha256": "inf-update", "end_update": 1e999},
+             {**good, "weights_sha256": "nan", "validation": float("nan")},  # was kept: choose() by chance
+             {**good, "weights_sha256": "text", "per_world": {"g": "many"}},
+             good]
+    path = tmp_path / "cache.jsonl"
+    path.write_text("".join(json.dumps({"protocol": key, "score": d}) + "\n" for d in lines))
+    assert list(_load_cache(path, key)) == ["sha300"]
+    assert caplog.text.count("skipped") == 4
+
+
 def test_wall_minutes_carry_the_clock_across_a_resume(tmp_path: Path) -> None:
     csv = tmp_path / "learner.csv"
     csv.write_text("time_s,update,loss\n60,100,1\n120,200,1\n6,250,1\nbad,300,1\n66,300,1\n")

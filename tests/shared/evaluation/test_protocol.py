@@ -141,6 +141,19 @@ def test_random_policy_repeats_under_a_seed() -> None:
     assert run(4) != first
 
 
+def test_a_random_episode_is_the_same_whatever_ran_before_it() -> None:
+    # Its draws once ran on from the episodes before: --starts 2 alone, or the paper protocol after
+    # the robust one on the same policy object (cogexplore report), played other episodes.
+    sensor = SensorConfig(width=40, height=30)
+    kw = {"world": "box-room", "sensor_cfg": sensor, "episodes_per_start": 2, "max_steps": 30, "progress": False}
+    full = evaluate_policy(RandomPolicy(0), **kw).episodes
+    alone = evaluate_policy(RandomPolicy(0), starts=[2], **kw).episodes
+    assert alone == tuple(e for e in full if e.start_index == 2)
+    reused = RandomPolicy(0)
+    evaluate_policy(reused, protocol=PROTOCOLS["robust"], **kw)
+    assert evaluate_policy(reused, **kw).episodes == full
+
+
 def test_stop_cancels_within_a_step_and_drops_the_partial_recording(tmp_path: Path) -> None:
     sensor = SensorConfig(width=64, height=48)
     stop = threading.Event()

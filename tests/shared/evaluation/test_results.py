@@ -135,6 +135,8 @@ def _doc() -> dict:
     (lambda d: d["meta"].pop("protocol"), "meta.protocol: missing; results must say which test protocol"),
     (lambda d: d["meta"]["protocol"].pop("start_jitter_deg"), r"meta\.protocol: .*missing \['start_jitter_deg'\]"),
     (lambda d: d["meta"]["protocol"].update(start_jitter_m=-1), r"meta\.protocol: .*start_jitter_m = -1"),
+    # An integer too large for a float (JSON has no limit) is refused, not an OverflowError.
+    (lambda d: d["meta"]["protocol"].update(start_jitter_deg=10 ** 400), r"meta\.protocol: .*start_jitter_deg = 1000"),
     (lambda d: d.update(schema="cogexplore.eval-results/1"), "written before results recorded their test protocol"),
 ])
 def test_validation_names_the_problem(mutate, match: str) -> None:
@@ -142,6 +144,30 @@ def test_validation_names_the_problem(mutate, match: str) -> None:
     mutate(doc)
     with pytest.raises(ResultsError, match=match):
         validate_results_json(doc)
+
+
+RUN = {"starts": [0, 1], "episodes_per_start": 2, "max_steps": 200}
+
+
+def _run_doc(episodes=tuple(EPISODES), **meta) -> dict:
+    """A document whose meta says what run it was, as the protocol writes it; its summary consistent."""
+    return json.loads(to_json(EvalResults(tuple(episodes), {"model": "m", **PAPER, **RUN, **meta})))
+
+
+@pytest.mark.parametrize("doc,match", [
+    # an episode dropped (and the summary recomputed): it would stand for the full run in a report
+    (lambda: _run_doc(EPISODES[:3]), r"episodes: 3 for meta\.starts \[0, 1\] x 2 .*missing \[\(1, 1\)\]"),
+    (lambda: _run_doc(starts=[0, 1, 2]), r"missing \[\(2, 0\), \(2, 1\)\]"),
+    (lambda: _run_doc(episodes_per_start=1), r"unexpected \[\(0, 1\), \(1, 1\)\]"),
+    (lambda: _run_doc(episodes_per_start=10 ** 18), r"episodes: 4 for meta\.starts"),  # bounded work
+    (lambda: _run_doc(max_steps=100), r"episodes\[1\]\.steps: 200 is past meta\.max_steps = 100"),
+    (lambda: _run_doc(max_steps=0), r"meta\.max_steps: expected an integer >= 1"),
+    (lambda: _run_doc(starts="all"), r"meta\.starts: expected a non-empty list"),
+])
+def test_episodes_must_be_the_run_their_meta_records(doc, match: str) -> None:
+    assert validate_results_json(_run_doc()).meta["starts"] == [0, 1]
+    with pytest.raises(ResultsError, match=match):
+        validate_results_json(doc())
 
 
 def test_validation_rejects_bad_text(tmp_path) -> None:

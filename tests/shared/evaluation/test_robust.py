@@ -230,6 +230,12 @@ def test_evaluate_records_the_protocol_and_refuses_its_noise_as_an_override(tmp_
     assert "the test protocol sets the sensor's noise" in capsys.readouterr().err
     assert main(["evaluate", *common, "--set", "env.start_jitter_m=0.1"]) == 2  # training's jitter, not the test's
     assert "the test protocol sets the start jitter" in capsys.readouterr().err
+    # The protocol's own env fields: the override did nothing (env.world=corridor played box-room).
+    for field, flag in (("env.world=corridor", "--world"), ("env.speed_table=train", "test speeds"),
+                        ("env.max_episode_steps=50", "--max-steps"), ("env.start_index=2", "--starts")):
+        assert main(["evaluate", *common, "--set", field]) == 2
+        err = capsys.readouterr().err
+        assert f"error: {field.split('=')[0]}: " in err and flag in err
     assert main(["evaluate", *common, "--start-jitter-m", "-1"]) == 2
     assert "start_jitter_m = -1" in capsys.readouterr().err
     with pytest.raises(SystemExit):
