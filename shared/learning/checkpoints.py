@@ -159,7 +159,21 @@ def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict
         raise CheckpointError(f"{path} cannot be read (partial or corrupt?): {exc}") from None
     if _digest(tensors) != meta.get("digest"):
         raise CheckpointError(f"{path} is corrupt: its tensor data does not match the stored digest")
+    if framework == "pt":
+        # the digest only proves the bytes are the writer's: a network with NaN or infinite weights gives
+        # NaN Q-values, whose argmax an evaluation or a robot would play as a command
+        bad = _non_finite(tensors)
+        if bad is not None:
+            raise CheckpointError(f"{path}: {bad} holds NaN or infinite values (diverged or damaged weights)")
     return tensors, meta
+
+
+def _non_finite(tensors: Mapping[str, torch.Tensor]) -> str | None:
+    """The name of the first floating-point tensor with a NaN or an infinity; None when all are finite."""
+    for name, t in tensors.items():
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            return name
+    return None
 
 
 # --------------------------------------------------------------------------- checkpoints
@@ -320,7 +334,10 @@ class CheckpointManager:
         pointer = self.directory / LATEST
         if not pointer.exists():
             return None
-        name = pointer.read_text().strip()
+        try:
+            name = pointer.read_text().strip()
+        except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, bytes that are no name
+            raise CheckpointError(f"{pointer} cannot be read: {exc}") from None
         if not _NAME_RE.match(name):
             raise CheckpointError(f"{pointer} names {name!r}, which is not a checkpoint file")
         return self.directory / name
@@ -407,6 +424,11 @@ def export_weights(path: Path | str, net: QNetwork | QEnsemble, policy_version: 
     tensors = weights_to_tensors(net)
     if half:
         tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
+    bad = _non_finite(tensors)
+    if bad is not None:  # a file that no loader takes (float16 overflows past 65504)
+        raise CheckpointError(f"{path}: not written: weight {bad} is not finite"
+                              + (" in float16 (drop --half)" if half and _non_finite(weights_to_tensors(net)) is None
+                                 else " (diverged weights?)"))
     save_tensors_file(path, tensors, meta)
     return path
 
@@ -484,7 +506,7 @@ def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
     theirs, ours = net.sensor_cfg, agent.sensor_cfg
     if architecture_fingerprint(net) != agent.fingerprint or (theirs.width, theirs.height, theirs.max_range_m) != (
             ours.width, ours.height, ours.max_range_m):
-        raise CheckpointError(f"train.init_from = {str(source)!r}: its network ({meta['model']}, "
+        raise CheckpointError(f"train.init_from = {str(source)!r}: its network ({asdict(net.model_cfg)}, "
                               f"{theirs.width} x {theirs.height} px, {theirs.max_range_m} m) is not this run's "
                               f"({asdict(agent.model_cfg)}, {ours.width} x {ours.height} px, {ours.max_range_m} m)")
     with torch.no_grad():
@@ -648,9 +670,13 @@ def resolve_checkpoint(source: str | Path) -> Path | None:
                               "directory, a run folder or a weights export)")
     directory = p / "checkpoints" if (p / "checkpoints").is_dir() else p
     manager = CheckpointManager(directory)
-    if manager.latest() is None and not manager.checkpoints():
+    try:
+        latest = manager.latest()
+    except CheckpointError:
+        latest = None  # a damaged pointer: load_model falls back to the newest checkpoint that loads
+    if latest is None and not manager.checkpoints():
         return None
-    return manager.latest() or manager.checkpoints()[-1]
+    return latest or manager.checkpoints()[-1]
 
 
 def load_model(source: str | Path, device: str | torch.device = "cpu") -> LoadedModel:
@@ -888,8 +914,9 @@ def _ensemble_of(meta: Mapping[str, Any], net: torch.nn.Module) -> tuple[dict[st
     return tuple(entries)
 
 
-def _stored_config(data: Mapping[str, Any], section: str) -> Any:
+def _stored_config(data: Any, section: str) -> Any:
+    # from_dict checks that ``data`` is a table: a forged checkpoint's may be anything JSON holds
     try:
-        return getattr(from_dict({section: dict(data)}), section)
+        return getattr(from_dict({section: data}), section)
     except ConfigError as exc:
         raise CheckpointError(f"stored {section} config is invalid: {exc}") from None

@@ -511,7 +511,8 @@ class _FusedMembers:
             h = F.relu(F.max_pool2d(h, 2), inplace=True)  # pool before ReLU, as ConvTrunk
         batch = h.shape[0]
         # each member's channels flattened in NCHW order, as QNetwork.head does: (G, B, 64*h*w)
-        h = h.contiguous().reshape(batch, self.groups, -1).transpose(0, 1)
+        # (unflatten, not reshape(batch, G, -1): that cannot infer -1 for an empty batch)
+        h = h.contiguous().unflatten(1, (self.groups, -1)).flatten(2).transpose(0, 1)
 
         def linear(name: str, a: torch.Tensor) -> torch.Tensor:
             w, b = self.linear[name]
@@ -599,8 +600,34 @@ def average_weights(nets: list[nn.Module]) -> dict[str, torch.Tensor]:
     prints = {architecture_fingerprint(n) for n in nets}
     if len(prints) != 1:
         raise ModelError(f"cannot average networks of different architectures ({len(prints)} fingerprints)")
+    # equal shapes are not equal meaning: another camera (field of view, range, an image size that pools
+    # to the same pool3) or, in an ensemble, members of other depth encodings; the mean would play with the
+    # last network's
+    first = _what_it_reads(nets[0])
+    for other in nets[1:]:
+        theirs = _what_it_reads(other)
+        differences = [f"{k} = {theirs.get(k)!r} against {v!r}" for k, v in first.items() if theirs.get(k) != v]
+        if differences:
+            raise ModelError(f"cannot average networks that read different cameras or depth: {differences[0]}")
     states = [weights_to_tensors(n) for n in nets]
     return {name: torch.stack([s[name].float() for s in states]).mean(0) for name in states[0]}
+
+
+def _what_it_reads(net: nn.Module) -> dict[str, Any]:
+    """A network's camera (noise aside: a training condition) and its members' model configs (dropout
+    aside: off when it plays), as far as the network records them, by setting: what networks must share
+    to be averaged."""
+    out: dict[str, Any] = {}
+    sensor = getattr(net, "sensor_cfg", None)
+    if isinstance(sensor, SensorConfig):
+        out.update({f"sensor.{k}": v for k, v in asdict(sensor.noise_free()).items()})
+    members = list(getattr(net, "members", None) or [net])
+    for i, m in enumerate(members):
+        cfg = getattr(m, "model_cfg", None)
+        if isinstance(cfg, ModelConfig):
+            where = f"member {i} " if len(members) > 1 else ""
+            out.update({f"{where}model.{k}": v for k, v in asdict(cfg).items() if k != "dropout"})
+    return out
 
 
 def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:

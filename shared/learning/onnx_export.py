@@ -210,8 +210,9 @@ def q_difference(q: np.ndarray, reference: np.ndarray) -> float:
 
 def _check_against_torch(net: QNetwork | QEnsemble, data: bytes, path: Path) -> None:
     depth, previous = check_inputs(net)
-    with torch.inference_mode():
-        reference = net(preprocess_depth(depth), previous).numpy()
+    with torch.inference_mode():  # float32 convs, as the graph and every acting network run them (not a
+        # learner's dqn.conv_precision, whose bfloat16 rounding the graph does not repeat)
+        reference = net(preprocess_depth(depth), previous, float32=True).numpy()
     if not np.isfinite(reference).all():
         raise OnnxModelError(f"{path}: not written: the network's Q-values are not finite (diverged weights?)")
     session = onnxruntime.InferenceSession(data, providers=["CPUExecutionProvider"])

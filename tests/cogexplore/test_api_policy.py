@@ -164,7 +164,8 @@ def test_tensors_and_big_endian_millimetres_are_images_too(policy: cogexplore.Po
 
 
 def test_weights_that_give_nan_are_refused_not_driven_as_command_0(tmp_path) -> None:
-    # A well-formed file whose fc3 bias is NaN: argmax of NaN Q-values is command 0, a full-speed turn.
+    # Finite weights so large that fc3 overflows: argmax of the non-finite Q-values is command 0, a
+    # full-speed turn.
     import torch
 
     from shared.config import ModelConfig, SensorConfig
@@ -173,11 +174,39 @@ def test_weights_that_give_nan_are_refused_not_driven_as_command_0(tmp_path) -> 
 
     net = QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=40, height=30))
     with torch.no_grad():
-        dict(net.named_parameters())["fc3.bias"][0] = float("nan")
-    export_weights(tmp_path / "nan.safetensors", net, 7)
-    broken = cogexplore.load_policy(tmp_path / "nan.safetensors", device="cpu")
+        params = dict(net.named_parameters())
+        params["fc2.weight"].zero_()
+        params["fc2.bias"].fill_(1.0)  # every fc2 unit 1, whatever the image: fc3's row 0 sums past float32
+        params["fc3.weight"][0].fill_(3e38)
+        params["fc3.bias"][0] = 3e38
+    export_weights(tmp_path / "huge.safetensors", net, 7)
+    broken = cogexplore.load_policy(tmp_path / "huge.safetensors", device="cpu")
     image = np.full((30, 40), 2.0, np.float32)
     for call in (broken.act, broken.q_values):
         with pytest.raises(PolicyError, match="not finite"):
             call(image)
-    assert broken.previous_command is None  # the NaN's argmax is not remembered
+    assert broken.previous_command is None  # the overflow's argmax is not remembered
+
+
+def test_a_weights_file_holding_nan_is_refused_when_it_loads(tmp_path) -> None:
+    # The digest only proves the bytes are the writer's: a file written with a NaN weight (by hand, or an
+    # older cogexplore) is refused with one line at load_policy, not played by `cogexplore evaluate`.
+    import torch
+
+    from shared.config import ModelConfig, SensorConfig
+    from shared.learning.checkpoints import CheckpointError, export_weights, load_tensors_file, save_tensors_file
+    from shared.learning.model import QNetwork
+
+    net = QNetwork(ModelConfig(fc1=16, fc2=8), SensorConfig(width=40, height=30))
+    good = export_weights(tmp_path / "good.safetensors", net, 7)
+    tensors, meta = load_tensors_file(good, "cogexplore-weights")
+    for value in (float("nan"), float("inf")):
+        tensors["fc3.bias"][0] = value
+        save_tensors_file(tmp_path / "nan.safetensors", tensors, {k: v for k, v in meta.items() if k != "digest"})
+        with pytest.raises(cogexplore.CogexploreError, match="fc3.bias holds NaN or infinite values"):
+            cogexplore.load_policy(tmp_path / "nan.safetensors", device="cpu")
+    with torch.no_grad():
+        dict(net.named_parameters())["fc3.bias"][0] = float("nan")
+    with pytest.raises(CheckpointError, match="not written: weight fc3.bias is not finite"):
+        export_weights(tmp_path / "diverged.safetensors", net)
+    assert not (tmp_path / "diverged.safetensors").exists()

@@ -116,6 +116,54 @@ def test_manager_keeps_last_k_and_points_latest_at_the_newest(tmp_path):
     assert mem2.transitions_added == mem.transitions_added
 
 
+def test_a_damaged_latest_pointer_falls_back_to_the_newest_checkpoint_that_loads(tmp_path):
+    from shared.learning.checkpoints import load_model
+
+    agent, _ = setup(DQNConfig())
+    cm = CheckpointManager(tmp_path / "run" / "checkpoints")
+    for count in (1, 2):
+        agent.update_count = count
+        cm.save(agent)
+    newest = cm.path_for(2)
+    for damaged in (b"\xff\xfe\x00 not text", b"foo\n", b"\x00" * 32):
+        (cm.directory / "latest").write_bytes(damaged)
+        assert cm.load_latest().path == newest and "latest" in cm.skipped[0]
+        for source in (cm.directory, tmp_path / "run"):
+            assert load_model(source).path == newest
+    (cm.directory / "latest").unlink()
+    (cm.directory / "latest").mkdir()  # a folder in its place
+    assert cm.load_latest().path == newest and load_model(cm.directory).path == newest
+
+
+def test_non_finite_weights_are_never_loaded_nor_written(tmp_path):
+    """A checkpoint whose weights hold a NaN (its digest recomputed: the bytes are the writer's) is skipped
+    by a resume and refused by load_model; an export never writes one, float16's overflow included."""
+    from shared.learning.checkpoints import load_model, load_tensors_file, save_tensors_file
+
+    agent, _ = setup(DQNConfig())
+    cm = CheckpointManager(tmp_path)
+    agent.update_count = 1
+    good = cm.save(agent)
+    tensors, meta = load_tensors_file(good, "cogexplore-checkpoint")
+    tensors["online.fc1.bias"][3] = float("nan")
+    agent.update_count = 2
+    forged = cm.save(agent)
+    save_tensors_file(forged, tensors, {k: v for k, v in meta.items() if k != "digest"})
+    assert cm.load_latest().path == good and "online.fc1.bias holds NaN or infinite values" in cm.skipped[0]
+    with pytest.raises(CheckpointError, match="online.fc1.bias holds NaN or infinite values"):
+        load_model(forged)
+    with torch.no_grad():
+        agent.online.fc3.bias[0] = 1e5  # finite in float32, infinite in float16
+    export_weights(tmp_path / "w32.safetensors", agent.online)
+    with pytest.raises(CheckpointError, match="fc3.bias is not finite in float16"):
+        export_weights(tmp_path / "w16.safetensors", agent.online, half=True)
+    with torch.no_grad():
+        agent.online.fc3.bias[0] = float("inf")
+    with pytest.raises(CheckpointError, match="fc3.bias is not finite .diverged"):
+        export_weights(tmp_path / "inf.safetensors", agent.online)
+    assert sorted(p.name for p in tmp_path.glob("w*")) == ["w32.safetensors"]
+
+
 def test_only_the_newest_checkpoints_keep_their_replay_and_an_older_one_resumes_without(tmp_path, caplog):
     from shared.learning.learner import LearnerCore, resume_from
 
@@ -463,6 +511,11 @@ def test_a_checkpoint_with_forged_metadata_is_skipped_not_a_crash(tmp_path):
         save_tensors_file(forged, tensors, meta | changed)
         with pytest.raises(CheckpointError):
             load_checkpoint(forged)
+    for section in ("model", "sensor"):  # a network's config that is no table
+        for forged_config in ("abc", 5, None, [1, 2]):
+            save_tensors_file(forged, tensors, meta | {"agent": {**agent, section: forged_config}})
+            with pytest.raises(CheckpointError, match=f"stored {section} config is invalid"):
+                load_model(forged)
     for raw in ("[]", "[" * 100_000, '{"format": ' + "9" * 5000 + "}"):
         safetensors.torch.save_file(tensors, forged, metadata={"cogexplore": raw})
         with pytest.raises(CheckpointError):

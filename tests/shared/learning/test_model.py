@@ -285,6 +285,30 @@ def test_an_ensemble_acting_runs_its_members_as_one_network_with_the_same_q_valu
         ensemble(torch.zeros(1, 1, 48, 64))
 
 
+def test_an_ensemble_acting_on_an_empty_batch_gives_no_rows_as_one_network_does():
+    nets = [QNetwork(SMALL, TINY).eval() for _ in range(2)]
+    for net in (nets[0], QEnsemble(nets).eval()):  # the fused path inferred -1 from 0 elements
+        assert InferenceRunner(net).q_values(np.zeros((0, 30, 40), np.float32)).shape == (0, 5)
+
+
+def test_only_networks_that_read_the_same_camera_and_depth_are_averaged():
+    from shared.learning.model import average_weights
+
+    # 47 x 31 pools to pool3's 5 x 3 as 40 x 30 does: the same shapes, another camera
+    for other in (SensorConfig(width=47, height=31), dataclasses.replace(TINY, hfov_deg=90.0),
+                  dataclasses.replace(TINY, max_range_m=8.0)):
+        with pytest.raises(ModelError, match="different cameras or depth: sensor"):
+            average_weights([QNetwork(SMALL, TINY), QNetwork(SMALL, other)])
+    inverse = dataclasses.replace(SMALL, depth_encoding="inverse")
+    with pytest.raises(ModelError, match="member 0 model.depth_encoding = 'inverse' against 'metric'"):
+        average_weights([QEnsemble([QNetwork(SMALL, TINY), QNetwork(SMALL, TINY)]),
+                         QEnsemble([QNetwork(inverse, TINY), QNetwork(inverse, TINY)])])
+    # training noise and dropout are no part of what a network reads
+    noisy = dataclasses.replace(TINY, noise_std_m=0.01)
+    mean = average_weights([QNetwork(SMALL, TINY), QNetwork(dataclasses.replace(SMALL, dropout=0.2), noisy)])
+    assert set(mean) == set(weights_to_tensors(QNetwork(SMALL, TINY)))
+
+
 def test_networks_of_different_command_histories_still_run_fused():
     torch.manual_seed(0)
     nets = [QNetwork(ModelConfig(fc1=32, fc2=16, previous_action=True, action_history=k), TINY).eval()

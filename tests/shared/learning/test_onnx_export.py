@@ -198,6 +198,19 @@ def test_a_mismatching_or_diverged_export_never_lands_on_disk(tmp_path: Path, mo
         export_onnx(load_supervised_model("pretrained"), path)
 
 
+def test_a_learners_bfloat16_network_exports_as_the_float32_network_it_acts_with(tmp_path: Path) -> None:
+    # dqn.conv_precision = bfloat16 (or auto on a GPU) trains the convs in bfloat16; acting, and the graph,
+    # run them in float32: the export is checked against that, not refused for bfloat16's rounding
+    net = _smoke_net()
+    net.conv_autocast = torch.bfloat16
+    path = export_onnx(net, tmp_path / "bf16.onnx")
+    depth, previous = check_inputs(net, seed=5)
+    with torch.inference_mode():
+        acting = net(preprocess_depth(depth), previous, float32=True).numpy()
+    assert q_difference(_onnx_q(path, depth, previous), acting) <= MATCH_TOLERANCE
+    assert net.conv_autocast == torch.bfloat16  # the caller's network is left as it was
+
+
 def test_model_export_writes_the_onnx_file_beside_or_instead_of_the_weights(tmp_path: Path) -> None:
     onnx_path, weights = tmp_path / "robot" / "drl.onnx", tmp_path / "drl.safetensors"
     proc = subprocess.run([sys.executable, "-m", "services.cli", "model", "export", "pretrained", "--onnx",
