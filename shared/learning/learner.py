@@ -7,6 +7,7 @@ Replay ratio r = updates per inserted transition (the paper's Algorithm 1: one u
 environment step, r = 1). After ``warmup_transitions`` have arrived, update k is due once
 ``r * (received - warmup) >= k``; the learner asks actors for data only up to the point
 where the ratio would fall behind (``transitions_wanted``), see shared.wire.messages.FlowControl.
+A resume whose replay memory is empty (not kept) warms up again (:func:`resume_from`).
 
 What comes in is checked against the task itself (``TransitionBatch.require_physical``: rewards the
 task pays, depth within the sensor's range), and what the learner keeps per actor is bounded
@@ -33,7 +34,7 @@ from shared.learning.checkpoints import (
     init_agent_conv,
     init_agent_weights,
 )
-from shared.learning.demos import Demonstration, demo_replay, load_demonstrations
+from shared.learning.demos import DemoError, Demonstration, demo_replay, load_demonstrations
 from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
 from shared.learning.pipeline import TargetPipeline
 from shared.learning.replay import Batch, ReplayError, ReplayMemory, concat_batches
@@ -70,9 +71,23 @@ def transfer_weights(agent: DQNAgent, cfg: RunConfig) -> None:
 
 
 def run_demonstrations(cfg: RunConfig) -> list[Demonstration]:
-    """The run's planner demonstrations (``train.demos``), read and checked (DemoError)."""
+    """The run's planner demonstrations (``train.demos``), read and checked (DemoError), their rewards
+    against the task's too: what an actor's transitions must pass, a demonstration must."""
     frame_shape = (cfg.sensor.height, cfg.sensor.width)
-    return [d for p in cfg.train.demo_paths for d in load_demonstrations(p, frame_shape)]
+    demos = []
+    for path in cfg.train.demo_paths:
+        for i, d in enumerate(load_demonstrations(path, frame_shape)):
+            # Every step a move the task pays, but a collision's last, r_ter: a file recorded under
+            # another reward (or a finite but huge one) would bend every TD target it reaches.
+            paid = cfg.env.pays_for_a_move(d.rewards)
+            if d.terminated:
+                paid[-1] = d.rewards[-1] == np.float32(cfg.env.reward_collision)
+            if not paid.all():
+                bad = int(np.flatnonzero(~paid)[0])
+                raise DemoError(f"{path}: demonstration {i}: reward[{bad}] = {float(d.rewards[bad])!r}, this "
+                                f"task pays {cfg.env.describe_rewards()} (recorded under another env reward?)")
+            demos.append(d)
+    return demos
 
 
 def check_start_sources(cfg: RunConfig) -> None:
@@ -342,7 +357,7 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
     with_replay = checkpoint.replay_path is not None and checkpoint.replay_path.exists()
     if checkpoint.replay_path is not None and not with_replay:
         log.warning("%s's replay memory was not kept (only the newest checkpoints keep theirs): resuming with "
-                    "an empty replay memory", checkpoint.path.name)
+                    "an empty replay memory (a new warm-up fills it before the next update)", checkpoint.path.name)
     try:
         checkpoint.restore(core.agent)
     except CheckpointError as exc:
@@ -361,6 +376,11 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
     if purged:
         log.warning("removed %d stored transition(s) this task cannot produce from %s's replay memory", purged,
                     checkpoint.path.name)
+    if len(core.replay) == 0 and core.updates:
+        # An empty replay memory warms up again: the count restarts from what the updates so far used,
+        # so the next update waits for warmup_transitions new ones (with the saved count it was due at
+        # the first transition in, and sampled its whole batch from that one).
+        core.received = math.ceil(core.updates / core.cfg.train.replay_ratio)
     log.info("resumed from %s at update %d (%d transitions in replay)", checkpoint.path.name,
              core.updates, len(core.replay))
     return True

@@ -124,7 +124,8 @@ class SumTree:
             pos = np.unique(pos // 2)
 
     def find(self, mass: np.ndarray) -> np.ndarray:
-        """Leaf index i with prefix(i) <= mass < prefix(i+1), for each mass in [0, total)."""
+        """Leaf index i in [0, size) with prefix(i) <= mass < prefix(i+1), for each mass in [0, total).
+        A mass within rounding of the total may land on a zero leaf (the caller checks priorities)."""
         pos = np.ones(mass.shape, dtype=np.int64)
         mass = mass.astype(np.float64, copy=True)
         while pos[0] < self.leaf0:
@@ -133,7 +134,9 @@ class SumTree:
             go_right = mass >= lv
             mass = np.where(go_right, mass - lv, mass)
             pos = np.where(go_right, left + 1, left)
-        return pos - self.leaf0
+        # The subtractions round: a mass just under the total can walk past the last leaf into the
+        # zero padding up to the next power of two, an index no caller's arrays have.
+        return np.minimum(pos - self.leaf0, self.size - 1)
 
 
 class ReplayMemory:

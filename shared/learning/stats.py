@@ -64,7 +64,9 @@ class LearnerRow(_Row):
     update: int = _cell()
     policy_version: int = _cell()
     loss: float | None = _cell(".6g")
-    """Mean TD loss over the recent updates (None before the first)."""
+    """Mean loss over the recent updates (None before the first): the TD loss (importance-weighted under
+    prioritised replay) plus the weighted margin losses where demonstrations, expert labels or safe-set
+    marks are on (``dqn.demo_weight``, ``dqn.safe_weight``), so not comparable across such settings."""
     mean_q: float | None = _cell(".6g")
     updates_per_s: float = _cell(".3f")
     transitions: int = _cell()

@@ -1,5 +1,6 @@
 """Planner demonstrations: the env snapshot, the planner, recording, files, and the DQfD update."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -219,6 +220,33 @@ def test_the_learner_core_mixes_demonstrations_into_every_batch(tmp_path, one_to
         load_preset("smoke").with_overrides({"train.demos": "d.pkl", "dqn.demo_batch": 4})
     with pytest.raises(DemoError, match="sensor gives"):
         LearnerCore(cfg.with_overrides({"sensor.width": 80, "sensor.height": 60}), device="cpu")
+
+
+def test_the_learner_core_refuses_demonstrations_paid_other_rewards_than_its_task(tmp_path):
+    # What an actor's transitions must pass, a demonstration must: a file recorded under another
+    # reward (or with a finite but huge one) would bend every TD target it reaches.
+    from shared.learning.learner import LearnerCore, check_start_sources
+
+    cfg = load_preset("smoke").with_overrides({"sensor.width": 40, "sensor.height": 30, "dqn.demo_batch": 4,
+                                               "train.demos": str(tmp_path / "d.npz")})
+    huge = dataclasses.replace(_demo(5), rewards=np.full(5, 3e38, np.float32))
+    save_demonstrations(tmp_path / "d.npz", [_demo(3), huge])
+    with pytest.raises(DemoError, match=r"demonstration 1: reward\[0\] = 3\.0+\d*e\+38"):
+        LearnerCore(cfg, device="cpu")
+    with pytest.raises(DemoError, match="reward"):
+        check_start_sources(cfg)  # the launcher refuses it before the run starts
+    # another task's move reward; a collision paid like a move
+    with pytest.raises(DemoError, match="pays 0.5 per move"):
+        LearnerCore(cfg.with_overrides({"env.reward_move": 0.5}), device="cpu")
+    crash = dataclasses.replace(_demo(4), terminated=True)
+    save_demonstrations(tmp_path / "d.npz", [crash])
+    with pytest.raises(DemoError, match=r"reward\[3\] = 1\.0"):
+        LearnerCore(cfg, device="cpu")
+    rewards = crash.rewards.copy()
+    rewards[-1] = -100.0
+    save_demonstrations(tmp_path / "d.npz", [dataclasses.replace(crash, rewards=rewards)])
+    core = LearnerCore(cfg, device="cpu")
+    assert core.demo_replay.stored_rewards()[1].tolist() == [1.0, 1.0, 1.0, -100.0]
 
 
 def test_worlds_demo_command_writes_a_loadable_file_and_refuses_bad_input(tmp_path, capsys):

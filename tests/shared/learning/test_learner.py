@@ -150,6 +150,34 @@ def test_a_resumed_replay_memory_keeps_nothing_the_task_cannot_produce(tmp_path)
     assert len(resumed.replay) == 7 and set(rewards.tolist()) == {1.0}
 
 
+def test_a_resume_whose_replay_memory_was_lost_warms_up_again(tmp_path):
+    """A checkpoint without its replay memory (an older one, or a learner run with save_replay off)
+    resumes with an empty memory: the next update must wait for a fresh warm-up, not sample its
+    whole batch from the first transition in, and the actors must get the credit to fill it."""
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.learner import resume_from
+
+    cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 8, "dqn.batch_size": 4,
+                                               "train.replay_ratio": 0.5})
+    core = LearnerCore(cfg, device="cpu")
+    for i in range(20):
+        core.add_transition("s", _frame(1.0 + 0.01 * i), 1, 1.0, _frame(1.01 + 0.01 * i), False, False)
+        for _ in range(core.updates_due()):
+            core.train_step()
+    assert core.updates == 7 and core.updates_due() == 0
+    CheckpointManager(tmp_path).save(core.agent, config=cfg.to_dict(), extra=core.checkpoint_extra())
+    resumed = LearnerCore(cfg, device="cpu")
+    assert resume_from(CheckpointManager(tmp_path), resumed)
+    assert resumed.updates == 7 and len(resumed.replay) == 0
+    assert resumed.transitions_wanted(slack=0) - resumed.received >= 8  # credit for the warm-up
+    due = []
+    for i in range(10):
+        resumed.add_transition("t", _frame(2.0 + 0.01 * i), 1, 1.0, _frame(2.01 + 0.01 * i), False, False)
+        due.append(resumed.updates_due())
+    assert due == [0] * 7 + [1, 1, 2]  # the warm-up's 8 transitions, then 0.5 updates per transition again
+    assert len(set(resumed._sample().indices.tolist())) > 1
+
+
 def test_a_frame_stack_learner_trains_on_stacks_from_the_replay_chain():
     cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 8, "dqn.batch_size": 8,
                                                "model.frame_stack": 2, "replay.capacity": 64})

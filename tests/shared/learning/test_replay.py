@@ -5,7 +5,7 @@ import pytest
 
 from shared.config import MAX_ACTION_HISTORY, ReplayConfig
 from shared.depth import depth_to_mm
-from shared.learning.replay import Batch, ReplayError, ReplayMemory
+from shared.learning.replay import Batch, ReplayError, ReplayMemory, SumTree
 
 SHAPE = (6, 8)
 
@@ -168,6 +168,15 @@ def test_prioritised_sampling_follows_priorities():
     prios = mem.priorities()
     assert prios[tids[0] % 8] == pytest.approx(4.0) and prios[tids[1] % 8] == pytest.approx(4.0)
     assert set(mem.sample(64).indices.tolist()) <= set(range(2, 10))
+
+
+def test_sum_tree_never_finds_a_leaf_past_its_size_at_the_top_of_the_mass():
+    # 3 leaves pad to 4: rounding in the walk down took a mass just under the total to leaf 3,
+    # past the replay's arrays (an IndexError in the prioritised sampler)
+    tree = SumTree(3)
+    tree.set(np.arange(3), np.array([0.7, 0.6, 10.0]))
+    top = np.array([np.nextafter(tree.total, 0), 0.0, 0.69, 0.7, 1.3])
+    assert tree.find(top).tolist() == [2, 0, 0, 1, 2]
 
 
 def test_uniform_sampling_is_uniform_and_weights_are_one():
