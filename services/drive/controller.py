@@ -132,6 +132,12 @@ class DriveController:
     clock: Any = time.monotonic
 
     def __post_init__(self) -> None:
+        max_range_m = float(self.policy.sensor.max_range_m)
+        if self.config.collision_distance_m >= max_range_m:
+            # Every image would read too close (or blind): the robot would never move, and say so
+            # only in its diagnostics.
+            raise DriveConfigError(f"collision distance {self.config.collision_distance_m:g} m must be below the "
+                                   f"policy's camera range, {max_range_m:g} m")
         self.period_s = self.config.control_period_s or float(self.policy.control_period_s)
         self.started_s = self.clock()
         self.last_image_s: float | None = None  # arrival of the last valid image

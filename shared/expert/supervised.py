@@ -224,13 +224,15 @@ def pretrain(out: str | Path, *, worlds: Sequence[str], frames: int, sensor_cfg:
     out = supervised_model_path(out)  # refused now, not after the data and the training
     if not (is_whole(seed) and seed >= 0):
         raise SupervisedError(f"seed must be an integer >= 0, got {seed!r}")
+    settings = settings or TrainSettings(seed=seed)
+    resolve_device(settings.device)  # a device this machine lacks fails now, not after collecting the data
     data_dir = Path(data_dir) if data_dir is not None else out.with_name(out.name.removesuffix(".safetensors") + "-data")
     request = dataset_request(worlds, frames, sensor_cfg, env_cfg, expert_cfg or ExpertConfig(),
                               drive_cfg or DriveConfig(), seed, test_fraction)
     t0 = time.monotonic()
     dataset, reused = open_or_generate(data_dir, request, progress=progress)
     t1 = time.monotonic()
-    net, card = train_supervised(dataset, settings or TrainSettings(seed=seed), progress=progress)
+    net, card = train_supervised(dataset, settings, progress=progress)
     t2 = time.monotonic()
     card["data"]["generated_seconds"] = dataset.manifest.get("seconds")
     card["data"]["reused"] = reused

@@ -209,3 +209,13 @@ def test_a_policy_that_fails_stops_the_robot_every_period_until_it_decides_again
 def test_bad_settings_are_refused(field, value):
     with pytest.raises(DriveConfigError, match=field.split("_")[0]):
         DriveConfig(**{field: value})
+
+
+def test_a_collision_distance_beyond_the_cameras_range_is_refused(policy, start_image):
+    # It was taken, and every image then read "too close": the robot never moved, and the stops
+    # were not even logged (only the diagnostics said why).
+    for distance in (policy.sensor.max_range_m, policy.sensor.max_range_m + 1.0):
+        with pytest.raises(DriveConfigError, match="camera range"):
+            DriveController(policy, DriveConfig(collision_distance_m=distance))
+    drive = DriveController(policy, DriveConfig(collision_distance_m=policy.sensor.max_range_m - 0.5))
+    assert drive.on_image(image(start_image), 0.0) is not None

@@ -303,6 +303,41 @@ def test_dataset_refuses_bad_requests(tmp_path):
         generate_dataset(tmp_path / "x", worlds=["no-such-world"], frames=10, progress=False)
 
 
+def _float_labels(manifest: dict, root) -> None:
+    # labels stored as float32 (2.5 passes a "< 5" check) and declared so in the manifest
+    manifest["files"]["labels"]["dtype"] = "float32"
+    np.save(root / "labels.npy", np.load(root / "labels.npy").astype(np.float32) + 0.5)
+
+
+@pytest.mark.parametrize("change", [
+    lambda m, _root: m.pop("files"),
+    lambda m, _root: m.__setitem__("files", []),
+    lambda m, _root: m["files"].pop("labels"),
+    lambda m, _root: m.pop("test_episodes"),
+    lambda m, _root: m.__setitem__("test_episodes", ["a"]),
+    lambda m, _root: m.pop("sensor"),
+    lambda m, _root: m["sensor"].__setitem__("width", -3),
+    lambda m, _root: m["sensor"].update(width=80, height=60),  # another image size than the arrays'
+    _float_labels,
+], ids=["no-files", "files-list", "no-labels-entry", "no-test-episodes", "test-episodes-text", "no-sensor",
+        "bad-sensor", "sensor-size", "float-labels"])
+def test_a_damaged_manifest_is_refused_clearly_and_regenerated(tmp_path, change):
+    # An edited or foreign manifest used to crash with a KeyError or TypeError (or later, in the
+    # split or the network) instead of being refused, so `pretrain --data` gave a traceback.
+    root = tmp_path / "d"
+    args = (["box-room"], 24, SMALL_SENSOR, TEST_ENV, ExpertConfig(), DriveConfig(episode_steps=6), 0, 0.3)
+    ds, _ = open_or_generate(root, dataset_request(*args), progress=False)
+    created = ds.manifest["created_unix"]
+    manifest = json.loads((root / "manifest.json").read_text())
+    change(manifest, root)
+    (root / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(SupervisedError, match="manifest.json"):
+        SupervisedDataset.open(root)
+    again, reused = open_or_generate(root, dataset_request(*args), progress=False)
+    assert not reused and len(again) == 24 and again.manifest["created_unix"] != created
+    assert again.split()[1].size > 0
+
+
 # --------------------------------------------------------------------------------- training
 
 
@@ -436,6 +471,7 @@ def test_evaluate_policy_sl_and_rl(trained, tmp_path, capsys):
 @pytest.mark.parametrize(("argv", "message"), [
     (["--out", "sl.pt"], "must end in .safetensors"),
     (["--out", "sl.safetensors", "--seed", "-1"], "seed must be an integer >= 0"),
+    (["--out", "sl.safetensors", "--device", "gpu"], "unknown device 'gpu'"),  # failed after collecting
 ])
 def test_pretrain_refuses_an_output_or_seed_it_cannot_use_before_collecting(argv, message, tmp_path, capsys,
                                                                          monkeypatch):
