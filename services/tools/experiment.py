@@ -281,10 +281,10 @@ class Experiment:
     def _eval_overrides(self) -> list[str]:
         """The sensor and env overrides, less the sensor noise and the env fields the protocol sets:
         training's noise, world, speeds and episode cap are training's, the test's the protocol's."""
-        from shared.evaluation.setup import PROTOCOL_ENV_FIELDS
+        from shared.evaluation.protocol import PROTOCOL_ENV_FIELDS
 
-        owned = (*(f"sensor.{f}" for f in PROTOCOL_SENSOR_FIELDS), *PROTOCOL_ENV_FIELDS,
-                 "env.start_jitter_m", "env.start_jitter_deg")  # refused by setup_evaluation, after the training
+        # what setup_evaluation refuses (it would be refused after the training)
+        owned = (*(f"sensor.{f}" for f in PROTOCOL_SENSOR_FIELDS), *(f"env.{f}" for f in PROTOCOL_ENV_FIELDS))
         return [x for x in self.o.overrides if x.strip().startswith(("sensor.", "env."))
                 and parse_override(x)[0] not in owned]
 

@@ -149,7 +149,7 @@ def _protocol_meta(setup: EvalSetup, world: str, episodes_per_start: int, max_st
             "env": {k: v for k, v in asdict(env).items() if k != "start_index"}}
     if setup.model is not None:
         want["weights_sha256"] = setup.model.weights_sha256
-    return want
+    return want | setup.draws_meta()
 
 
 def _unique(name: str, taken: set[str]) -> str:

@@ -349,7 +349,8 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
             model = average_models([load_model(p, o.device) for p in win.paths])
         except CheckpointError as exc:  # one damaged file must not end hours of scoring: its windows go
             skipped.append(f"{win.end_update}: {exc}")
-            echo(f"[{i}/{len(todo)}] window ending at {win.end_update}: skipped, a checkpoint cannot be read ({exc})")
+            echo(f"[{i}/{len(todo)}] window ending at {win.end_update}: skipped, its checkpoints cannot be read or "
+                 f"averaged ({exc})")
             continue
         cached = cache.get(model.weights_sha256)
         if cached is not None:  # the same weights: this window's checkpoints, not where they were then

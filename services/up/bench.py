@@ -284,8 +284,9 @@ def _steady(observed: _Observed, actor_ids: list[str], train: Any, span_s: float
     return d_transitions > 0 and 0.5 <= d_updates / d_transitions / ratio <= 2.0
 
 
-def _given_or(value: Any, default: Any) -> Any:
-    return default if value is None else value
+def _given(args: argparse.Namespace, *names: str) -> dict[str, Any]:
+    """The options among ``names`` that were given (the function called has the defaults)."""
+    return {name: getattr(args, name) for name in names if getattr(args, name) is not None}
 
 
 def _refuse_given(args: argparse.Namespace, instead: dict[str, str | None], where: str) -> None:
@@ -295,7 +296,8 @@ def _refuse_given(args: argparse.Namespace, instead: dict[str, str | None], wher
     given = [flag for flag in instead if getattr(args, flag.lstrip("-").replace("-", "_")) is not None]
     if given:
         hints = [f"{flag}: give {instead[flag]} instead" for flag in given if instead[flag]]
-        raise ConfigError(f"{', '.join(given)} {'does' if len(given) == 1 else 'do'} not reach {where}" + (f" ({'; '.join(hints)})" if hints else ""))
+        verb = "does" if len(given) == 1 else "do"
+        raise ConfigError(f"{', '.join(given)} {verb} not reach {where}" + (f" ({'; '.join(hints)})" if hints else ""))
 
 
 def _sleep_checking(seconds: float, check_alive: Any) -> None:
@@ -356,17 +358,16 @@ def run_command(args: argparse.Namespace) -> int:
         instead = {"--device": "--set train.device=DEVICE", "--learner-threads": "OMP_NUM_THREADS=N in the environment",
                    "--seconds": "--minutes", "--warmup-s": None, "--startup-timeout-s": None}
         _refuse_given(args, instead, "--compare-single-process's runs")
-        result = compare(_given_or(args.minutes, 5.0), actors=actors, preset=args.preset or DEFAULT_PRESET,
-                         overrides=args.overrides, episodes_per_start=_given_or(args.episodes_per_start, 2),
-                         runs_dir=args.runs_dir)
+        result = compare(actors=actors, preset=args.preset or DEFAULT_PRESET, overrides=args.overrides,
+                         runs_dir=args.runs_dir, **_given(args, "minutes", "episodes_per_start"))
         print(json.dumps(result, indent=2))
         return 0
     _refuse_given(args, {"--minutes": "--seconds", "--episodes-per-start": None},
                   "a measurement without --compare-single-process")
     try:
-        result = run(actors, _given_or(args.seconds, 60.0), preset=args.preset or "fast", overrides=args.overrides,
-                     warmup_s=_given_or(args.warmup_s, 5.0), startup_timeout_s=_given_or(args.startup_timeout_s, 600.0),
-                     runs_dir=args.runs_dir, device=args.device, learner_threads=args.learner_threads)
+        result = run(actors, preset=args.preset or "fast", overrides=args.overrides, runs_dir=args.runs_dir,
+                     device=args.device, learner_threads=args.learner_threads,
+                     **_given(args, "seconds", "warmup_s", "startup_timeout_s"))
     except (BenchError, ValueError) as exc:
         if isinstance(exc, ConfigError):
             raise

@@ -64,7 +64,7 @@ def _score(run_dir: Path, protocol: str, episodes_per_start: int, logs: Path) ->
             "coverage_pct": float(summary["overall"]["mean_coverage_pct"])}
 
 
-def compare(minutes: float, *, actors: int = 2, preset: str | None = None, overrides: list[str] | None = None,
+def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None, overrides: list[str] | None = None,
             episodes_per_start: int = 2, runs_dir: str | None = None) -> dict[str, Any]:
     """Both runs, their throughput and scores, and the ratios (see the module doc)."""
     if not minutes > 0:

@@ -238,8 +238,11 @@ class RecordingFile:
     was. The temporary is named as :func:`shared.files.write_atomically` names its own
     (``.<name>.tmp-<pid>-<n>``) and held under an exclusive ``flock`` while it is written, so the one a
     killed process left, which nobody holds, is dealt with when a recorder next opens for ``path``
-    (``orphans``: "remove" it, or "keep" it as ``<stem>.unfinished-<n><suffix>``, for a log whose
-    every step until a kill counts, as drive's); one another live process is writing is left alone.
+    (``orphans``: "remove" it, or "keep" it as ``<stem>.unfinished-<pid><suffix>``, never over an
+    earlier one, for a log whose every step until a kill counts, as drive's); one another live
+    process is writing is left alone. An earlier release's unlocked ``<name>.partial`` is dealt with
+    the same way once it has lain untouched for :data:`LEGACY_PARTIAL_STALE_S` (kept as
+    ``<stem>.unfinished-earlier<suffix>``).
     RerunLogError when ``path`` is a folder."""
 
     def __init__(self, path: str | Path, orphans: str = "remove"):
@@ -274,9 +277,14 @@ class RecordingFile:
                 with open(orphan, "rb") as held:
                     fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
                     if orphans == "keep":
-                        # named by the writer's pid (an earlier release's name carries none)
+                        # named by the writer's pid (an earlier release's name carries none), never over
+                        # one kept before (a pid comes round again)
                         writer = orphan.name.rsplit("-", 2)[-2] if orphan != legacy else "earlier"
                         kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}{self.path.suffix}")
+                        n = 1
+                        while kept.exists():
+                            n += 1
+                            kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}-{n}{self.path.suffix}")
                         orphan.rename(kept)
                     else:
                         orphan.unlink()

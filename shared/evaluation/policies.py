@@ -110,6 +110,9 @@ class RandomPolicy:
     starts, another world or protocol first, a reused policy object (``cogexplore report``)."""
 
     name = "random"
+    DRAWS = "per-episode"
+    """How its commands are drawn, as results record it (``random_draws``): a results file without it
+    holds episodes of the draws before, one stream for the whole run."""
 
     def __init__(self, seed: int = 0):
         if not is_whole(seed) or seed < 0:  # numpy's own refusal is a traceback

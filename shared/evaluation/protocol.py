@@ -49,6 +49,19 @@ def episode_seed(seed: int, start_index: int, episode: int) -> int:
     return int(np.random.SeedSequence([seed, start_index, episode]).generate_state(1, dtype=np.uint32)[0])
 
 
+PROTOCOL_ENV_FIELDS: dict[str, str] = {
+    "world": "the world is --world's",
+    "speed_table": "the test protocol drives at the test speeds",
+    "max_episode_steps": "the test protocol's cap is --max-steps",
+    "start_index": "the test protocol plays every start, or --starts",
+    "start_jitter_m": "the test protocol sets the start jitter; use --protocol or --start-jitter-m",
+    "start_jitter_deg": "the test protocol sets the start jitter; use --protocol or --start-jitter-deg",
+    "reward_trap_penalty": "the test protocol counts steps, not rewards",
+}
+"""The env fields :func:`protocol_env_config` sets whatever the base config says, and what sets
+each instead: an override of one would do nothing, so ``evaluate`` refuses it."""
+
+
 def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> EnvConfig:
     """The protocol's environment: ``base``'s robot and task, the given world, the TEST speed
     table, every start (none fixed), no training start jitter (the protocol's own is a reset

@@ -19,20 +19,11 @@ from shared.evaluation import (
     PROTOCOL_SENSOR_FIELDS,
     TEST_SEED,
 )
-from shared.evaluation.policies import make_policy
-from shared.evaluation.protocol import PolicyFn
+from shared.evaluation.policies import RandomPolicy, make_policy
+from shared.evaluation.protocol import PROTOCOL_ENV_FIELDS, PolicyFn
 from shared.learning.checkpoints import LoadedModel, ensemble_models, load_model, load_supervised_model
 
 log = logging.getLogger("cogexplore.evaluate")
-
-
-PROTOCOL_ENV_FIELDS: dict[str, str] = {
-    "env.world": "the world is --world's",
-    "env.speed_table": "the test protocol drives at the test speeds",
-    "env.max_episode_steps": "the test protocol's cap is --max-steps",
-    "env.start_index": "the test protocol plays every start, or --starts",
-}
-"""``--set`` fields the test protocol sets itself (``protocol_env_config``), and what sets them."""
 
 
 class EvaluateError(CogexploreError):
@@ -57,7 +48,12 @@ class EvalSetup:
                                "model": self.model.label if self.model is not None else self.policy}
         if self.model is not None:
             out.update(self.model.meta())
-        return out
+        return out | self.draws_meta()
+
+    def draws_meta(self) -> dict[str, Any]:
+        """What stored results must also match to be this policy's episodes: the random baseline's
+        draws (per episode now; a file of the earlier draws holds other episodes)."""
+        return {"random_draws": RandomPolicy.DRAWS} if self.policy == "random" else {}
 
 
 def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *, world: str | None = None,
@@ -110,15 +106,11 @@ def setup_evaluation(policy: str | None, checkpoint: str | Path | None = None, *
     if owned:
         raise EvaluateError(f"{', '.join(owned)}: the test protocol sets the sensor's noise; use --protocol or "
                             "--sensor-noise-m")
-    jitter = sorted(k for k in parsed if k in ("env.start_jitter_m", "env.start_jitter_deg"))
-    if jitter:  # training's jitter: the protocol never reads it, so the override would silently do nothing
-        raise EvaluateError(f"{', '.join(jitter)}: the test protocol sets the start jitter; use --protocol or "
-                            "--start-jitter-m / --start-jitter-deg")
-    # The protocol's own env fields (protocol_env_config): an override would silently do nothing too
-    # (--set env.world=corridor played the checkpoint's world).
-    protocol_owned = sorted(k for k in parsed if k in PROTOCOL_ENV_FIELDS)
+    # The protocol's own env fields (protocol_env_config): an override would silently do nothing
+    # (--set env.world=corridor played the checkpoint's world; training's jitter never reached a test).
+    protocol_owned = sorted(k for k in parsed if k.startswith("env.") and k[4:] in PROTOCOL_ENV_FIELDS)
     if protocol_owned:
-        raise EvaluateError(", ".join(f"{k}: {PROTOCOL_ENV_FIELDS[k]}" for k in protocol_owned))
+        raise EvaluateError("; ".join(f"{k}: {PROTOCOL_ENV_FIELDS[k[4:]]}" for k in protocol_owned))
     cfg = base.with_overrides(parsed) if parsed else base
     if model is not None and (cfg.sensor.width, cfg.sensor.height) != (model.net.sensor_cfg.width,
                                                                         model.net.sensor_cfg.height):

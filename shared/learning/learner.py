@@ -7,7 +7,8 @@ Replay ratio r = updates per inserted transition (the paper's Algorithm 1: one u
 environment step, r = 1). After ``warmup_transitions`` have arrived, update k is due once
 ``r * (received - warmup) >= k``; the learner asks actors for data only up to the point
 where the ratio would fall behind (``transitions_wanted``), see shared.wire.messages.FlowControl.
-A resume whose replay memory is empty (not kept) warms up again (:func:`resume_from`).
+A resume whose replay memory is empty (not kept) warms up again: the transitions received before it
+stop counting for the ratio (``LearnerCore.unpaced``, :func:`resume_from`).
 
 What comes in is checked against the task itself (``TransitionBatch.require_physical``: rewards the
 task pays, depth within the sensor's range), and what the learner keeps per actor is bounded
@@ -119,6 +120,10 @@ class LearnerCore:
         if demos:
             self.demo_replay = demo_replay(demos, frame_shape, seed=cfg.train.seed + 3)
         self.received = 0
+        """Transitions received in all (the run's env steps; stats, epsilon, the actors' credit)."""
+        self.unpaced = 0
+        """Of ``received``, those the replay ratio no longer counts: a resume that found no replay memory
+        sets it (:func:`resume_from`), so a new warm-up fills the memory before the next update."""
         self.actors: collections.OrderedDict[str, ActorRecord] = collections.OrderedDict()
         """Actor id -> its current process's record, least recently heard first."""
         self.dropped_nonfinite = 0
@@ -193,7 +198,7 @@ class LearnerCore:
 
     def checkpoint_extra(self) -> dict[str, int]:
         """What a checkpoint keeps of the core beside the agent and replay (read by :func:`resume_from`)."""
-        return {"transitions_received": self.received}
+        return {"transitions_received": self.received, "transitions_unpaced": self.unpaced}
 
     # -- the ratio rule --------------------------------------------------------------------
     @property
@@ -203,9 +208,12 @@ class LearnerCore:
     def updates_due(self) -> int:
         """Updates that may run now without exceeding the replay ratio or the total."""
         t = self.cfg.train
-        if self.received < max(t.warmup_transitions, self.cfg.dqn.batch_size) or len(self.replay) == 0:
+        paced = self.received - self.unpaced
+        # the memory's own size too: after a resume without it, the count alone let a batch be drawn from a few
+        if paced < max(t.warmup_transitions, self.cfg.dqn.batch_size) or len(self.replay) < min(
+                self.cfg.dqn.batch_size, self.cfg.replay.capacity):
             return 0
-        allowed = math.floor(t.replay_ratio * (self.received - t.warmup_transitions)) + 1
+        allowed = math.floor(t.replay_ratio * (paced - t.warmup_transitions)) + 1
         return max(0, min(allowed, t.total_updates) - self.updates)
 
     def transitions_wanted(self, slack: int) -> int:
@@ -213,7 +221,7 @@ class LearnerCore:
         to ``total_updates`` at the replay ratio, but no more than ``slack`` ahead of now."""
         t = self.cfg.train
         needed_for_next = t.warmup_transitions + math.ceil(self.updates / t.replay_ratio)
-        return min(needed_for_next + slack, self.transitions_needed)
+        return min(needed_for_next + slack, self.transitions_needed) + self.unpaced
 
     @property
     def transitions_needed(self) -> int:
@@ -353,6 +361,10 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
     for reason in checkpoints.skipped:
         log.warning("skipped a checkpoint: %s", reason)
     if checkpoint is None:
+        files = checkpoints.checkpoints()
+        if files:  # all damaged (or diverged): starting afresh here would prune them away
+            raise CheckpointError(f"cannot resume: none of the {len(files)} checkpoint(s) in {checkpoints.directory} "
+                                  f"loads ({checkpoints.skipped[-1]}); move that folder away to start the run over")
         return False
     with_replay = checkpoint.replay_path is not None and checkpoint.replay_path.exists()
     if checkpoint.replay_path is not None and not with_replay:
@@ -370,17 +382,21 @@ def resume_from(checkpoints: CheckpointManager, core: LearnerCore) -> bool:
         except CheckpointError as exc:
             raise CheckpointError(f"cannot resume: {exc}. Move that file away to resume with an empty replay "
                                   "memory") from None
-    core.received = _saved_count(checkpoint.extra.get("transitions_received"), len(core.replay),
-                                 core.transitions_needed + MAX_TRACKED_ACTORS * MAX_BATCH_STEPS, checkpoint.path.name)
+    saved, unpaced = checkpoint.extra.get("transitions_received"), checkpoint.extra.get("transitions_unpaced", 0)
+    # the ratio reads received - unpaced, which the count's own bounds below keep sane
+    core.unpaced = int(unpaced) if is_whole(unpaced) and is_whole(saved) and 0 <= unpaced <= saved else 0
+    core.received = _saved_count(saved, len(core.replay) + core.unpaced,
+                                 core.transitions_needed + core.unpaced + MAX_TRACKED_ACTORS * MAX_BATCH_STEPS,
+                                 checkpoint.path.name)
     purged = core.purge_out_of_bounds()
     if purged:
         log.warning("removed %d stored transition(s) this task cannot produce from %s's replay memory", purged,
                     checkpoint.path.name)
-    if len(core.replay) == 0 and core.updates:
-        # An empty replay memory warms up again: the count restarts from what the updates so far used,
-        # so the next update waits for warmup_transitions new ones (with the saved count it was due at
-        # the first transition in, and sampled its whole batch from that one).
-        core.received = math.ceil(core.updates / core.cfg.train.replay_ratio)
+    if len(core.replay) == 0:
+        # An empty replay memory warms up again: the ratio counts only what the updates so far used, so
+        # the next update waits for a warm-up of new transitions (with the saved count it was due at the
+        # first transition in, and sampled its whole batch from that one); received stays the run's count.
+        core.unpaced = max(0, core.received - math.ceil(core.updates / core.cfg.train.replay_ratio))
     log.info("resumed from %s at update %d (%d transitions in replay)", checkpoint.path.name,
              core.updates, len(core.replay))
     return True

@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from shared.config import DEPTH_ENCODINGS, NUM_ACTIONS, ModelConfig, SensorConfig
+from shared.config import DEPTH_ENCODINGS, MUST_MATCH_FIELDS, NUM_ACTIONS, ModelConfig, SensorConfig
 from shared.depth import MM_PER_M
 from shared.errors import CogexploreError
 from shared.wire.messages import shape_fingerprint
@@ -392,11 +392,11 @@ class QEnsemble(nn.Module):
                              + ", ".join(sorted({type(m).__name__ for m in flat})))
         if not 2 <= len(flat) <= MAX_ENSEMBLE_MEMBERS:
             raise ModelError(f"an ensemble holds 2 to {MAX_ENSEMBLE_MEMBERS} networks, got {len(flat)}")
-        camera = flat[0].sensor_cfg.noise_free()
+        camera = camera_fields(flat[0].sensor_cfg)
         for m in flat[1:]:
-            if m.sensor_cfg.noise_free() != camera:
+            if camera_fields(m.sensor_cfg) != camera:
                 raise ModelError(f"an ensemble's networks must read the same camera: {camera} against "
-                                 f"{m.sensor_cfg.noise_free()}")
+                                 f"{camera_fields(m.sensor_cfg)}")
         self.members = nn.ModuleList(flat)
         self.sensor_cfg = flat[0].sensor_cfg
         # what the ensemble is fed: the most images any member reads (each member reads the newest of them)
@@ -613,14 +613,21 @@ def average_weights(nets: list[nn.Module]) -> dict[str, torch.Tensor]:
     return {name: torch.stack([s[name].float() for s in states]).mean(0) for name in states[0]}
 
 
+def camera_fields(sensor: SensorConfig) -> dict[str, Any]:
+    """What a network's camera is, as networks joined into one model (an ensemble, a mean of weights)
+    must share it: :data:`shared.config.MUST_MATCH_FIELDS`'s sensor fields (noise, a training condition,
+    and the backend, which agrees to 2 cm, aside)."""
+    return {name: getattr(sensor, name.partition(".")[2]) for name in MUST_MATCH_FIELDS if name.startswith("sensor.")}
+
+
 def _what_it_reads(net: nn.Module) -> dict[str, Any]:
-    """A network's camera (noise aside: a training condition) and its members' model configs (dropout
+    """A network's camera (:func:`camera_fields`) and its members' model configs (dropout
     aside: off when it plays), as far as the network records them, by setting: what networks must share
     to be averaged."""
     out: dict[str, Any] = {}
     sensor = getattr(net, "sensor_cfg", None)
     if isinstance(sensor, SensorConfig):
-        out.update({f"sensor.{k}": v for k, v in asdict(sensor.noise_free()).items()})
+        out.update(camera_fields(sensor))
     members = list(getattr(net, "members", None) or [net])
     for i, m in enumerate(members):
         cfg = getattr(m, "model_cfg", None)

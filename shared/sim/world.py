@@ -23,7 +23,7 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from shared.config import PROCEDURAL_PREFIX, SPEED_TABLES, EnvConfig, SensorConfig, is_procedural_seed
+from shared.config import PROCEDURAL_PREFIX, ROBOT_FIELDS, SPEED_TABLES, EnvConfig, SensorConfig, is_procedural_seed
 from shared.errors import CogexploreError
 from shared.sim import maps
 from shared.sim.robot import FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, Robot, build_model
@@ -274,34 +274,40 @@ def checked_sensor(sensor_cfg: SensorConfig) -> SensorConfig:
 
 
 def check_starts_fit(world: World, env_cfg: EnvConfig, sensor_cfg: SensorConfig) -> None:
-    """WorldError unless the robot of ``env_cfg`` begins every episode of ``world`` clear: not
-    inside or touching an obstacle (at its radius) and not with an obstacle nearer than
-    ``collision_distance_m`` in its first image (this camera's, without noise). Either way every
-    episode from that start would end at its first step. A world's starts are checked
-    (:func:`validate_starts`) for the default robot and camera when it is made; a larger robot can
-    stand in a wall, a wider or lower camera see one. Checked once per world, robot and camera."""
+    """WorldError unless every start of ``world`` has a first step some command survives, for this
+    robot and camera: the robot not inside or touching an obstacle (at its radius), and, where its
+    first image (without noise) already reads nearer than ``collision_distance_m``, at least one
+    command of its speed table whose step ends clear. Otherwise every episode from that start ends
+    at its first step. A world's starts are checked (:func:`validate_starts`) for the default robot
+    and camera when it is made; a larger robot can stand in a wall, a wider or lower camera see one
+    at the lens. Checked once per world, robot and camera."""
+    robot = dataclasses.replace(EnvConfig(), **{f: getattr(env_cfg, f) for f in _ROBOT_ENV_FIELDS})
     # as a cache key: a World built with lists (dataclasses.replace(w, starts=[...])) is not hashable
     bad = _starts_ending_at_once(dataclasses.replace(world, starts=tuple(world.starts), extent=tuple(world.extent)),
-                                 env_cfg.robot_radius_m, env_cfg.collision_distance_m, checked_sensor(sensor_cfg))
+                                 robot, checked_sensor(sensor_cfg))
     if bad:
-        raise WorldError(f"{world.label}: with robot_radius_m {env_cfg.robot_radius_m:g}, collision_distance_m "
-                         f"{env_cfg.collision_distance_m:g} and this camera, the first step ends in a collision at "
-                         f"{len(bad)} of its {len(world.starts)} starts: {_listed(bad)}")
+        raise WorldError(f"{world.label}: with robot_radius_m {robot.robot_radius_m:g}, collision_distance_m "
+                         f"{robot.collision_distance_m:g} and this camera (hfov_deg {sensor_cfg.hfov_deg:g}, vfov_deg "
+                         f"{sensor_cfg.vfov_deg:g}), every command's first step ends in a collision at {len(bad)} of "
+                         f"its {len(world.starts)} starts: {_listed(bad)}")
+
+
+_ROBOT_ENV_FIELDS = tuple(f.partition(".")[2] for f in ROBOT_FIELDS)
+"""What a start's first step depends on besides the world and the camera (shared.config.ROBOT_FIELDS)."""
 
 
 @functools.lru_cache(maxsize=256)
-def _starts_ending_at_once(world: World, robot_radius_m: float, collision_distance_m: float,
-                           sensor_cfg: SensorConfig) -> tuple[str, ...]:
-    env_cfg = dataclasses.replace(EnvConfig(), robot_radius_m=robot_radius_m, collision_distance_m=collision_distance_m)
-    checker = StartChecker(world, env_cfg, sensor_cfg)
+def _starts_ending_at_once(world: World, robot: EnvConfig, sensor_cfg: SensorConfig) -> tuple[str, ...]:
+    checker = StartChecker(world, robot, sensor_cfg)
     bad = []
     for i, start in enumerate(world.starts, start=1):
         check = checker.check(start.x, start.y, start.yaw)
         if check.touching:
             bad.append(f"{i} '{start.name}' (touching geom '{check.nearest_geom}')" if check.nearest_geom
                        else f"{i} '{start.name}' (touching)")
-        elif check.min_view_depth_m < collision_distance_m:
-            bad.append(f"{i} '{start.name}' (sees {check.min_view_depth_m:.2f} m)")
+        elif check.min_view_depth_m < robot.collision_distance_m and len(checker.unsafe_first_actions(
+                start.x, start.y, start.yaw, (robot.speed_table,))) == len(SPEED_TABLES[robot.speed_table][0]):
+            bad.append(f"{i} '{start.name}' (its first image reads {check.min_view_depth_m:.2f} m)")
     return tuple(bad)
 
 

@@ -217,5 +217,6 @@ def test_a_collision_distance_beyond_the_cameras_range_is_refused(policy, start_
     for distance in (policy.sensor.max_range_m, policy.sensor.max_range_m + 1.0):
         with pytest.raises(DriveConfigError, match="camera range"):
             DriveController(policy, DriveConfig(collision_distance_m=distance))
-    drive = DriveController(policy, DriveConfig(collision_distance_m=policy.sensor.max_range_m - 0.5))
-    assert drive.on_image(image(start_image), 0.0) is not None
+    drive = DriveController(policy, DriveConfig(collision_distance_m=float(start_image[start_image > 0].min()) - 0.05))
+    decision = drive.on_image(image(start_image), 0.0)
+    assert decision is not None and not decision.is_stop  # a distance within range: it drives

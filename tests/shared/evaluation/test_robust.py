@@ -232,7 +232,8 @@ def test_evaluate_records_the_protocol_and_refuses_its_noise_as_an_override(tmp_
     assert "the test protocol sets the start jitter" in capsys.readouterr().err
     # The protocol's own env fields: the override did nothing (env.world=corridor played box-room).
     for field, flag in (("env.world=corridor", "--world"), ("env.speed_table=train", "test speeds"),
-                        ("env.max_episode_steps=50", "--max-steps"), ("env.start_index=2", "--starts")):
+                        ("env.max_episode_steps=50", "--max-steps"), ("env.start_index=2", "--starts"),
+                        ("env.reward_trap_penalty=5", "counts steps")):
         assert main(["evaluate", *common, "--set", field]) == 2
         err = capsys.readouterr().err
         assert f"error: {field.split('=')[0]}: " in err and flag in err
@@ -260,3 +261,25 @@ def test_the_map_expert_drives_from_the_true_pose_and_outlasts_the_reactive_base
 
     with pytest.raises(PolicyError, match="pose and world"):
         ExpertPolicy(SENSOR)(np.ones((30, 40), np.float32))
+
+
+def test_the_fields_evaluate_refuses_are_those_the_protocol_sets() -> None:
+    # PROTOCOL_ENV_FIELDS is what evaluate refuses as --set and what experiment keeps from its tests:
+    # a field protocol_env_config sets but the table missed was an override that silently did nothing
+    import dataclasses
+
+    from shared.config import EnvConfig
+    from shared.evaluation.protocol import PROTOCOL_ENV_FIELDS, protocol_env_config
+
+    base = EnvConfig()
+    changed = {"world": "corridor", "speed_table": "train", "max_episode_steps": 50, "start_index": 2,
+               "start_jitter_m": 0.1, "start_jitter_deg": 5.0, "reward_trap_penalty": 5.0}
+    assert set(changed) == set(PROTOCOL_ENV_FIELDS)
+    ignored = {name for name, value in changed.items()
+               if protocol_env_config(dataclasses.replace(base, **{name: value}), "box-room", 200)
+               == protocol_env_config(base, "box-room", 200)}
+    assert ignored == set(PROTOCOL_ENV_FIELDS)
+    # and every other field reaches the protocol's env
+    for f in dataclasses.fields(EnvConfig):
+        if f.name not in PROTOCOL_ENV_FIELDS:
+            assert getattr(protocol_env_config(base, "box-room", 200), f.name) == getattr(base, f.name), f.name

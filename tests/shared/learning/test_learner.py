@@ -169,6 +169,7 @@ def test_a_resume_whose_replay_memory_was_lost_warms_up_again(tmp_path):
     resumed = LearnerCore(cfg, device="cpu")
     assert resume_from(CheckpointManager(tmp_path), resumed)
     assert resumed.updates == 7 and len(resumed.replay) == 0
+    assert resumed.received == 20  # still the run's count (stats, epsilon): the ratio no longer counts 6 of them
     assert resumed.transitions_wanted(slack=0) - resumed.received >= 8  # credit for the warm-up
     due = []
     for i in range(10):
@@ -176,6 +177,44 @@ def test_a_resume_whose_replay_memory_was_lost_warms_up_again(tmp_path):
         due.append(resumed.updates_due())
     assert due == [0] * 7 + [1, 1, 2]  # the warm-up's 8 transitions, then 0.5 updates per transition again
     assert len(set(resumed._sample().indices.tolist())) > 1
+    # a later resume, its memory kept this time, keeps pacing as before it
+    for _ in range(resumed.updates_due()):
+        resumed.train_step()
+    later = tmp_path / "later"
+    CheckpointManager(later).save(resumed.agent, config=cfg.to_dict(), extra=resumed.checkpoint_extra(),
+                                  replay=resumed.replay)
+    again = LearnerCore(cfg, device="cpu")
+    assert resume_from(CheckpointManager(later), again)
+    assert (again.received, again.unpaced, again.updates_due()) == (30, resumed.unpaced, 0)
+
+
+@pytest.mark.parametrize("updates_before", [0, 10])
+def test_a_resume_without_its_memory_never_draws_a_batch_from_fewer_transitions_than_a_batch(tmp_path,
+                                                                                       updates_before):
+    """At update 0 (a checkpoint saved during the warm-up) and with a warm-up shorter than a batch,
+    the first update after such a resume waited for neither."""
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.learner import resume_from
+
+    cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 2 if updates_before else 8,
+                                               "dqn.batch_size": 8 if updates_before else 4,
+                                               "train.replay_ratio": 0.5})
+    core = LearnerCore(cfg, device="cpu")
+    for i in range(20 if updates_before else 7):
+        core.add_transition("s", _frame(1.0 + 0.01 * i), 1, 1.0, _frame(1.01 + 0.01 * i), False, False)
+        for _ in range(core.updates_due()):
+            core.train_step()
+    assert core.updates == updates_before
+    CheckpointManager(tmp_path).save(core.agent, config=cfg.to_dict(), extra=core.checkpoint_extra())
+    resumed = LearnerCore(cfg, device="cpu")
+    assert resume_from(CheckpointManager(tmp_path), resumed)
+    for i in range(12):
+        resumed.add_transition("t", _frame(2.0 + 0.01 * i), 1, 1.0, _frame(2.01 + 0.01 * i), False, False)
+        if resumed.updates_due():
+            assert len(resumed.replay) >= max(cfg.dqn.batch_size, cfg.train.warmup_transitions), i
+            break
+    else:
+        pytest.fail("no update after twelve new transitions")
 
 
 def test_a_frame_stack_learner_trains_on_stacks_from_the_replay_chain():
@@ -194,3 +233,19 @@ def test_a_frame_stack_learner_trains_on_stacks_from_the_replay_chain():
     assert core.train_step() is not None
     assert not torch.equal(before_weights, core.agent.online.trunk.conv1.weight)
     core.close()
+
+
+def test_a_run_whose_every_checkpoint_is_damaged_is_not_started_over(tmp_path):
+    # resume_from said "nothing to resume" and the learner trained a new network into the folder,
+    # pruning the damaged (or diverged, now refused) checkpoints away with its own
+    from shared.learning.checkpoints import CheckpointError, CheckpointManager
+    from shared.learning.learner import resume_from
+
+    cfg = load_preset("smoke")
+    core = LearnerCore(cfg, device="cpu")
+    assert not resume_from(CheckpointManager(tmp_path), core)  # an empty folder: a new run
+    saved = CheckpointManager(tmp_path).save(core.agent, config=cfg.to_dict(), extra=core.checkpoint_extra())
+    saved.write_bytes(saved.read_bytes()[:-64])
+    with pytest.raises(CheckpointError, match=r"none of the 1 checkpoint\(s\) .* loads .*move that folder away"):
+        resume_from(CheckpointManager(tmp_path), LearnerCore(cfg, device="cpu"))
+    assert saved.exists()

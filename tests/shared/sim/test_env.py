@@ -152,20 +152,23 @@ def test_a_robot_too_large_for_the_worlds_starts_is_refused_at_construction():
         ExploreEnv(world="box-room", robot_radius_m=0.8)
     msg = str(err.value)
     assert "world 'box-room'" in msg and "robot_radius_m 0.8" in msg and "1 'sw'" in msg and "\n" not in msg
-    assert "the first step ends in a collision at 3 of its 4 starts" in msg and "centre" not in msg
+    assert "every command's first step ends in a collision at 3 of its 4 starts" in msg and "centre" not in msg
     assert "1 'sw' (touching geom" in msg
     ExploreEnv(world="box-room", robot_radius_m=0.25).close()  # a little larger still fits
 
 
 def test_a_camera_that_sees_a_wall_as_a_collision_from_a_start_is_refused_at_construction():
     # box-room's starts were checked with the default camera; at 120 degrees the 'nw' start's first
-    # image holds the wall beside it at a quarter metre, so every episode from there was a collision at once
+    # image holds the cylinder beside it at 0.15 m and no command's first step ends clear of it, so every
+    # episode from there was a collision at once
     with pytest.raises(WorldError) as err:
         ExploreEnv(world="box-room", sensor=SensorConfig(hfov_deg=120.0, width=64, height=48))
     msg = str(err.value)
-    assert re.search(r"the first step ends in a collision at 1 of its 4 starts: 4 'nw' \(sees 0\.[0-4]\d m\)$", msg), msg
+    assert re.search(r"hfov_deg 120, vfov_deg 43\), every command's first step ends in a collision at 1 of its 4 "
+                     r"starts: 4 'nw' \(its first image reads 0\.1\d m\)$", msg), msg
     assert "\n" not in msg
-    ExploreEnv(world="box-room", sensor=SensorConfig(hfov_deg=75.0, width=64, height=48)).close()
+    # at 90 degrees it sees the cylinder at 0.26 m too, but going straight ends clear: taken
+    ExploreEnv(world="box-room", sensor=SensorConfig(hfov_deg=90.0, width=64, height=48)).close()
 
 
 @pytest.mark.parametrize("sensor", [SensorConfig(vfov_deg=80.0), SensorConfig(mount_height_m=0.15),
