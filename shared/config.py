@@ -34,12 +34,32 @@ class ConfigError(CogexploreError):
 
 def _check(cond: bool, section: str, name: str, value: Any, allowed: str) -> None:
     if not cond:
-        raise ConfigError(f"[{section}] {name} = {value!r} is invalid: {allowed}")
+        shown = repr(value)
+        if len(shown) > 80:  # a number of thousands of digits is no one-line error
+            shown = f"{shown[:60]}... ({len(shown)} characters)"
+        raise ConfigError(f"[{section}] {name} = {shown} is invalid: {allowed}")
 
 
 def is_whole(x: Any) -> bool:
     """An integer (numpy's too), and not a bool (TOML's ``true`` is Python's 1)."""
     return isinstance(x, (int, np.integer)) and not isinstance(x, (bool, np.bool_))
+
+
+MAX_INT = 2**63 - 1
+"""The largest integer a count, step or index may be: TOML's integers are 64-bit, and past this a
+count divided by a float (``train.total_updates / train.replay_ratio``) overflows."""
+MAX_SEED = 2**53 - 1
+"""The largest ``train.seed``: an actor seeds with ``seed * 1000 + its index``, which must stay
+below the 2**64 that torch.manual_seed takes, and 2**53 stays exact in a JSON reader's float."""
+MAX_REWARD = 1e6
+"""The largest magnitude of ``env.reward_move`` and ``env.reward_collision``: transitions carry
+rewards in float32, where beyond 3.4e38 a reward is infinite, and a TD target of 1e6 / (1 - gamma)
+is already far past any useful scale."""
+
+
+def is_count(x: Any, minimum: int = 0) -> bool:
+    """A whole number (:func:`is_whole`) in [``minimum``, :data:`MAX_INT`]."""
+    return is_whole(x) and minimum <= x <= MAX_INT
 
 
 def is_finite_number(x: Any) -> bool:
@@ -197,7 +217,9 @@ MAX_WORLD_LIST = 10_000
 
 def parse_world_list(text: str) -> tuple[str, ...]:
     """``"paper-indoor, procedural:1000-1003"`` -> the names, seed ranges expanded, in order and
-    without repeats. Only the syntax is checked here: the worlds are built when first played."""
+    without repeats; a procedural seed is written without leading zeros (``procedural:007`` is
+    ``procedural:7``, the name its World carries), so lists compare by world. Only the syntax is
+    checked here: the worlds are built when first played."""
     names: dict[str, None] = {}
     for part in (p.strip() for p in text.split(",")):
         if not part:
@@ -213,6 +235,8 @@ def parse_world_list(text: str) -> tuple[str, ...]:
             if int(last) - int(first) + 1 + len(names) > MAX_WORLD_LIST:
                 raise ConfigError(f"{part!r}: more than {MAX_WORLD_LIST} worlds")
             names.update(dict.fromkeys(f"{PROCEDURAL_PREFIX}{seed}" for seed in range(int(first), int(last) + 1)))
+        elif procedural:  # as a range writes it: 'procedural:0201' is the world 'procedural:201'
+            names[f"{PROCEDURAL_PREFIX}{int(first)}"] = None
         else:
             names[part] = None
     return tuple(names)
@@ -319,8 +343,8 @@ class EnvConfig:
         s = "env"
         _check(isinstance(self.world, str) and self.world != "", s, "world", self.world,
                "a world name or MJCF path")
-        _check(self.speed_table in SPEED_TABLES, s, "speed_table", self.speed_table,
-               f"one of {sorted(SPEED_TABLES)}")
+        _check(isinstance(self.speed_table, str) and self.speed_table in SPEED_TABLES, s, "speed_table",
+               self.speed_table, f"one of {sorted(SPEED_TABLES)}")
         _check(is_finite_number(self.physics_timestep_s) and 1e-4 <= self.physics_timestep_s <= 0.05, s,
                "physics_timestep_s", self.physics_timestep_s, "seconds in [1e-4, 0.05]")
         _check(is_finite_number(self.control_period_s) and 0.01 <= self.control_period_s <= 5.0, s,
@@ -331,13 +355,14 @@ class EnvConfig:
                    f"a whole multiple of physics_timestep_s ({self.physics_timestep_s})")
         _check(is_finite_number(self.robot_radius_m) and 0.05 <= self.robot_radius_m <= 1.0, s,
                "robot_radius_m", self.robot_radius_m, "metres in [0.05, 1]")
-        _check(is_whole(self.max_episode_steps) and self.max_episode_steps >= 1, s,
-               "max_episode_steps", self.max_episode_steps, "an integer >= 1")
+        _check(is_count(self.max_episode_steps, 1), s,
+               "max_episode_steps", self.max_episode_steps, "an integer in [1, 2**63)")
         _check(is_finite_number(self.collision_distance_m) and 0 < self.collision_distance_m < 10, s,
                "collision_distance_m", self.collision_distance_m, "metres in (0, 10)")
-        _check(is_finite_number(self.reward_move), s, "reward_move", self.reward_move, "a finite number")
-        _check(is_finite_number(self.reward_collision), s, "reward_collision", self.reward_collision,
-               "a finite number")
+        for name in ("reward_move", "reward_collision"):
+            v = getattr(self, name)
+            _check(is_finite_number(v) and abs(v) <= MAX_REWARD, s, name, v,
+                   f"a number in [-{MAX_REWARD:g}, {MAX_REWARD:g}]")
         _check(is_finite_number(self.reward_new_area_per_m2) and 0 <= self.reward_new_area_per_m2 <= 100, s,
                "reward_new_area_per_m2", self.reward_new_area_per_m2, "a number in [0, 100]")
         _check(is_finite_number(self.reward_trap_penalty) and 0 <= self.reward_trap_penalty <= 1000, s,
@@ -345,8 +370,8 @@ class EnvConfig:
         _check(is_whole(self.trap_horizon_steps)
                and 1 <= self.trap_horizon_steps <= 100, s,
                "trap_horizon_steps", self.trap_horizon_steps, "an integer in [1, 100]")
-        _check(self.start_index is None or (is_whole(self.start_index) and self.start_index >= 0),
-               s, "start_index", self.start_index, "None or an integer >= 0")
+        _check(self.start_index is None or is_count(self.start_index),
+               s, "start_index", self.start_index, "None or an integer in [0, 2**63)")
         _check(is_finite_number(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
                self.random_start_prob, "a probability in [0, 1]")
         _check(is_finite_number(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
@@ -604,14 +629,14 @@ class DQNConfig:
         _check(is_whole(self.batch_size) and 1 <= self.batch_size <= 4096, s, "batch_size",
                self.batch_size, "an integer in [1, 4096]")
         _check(is_finite_number(self.gamma) and 0 <= self.gamma < 1, s, "gamma", self.gamma, "a number in [0, 1)")
-        _check(is_whole(self.target_sync_every) and self.target_sync_every >= 1, s,
-               "target_sync_every", self.target_sync_every, "an integer >= 1")
+        _check(is_count(self.target_sync_every, 1), s,
+               "target_sync_every", self.target_sync_every, "an integer in [1, 2**63)")
         _check(self.optimizer in ("sgd", "adam"), s, "optimizer", self.optimizer, "'sgd' or 'adam'")
         _check(is_finite_number(self.lr) and 0 < self.lr <= 1, s, "lr", self.lr, "a number in (0, 1]")
         _check(is_finite_number(self.conv_lr_scale) and 0 <= self.conv_lr_scale <= 10, s, "conv_lr_scale",
                self.conv_lr_scale, "a number in [0, 10] (0 freezes the conv layers)")
-        _check(is_whole(self.lr_decay_updates) and self.lr_decay_updates >= 0, s, "lr_decay_updates",
-               self.lr_decay_updates, "an integer >= 0 (0: constant learning rate)")
+        _check(is_count(self.lr_decay_updates), s, "lr_decay_updates",
+               self.lr_decay_updates, "an integer in [0, 2**63) (0: constant learning rate)")
         _check(is_finite_number(self.lr_final_scale) and 0 < self.lr_final_scale <= 1, s, "lr_final_scale",
                self.lr_final_scale, "a number in (0, 1]")
         _check(is_finite_number(self.momentum) and 0 <= self.momentum < 1, s, "momentum", self.momentum,
@@ -688,8 +713,8 @@ class ExploreConfig:
                      "safe_label_prob"):
             v = getattr(self, name)
             _check(is_finite_number(v) and 0 <= v <= 1, s, name, v, "a probability in [0, 1]")
-        _check(is_whole(self.eps_decay_steps) and self.eps_decay_steps >= 0, s,
-               "eps_decay_steps", self.eps_decay_steps, "an integer >= 0")
+        _check(is_count(self.eps_decay_steps), s,
+               "eps_decay_steps", self.eps_decay_steps, "an integer in [0, 2**63)")
         _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
         _check(is_finite_number(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
                "a number >= 0")
@@ -736,16 +761,19 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         s = "train"
-        for name in ("total_updates", "warmup_transitions", "checkpoint_every", "keep_checkpoints", "log_every",
-                     "seed"):
+        for name in ("total_updates", "warmup_transitions", "checkpoint_every", "keep_checkpoints", "log_every"):
             v = getattr(self, name)
-            _check(is_whole(v) and v >= 0, s, name, v,
-                   "an integer >= 0")
+            _check(is_count(v), s, name, v, "an integer in [0, 2**63)")
         _check(self.keep_checkpoints >= 1, s, "keep_checkpoints", self.keep_checkpoints, "an integer >= 1")
         _check(self.checkpoint_every >= 1 and self.log_every >= 1, s, "checkpoint_every/log_every",
                (self.checkpoint_every, self.log_every), "integers >= 1")
+        _check(is_whole(self.seed) and 0 <= self.seed <= MAX_SEED, s, "seed", self.seed,
+               f"an integer in [0, {MAX_SEED}] (2**53 - 1)")
         _check(is_finite_number(self.replay_ratio) and 0 < self.replay_ratio <= 64, s, "replay_ratio",
                self.replay_ratio, "a number in (0, 64]")
+        # the learner asks for total_updates / replay_ratio transitions: an infinite count is a crash
+        _check(math.isfinite(self.total_updates / self.replay_ratio), s, "replay_ratio", self.replay_ratio,
+               f"large enough that total_updates ({self.total_updates}) / replay_ratio is a finite number")
         _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda")
                or self.device.startswith("cuda:")), s, "device", self.device,
                "'auto', 'cpu', 'cuda' or 'cuda:<n>'")
@@ -817,7 +845,7 @@ def section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: st
     for name, value in data.items():
         hint = hints[name]
         # TOML has no None and no int/float distinction the user cares about.
-        if hint in (float, "float") and is_whole(value):
+        if hint in (float, "float") and is_whole(value) and is_finite_number(value):  # too large: the check says so
             value = float(value)
         if value == "none" and "None" in str(hint):
             value = None
@@ -877,13 +905,19 @@ def load_preset(name_or_path: str | Path, *, complete: bool = False) -> RunConfi
         raise ConfigError(f"{path}: {exc}") from None
 
 
+_TOML_ESCAPES = {"\\": "\\\\", '"': '\\"', "\n": "\\n", "\r": "\\r"}
+
+
 def _toml_value(value: Any) -> str:
     if isinstance(value, bool):
         return "true" if value else "false"
     if isinstance(value, (int, float)):
         return repr(value)
     if isinstance(value, str):
-        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+        # TOML's basic strings hold no control character but tab: a newline written as it is would
+        # make the saved config.toml unreadable
+        return '"' + "".join(_TOML_ESCAPES.get(c, c if c == "\t" or (c >= " " and c != "\x7f")
+                                               else f"\\u{ord(c):04x}") for c in value) + '"'
     raise ConfigError(f"cannot write {value!r} to TOML")
 
 
@@ -899,14 +933,16 @@ def to_toml(cfg: RunConfig) -> str:
 
 
 def parse_override(text: str) -> tuple[str, Any]:
-    """Parse ``section.field=value`` with a TOML value (bare words are strings)."""
+    """Parse ``section.field=value`` with a TOML value (bare words are strings, without the spaces
+    around them: ``dqn.optimizer = adam`` is ``"adam"``)."""
     key, sep, raw = text.partition("=")
     if not sep:
         raise ConfigError(f"override {text!r} must look like section.field=value")
     try:
-        value = tomllib.loads(f"v = {raw}")["v"]
-    except (tomllib.TOMLDecodeError, RecursionError):  # not a TOML value: the text itself
-        value = raw
+        parsed = tomllib.loads(f"v = {raw}")
+        value = parsed["v"] if parsed.keys() == {"v"} else raw.strip()  # 'v = 1\nx = 2' is no one value
+    except (ValueError, RecursionError):  # not a TOML value (an integer of thousands of digits neither): the text
+        value = raw.strip()
     return key.strip(), value
 
 

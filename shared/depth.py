@@ -23,7 +23,10 @@ def depth_to_mm(depth: np.ndarray) -> np.ndarray:
         raise ValueError(f"depth must be float metres or uint16 millimetres, got {depth.dtype}")
     if not np.isfinite(depth).all() or (depth < 0).any():
         raise ValueError("depth must be finite (no NaN or infinity) and >= 0 (0 = no return)")
-    return np.minimum(np.rint(depth * MM_PER_M), UINT16_MAX).astype(np.uint16)
+    # float16 has neither the millimetres (2 mm steps past 2 m) nor 65535 (its largest is 65504): in
+    # float32; saturated before the scaling, so a huge depth does not overflow to infinity on the way
+    depth = depth.astype(np.promote_types(depth.dtype, np.float32), copy=False)
+    return np.rint(np.minimum(depth, UINT16_MAX / MM_PER_M) * MM_PER_M).astype(np.uint16)
 
 
 def depth_from_mm(depth_mm: np.ndarray) -> np.ndarray:

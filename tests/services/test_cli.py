@@ -46,6 +46,11 @@ def test_every_error_class_of_the_project_derives_from_the_one_base():
      "cogexplore evaluate: error: --image-every must be a whole number >= 1, got 0"),
     (["bench", "env", "--world", "nowhere", "--steps", "1", "--no-pin"], "cogexplore bench env: error: "),
     (["bench", "env", "--backend", "gl", "--per-pixel", "--no-pin"], "cogexplore bench env: error: --per-pixel "),
+    # --set values beyond a float and beyond Python's int-digits limit: were an OverflowError and a ValueError
+    (["train", "--preset", "tiny", "--runs-dir", "/nonexistent/runs", "--set", "dqn.lr=" + "1" * 400],
+     "cogexplore train: error: [dqn] lr = 1111"),
+    (["train", "--preset", "tiny", "--runs-dir", "/nonexistent/runs", "--set", "train.seed=" + "9" * 5000],
+     "cogexplore train: error: [train] seed = '99"),
 ])
 def test_a_bad_input_is_one_line_and_exit_status_2(argv: list[str], message: str, tmp_path: Path, capsys) -> None:
     assert main([*argv, *(["--runs-dir", str(tmp_path)] if argv[0] in ("actor", "learner") else [])]) == 2

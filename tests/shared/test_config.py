@@ -1,20 +1,26 @@
-"""What every process of a run must share with its learner (shared.config.MUST_MATCH_FIELDS), and the
-default preset."""
+"""What every process of a run must share with its learner (shared.config.MUST_MATCH_FIELDS), the
+default preset, and values that must be refused, parsed or written back as they are."""
 
 from __future__ import annotations
 
 import dataclasses
+import tomllib
 
 import pytest
 
 from shared.config import (
     DEFAULT_PRESET,
     MUST_MATCH_FIELDS,
+    ConfigError,
     ConfigMismatchError,
     RunConfig,
     config_differences,
+    from_dict,
     load_preset,
+    parse_override,
+    parse_world_list,
     require_same_run,
+    to_toml,
 )
 
 
@@ -75,3 +81,50 @@ def test_the_default_preset_is_the_shipped_models_recipe() -> None:
     for member in shipped.members:
         assert architecture_fingerprint(QNetwork(cfg.model, cfg.sensor)) == architecture_fingerprint(member)
         assert cfg.sensor == member.sensor_cfg
+
+
+@pytest.mark.parametrize("name,value", [
+    ("dqn.lr", 10**400),  # a float field given an integer too large for a float: was an OverflowError
+    ("train.total_updates", 10**400),  # the learner's total / replay_ratio overflowed
+    ("train.seed", 2**64),  # torch.manual_seed refused it in the learner, a traceback
+    ("train.replay_ratio", 1e-305),  # total_updates / replay_ratio transitions: infinite
+    ("env.reward_collision", -1e308),  # finite, but -inf in the float32 transitions carry
+    ("env.reward_move", 1e39),
+    ("env.speed_table", ["train"]),  # was "[env] unhashable type: 'list'"
+], ids=lambda v: v if isinstance(v, str) else type(v).__name__)
+def test_values_that_broke_a_run_later_are_config_errors_now(name: str, value: object) -> None:
+    field_name = name.split(".")[1]
+    with pytest.raises(ConfigError, match=rf"\] {field_name} = .* is invalid") as info:
+        RunConfig().with_overrides({name: value})
+    assert len(str(info.value)) < 300 and "\n" not in str(info.value)
+
+
+def test_the_largest_seed_an_actor_can_derive_its_own_from_is_accepted() -> None:
+    from shared.config import MAX_SEED
+
+    assert RunConfig().with_overrides({"train.seed": MAX_SEED}).train.seed == MAX_SEED
+    assert MAX_SEED * 1000 + 100_001 < 2**63  # services/actor: seed * 1000 + index + 1
+
+
+def test_set_values_that_are_no_toml_are_the_text_without_the_spaces_around_it() -> None:
+    assert parse_override("dqn.optimizer = adam") == ("dqn.optimizer", "adam")
+    assert parse_override("env.world=a=b") == ("env.world", "a=b")
+    assert parse_override("dqn.lr = 1e-3") == ("dqn.lr", 1e-3)
+    assert parse_override("dqn.lr=1\nx = 2") == ("dqn.lr", "1\nx = 2")  # two TOML keys are no one value
+    key, value = parse_override("train.seed=" + "9" * 5000)  # beyond Python's int-digits limit: was a ValueError
+    assert key == "train.seed" and value == "9" * 5000
+    with pytest.raises(ConfigError, match=r"seed = '9{20}.*\(5002 characters\) is invalid"):
+        RunConfig().with_overrides({key: value})
+
+
+def test_a_string_with_control_characters_survives_the_saved_config() -> None:
+    cfg = RunConfig().with_overrides({"env.world": 'a\tb\nc\r\x01\x7f"\\d'})
+    assert from_dict(tomllib.loads(to_toml(cfg))) == cfg
+
+
+def test_a_procedural_seed_is_listed_as_its_world_is_named() -> None:
+    # 'procedural:0201' is the world 'procedural:201': a list that wrote it so must overlap a range holding 201
+    # (model select refuses test worlds among its validation worlds by these names)
+    assert parse_world_list("procedural:0201, procedural:201, procedural:200-202, procedural:000") == (
+        "procedural:201", "procedural:200", "procedural:202", "procedural:0")
+    assert set(parse_world_list("procedural:0201")) & set(parse_world_list("procedural:200-202"))

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from shared.depth import range_gate, resize_depth
+from shared.depth import depth_to_mm, range_gate, resize_depth
 
 
 def _tilted_plane(height: int, width: int, hfov_deg: float = 57.0, vfov_deg: float = 43.0) -> np.ndarray:
@@ -64,3 +64,12 @@ def test_range_gate_reads_what_the_camera_cannot_see_as_no_return() -> None:
     out = range_gate(depth, 0.3, 4.0)
     assert out.dtype == np.float32
     np.testing.assert_array_equal(out, np.array([[0, 0, 0.5, 4.0, 0, 0, 0]], dtype=np.float32))
+
+
+def test_depth_to_mm_saturates_huge_and_half_precision_depths_without_overflow(recwarn) -> None:
+    # The product overflowed to infinity (float32 1e38, float16 70 m) and float16 could not hold the
+    # 65535 it was clipped to: RuntimeWarnings on an actor's every frame.
+    assert depth_to_mm(np.array([1e38, 65.5351, 1.0005, 4.0], np.float32)).tolist() == [65535, 65535, 1000, 4000]
+    assert depth_to_mm(np.array([70.0, 4.0, 65.5], np.float16)).tolist() == [65535, 4000, 65500]
+    assert depth_to_mm(np.array([1e300])).tolist() == [65535]
+    assert not [w for w in recwarn if issubclass(w.category, RuntimeWarning)]
