@@ -27,7 +27,9 @@ WORKDIR /app
 
 # Dependencies before sources, so that a code change does not download them again: install the
 # project from its metadata with empty packages, then uninstall it and keep the dependencies.
-COPY pyproject.toml README.md ./
+# The metadata names README.md and LICENSE (license-files): setuptools refuses a pattern that
+# matches nothing (a deprecation warning until 2027-02-18, an error afterwards).
+COPY pyproject.toml README.md LICENSE ./
 RUN mkdir shared services \
  && touch shared/__init__.py services/__init__.py \
  && pip install . \

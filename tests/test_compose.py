@@ -330,6 +330,20 @@ def test_dockerfile_builds_the_cpu_image() -> None:
     assert "RERUN_ANALYTICS=0" in env.split() and "MUJOCO_GL=egl" in env.split()
 
 
+def test_the_dependency_layer_copies_every_file_the_project_metadata_names() -> None:
+    """The first `pip install .` builds the project's metadata from what was copied before it: the
+    readme and the license files pyproject names. A license pattern that matches nothing warns today
+    and is a setuptools error from 2027-02-18 (the image would no longer build)."""
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    steps = dockerfile_instructions()
+    first_install = next(i for i, (word, rest) in enumerate(steps) if word == "RUN" and "pip install ." in rest)
+    copied = {src for word, rest in steps[:first_install] if word == "COPY" for src in rest.split()[:-1]}
+    named = {project["readme"], *project.get("license-files", [])}
+    assert named <= copied, f"copied before `pip install .`: {sorted(copied)}; the metadata names {sorted(named)}"
+
+
 def test_build_context_excludes_host_state_and_keeps_sources() -> None:
     ignored = {line.strip().rstrip("/") for line in DOCKERIGNORE.read_text().splitlines()
                if line.strip() and not line.startswith("#")}

@@ -25,6 +25,8 @@ from shared.errors import CogexploreError
 from shared.learning.stats import summarize_learner_log
 
 PROTOCOLS = ("robust", "paper")
+RUNS = {"up": "up", "single_process": "single"}
+"""Each side's run folder in the runs folder."""
 
 
 class CompareError(CogexploreError, RuntimeError):
@@ -70,6 +72,12 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
     if not minutes > 0:
         raise CompareError(f"--minutes must be > 0, got {minutes}")
     root = Path(runs_dir) if runs_dir else Path(tempfile.mkdtemp(prefix="bench-compare-"))
+    # `up` and `train` resume a run that exists, and its learner.csv counts the earlier session's
+    # updates too: a second comparison in one --runs-dir would divide them by this session's time.
+    taken = [str(root / run) for run in RUNS.values() if (root / run).exists()]
+    if taken:
+        raise CompareError(f"{' and '.join(taken)} already exist(s): both runs must start from nothing (their "
+                           "figures would count the earlier runs' updates); give another --runs-dir or move them away")
     root.mkdir(parents=True, exist_ok=True)
     # the minutes end both runs, not the preset's total_updates
     timed = ["train.total_updates=1000000000", *(overrides or [])]
@@ -77,10 +85,11 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
     common = ["--runs-dir", str(root), "--minutes", str(minutes), "--no-tensorboard", *config]
     try:
         runs: dict[str, dict[str, Any]] = {}
-        for name, argv in (("up", ["up", "--run", "up", "--actors", str(actors), "--no-report", "--quiet", *common]),
-                           ("single_process", ["train", "--run", "single", "--quiet", *common])):
+        for name, argv in (("up", ["up", "--run", RUNS["up"], "--actors", str(actors), "--no-report", "--quiet",
+                                   *common]),
+                           ("single_process", ["train", "--run", RUNS["single_process"], "--quiet", *common])):
             wall_s = _cli(argv, root / f"{name}.log")
-            run_dir = root / ("up" if name == "up" else "single")
+            run_dir = root / RUNS[name]
             totals = _learner_totals(run_dir)
             runs[name] = {"wall_s": wall_s, **totals, "updates_per_s": totals["updates"] / wall_s,
                           "env_steps_per_s": totals["transitions"] / wall_s,

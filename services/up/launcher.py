@@ -527,12 +527,16 @@ class Launcher:
 
     def final_model(self) -> Path:
         """What the final evaluation and report play: the mean of the run's last ``--final-average``
-        checkpoints' weights (a DQN's greedy policy swings from one checkpoint to the next, their
+        trained checkpoints' weights (a DQN's greedy policy swings from one checkpoint to the next, their
         mean much less: MODEL_CARD.md), exported as ``<run>/<run>-mean<K>.safetensors`` by ``model
         export``; the run folder itself (its latest checkpoint) when there is one checkpoint only."""
         from shared.learning.checkpoints import CheckpointManager
 
-        last = CheckpointManager(self.paths.checkpoints).checkpoints()[-self.args.final_average:]
+        manager = CheckpointManager(self.paths.checkpoints)
+        # A learner stopped in its warm-up saves its untrained network at update 0 and a resumed run
+        # keeps it among its last K: averaged in, it would pull the final model towards random weights.
+        trained = [p for p in manager.checkpoints() if p != manager.path_for(0)]
+        last = trained[-self.args.final_average:]
         if len(last) < 2:  # none (the report says so) or one
             return self.paths.root
         out = self.paths.root / f"{self.run}-mean{len(last)}.safetensors"

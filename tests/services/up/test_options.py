@@ -59,3 +59,18 @@ def test_up_takes_a_port_in_range() -> None:
     assert parser.parse_args(["up", "--port", "65535"]).port == 65535
     assert parser.parse_args(["up", "--port", "1"]).port == 1
     assert parser.parse_args(["up"]).port is None
+
+
+@pytest.mark.parametrize("existing", ["up", "single"])
+def test_compare_single_process_refuses_a_runs_dir_that_holds_its_runs(existing: str, tmp_path: Path, capsys,
+                                                                      monkeypatch) -> None:
+    # `up --run up` and `train --run single` resumed them: their learner.csv counted the earlier
+    # comparison's updates too, divided by this one's minutes
+    from services.up import compare
+
+    (tmp_path / existing).mkdir()
+    monkeypatch.setattr(compare, "_cli", lambda argv, _log: pytest.fail(f"started `cogexplore {argv[0]}`"))
+    assert main(["bench", "system", "--compare-single-process", "--minutes", "0.01", "--runs-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert f"{tmp_path / existing} already exist(s)" in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [existing]  # nothing started, nothing written

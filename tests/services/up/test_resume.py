@@ -241,6 +241,30 @@ def test_the_final_model_is_the_mean_of_the_last_checkpoints(tmp_path: Path) -> 
     assert refused.value.code == 2
 
 
+def test_the_final_model_leaves_out_the_untrained_checkpoint_of_a_warm_up_stop(tmp_path: Path) -> None:
+    """A learner stopped in its warm-up saves its network at update 0; resumed, the run kept that
+    checkpoint among its last K and the final model was half random weights."""
+    from shared.learning.checkpoints import load_model
+
+    paths = run_at(tmp_path, updates=0, total_updates=30)  # stopped in the warm-up
+    cfg = load_preset(str(paths.config))
+    manager = CheckpointManager(paths.checkpoints, keep=4)
+    for seed, updates in enumerate((20, 30), start=1):  # then resumed and trained to the end
+        core = LearnerCore(cfg.with_overrides({"train.seed": seed}), device="cpu")
+        core.agent.update_count = core.agent.policy_version = updates
+        manager.save(core.agent, config=cfg.to_dict())
+    assert (paths.checkpoints / "ckpt-000000000.safetensors").is_file()
+
+    launcher = Launcher(launcher_args(tmp_path, "--resume"))
+    try:
+        out = launcher.final_model()
+        assert [s["policy_version"] for s in load_model(out).averaged_from] == [20, 30]
+        (paths.checkpoints / "ckpt-000000020.safetensors").unlink()  # one trained checkpoint: the run folder
+        assert launcher.final_model() == paths.root
+    finally:
+        launcher.close()
+
+
 def test_a_run_is_started_by_one_up_and_trained_by_one_learner_at_a_time(tmp_path: Path, capsys) -> None:
     paths = run_at(tmp_path, updates=10, total_updates=20)
     holder = Launcher(launcher_args(tmp_path))  # an `up` of the run, as long as it lives
