@@ -76,8 +76,9 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
     # updates too: a second comparison in one --runs-dir would divide them by this session's time.
     taken = [str(root / run) for run in RUNS.values() if (root / run).exists()]
     if taken:
-        raise CompareError(f"{' and '.join(taken)} already exist(s): both runs must start from nothing (their "
-                           "figures would count the earlier runs' updates); give another --runs-dir or move them away")
+        raise CompareError(f"{' and '.join(taken)} already {'exists' if len(taken) == 1 else 'exist'}: both runs "
+                           "must start from nothing (their figures would count the earlier runs' updates); give "
+                           "another --runs-dir or move them away")
     root.mkdir(parents=True, exist_ok=True)
     # the minutes end both runs, not the preset's total_updates
     timed = ["train.total_updates=1000000000", *(overrides or [])]
