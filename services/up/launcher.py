@@ -147,6 +147,9 @@ class ProgressFigures:
     """Seconds until ``--minutes`` stops the run (None: no time limit)."""
     label_agreement: float | None = None
     """Share of the learner's recent labelled samples whose greedy command is the label (None: no labels)."""
+    replay_size: int | None = None
+    """Transitions in the learner's replay memory (None: not reported); what the warm-up fills, which
+    after a resume without its memory is not the transitions count."""
     safe_agreement: float | None = None
     """Share of the learner's recent safe-set marked samples whose greedy command keeps a way out (None: no marks)."""
 
@@ -156,7 +159,8 @@ def limiter(f: ProgressFigures) -> str:
     if f.transitions_received is None:
         return "starting: waiting for the learner"
     if f.learning_s is None:
-        return f"warm-up: filling replay {min(f.transitions_received, f.warmup_transitions)}/{f.warmup_transitions}"
+        filled = f.transitions_received if f.replay_size is None else f.replay_size
+        return f"warm-up: filling replay {min(filled, f.warmup_transitions)}/{f.warmup_transitions}"
     if f.updates >= f.total_updates:
         return "finishing: final checkpoint"
     if f.actors_alive == 0:
@@ -220,6 +224,7 @@ class Progress:
     label_agreement: float | None = None
     safe_agreement: float | None = None
     transitions_received: int | None = None
+    replay_size: int | None = None
     session_first_updates: int | None = None
     """The updates of this session's first learner report (a resumed run's starting point)."""
     learning_since: tuple[float, int] | None = None
@@ -242,6 +247,7 @@ class Progress:
                 self.learning_since = (now, stats.updates)
             self.updates = max(self.updates, stats.updates)
             self.transitions_received = stats.transitions_received
+            self.replay_size = stats.replay_size
             self.loss = stats.loss if stats.loss is not None else self.loss
             self.label_agreement = stats.extra.get("label_agreement", self.label_agreement)
             self.safe_agreement = stats.extra.get("safe_agreement", self.safe_agreement)
@@ -271,7 +277,8 @@ class Progress:
             held_time = sum(d for _, d in recent)
             return ProgressFigures(
                 updates=self.updates, total_updates=self.total_updates,
-                transitions_received=self.transitions_received, warmup_transitions=self.warmup_transitions,
+                transitions_received=self.transitions_received, replay_size=self.replay_size,
+                warmup_transitions=self.warmup_transitions,
                 learning_s=None if since is None else now - since[0],
                 learning_updates=0 if since is None else self.updates - since[1],
                 learning_goal=0 if since is None else self.total_updates - since[1],

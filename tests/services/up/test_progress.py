@@ -43,6 +43,9 @@ def test_each_limiter_has_its_label() -> None:
     assert limiter(figures(transitions_received=None, learning_s=None)) == "starting: waiting for the learner"
     assert limiter(figures(transitions_received=400, learning_s=None)) == "warm-up: filling replay 400/1000"
     assert limiter(figures(transitions_received=1200, learning_s=None)) == "warm-up: filling replay 1000/1000"
+    # a resume without its replay memory warms up again: the memory fills, the count is long past
+    assert limiter(figures(transitions_received=52000, replay_size=300, learning_s=None)) == (
+        "warm-up: filling replay 300/1000")
     assert limiter(figures(waiting_share=0.02)) == "learner-bound: actors held by flow control 80% of the time"
     assert limiter(figures(waiting_share=0.02, held_share=None)) == "learner-bound: the learner never waits for data"
     assert limiter(figures(waiting_share=0.02, held_share=0.05)) == ("balanced: the learner never waits, the actors "
