@@ -22,7 +22,7 @@ from shared.config import SensorConfig
 from shared.errors import CogexploreError
 from shared.files import save_png
 from shared.sim.robot import FLOOR_GEOM
-from shared.sim.sensor import column_angles
+from shared.sim.sensor import intrinsics
 
 
 class Mappable(Protocol):
@@ -478,8 +478,13 @@ class CoverageTracker:
         """Mark the free cells seen from pose (x, y, yaw) in a depth image; returns the
         newly seen area in m^2.
 
-        Each column's ray runs to depth / cos(column angle) on the horizon row, or to the
-        sensor's maximum range where the pixel is 0 (no return)."""
+        A cell is seen when its centre projects into an image column (the camera's pinhole
+        model) and lies nearer along the optical axis than that column's depth on the horizon
+        row, or than the sensor's maximum range where the pixel is 0 (no return; with a
+        ``min_range_m``, only where the column sees the floor). Testing cell
+        centres against the pixel that covers them, rather than marching one ray per column,
+        counts the whole field of view at any image width: 40 rays leave most cells beyond
+        ~2 m between them, and a ray grazing a cell's corner would count the whole cell."""
         cfg = sensor_cfg or self.sensor_cfg
         depth = np.asarray(depth_m, dtype=np.float64)
         if depth.shape != (cfg.height, cfg.width):
@@ -490,26 +495,36 @@ class CoverageTracker:
         rows = depth[[h // 2 - 1, h // 2]] if h % 2 == 0 else depth[[h // 2]]
         rows = np.where(rows > 0, rows, np.inf)
         horizon = rows.min(axis=0)
-        horizon = np.where(np.isfinite(horizon), horizon, 0.0)
-        angles = column_angles(cfg)
-        # Depth is along the optical axis; a 0 pixel means "beyond max range" on that axis.
-        ranges = np.where(horizon > 0, np.minimum(horizon, cfg.max_range_m), cfg.max_range_m) / np.cos(angles)
-        step = self.grid.resolution_m / 2
-        n = int(math.ceil(float(ranges.max()) / step)) + 1
-        t = np.arange(n) * step  # distances along each ray
+        # Depth is along the optical axis, and so is the range gate: a 0 pixel means "beyond
+        # max range" on that axis, or, with a min_range_m, an obstacle nearer than that, which
+        # hides the floor below it too: only a column with some return below the horizon is open.
+        beyond = np.full(cfg.width, True) if cfg.min_range_m <= 0 else (depth[(h + 1) // 2:] > 0).any(axis=0)
+        reach = np.where(np.isfinite(horizon), np.minimum(horizon, cfg.max_range_m),
+                         np.where(beyond, cfg.max_range_m, 0.0))
+        fx, _, cx_px, _ = intrinsics(cfg)
         ox = x + cfg.mount_forward_m * math.cos(yaw)
         oy = y + cfg.mount_forward_m * math.sin(yaw)
-        heading = yaw + angles
-        # Stop just short of the hit so the obstacle's own fringe cell is not called seen-free.
-        valid = t[None, :] < (ranges[:, None] - step / 2)
-        px = ox + np.cos(heading)[:, None] * t[None, :]
-        py = oy + np.sin(heading)[:, None] * t[None, :]
-        ix, iy = self.grid.world_to_cell(px[valid], py[valid])
-        keep = self.grid.contains(ix, iy)
-        ix, iy = ix[keep], iy[keep]
-        keep = self._free[iy, ix]
+        fwd, left = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+        # The view is the triangle from the camera to the two far corners of the image at max range.
+        half = cfg.max_range_m * math.tan(math.radians(cfg.hfov_deg) / 2)
+        far = np.array([ox, oy]) + cfg.max_range_m * fwd
+        corners = np.stack([[ox, oy], far + half * left, far - half * left])
+        window = _cell_window(self.grid, corners.min(axis=0), corners.max(axis=0))
+        if window is None:
+            return 0.0
+        sy, sx = window
+        ix, iy = np.meshgrid(np.arange(sx.start, sx.stop), np.arange(sy.start, sy.stop))
+        px, py = self.grid.cell_to_world(ix, iy)
+        axial = (px - ox) * fwd[0] + (py - oy) * fwd[1]
+        lateral = (px - ox) * left[0] + (py - oy) * left[1]
+        ahead = axial > 0
+        # Column whose pixel the centre projects into (column 0 is the left edge: +lateral).
+        u = np.where(ahead, cx_px - fx * lateral / np.where(ahead, axial, 1.0), -1.0)
+        col = np.floor(np.clip(u, -1.0, cfg.width)).astype(np.int64)  # centres a hair ahead: no overflow
+        in_view = ahead & (col >= 0) & (col < cfg.width)
+        seen = in_view & (axial < reach[np.clip(col, 0, cfg.width - 1)]) & self._free[sy, sx]
         before = np.count_nonzero(self._seen)
-        self._seen[iy[keep], ix[keep]] = True
+        self._seen[sy, sx] |= seen
         return float(np.count_nonzero(self._seen) - before) * self.grid.cell_area_m2
 
 
