@@ -101,6 +101,18 @@ def recording_path(recordings: Path, policy_version: int) -> Path:
     return recordings / f"eval-{policy_version:06d}.rrd"
 
 
+def append_row(path: Path, row: dict[str, Any]) -> None:
+    """Append ``row`` to a JSON-lines file as one line. A last line that a killed evaluator or a
+    full disk cut short is ended first: glued to it, this row would be unreadable too."""
+    line = (json.dumps(row) + "\n").encode()
+    with open(path, "a+b") as f:  # appends go to the end whatever the position read from
+        if f.seek(0, os.SEEK_END) > 0:
+            f.seek(-1, os.SEEK_END)
+            if f.read(1) != b"\n":
+                line = b"\n" + line
+        f.write(line)
+
+
 class EvaluatorService:
     """Evaluates the newest weights of one run; ``run(stop)`` is the process's main loop."""
 
@@ -196,8 +208,7 @@ class EvaluatorService:
                "streamed_to": live,
                "rejected_weights": self.rejects.counts}
         stats.mkdir(parents=True, exist_ok=True)
-        with open(stats / EVAL_LOG, "a") as f:
-            f.write(json.dumps(row) + "\n")
+        append_row(stats / EVAL_LOG, row)
         self.board.write(Path(EVAL_LOG).stem, {"duration_s": row["duration_s"], **row["summary"]}, version)
         self.evaluations.append(row)
         if session is not None:

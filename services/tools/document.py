@@ -108,6 +108,17 @@ def markdown(blocks: Sequence[Block]) -> str:
 # -- HTML -------------------------------------------------------------------------------------
 
 
+def _safe_target(target: str) -> bool:
+    """Whether a link or image may point at ``target``: a relative path or a web address. Names and
+    file names reach the text as they are; one holding ``[x](javascript:...)`` must not become a link
+    that runs script when the page, opened in a browser, is clicked (browsers drop control characters
+    and blanks around a scheme, so a target with any is refused too)."""
+    if any(ord(ch) < 0x20 or ord(ch) == 0x7F for ch in target):
+        return False
+    scheme = re.match(r"([A-Za-z][A-Za-z0-9+.-]*):", target)
+    return scheme is None or scheme[1].lower() in ("http", "https")
+
+
 def inline_html(text: str, image_src: Callable[[str], str] = lambda src: src) -> str:
     """``text`` (the Markdown subset) as HTML; ``image_src`` maps an image's path to its ``src``."""
     out, pos = [], 0
@@ -116,6 +127,8 @@ def inline_html(text: str, image_src: Callable[[str], str] = lambda src: src) ->
         pos = m.end()
         if m["code"] is not None:
             out.append(f"<code>{html.escape(m['code'])}</code>")
+        elif (m["src"] or m["href"]) is not None and not _safe_target(m["src"] or m["href"]):
+            out.append(html.escape(m[0]))  # shown as written, not followed
         elif m["bold"] is not None:
             out.append(f"<strong>{inline_html(m['bold'], image_src)}</strong>")
         elif m["src"] is not None:

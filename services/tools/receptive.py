@@ -189,8 +189,8 @@ def render_receptive_png(depth_m: np.ndarray, mask: np.ndarray, q_values: np.nda
     ax.imshow(overlay, interpolation="nearest")
     ax.set_xticks([])
     ax.set_yticks([])
-    if title:
-        ax.set_title(title, fontsize=10)
+    if title:  # names of scenes and models, not TeX: a "$" in a file name is a dollar sign
+        ax.set_title(title, fontsize=10, parse_math=False)
 
     arrow_ax = fig.add_axes((0.40, 0.12, 0.20, 0.14))
     arrow_ax.set_xlim(-1.1, 1.1)

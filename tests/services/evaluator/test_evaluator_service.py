@@ -219,3 +219,22 @@ def test_weights_numbered_below_the_last_evaluated_are_due_a_forged_version_hold
     service.last_version = (1, 25)
     assert not service.due(to_message(net, 27, learner_epoch=1)) and service.due(to_message(net, 30, learner_epoch=1))
     assert not service.due(to_message(net, 25, learner_epoch=1))  # the same version again: not twice
+
+
+def test_a_row_cut_short_before_costs_only_itself_not_the_next_evaluation(tmp_path: Path) -> None:
+    # An evaluator killed mid-write (or a full disk) leaves a last line without its newline; the next
+    # evaluation's row was glued to it, and the report skipped both as one damaged line.
+    from services.tools.report import load_eval_log
+
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    service = EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", every_updates=10,
+                               episodes_per_start=1, max_steps=3, record=False)
+    log = tmp_path / "svc" / "stats" / "eval.jsonl"
+    log.parent.mkdir(parents=True)
+    log.write_text('{"policy_version": 3, "summ')
+    service.evaluate(to_message(small_net(), 5))
+    service.evaluate(to_message(small_net(), 15))
+    lines = log.read_text().splitlines()
+    assert lines[0] == '{"policy_version": 3, "summ' and log.read_text().endswith("\n")
+    assert [json.loads(line)["policy_version"] for line in lines[1:]] == [5, 15]
+    assert [r["policy_version"] for r in load_eval_log(log)] == [5, 15]

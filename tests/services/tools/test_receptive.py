@@ -191,3 +191,13 @@ def test_render_png(tmp_path) -> None:
     assert ((rgb[..., 0] - rgb[..., 1] > 0.2) & (rgb[..., 2] - rgb[..., 1] > 0.3)).any()
     with pytest.raises(ReceptiveFieldError, match="same"):
         render_receptive_png(depth, mask[:10], None, 0, tmp_path / "bad.png")
+
+
+def test_render_takes_a_title_with_dollar_signs_as_text(tmp_path) -> None:
+    # The report titles each figure "<scene> / <model>", both names of files: a probe named
+    # "a$^$b.png" was parsed as TeX and its ValueError ended the whole report.
+    depth = np.full((30, 40), 2.0, dtype=np.float32)
+    for i, title in enumerate(("user:a$^$b / run@10", "user:cost$5 and $6 / m$\\alpha$")):
+        out = render_receptive_png(depth, np.zeros(depth.shape, bool), np.zeros(5), 2, tmp_path / f"{i}.png",
+                                   title=title)
+        assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -303,6 +303,23 @@ def test_html_page_links_images_too_big_to_inline(tmp_path: Path) -> None:
                             "| `x\\|y` | **2.0** |\n"  # a cell's | escaped, as GFM reads it
 
 
+def test_a_name_holding_a_script_link_stays_text_in_the_html(tmp_path: Path) -> None:
+    # A probe file (its path is a scene's description) or a model file (its stem names heatmap links)
+    # named "[open](javascript:...)" became a link that ran script when the opened report was clicked.
+    doc = [Table(("Scene", "What it shows"), (False, False),
+                 (("user:x", "user image p/[open](javascript:alert%28document.domain%29).png"),)),
+           Paragraph("[m](JaVaScRiPt:alert%281%29) · [n](\x01javascript:x) · ![i](data:text/html,x) · "
+                     "[ok](heatmap-x.png) · [web](https://example.org/a_b)"),
+           Heading(2, "<script>alert(1)</script> & \"quotes\"")]
+    page = PageParts()
+    text = html_page(doc, "<b>t</b>", tmp_path)
+    page.feed(text)
+    assert page.links == ["heatmap-x.png", "https://example.org/a_b"] and page.images == []
+    assert page.tables[0][1] == ["user:x", "user image p/[open](javascript:alert%28document.domain%29).png"]
+    assert "<script>" not in text and "<b>t</b>" not in text
+    assert page.headings == ['<script>alert(1)</script> & "quotes"']
+
+
 def test_a_pipe_in_a_model_name_stays_in_its_cell() -> None:
     # A run or file named a|b shifted every cell after it: start 1's value under "2", the true "All" dropped.
     from shared.evaluation.results import EpisodeResult, EvalResults, table_markdown
