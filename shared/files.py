@@ -50,6 +50,25 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
     return write_atomically(path, lambda tmp: tmp.write_text(text))
 
 
+def ends_torn(path: str | Path) -> bool:
+    """Whether ``path`` holds a last line without its newline (a writer killed mid-line, a full disk):
+    a line appended to it would be glued on, and read as one damaged line with it."""
+    with open(path, "rb") as fh:
+        if fh.seek(0, os.SEEK_END) == 0:
+            return False
+        fh.seek(-1, os.SEEK_END)
+        return fh.read(1) != b"\n"
+
+
+def append_line(path: str | Path, line: str) -> None:
+    """Append ``line`` and a newline to a line-per-record file (made when missing), in one write,
+    after ending a torn last line (:func:`ends_torn`) so only that line is lost."""
+    path = Path(path)
+    torn = path.exists() and ends_torn(path)
+    with open(path, "ab") as fh:
+        fh.write((("\n" if torn else "") + line + "\n").encode())
+
+
 def save_png(figure: Any, out_path: str | Path, dpi: int) -> Path:
     """A matplotlib ``figure`` as a PNG at ``out_path`` (its folder made), written whole or not at
     all: a report or map being rewritten keeps its old figure when the disk fills."""

@@ -77,6 +77,7 @@ from shared.evaluation import (
 from shared.evaluation.policies import GreedyPolicy
 from shared.evaluation.protocol import EvaluationCancelled
 from shared.evaluation.results import EvalResults, save_results
+from shared.files import append_line
 from shared.learning.checkpoints import weights_sha256
 from shared.learning.model import (
     QNetwork,
@@ -99,18 +100,6 @@ EVAL_LOG = "eval.jsonl"
 def recording_path(recordings: Path, policy_version: int) -> Path:
     """``recordings/eval-<version:06d>.rrd``."""
     return recordings / f"eval-{policy_version:06d}.rrd"
-
-
-def append_row(path: Path, row: dict[str, Any]) -> None:
-    """Append ``row`` to a JSON-lines file as one line. A last line that a killed evaluator or a
-    full disk cut short is ended first: glued to it, this row would be unreadable too."""
-    line = (json.dumps(row) + "\n").encode()
-    with open(path, "a+b") as f:  # appends go to the end whatever the position read from
-        if f.seek(0, os.SEEK_END) > 0:
-            f.seek(-1, os.SEEK_END)
-            if f.read(1) != b"\n":
-                line = b"\n" + line
-        f.write(line)
 
 
 class EvaluatorService:
@@ -208,7 +197,7 @@ class EvaluatorService:
                "streamed_to": live,
                "rejected_weights": self.rejects.counts}
         stats.mkdir(parents=True, exist_ok=True)
-        append_row(stats / EVAL_LOG, row)
+        append_line(stats / EVAL_LOG, json.dumps(row))  # a row a killed evaluator cut short costs only itself
         self.board.write(Path(EVAL_LOG).stem, {"duration_s": row["duration_s"], **row["summary"]}, version)
         self.evaluations.append(row)
         if session is not None:

@@ -47,6 +47,7 @@ from shared.evaluation import (
     TEST_SEED,
     ProtocolConfig,
 )
+from shared.files import append_line
 from shared.jsontext import parse_json
 
 log = logging.getLogger("cogexplore.select")
@@ -368,8 +369,7 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
                 score = dataclasses.replace(
                     score, validation=sum(per_world[w] for w in o.validation_worlds) / len(o.validation_worlds))
             cache_path.parent.mkdir(parents=True, exist_ok=True)
-            with cache_path.open("a") as f:
-                f.write(json.dumps({"protocol": key, "score": score.to_json()}) + "\n")
+            append_line(cache_path, json.dumps({"protocol": key, "score": score.to_json()}))
         scores.append(score)
         val = "" if score.validation is None else f", validation {score.validation:.1f}"
         worst = "" if score.gate_worst_start is None else f" (worst start {score.gate_worst_start:.1f})"

@@ -21,7 +21,7 @@ from numbers import Real
 from pathlib import Path
 from typing import Any, ClassVar, Generic, TypeVar
 
-from shared.files import atomic_write_text
+from shared.files import atomic_write_text, ends_torn
 
 log = logging.getLogger("cogexplore.stats")
 
@@ -235,12 +235,6 @@ def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
     return len(rows) - len(keep)
 
 
-def _ends_in_newline(path: Path) -> bool:
-    with open(path, "rb") as fh:
-        fh.seek(-1, 2)
-        return fh.read(1) == b"\n"
-
-
 class CsvLog(Generic[RowT]):
     """Appends rows of one record type to ``<stats dir>/<its FILE>``, the header first when the file
     is new; every row is flushed, so a crash loses at most the row being written."""
@@ -251,7 +245,7 @@ class CsvLog(Generic[RowT]):
         new = not self.path.exists()
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "a", newline="")
-        if not new and self.path.stat().st_size and not _ends_in_newline(self.path):
+        if not new and ends_torn(self.path):
             self._file.write("\r\n")  # a killed writer's torn last line: the next row starts its own
         self._writer = csv.writer(self._file)
         if new:
