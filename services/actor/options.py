@@ -5,8 +5,9 @@ from __future__ import annotations
 import argparse
 import os
 
-from services.options import add_service_arguments, count_argument
+from services.options import add_service_arguments, count_argument, whole_number_argument
 from services.viz import ENV_RERUN_URL
+from shared.wire.messages import MAX_BATCH_STEPS
 
 ENV_RERUN_EVERY_EPISODES = "COGEXPLORE_RERUN_EVERY_EPISODES"
 DEFAULT_RERUN_EVERY_EPISODES = 20
@@ -30,7 +31,8 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
                              "a per-actor schedule spreads over N, and with --actor-index each actor builds 1/N of "
                              "the extra worlds (env COGEXPLORE_NUM_ACTORS, which docker-compose.yml passes on: set "
                              "it to the --scale of actor; default 1)")
-    parser.add_argument("--batch-steps", type=count_argument, default=16, help="transitions per published batch")
+    parser.add_argument("--batch-steps", type=whole_number_argument(1, MAX_BATCH_STEPS), default=16,
+                        help=f"transitions per published batch, at most {MAX_BATCH_STEPS} (the wire's limit; default 16)")
     parser.add_argument("--max-steps", type=count_argument, default=None, help="stop after this many env steps")
     parser.add_argument("--nice", type=int, default=DEFAULT_NICENESS, metavar="N",
                         help=f"lower this process's CPU priority by N, 0-19 (default {DEFAULT_NICENESS}): where it "

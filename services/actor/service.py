@@ -109,7 +109,7 @@ class FlowGate:
         self._received_from_me = 0
         self._sent = 0
         self._sends: collections.deque = collections.deque()  # (time, total sent after it)
-        self._settled = 0  # total sent as of horizon_s ago: arrived or lost by now
+        self._lost = 0  # sent, and never to be counted by the learner (not counted within horizon_s)
         self.ignored = 0
         """Flow-control messages of another learner process than the one followed, or from the future."""
         self.changed = threading.Event()
@@ -127,24 +127,27 @@ class FlowGate:
                 self.ignored += 1
                 return
             if verdict == LearnerEpochs.NEW and not first:  # another learner process counts afresh
-                self._sent = self._settled = 0
+                self._sent = self._lost = 0
                 self._sends.clear()
                 self._received_from_me = 0
             mine = message.actor_epochs.get(self.actor_id) == self.actor_epoch
             received = message.received_from.get(self.actor_id, 0) if mine else 0
             if received < self._received_from_me:  # the count went back: the learner lost track
-                self._sent = self._settled = received
+                self._sent, self._lost = received, 0
                 self._sends.clear()
             self._credit = message.credit
             self._received_from_me = received
         self.changed.set()
 
     def reset(self) -> None:
-        """Forget the credit and the accounting (a learner came back: wait for its word)."""
+        """Forget the credit (a learner came back: wait for its word), and take what was sent before as
+        arrived or lost. Only that: the same learner process (back after a router restart)
+        goes on with its count of this actor's transitions, so what is sent from now on counts as in
+        flight against it; another learner's first word starts the accounting afresh (``on_flow``)."""
         with self._lock:
-            self._credit, self._received_from_me, self._sent, self._settled = None, 0, 0, 0
-            self._waiting_since = None
+            self._credit, self._waiting_since = None, None
             self._sends.clear()
+            self._sends.append((float("-inf"), self._sent))  # settled at the next open()
 
     def sent(self, transitions: int, now: float | None = None) -> None:
         with self._lock:
@@ -155,12 +158,17 @@ class FlowGate:
         now = time.monotonic() if now is None else now
         with self._lock:
             while self._sends and now - self._sends[0][0] > self.horizon_s:
-                self._settled = self._sends.popleft()[1]
+                # all sent up to then has arrived (in order) or never will: the learner's shortfall is lost.
+                # (Its count compared with a total of horizon_s ago instead held that loss against the
+                # actor for as long as it sent more than the loss in horizon_s.)
+                self._lost = max(self._lost, self._sends.popleft()[1] - self._received_from_me)
+            # nor can more be lost than the learner has not counted (one it counted late, after a stall, was not)
+            self._lost = min(self._lost, max(0, self._sent - self._received_from_me))
             if self._credit is None:
                 self._waiting_since = now if self._waiting_since is None else self._waiting_since
                 return now - self._waiting_since > self.horizon_s
             self._waiting_since = None
-            in_flight = max(0, self._sent - max(self._received_from_me, self._settled))
+            in_flight = max(0, self._sent - self._received_from_me - self._lost)
             return self._credit - in_flight > 0
 
 

@@ -26,7 +26,7 @@ actor within ONE episode (a batch never spans two episodes), every frame sent on
     terminated        the LAST transition ended in a collision (no bootstrap)
     truncated         the LAST transition hit the step cap (bootstrap from next_depth_mm)
 
-Only the last transition can end an episode, so the episode-end flags are per batch. The
+Only the last transition can end an episode, so the episode-end flags are per batch (never both). The
 actor sends a batch when it holds ``MAX_BATCH_STEPS`` (or fewer, its choice) transitions or
 when the episode ends. A mid-episode batch carries ``next_depth_mm`` and the next batch
 starts with the same frame: one duplicate frame per batch, in exchange for batches that can
@@ -385,7 +385,7 @@ def _from_body(obj: dict[str, Any]) -> Message:
                                          f"known: {sorted(_REGISTRY)}")
     specs = {f.name: f for f in fields(cls)}  # type: ignore[arg-type]
     body = {k: v for k, v in obj.items() if k not in ("schema", "type")}
-    unknown = sorted(set(body) - set(specs))
+    unknown = sorted(set(body) - set(specs), key=repr)  # names may be str and bytes: not comparable
     if unknown:
         raise MessageError(UNKNOWN_FIELD, f"{cls.TYPE}: unknown field(s) {unknown}")
     missing = sorted(set(specs) - set(body))
@@ -484,6 +484,8 @@ class TransitionBatch(Message):
             raise MessageError(SHAPE, f"depth_mm has an empty axis: {depth.shape}")
         if self.next_depth_mm is not None:
             _array(self.next_depth_mm, "next_depth_mm", "uint16", (h, w))
+        if self.terminated and self.truncated:  # no receiver can store it: the batcher never sends both
+            raise MessageError(INCONSISTENT, "the last transition cannot be both terminated (collision) and truncated")
         if (self.next_depth_mm is None) != self.terminated:
             raise MessageError(INCONSISTENT, "next_depth_mm must be present exactly when the last "
                                              f"transition is not terminal (terminated={self.terminated})")

@@ -1,12 +1,14 @@
 """The actor's pure parts: batching transitions for the wire and the learner's flow control."""
 
 import numpy as np
+import pytest
 
 from services.actor.batcher import TransitionBatcher
 from services.actor.service import FlowGate
+from services.cli import build_parser
 from shared.config import MAX_ACTION_HISTORY, load_preset
 from shared.learning.learner import LearnerCore
-from shared.wire.messages import FlowControl, TransitionBatch
+from shared.wire.messages import MAX_BATCH_STEPS, FlowControl, TransitionBatch
 
 
 def _frame(value: float) -> np.ndarray:
@@ -114,3 +116,56 @@ def test_a_restarted_actor_does_not_inherit_its_predecessors_count():
     gate.on_flow(_flow(credit=20, received_from_a=500, actor_epoch=8))  # the predecessor's 500
     gate.sent(32)
     assert not gate.open(), "32 of its own are in flight: more than the 20 wanted"
+
+
+def test_batch_steps_beyond_the_wire_limit_is_an_option_error() -> None:
+    # before, --batch-steps 65 passed the parser and raised a traceback only once the actor had built its
+    # world and network, opened its session and joined the run
+    parser = build_parser()
+    assert parser.parse_args(["actor", "--batch-steps", str(MAX_BATCH_STEPS)]).batch_steps == MAX_BATCH_STEPS
+    with pytest.raises(SystemExit) as info:
+        parser.parse_args(["actor", "--batch-steps", str(MAX_BATCH_STEPS + 1)])
+    assert info.value.code == 2
+
+
+def test_the_same_learner_heard_again_after_a_pause_keeps_counting_what_is_in_flight():
+    # a router restart: liveliness goes and comes back, the learner process and its count stay. Before, the
+    # gate's reset zeroed what this actor had sent while the learner's count went on from 5000, so nothing
+    # counted as in flight (and the credit was overshot) until the actor had sent 5000 more
+    gate = FlowGate("a", horizon_s=10.0)
+    gate.on_flow(_flow(credit=10, received_from_a=0))
+    gate.sent(5032, now=0.0)
+    gate.on_flow(_flow(credit=10, received_from_a=5000))
+    gate.reset()  # the 32 sent as the router went down are lost: they hold nothing after the reset either
+    assert not gate.open(now=1.0), "after a reset the gate waits for the learner's word"
+    gate.on_flow(_flow(credit=10, received_from_a=5000))
+    assert gate.open(now=1.0)
+    gate.sent(16, now=1.0)
+    assert not gate.open(now=1.0), "16 in flight > the 10 wanted"
+    gate.on_flow(_flow(credit=10, received_from_a=5016))
+    assert gate.open(now=1.5)
+
+
+def test_transitions_lost_once_are_not_held_against_the_actor_afterwards():
+    gate = FlowGate("a", horizon_s=10.0)
+    gate.on_flow(_flow(credit=10, received_from_a=0))
+    gate.sent(32, now=100.0)  # never counted: lost
+    assert gate.open(now=111.0)
+    gate.sent(16, now=111.0)
+    gate.on_flow(_flow(credit=10, received_from_a=16))  # the 16 arrived: nothing is in flight
+    # before, the learner's 16 were compared with the 32 settled: 16 in flight, held, and the loss counted
+    # against the actor for as long as it sent more than 32 transitions in 10 s
+    assert gate.open(now=111.5)
+    gate.sent(16, now=112.0)
+    assert not gate.open(now=112.0), "16 really in flight > the 10 wanted"
+
+
+def test_a_batch_the_learner_counts_after_the_horizon_was_not_lost_after_all():
+    gate = FlowGate("a", horizon_s=10.0)
+    gate.on_flow(_flow(credit=10, received_from_a=0))
+    gate.sent(32, now=100.0)
+    assert gate.open(now=111.0)  # taken as lost: the learner stalled
+    gate.on_flow(_flow(credit=10, received_from_a=32))  # ... and counts them now
+    assert gate.open(now=111.5)
+    gate.sent(16, now=112.0)
+    assert not gate.open(now=112.0), "16 in flight > the 10 wanted, whatever was taken as lost before"

@@ -342,10 +342,20 @@ def test_fields_are_checked() -> None:
     assert cause_of(rewrite(good, lambda o: o.update(terminated=True))) == m.INCONSISTENT
     terminal = make_batch(terminated=True).encode()
     assert cause_of(rewrite(terminal, lambda o: o.update(terminated=False))) == m.INCONSISTENT
+    # both episode-end flags: the learner stored all but the last transition, then failed on that one
+    assert cause_of(rewrite(terminal, lambda o: o.update(truncated=True))) == m.INCONSISTENT
     stats = make_episode_stats().encode()
     assert cause_of(rewrite(stats, lambda o: o.update(collision_cause=None)), EpisodeStats) == m.INCONSISTENT
     ev = make_eval().encode()
     assert cause_of(rewrite(ev, lambda o: o.update(collided=[True])), EvalResult) == m.INCONSISTENT
+
+
+def test_unknown_fields_named_by_bytes_and_text_are_rejected_not_raised() -> None:
+    # msgpack map keys may be str or bytes; sorting both for the error raised TypeError, which crashed
+    # a caller that catches MessageError (an actor reading the answers on the run's config queryable)
+    for cls, good in ((TransitionBatch, make_batch().encode()),
+                      (RunConfigMessage, RunConfigMessage(learner_id="l", config=load_preset("smoke")).encode())):
+        assert cause_of(rewrite(good, lambda o: o.update({"mood": 1, b"mood": 2})), cls) == m.UNKNOWN_FIELD
 
 
 def test_oversize_is_rejected() -> None:
