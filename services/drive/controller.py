@@ -8,6 +8,7 @@ The safety rules, in the order they are checked:
    that reads NaN, 0 or its maximum everywhere) is refused, counted by cause, and stops the robot.
 2. An image whose nearest valid depth is below the collision distance stops the robot (the task's
    collision rule, ``EnvConfig.collision_distance_m``: the policy was never taught to act there).
+   A -Inf pixel, REP 117's return too near to measure, is nearer than any.
 3. Otherwise the policy chooses a command from the image, at most one per control period (in lock
    step, one per image): a command always comes from the image that just arrived, never a stale one.
    A policy that fails on it (a runtime error of torch or onnxruntime) stops the robot, as a refused
@@ -117,7 +118,10 @@ class Decision:
 
 
 def nearest_valid_depth(depth_m: np.ndarray, max_range_m: float = np.inf) -> float | None:
-    """The smallest depth above 0 and within ``max_range_m`` (None when the image has no such return)."""
+    """The smallest depth above 0 and within ``max_range_m`` (None when the image has no such return);
+    0.0 when a pixel is -Inf, a return too near to measure (REP 117)."""
+    if np.isneginf(depth_m).any():
+        return 0.0
     valid = depth_m[np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= max_range_m)]
     return float(valid.min()) if valid.size else None
 
@@ -221,7 +225,10 @@ class DriveController:
             raise Ros2MessageError(TOO_SMALL, f"{image.width} x {image.height} image; the network sees "
                                               f"{sensor.width} x {sensor.height}")
         depth = image.depth_m
-        self.policy.observation(depth)  # the checks of the policy's camera, before any decision
+        # the checks of the policy's camera, before any decision; -Inf is too near (REP 117), not
+        # a negative depth: the nearest-depth rule stops on it, the camera need not refuse it
+        too_near = np.isneginf(depth)
+        self.policy.observation(np.where(too_near, np.float32(np.nan), depth) if too_near.any() else depth)
         self.last_depth_m = depth
         return depth
 

@@ -16,8 +16,9 @@ A collision (the task's rule: the body touches, or the nearest depth falls below
 distance) ends the episode: the robot holds still and says so until a put on
 ``cogexplore/@robot/<robot>/reset`` puts it back at its start pose.
 
-A pixel without a return is 0 in ``16UC1`` and NaN in ``32FC1``, as REP 117 asks of depth drivers
-(0.0 m there reads as an obstacle at the lens to a consumer that follows it).
+A pixel without a return is 0 in ``16UC1`` (REP 118) and +Inf in ``32FC1``, REP 117's "no object
+within the sensor's range" (0.0 m there reads as an obstacle at the lens to a consumer that follows
+the REP, NaN as an erroneous measurement, which clears no free space).
 """
 
 from __future__ import annotations
@@ -56,12 +57,15 @@ log = logging.getLogger("cogexplore.sim_robot")
 NODE_NAME = "cogexplore_sim_robot"
 
 
-def ros_depth(depth_m: np.ndarray, encoding: str) -> np.ndarray:
+def ros_depth(depth_m: np.ndarray, encoding: str, min_range_m: float = 0.0) -> np.ndarray:
     """The env's depth image (0 = no return) as a ROS depth driver sends it in ``encoding``: in
-    ``32FC1`` a pixel without a measurement is NaN (REP 117); ``16UC1`` keeps 0."""
+    ``32FC1`` a pixel without a return is +Inf, nothing within range (REP 117); ``16UC1`` keeps 0.
+    A camera with a ``min_range_m`` also reads 0 for what is too near, REP 117's -Inf: its
+    image cannot tell the two apart, so there a pixel without a return is NaN (unknown)."""
     if encoding != "32FC1":
         return depth_m
-    return np.where(depth_m > 0, depth_m, np.float32(np.nan)).astype(np.float32)
+    hole = np.float32(np.inf if min_range_m <= 0 else np.nan)
+    return np.where(depth_m > 0, depth_m, hole).astype(np.float32)
 
 
 class SimRobot:
@@ -138,7 +142,8 @@ class SimRobot:
         x, y, yaw = self.env.robot.pose()
         linear, angular = self.twist if self.collision_cause is None else (0.0, 0.0)
         encoding = self.args.encoding
-        self.image_pub.put(encode_depth_image(ros_depth(self.env.render(), encoding), encoding=encoding, stamp_ns=stamp))
+        depth = ros_depth(self.env.render(), encoding, self.env.sensor_config.min_range_m)
+        self.image_pub.put(encode_depth_image(depth, encoding=encoding, stamp_ns=stamp))
         self.odom_pub.put(encode_odometry(x, y, yaw, linear, angular, stamp_ns=stamp))
         self.status_pub.put(SimRobotStatus(
             robot=self.args.robot, world=self.env.world.name, episode=self.episode, step=self.step, x=x, y=y,

@@ -13,8 +13,9 @@ Decoding never trusts the sender: every problem raises :class:`Ros2MessageError`
 ``cause`` (one of :data:`CAUSES`) is what a receiver counts its rejects by.
 
 Depth image conventions (REP 118): ``16UC1`` (and its alias ``mono16``) is uint16 millimetres
-with 0 = no return; ``32FC1`` is float32 metres, where NaN and infinities mean no return. Both
-come out as float32 metres; what counts as a usable pixel is the receiver's decision.
+with 0 = no return; ``32FC1`` is float32 metres with REP 117's special values: NaN an invalid
+measurement, +Inf nothing within range, -Inf a return too near to measure. Both come out as
+float32 metres; what counts as a usable pixel is the receiver's decision.
 """
 
 from __future__ import annotations

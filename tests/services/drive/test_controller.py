@@ -111,6 +111,20 @@ def test_an_obstacle_nearer_than_the_collision_distance_stops_the_robot_at_once(
     assert decision.nearest_depth_m == pytest.approx(0.5)
 
 
+def test_minus_inf_is_an_obstacle_too_near_to_measure_not_a_bad_image(policy, start_image):
+    # REP 117 (and REP 118 for depth images): -Inf is a detection too close to quantify. It was
+    # refused as a "negative depth" (bad_depth), a camera fault in the diagnostics, not an obstacle.
+    drive, clock = controller(policy)
+    assert drive.on_image(image(start_image), clock.t).command is not None
+    near = start_image.copy()
+    near[10:14, 18:22] = -np.inf
+    decision = drive.on_image(image(near), clock.t + 0.05)
+    assert decision.is_stop and decision.stop_reason == "too_close" and decision.reject_cause is None
+    assert decision.nearest_depth_m == 0.0 and drive.rejects == {}
+    clock.t += 0.4  # a valid image: the watchdog does not fire on top of the stop
+    assert drive.on_tick(clock.t) is None
+
+
 @pytest.mark.parametrize("name, payload, cause", [
     ("garbage", b"\x00\x01\x00\x00 this is not an image", "garbage"),
     ("empty", b"", "garbage"),
@@ -130,7 +144,7 @@ def test_a_bad_image_stops_the_robot_and_is_counted(policy, start_image, name, p
     if payload is None:
         full = start_image.shape
         depth = {"another aspect ratio": np.full((40, 40), 2.0, np.float32),
-                 "negative depths": np.where(start_image > 0, start_image, -np.inf).astype(np.float32),
+                 "negative depths": np.where(start_image > 0, start_image, -0.5).astype(np.float32),
                  "smaller than the network": np.full((15, 20), 2.0, np.float32),
                  "NaN-filled": np.full(full, np.nan, np.float32),
                  "20 m everywhere": np.full(full, 20.0, np.float32),
