@@ -25,7 +25,8 @@ def add_secure_init_arguments(p: argparse.ArgumentParser) -> None:
     keep.add_argument("--force", action="store_true",
                       help="replace existing credentials (every service then needs the new files)")
     keep.add_argument("--keep", action="store_true",
-                      help="keep a complete folder of this run as it is, writing one only where there is none "
+                      help="keep a complete folder of this run (its passwords and certificates; access rules an older "
+                           "release wrote are brought up to this one's), writing one only where there is none "
                            "(what docker-compose.yml runs at every start)")
 
 

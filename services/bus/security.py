@@ -33,6 +33,10 @@ names are relative to it). ``cogexplore secure export DIR --role actor --out BUN
 one role needs and nothing else (no other role's password, no CA key) for another machine: put it
 in ``runs/<run>/secure/`` there and the actor finds it by itself (``--zenoh-config BUNDLE/actor.json5``
 names it anywhere else).
+
+The access rules follow the release: ``secure init DIR --keep`` (what docker-compose.yml runs; ``cogexplore
+up`` does the same) rewrites the routers' rules of a folder an older release made, its passwords and
+certificates kept; :meth:`SecureFiles.check` refuses such a folder until then.
 """
 
 from __future__ import annotations
@@ -190,7 +194,52 @@ class SecureFiles:
         if tls and not self.tls:
             raise SecurityError(f"{self.root} has no TLS certificates: run `cogexplore secure init {self.root} "
                                 "--tls --host <this machine's name>` (links that leave the machine need TLS)")
+        if self.outdated_rules(run):
+            raise SecurityError(f"{self.router_config}'s access rules are not this release's (a folder made by an "
+                                f"older one: some service would be refused its part): run `cogexplore secure init "
+                                f"{self.root} --keep`, which rewrites them and keeps the passwords and certificates")
         return self
+
+    def current_rules(self, run: str) -> dict[str, Any]:
+        """The access control this release gives ``run``'s users (those of the credentials file)."""
+        try:
+            users = {role: json.loads(self.credentials.read_text())["users"][role]["user"] for role in ROLES}
+        except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
+            raise SecurityError(f"{self.credentials} is missing or unreadable ({exc}): run "
+                                f"`cogexplore secure init {self.root} --force`") from None
+        return access_control(run, users, self.tls)
+
+    def _router_files(self) -> list[Path]:
+        return [p for p in (self.router_config, self.root / "router-zenohd.json5") if p.is_file()]
+
+    def outdated_rules(self, run: str) -> list[Path]:
+        """The router configs whose access control differs from :meth:`current_rules` (files written
+        by an older release, whose rules lack what a service now needs)."""
+        rules = self.current_rules(run)
+        outdated = []
+        for path in self._router_files():
+            try:
+                written = json.loads(path.read_text()).get("access_control")
+            except (OSError, ValueError, AttributeError, RecursionError):
+                written = None
+            outdated += [path] if written != rules else []
+        return outdated
+
+    def refresh_rules(self, run: str) -> list[Path]:
+        """Rewrite the access control of the router configs that are :meth:`outdated_rules`, the rest of
+        each file (passwords, certificates, paths) as it is; returns the files rewritten."""
+        rules, rewritten = self.current_rules(run), []
+        for path in self.outdated_rules(run):
+            try:
+                config = json.loads(path.read_text())
+            except (OSError, ValueError, RecursionError) as exc:
+                raise SecurityError(f"{path} is unreadable ({exc}): run `cogexplore secure init {self.root} "
+                                    "--force`") from None
+            if not isinstance(config, dict):
+                raise SecurityError(f"{path} is not a router config: run `cogexplore secure init {self.root} --force`")
+            _write_private(path, _json5({**config, "access_control": rules}))
+            rewritten.append(path)
+        return rewritten
 
 
 def _write_private(path: Path, text: str | bytes) -> None:
@@ -327,7 +376,11 @@ def run_secure_init(args: Any) -> int:
     run = args.run or Path(args.dir).resolve().parent.name
     files = SecureFiles(Path(args.dir))
     if args.keep and files.credentials.exists():
-        files.check(run, tls=args.tls)  # a complete folder of this run stays as it is (compose restarts)
+        # A complete folder of this run keeps its passwords and certificates (compose restarts); only
+        # access rules an older release wrote are brought up to this one's.
+        if files.meta().get("run") == run:
+            files.refresh_rules(run)
+        files.check(run, tls=args.tls)
     else:
         files = init_secure(args.dir, run, tls=args.tls, hosts=args.host, zenohd_dir=args.zenohd_dir,
                             force=args.force)

@@ -711,6 +711,8 @@ def secure_files(root: Path, run: str, tls: bool, *, make_tls: bool = False, hos
                                 f"(--host NAME for a name other machines use), or run `cogexplore secure init {root} "
                                 "--tls --host <this machine's name>` first")
         init_secure(root, run, tls=make_tls, hosts=hosts if make_tls else ())
+    elif files.meta().get("run") == run:
+        files.refresh_rules(run)  # a folder an older release made: its rules may refuse a service its part
     return files.check(run, tls=tls)
 
 

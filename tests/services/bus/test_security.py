@@ -3,6 +3,7 @@ real sessions of each role, of no role, with a wrong password or a foreign certi
 
 from __future__ import annotations
 
+import argparse
 import json
 import stat
 import time
@@ -11,7 +12,8 @@ from pathlib import Path
 import pytest
 
 from services.bus import ROLES
-from services.bus.security import SecurityError, export_role, init_secure
+from services.bus.options import add_secure_init_arguments
+from services.bus.security import SecurityError, export_role, init_secure, run_secure_init
 from services.bus.session import (
     LivelinessWatch,
     TransportError,
@@ -23,6 +25,7 @@ from services.bus.session import (
     query_latest,
     serve_latest,
 )
+from services.up.launcher import secure_files
 from shared.wire.keys import RunKeys
 
 RUN = "sec"
@@ -226,3 +229,46 @@ def test_up_with_tls_makes_the_certificates_for_this_machine(tmp_path: Path):
     cert = x509.load_pem_x509_certificate((launcher.secure.root / "router.pem").read_bytes())
     names = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(x509.DNSName)
     assert {"localhost", socket.gethostname(), "lab.example"} <= set(names)
+
+
+def test_a_folder_an_older_release_made_gets_this_releases_rules_and_keeps_its_passwords(tmp_path: Path, capsys):
+    # Folders made before the evaluator's flow-control grant kept the old rules: its evaluator never
+    # heard the learner's pulse. `secure init --keep` (compose) and `up` now bring the rules up to date.
+    files = init_secure(tmp_path / "secure", RUN)
+    credentials = files.credentials.read_text()
+    users = files.config("evaluator").read_text()
+    for path in (files.router_config, files.root / "router-zenohd.json5"):
+        config = json.loads(path.read_text())
+        config["access_control"]["rules"] = [r for r in config["access_control"]["rules"]
+                                             if not (r["id"].startswith("evaluator") and KEYS.flow in r["key_exprs"])]
+        path.write_text(json.dumps(config))
+    assert files.outdated_rules(RUN) == [files.router_config, files.root / "router-zenohd.json5"]
+    with pytest.raises(SecurityError, match=r"not this release's .* secure init .* --keep"):
+        files.check(RUN)
+    zenohd_paths = json.loads((files.root / "router-zenohd.json5").read_text())["transport"]
+    parser = argparse.ArgumentParser()
+    add_secure_init_arguments(parser)
+    assert run_secure_init(parser.parse_args([str(files.root), "--run", RUN, "--keep"])) == 0
+    capsys.readouterr()
+    assert files.outdated_rules(RUN) == [] and files.check(RUN) is files
+    assert files.credentials.read_text() == credentials and files.config("evaluator").read_text() == users
+    assert json.loads((files.root / "router-zenohd.json5").read_text())["transport"] == zenohd_paths
+    assert stat.S_IMODE(files.router_config.stat().st_mode) == 0o600
+
+    # up does the same to its run's folder; then the evaluator hears the pulse on a real router.
+    config = json.loads(files.router_config.read_text())
+    config["access_control"]["rules"] = config["access_control"]["rules"][:-1]
+    files.router_config.write_text(json.dumps(config))
+    assert secure_files(files.root, RUN, tls=False).outdated_rules(RUN) == []
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint], config_file=str(files.router_config)):
+        learner, evaluator = (open_session(ZenohSettings(connect=(endpoint,), config_file=str(files.config(role))),
+                                           wait_s=2.0) for role in ("learner", "evaluator"))
+        heard: list[bytes] = []
+        sub = evaluator.declare_subscriber(KEYS.flow, lambda s: heard.append(s.payload.to_bytes()))  # noqa: F841
+        settle(timeout_s=0.5)
+        learner.put(KEYS.flow, b"pulse")
+        settle(lambda: heard)
+        assert heard == [b"pulse"]
+        learner.close()
+        evaluator.close()
