@@ -57,6 +57,10 @@ PROTOCOL_ENV_FIELDS: dict[str, str] = {
     "start_jitter_m": "the test protocol sets the start jitter; use --protocol or --start-jitter-m",
     "start_jitter_deg": "the test protocol sets the start jitter; use --protocol or --start-jitter-deg",
     "reward_trap_penalty": "the test protocol counts steps, not rewards",
+    "extra_worlds": "the test protocol plays --world alone",
+    "extra_world_prob": "the test protocol plays --world alone",
+    "random_start_prob": "the test protocol plays the named starts, or --starts",
+    "failure_start_prob": "the test protocol plays the named starts, or --starts",
 }
 """The env fields :func:`protocol_env_config` sets whatever the base config says, and what sets
 each instead: an override of one would do nothing, so ``evaluate`` refuses it."""
@@ -65,11 +69,15 @@ each instead: an override of one would do nothing, so ``evaluate`` refuses it.""
 def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> EnvConfig:
     """The protocol's environment: ``base``'s robot and task, the given world, the TEST speed
     table, every start (none fixed), no training start jitter (the protocol's own is a reset
-    option), no trap reward (the protocol counts steps; the trap's map checks would only cost time)
-    and a step cap no shorter than the protocol's."""
+    option), no trap reward (the protocol counts steps; the trap's map checks would only cost time),
+    a step cap no shorter than the protocol's, and none of training's other worlds, random or
+    failure starts (the protocol names each episode's start: they were never played, but a
+    training world file the env loads at construction, moved or broken since, failed the test)."""
     return dataclasses.replace(base or EnvConfig(), world=world, speed_table="test",
                                max_episode_steps=max_steps, start_index=None,
-                               start_jitter_m=0.0, start_jitter_deg=0.0, reward_trap_penalty=0.0)
+                               start_jitter_m=0.0, start_jitter_deg=0.0, reward_trap_penalty=0.0,
+                               extra_worlds="", extra_world_prob=0.0, random_start_prob=0.0,
+                               failure_start_prob=0.0)
 
 
 def _check_action(action: Any) -> int:

@@ -94,6 +94,20 @@ def test_protocol_runs_every_start_times_episodes_within_the_cap() -> None:
     assert all(e.truncated and not e.terminated for e in circling.episodes)
 
 
+def test_training_worlds_the_protocol_never_plays_are_not_loaded(tmp_path: Path) -> None:
+    # A run trained beside a world file that was moved since could not be tested any more: the
+    # protocol's env loaded every extra world at construction, though it plays --world alone.
+    from shared.config import EnvConfig
+
+    moved = tmp_path / "lab.xml"  # trained beside, gone since
+    trained = EnvConfig(extra_worlds=str(moved), extra_world_prob=0.5, random_start_prob=0.5)
+    sensor = SensorConfig(width=40, height=30)
+    results = evaluate_policy(lambda d: (0, None), world="box-room", sensor_cfg=sensor, env_cfg=trained, starts=[2],
+                              max_steps=3, episodes_per_start=1, progress=False)
+    assert [e.steps for e in results.episodes] == [3]
+    assert results.meta["env"]["extra_worlds"] == "" and results.meta["env"]["random_start_prob"] == 0.0
+
+
 def test_a_greedy_policy_with_previous_commands_starts_each_episode_without_one() -> None:
     import torch
 

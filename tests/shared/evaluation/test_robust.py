@@ -271,9 +271,11 @@ def test_the_fields_evaluate_refuses_are_those_the_protocol_sets() -> None:
     from shared.config import EnvConfig
     from shared.evaluation.protocol import PROTOCOL_ENV_FIELDS, protocol_env_config
 
-    base = EnvConfig()
+    base = EnvConfig(extra_worlds="procedural:5")
     changed = {"world": "corridor", "speed_table": "train", "max_episode_steps": 50, "start_index": 2,
-               "start_jitter_m": 0.1, "start_jitter_deg": 5.0, "reward_trap_penalty": 5.0}
+               "start_jitter_m": 0.1, "start_jitter_deg": 5.0, "reward_trap_penalty": 5.0,
+               "extra_worlds": "procedural:6", "extra_world_prob": 0.5, "random_start_prob": 0.5,
+               "failure_start_prob": 0.5}
     assert set(changed) == set(PROTOCOL_ENV_FIELDS)
     ignored = {name for name, value in changed.items()
                if protocol_env_config(dataclasses.replace(base, **{name: value}), "box-room", 200)
