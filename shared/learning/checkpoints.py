@@ -830,6 +830,10 @@ def average_models(models: Sequence[LoadedModel]) -> LoadedModel:
         return models[0]
     if not models:
         raise CheckpointError("nothing to average")
+    ensembles = [m.label for m in models if m.ensemble_of]
+    if ensembles:  # member i of each with member i of the others: networks of unrelated runs
+        raise CheckpointError(f"{', '.join(ensembles)}: Q-value ensembles are not averaged; average each "
+                              "member's checkpoints, then make the ensemble of the means (model export --ensemble)")
     _require_same_robot(models, "a mean")
     last = models[-1]
     net = copy.deepcopy(last.net)

@@ -364,6 +364,11 @@ def test_an_ensemble_is_one_weights_file_that_plays_the_mean_and_refuses_a_forge
 
     assert main(["model", "export", str(paths[0]), "--ensemble", "--out", str(tmp_path / "one.safetensors")]) == 2
     assert "at least two" in capsys.readouterr().err
+    # A mean of ensembles averaged member i with member i of the others and kept the last one's
+    # member digests, which no longer described the weights: refused in one line.
+    assert main(["model", "export", str(out), str(out), "--out", str(tmp_path / "mean.safetensors")]) == 2
+    assert "ensembles are not averaged" in capsys.readouterr().err
+    assert not (tmp_path / "mean.safetensors").exists()
     tensors, meta = load_tensors_file(out, "cogexplore-weights")
     for forged in (meta["members"][:1], meta["members"] * 9, "two", [1, 2]):
         bad = tmp_path / "forged.safetensors"
