@@ -423,7 +423,9 @@ class Experiment:
                                                    ("RL", "rl", str(self.runs_dir / RL_RUN))]
         for u in self.o.checkpoints:
             info = self.state.done(f"drl-{u}")
-            if info is not None:
+            # A stage that stopped where the one before it did (its minutes were up before another
+            # checkpoint) holds the same model: one row, not two of one label sharing an evaluation.
+            if info is not None and all(r[0] != f"DRL-{info['updates']}" for r in rows):
                 rows.append((f"DRL-{info['updates']}", "greedy", str(self.path(info["file"]))))
         rows += [("reactive", "reactive", None), ("random", "random", None)]
         return rows
@@ -567,6 +569,8 @@ class Experiment:
             ev = self.state.done(self.eval_stage(label))
             if ev is None:
                 continue
+            if points and points[-1][0] == stage["updates"]:
+                continue  # no further update: the same model, drawn once
             unseen = [self.state.done(self.eval_stage(label, w)) for w in self.o.unseen_worlds]
             points.append((stage["updates"], minutes, ev["mean_steps"],
                            sum(x["mean_steps"] for x in unseen) / len(unseen)

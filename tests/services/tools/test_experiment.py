@@ -160,6 +160,20 @@ def test_the_protocol_is_fixed_with_the_experiment(tmp_path):
     setup_evaluation("random", world="box-room", overrides=noisy._eval_overrides())
 
 
+def test_a_stage_that_stopped_where_the_one_before_did_is_one_row(tmp_path):
+    # --minutes-per-stage can end a stage before its first new checkpoint: both stages then hold
+    # the model of the same update, and the table had two "DRL-<n>" rows sharing one evaluation.
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    experiment = Experiment(options_from_args(parser.parse_args([*TINY, "--out", str(tmp_path),
+                                                                 "--checkpoints", "20,40,60"])), echo=print)
+    for stage, updates in (("drl-20", 20), ("drl-40", 25), ("drl-60", 25)):
+        experiment.state.finish(stage, 60.0, file=f"models/{stage}.safetensors", updates=updates)
+    labels = [label for label, _policy, _ckpt in experiment.models()]
+    assert labels == ["SL", "RL", "DRL-20", "DRL-25", "reactive", "random"]
+    assert experiment.models()[3][2] == str(tmp_path / "models" / "drl-40.safetensors")
+
+
 def test_a_checkpoint_added_on_resume_keeps_the_default_rl_baseline(tmp_path):
     from services.tools.experiment import ExperimentState
 
