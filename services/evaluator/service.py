@@ -74,6 +74,7 @@ from shared.evaluation import (
     TEST_SEED,
     ProtocolConfig,
 )
+from shared.evaluation.eval_log import EVAL_LOG, evaluation_key, load_eval_log
 from shared.evaluation.policies import GreedyPolicy
 from shared.evaluation.protocol import EvaluationCancelled
 from shared.evaluation.results import EvalResults, save_results
@@ -93,8 +94,6 @@ from shared.wire.messages import MAX_EVAL_EPISODES, EvalResult, RejectCounter, W
 EVALUATOR_NICENESS = 10
 """Scheduling niceness of a long-running evaluator (0 = as the learner; 19 = the lowest)."""
 log = logging.getLogger("cogexplore.evaluator")
-
-EVAL_LOG = "eval.jsonl"
 
 
 def recording_path(recordings: Path, policy_version: int) -> Path:
@@ -148,6 +147,11 @@ class EvaluatorService:
         """(learner epoch, update) of the weights evaluated last."""
         self.evaluations: list[dict[str, Any]] = []
         """The JSON rows written so far (newest last)."""
+        log_path = self.root / "stats" / EVAL_LOG
+        rows = load_eval_log(log_path) if log_path.is_file() else []
+        self.evaluated: set[tuple[Any, ...]] = {k for k in map(evaluation_key, rows) if k is not None}
+        """Evaluations this run holds already (:func:`evaluation_key` of its rows): a restarted learner
+        publishes the weights of the checkpoint it resumed from, which played the same draws before."""
         self.board = TensorBoardLog(tensorboard)
         """Each evaluation's duration and summary as ``eval/<key>`` at its policy version (closed by ``run``)."""
 
@@ -164,20 +168,28 @@ class EvaluatorService:
     # -- one evaluation -------------------------------------------------------------------------
 
     def evaluate(self, message: WeightsMessage, stop: threading.Event | None = None,
-                 session: Any = None) -> dict[str, Any] | None:
+                 session: Any = None, repeat: bool = True) -> dict[str, Any] | None:
         """Load ``message`` and run the protocol; write, record and publish the result.
-        Returns the JSON row, or None when the weights do not load (counted as a reject)."""
+        Returns the JSON row, or None when the weights do not load (counted as a reject) or, without
+        ``repeat``, when the run's ``eval.jsonl`` holds this evaluation already."""
         version = message.policy_version
         if not self.weights.load(self.net, message):
             return None
         self.last_version = message.version
+        weights_digest = weights_sha256(self.net)
+        key = evaluation_key({"policy_version": version, "weights_sha256": weights_digest, "world": self.world,
+                              "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
+                              "max_steps": self.max_steps, "seed": self.seed})
+        if not repeat and key in self.evaluated:
+            log.info("policy version %d: these weights were evaluated already (%s), not again", version, EVAL_LOG)
+            return None
         stats = self.root / "stats"
         rrd = recording_path(self.root / "recordings", version) if self.record else None
         log.info("evaluating policy version %d on %s (%s protocol, %d episode(s) per start, %d steps)", version,
                  self.world, self.protocol.name, self.episodes_per_start, self.max_steps)
         started = time.monotonic()
         meta = {"policy": "greedy", "model": f"{self.run_name}@{version}", "policy_version": version,
-                "fingerprint": self.fingerprint, "weights_sha256": weights_sha256(self.net),
+                "fingerprint": self.fingerprint, "weights_sha256": weights_digest,
                 "evaluator_id": self.evaluator_id}
         live = self.viewer.url if self.viewer is not None and self.viewer.up() else None
         results = evaluate_recorded(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
@@ -189,10 +201,9 @@ class EvaluatorService:
         save_results(results, stats / "eval" / f"eval-{version:06d}.json")
         summary = results.summary
         row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, "policy_version": version,
-               "world": self.world, "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
-               "max_steps": self.max_steps,
-               "seed": self.seed, "duration_s": round(duration, 3), "summary": summary["overall"],
-               "per_start": summary["per_start"],
+               "weights_sha256": weights_digest, "world": self.world, "protocol": self.protocol.name,
+               "episodes_per_start": self.episodes_per_start, "max_steps": self.max_steps, "seed": self.seed,
+               "duration_s": round(duration, 3), "summary": summary["overall"], "per_start": summary["per_start"],
                "recording": results.meta.get("recording"),  # None: not recorded, or it could not be written
                "streamed_to": live,
                "rejected_weights": self.rejects.counts}
@@ -200,6 +211,7 @@ class EvaluatorService:
         append_line(stats / EVAL_LOG, json.dumps(row))  # a row a killed evaluator cut short costs only itself
         self.board.write(Path(EVAL_LOG).stem, {"duration_s": row["duration_s"], **row["summary"]}, version)
         self.evaluations.append(row)
+        self.evaluated.add(key)
         if session is not None:
             put_reliable(session, self.keys.eval_results(self.evaluator_id),
                          self.result_message(results, duration).encode())
@@ -249,7 +261,7 @@ class EvaluatorService:
                     if not once and not self.due(message):
                         continue
                     try:
-                        row = self.evaluate(message, stop, session)
+                        row = self.evaluate(message, stop, session, repeat=once)
                     except EvaluationCancelled:
                         log.info("evaluation of version %d cancelled", message.policy_version)
                         break

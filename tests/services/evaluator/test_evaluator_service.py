@@ -114,6 +114,11 @@ def test_service_evaluates_due_weights_and_counts_bad_ones(router: str, tmp_path
             put_reliable(session, keys.weights, to_message(net, 7).encode())   # same bucket of 10: skipped
             put_reliable(session, keys.weights, to_message(net, 12).encode())  # a new multiple of 10: due
             second = results.wait(2)[1]
+            # A restarted learner (a new epoch) publishes the checkpoint it resumed from first: the
+            # same weights at the same version played the same draws already, so only 25 runs.
+            put_reliable(session, keys.weights, to_message(net, 12, learner_epoch=1).encode())
+            put_reliable(session, keys.weights, to_message(net, 25, learner_epoch=1).encode())
+            assert results.wait(3)[2].policy_version == 25
             stop.set()
             worker.join(timeout=30)
             assert not worker.is_alive() and status == [0]
@@ -125,10 +130,10 @@ def test_service_evaluates_due_weights_and_counts_bad_ones(router: str, tmp_path
         assert r.evaluator_id == "ev-1" and r.world == "box-room" and r.speed_table == "test"
         assert sorted(r.start_index) == [0, 1, 2, 3] and all(1 <= s <= 5 for s in r.steps)
         assert r.extra["mean_steps"] == pytest.approx(sum(r.steps) / 4)
-    assert [e["policy_version"] for e in service.evaluations] == [5, 12]
+    assert [e["policy_version"] for e in service.evaluations] == [5, 12, 25]
 
     rows = [json.loads(line) for line in (tmp_path / "svc" / "stats" / "eval.jsonl").read_text().splitlines()]
-    assert [r["policy_version"] for r in rows] == [5, 12]
+    assert [r["policy_version"] for r in rows] == [5, 12, 25]
     assert rows[1]["summary"]["episodes"] == 4 and rows[1]["max_steps"] == 5
     assert rows[1]["rejected_weights"]["fingerprint"] == 1 and rows[1]["rejected_weights"]["garbage"] >= 1
     assert rows[1]["summary"]["mean_steps"] == pytest.approx(second.extra["mean_steps"])
@@ -221,10 +226,33 @@ def test_weights_numbered_below_the_last_evaluated_are_due_a_forged_version_hold
     assert not service.due(to_message(net, 25, learner_epoch=1))  # the same version again: not twice
 
 
+def test_a_restarted_evaluator_skips_the_weights_its_run_evaluated_unless_asked_once(tmp_path: Path) -> None:
+    # `up --resume` restarts the evaluator beside a learner that first publishes the checkpoint it
+    # resumed from: its evaluation was in eval.jsonl already, and a second row drew the curve twice.
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+
+    def evaluator() -> EvaluatorService:
+        return EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", every_updates=10,
+                                episodes_per_start=1, max_steps=3, record=False)
+
+    net, other = small_net(), small_net()
+    assert evaluator().evaluate(to_message(net, 5), repeat=False)["weights_sha256"]
+    restarted = evaluator()
+    assert restarted.evaluate(to_message(net, 5, learner_epoch=1), repeat=False) is None
+    assert restarted.last_version == (1, 5)  # due() counts from it all the same
+    assert restarted.evaluate(to_message(other, 5), repeat=False) is not None  # other weights: evaluated
+    assert restarted.evaluate(to_message(net, 5)) is not None  # --once evaluates what it is asked
+    rows = (tmp_path / "svc" / "stats" / "eval.jsonl").read_text().splitlines()
+    assert len(rows) == 3
+    # Another protocol, seed or episode count is another evaluation.
+    assert EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", episodes_per_start=1,
+                            max_steps=3, record=False, seed=7).evaluate(to_message(net, 5), repeat=False)
+
+
 def test_a_row_cut_short_before_costs_only_itself_not_the_next_evaluation(tmp_path: Path) -> None:
     # An evaluator killed mid-write (or a full disk) leaves a last line without its newline; the next
     # evaluation's row was glued to it, and the report skipped both as one damaged line.
-    from services.tools.report import load_eval_log
+    from shared.evaluation.eval_log import load_eval_log
 
     cfg = load_preset("paper").with_overrides(OVERRIDES)
     service = EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", every_updates=10,

@@ -1,0 +1,70 @@
+"""``runs/<run>/stats/eval.jsonl``: the evaluator service's periodic evaluations, one JSON line each.
+
+The evaluator writes it (``services.evaluator.service``) and reads it back at start-up to skip
+weights it has evaluated already; the report draws its evaluation curve from it. A line may be
+damaged (a killed evaluator cuts its last row short) or hand-edited: readers skip such rows.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+from shared.config import is_finite_number, is_whole
+from shared.errors import CogexploreError
+from shared.jsontext import parse_json
+
+EVAL_LOG = "eval.jsonl"
+"""The file's name in a run's ``stats/`` folder."""
+
+EVALUATION_KEY_FIELDS: tuple[str, ...] = ("policy_version", "weights_sha256", "world", "protocol",
+                                          "episodes_per_start", "max_steps", "seed")
+"""What makes two rows the same evaluation: the same weights at the same version, played under the
+same protocol, episodes and seed (the protocol's draws come from the seed, so it repeats exactly)."""
+
+log = logging.getLogger("cogexplore.eval_log")
+
+
+def eval_log_row(line: str) -> dict[str, Any] | None:
+    """One row of ``eval.jsonl`` if it is one the evaluator could have written, else None."""
+    try:
+        row = parse_json(line, "an eval.jsonl row", allow_nan=False)
+    except CogexploreError:
+        return None
+
+    def count(value: Any, least: int) -> bool:
+        return is_whole(value) and value >= least
+
+    if not (isinstance(row, dict) and count(row.get("policy_version"), 0) and row["policy_version"] < 2**63
+            and isinstance(row.get("summary"), dict)):
+        return None
+    mean_steps = row["summary"].get("mean_steps")
+    if not (is_finite_number(mean_steps) and mean_steps >= 0):
+        return None
+    if not all(row.get(k) is None or count(row[k], 1) for k in ("episodes_per_start", "max_steps")):
+        return None
+    return row if isinstance(row.get("protocol", "paper"), str) else None
+
+
+def load_eval_log(path: Path) -> list[dict[str, Any]]:
+    """The evaluator service's ``eval.jsonl`` rows, sorted by version; a damaged or forged row (not
+    JSON, NaN, a negative version, a count that is not one) is skipped with a warning."""
+    rows, skipped = [], 0
+    for line in path.read_text(errors="replace").splitlines():
+        if line.strip():
+            row = eval_log_row(line)
+            rows += [row] if row is not None else []
+            skipped += row is None
+    if skipped:
+        log.warning("%s: %d row(s) skipped: not an evaluation the evaluator writes", path, skipped)
+    return sorted(rows, key=lambda r: r["policy_version"])
+
+
+def evaluation_key(row: dict[str, Any]) -> tuple[Any, ...] | None:
+    """The row's :data:`EVALUATION_KEY_FIELDS`, or None for a row that does not name its weights
+    (written before the evaluator recorded their digest): such a row never stands for another."""
+    key = tuple(row.get(k) for k in EVALUATION_KEY_FIELDS)
+    if not isinstance(row.get("weights_sha256"), str) or not all(v is None or isinstance(v, (str, int)) for v in key):
+        return None
+    return key
