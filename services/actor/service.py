@@ -60,12 +60,11 @@ from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import RunKeys
 from shared.wire.messages import (
-    RANGE,
     EpisodeStats,
     FlowControl,
     LearnerEpochs,
-    MessageError,
     RejectCounter,
+    future_epoch_error,
     new_epoch,
 )
 
@@ -120,7 +119,7 @@ class FlowGate:
             verdict = self._epochs.admit(message.learner_epoch)
             if verdict == LearnerEpochs.FUTURE:
                 if self.rejects is not None:  # not a late word of a dead learner: an impossible one
-                    self.rejects.reject(MessageError(RANGE, "flow control of a learner started in the future"), _key)
+                    self.rejects.reject(future_epoch_error("flow control"), _key)
                 self.ignored += 1
                 return
             if verdict == LearnerEpochs.OTHER:

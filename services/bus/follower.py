@@ -47,6 +47,7 @@ from shared.wire.messages import (
     RejectCounter,
     WeightsMessage,
     epoch_from_the_future,
+    future_epoch_error,
 )
 
 log = logging.getLogger("cogexplore.weights")
@@ -119,8 +120,7 @@ class WeightFollower:
             elif verdict == LearnerEpochs.OTHER:
                 self._waiting = (message, self._epochs.clock())
         if verdict == LearnerEpochs.FUTURE:
-            self.rejects.reject(MessageError(RANGE, f"weights v{message.policy_version} claim a learner started "
-                                                    "in the future"), key or None)
+            self.rejects.reject(future_epoch_error(f"weights v{message.policy_version}"), key or None)
         elif ahead:
             self._reject_ahead(message, self._pulse[1] - PULSE_SLACK_UPDATES, key)
 
@@ -133,7 +133,7 @@ class WeightFollower:
         holds the learner's real weights off as "older" (one forged message numbered 2^40 - 1 did,
         for the rest of the learner's life)."""
         if epoch_from_the_future(message.learner_epoch):  # not a late word of a dead learner: an impossible one
-            self.rejects.reject(MessageError(RANGE, "flow control of a learner started in the future"), key or None)
+            self.rejects.reject(future_epoch_error("flow control"), key or None)
             return
         forged = None
         with self._arrived:

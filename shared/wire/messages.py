@@ -90,6 +90,15 @@ def new_epoch() -> int:
     return time.time_ns()
 
 
+def future_epoch_error(what: str) -> MessageError:
+    """The refusal of ``what`` (a message) of a learner whose epoch is from the future. It names the
+    clocks: a real learner on a machine whose clock runs ahead is refused for as long as it runs,
+    and its actors act on their untrained networks meanwhile."""
+    return MessageError(RANGE, f"{what} of a learner started in the future, more than "
+                               f"{MAX_CLOCK_SKEW_NS // 60_000_000_000} minutes ahead of this machine's clock (if "
+                               "that learner is real, the two machines' clocks disagree: set both from NTP)")
+
+
 def epoch_from_the_future(epoch: int, now_ns: int | None = None) -> bool:
     """An epoch no process can have yet (beyond :data:`MAX_CLOCK_SKEW_NS` of this clock): an attack or
     a broken clock, whose messages would otherwise outrank every real process's for good."""

@@ -130,7 +130,7 @@ def clocked_follower(net: QNetwork, clock: Clock) -> WeightFollower:
                           quiet_s=5.0, clock=clock)
 
 
-def test_a_restarted_learner_takes_over_once_the_dead_one_is_quiet_and_one_message_never_holds_a_follower():
+def test_a_restarted_learner_takes_over_once_the_dead_one_is_quiet_and_one_message_never_holds_a_follower(caplog):
     from shared.wire.messages import MessageError, new_epoch
 
     net = network(0)
@@ -144,8 +144,11 @@ def test_a_restarted_learner_takes_over_once_the_dead_one_is_quiet_and_one_messa
     assert follower.take().version == (restarted, 1000)
     follower.offer(to_message(net, 1475, learner_epoch=dead))  # the dead learner's last message, late
     assert follower.take() is None
-    follower.offer(to_message(net, 5, learner_epoch=2**62))  # a learner "started" in the next century
+    with caplog.at_level(logging.WARNING, logger="test"):
+        follower.offer(to_message(net, 5, learner_epoch=2**62))  # a learner "started" in the next century
     assert follower.take() is None and follower.rejects.counts == {"range": 1}
+    # said once, naming what a real learner there would mean: the machines' clocks disagree
+    assert "10 minutes ahead of this machine's clock" in caplog.text and "clocks disagree" in caplog.text
     with pytest.raises(MessageError, match="policy_version"):  # 2^62 updates: refused on decode already
         WeightsMessage(policy_version=2**62, architecture_fingerprint="x", tensors={"w": np.zeros(1, np.float32)})
 
