@@ -181,6 +181,9 @@ class DriveController:
             return None
         try:
             command, q_values = self.policy.decide(depth)
+            q_values = tuple(float(q) for q in np.asarray(q_values, dtype=np.float64).reshape(-1))
+            if not all(np.isfinite(q_values)):  # its command is the argmax of nothing: no command at all
+                raise FloatingPointError(f"the network's Q-values are not finite: {q_values}")
             twist = self.policy.twist(int(command), self.config.speed_table)
         except Exception as exc:  # noqa: BLE001 -- whatever the network's runtime raises, the robot stops
             decision = self._reject(POLICY_ERROR, received_s)
@@ -189,7 +192,7 @@ class DriveController:
         self.last_command_s = received_s
         self.moving = twist.linear_mps != 0 or twist.angular_rps != 0
         return self._decided(Decision(twist.linear_mps, twist.angular_rps, int(command), None, nearest,
-                                      (now - received_s) * 1e3, tuple(float(q) for q in np.asarray(q_values))))
+                                      (now - received_s) * 1e3, q_values))
 
     def on_oversize_image(self, size: int, received_s: float | None = None) -> Decision | None:
         """An image message refused unread for its ``size`` in bytes (over ``max_image_bytes``)."""

@@ -35,6 +35,13 @@ RESET_LOG_EVERY_S = 1.0
 NODE_NAME = "cogexplore_drive"
 
 
+def printable_label(label: Any, max_chars: int = 200) -> str:
+    """A policy's label as the diagnostics carry it: printable, at most ``max_chars``, never empty (a
+    file name with a tab or a newline in it failed every diagnostics message, after its command)."""
+    text = "".join(ch if ch.isprintable() else "?" for ch in str(label or ""))[:max_chars]
+    return text or "unknown"
+
+
 def load_drive_policy(args: argparse.Namespace) -> Any:
     """The policy: an ONNX file (onnxruntime) or any checkpoint ``cogexplore.load_policy`` takes."""
     if args.onnx:
@@ -126,7 +133,7 @@ class DriveNode:
             robot=self.args.robot, decision=c.decisions, command=decision.command, linear_mps=decision.linear_mps,
             angular_rps=decision.angular_rps, stop_reason=decision.stop_reason,
             nearest_depth_m=decision.nearest_depth_m, latency_ms=decision.latency_ms, q_values=decision.q_values,
-            policy=str(getattr(c.policy, "label", "") or "unknown")[:200], rejects=dict(c.rejects))
+            policy=printable_label(getattr(c.policy, "label", "")), rejects=dict(c.rejects))
         self.diagnostics.put(message.encode())
         if self.recorder is not None:
             self.recorder.log_decision(message, c.last_depth_m if decision.command is not None else None)

@@ -218,6 +218,26 @@ def test_a_policy_that_fails_stops_the_robot_every_period_until_it_decides_again
     assert drive.on_image(image(start_image), clock.t + 2.0).command is not None
 
 
+def test_q_values_that_are_not_finite_stop_the_robot_as_a_policy_error(policy, start_image):
+    # An ONNX model or a network run out of range gave NaN Q-values: the robot drove the argmax of
+    # nothing, and the diagnostics message (finite numbers only) failed after the command was sent.
+    class Broken:
+        def __getattr__(self, name):
+            return getattr(policy, name)
+
+        def decide(self, depth_m):
+            command, q = policy.decide(depth_m)
+            return command, np.where(np.arange(len(q)) == 2, np.nan, q)
+
+    clock = Clock()
+    stop = DriveController(Broken(), DriveConfig(), clock=clock).on_image(image(start_image), clock.t)
+    assert stop.is_stop and stop.reject_cause == POLICY_ERROR and "not finite" in stop.error and stop.q_values == ()
+    from services.drive.service import printable_label
+
+    assert printable_label("run\tA@1200\n") == "run?A@1200?" and printable_label("") == "unknown"
+    assert printable_label("a\x00b" * 200) == ("a?b" * 67)[:200]
+
+
 @pytest.mark.parametrize("field, value", [("speed_table", "fast"), ("watchdog_s", 0), ("watchdog_s", float("nan")),
                                           ("collision_distance_m", -1), ("control_period_s", 0)])
 def test_bad_settings_are_refused(field, value):
