@@ -30,9 +30,12 @@ class Command(NamedTuple):
 
 def metres(depth_m: Any) -> np.ndarray:
     """A user's depth image as (H, W) float metres (NaN and infinity kept: resizing reads them as
-    no return); PolicyError for anything that is not one image of depths."""
+    no return, as it reads a masked array's masked pixels); PolicyError for anything that is not one
+    image of depths."""
     if hasattr(depth_m, "detach") and hasattr(depth_m, "cpu"):  # a torch tensor, on a GPU or needing grad
         depth_m = depth_m.detach().cpu()
+    if np.ma.isMaskedArray(depth_m):  # masked pixels are invalid: no return, not the values under the mask
+        depth_m = depth_m.filled(np.nan if np.issubdtype(depth_m.dtype, np.floating) else 0)
     try:
         depth = np.asarray(depth_m)
     except (TypeError, ValueError, RuntimeError) as exc:
@@ -105,7 +108,8 @@ class CameraPolicy:
         0 = no return, as the simulated camera would have taken it.
 
         ``depth_m``: (H, W) (or (H, W, 1)) float metres at any size with the network's aspect
-        ratio, i.e. its field of view; NaN, infinity and 0 are no return; uint16 is millimetres.
+        ratio, i.e. its field of view; NaN, infinity, 0 and masked pixels (``numpy.ma``) are no return;
+        uint16 is millimetres.
         Raises PolicyError for a wrong shape, an empty array or another aspect ratio.
         """
         return camera_observation(depth_m, self.sensor)

@@ -163,6 +163,19 @@ def test_tensors_and_big_endian_millimetres_are_images_too(policy: cogexplore.Po
     np.testing.assert_array_equal(policy.observation(millimetres.astype(">u2")), policy.observation(millimetres))
 
 
+def test_masked_pixels_are_no_return(policy: cogexplore.Policy, scenes) -> None:
+    # np.asarray drops a masked array's mask: the invalid pixels a driver masked were read as the depths
+    # left under the mask (here 0.3 m: a wall in front of the robot).
+    image = scenes[0][(160, 120)]
+    invalid = np.zeros(image.shape, bool)
+    invalid[:, 40:120] = True
+    want = policy.observation(np.where(invalid, np.nan, image))
+    assert not np.array_equal(want, policy.observation(np.where(invalid, 0.3, image)))
+    np.testing.assert_array_equal(policy.observation(np.ma.masked_array(np.where(invalid, 0.3, image), invalid)), want)
+    millimetres = np.ma.masked_array(np.round(np.where(invalid, 0.3, image) * 1000).astype(np.uint16), invalid)
+    np.testing.assert_array_equal(policy.observation(millimetres),
+                                  policy.observation(np.where(invalid, 0, millimetres.data).astype(np.uint16)))
+
 def test_weights_that_give_nan_are_refused_not_driven_as_command_0(tmp_path) -> None:
     # Finite weights so large that fc3 overflows: argmax of the non-finite Q-values is command 0, a
     # full-speed turn.
