@@ -1,9 +1,10 @@
 """A report as a list of blocks, written out as Markdown and as one HTML page.
 
 Blocks hold their text in the small Markdown subset the tools write (```code```, ``**bold**``,
-``_emphasis_``, ``[text](href)``, ``![alt](src)``); ``markdown`` writes them as they are,
-``html`` translates them, so both files come from the same content. Tables that other modules
-produce as Markdown come in through ``Table.from_markdown``.
+``_emphasis_``, ``[text](href)``, ``![alt](src)``, and ``\\`` before a punctuation mark meant
+literally); ``escape_text``, ``code_span`` and ``link_target`` put names and paths in.
+``markdown`` writes the blocks as they are, ``html`` translates them, so both files come from the
+same content. Tables that other modules produce as Markdown come in through ``Table.from_markdown``.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import quote, unquote
 
 from shared.errors import CogexploreError
 from shared.evaluation.results import markdown_cell
@@ -21,12 +23,18 @@ from shared.evaluation.results import markdown_cell
 # A page with every image inlined stays below this (base64 adds a third); else images are linked.
 EMBED_LIMIT_BYTES = 5_000_000
 
-_INLINE = re.compile(r"`(?P<code>[^`]+)`"
-                     r"|\*\*(?P<bold>.+?)\*\*"
-                     r"|!\[(?P<alt>[^\]]*)\]\((?P<src>[^)\s]+)\)"
-                     r"|\[(?P<text>[^\]]+)\]\((?P<href>[^)\s]+)\)"
-                     r"|(?<!\w)_(?P<em>[^_]+?)_(?!\w)")
-_IMAGE = re.compile(r"!\[[^\]]*\]\(([^)\s]+)\)")
+# A backslash before ASCII punctuation makes it literal (CommonMark); link texts may hold escaped brackets.
+_ESCAPED = r"\\(?P<esc>[!-/:-@\[-`{-~])"
+_BRACKETED = r"(?:\\[!-/:-@\[-`{-~]|[^\]\\])"
+_INLINE = re.compile(_ESCAPED
+                     + r"|(?P<fence>`++)(?P<code>.+?)(?<!`)(?P=fence)(?!`)"
+                     + r"|\*\*(?P<bold>.+?)\*\*"
+                     + rf"|!\[(?P<alt>{_BRACKETED}*)\]\((?P<src>[^)\s]+)\)"
+                     + rf"|\[(?P<text>{_BRACKETED}+)\]\((?P<href>[^)\s]+)\)"
+                     + r"|(?<!\w)_(?P<em>(?:\\[!-/:-@\[-`{-~]|[^_\\])+?)_(?!\w)")
+_IMAGE = re.compile(rf"!\[{_BRACKETED}*\]\(([^)\s]+)\)")
+# What starts markup in Markdown text (GFM's too); a table cell's | is markdown_cell's to escape.
+_SPECIAL = re.compile(r"([\\`*_\[\]<>&~])")
 _STYLE = """body{font-family:system-ui,sans-serif;max-width:72rem;margin:2rem auto;padding:0 1rem;line-height:1.45}
 table{border-collapse:collapse;margin:0.8rem 0}th,td{border:1px solid #ccc;padding:0.25rem 0.6rem}
 th{background:#f3f3f3}td.num{text-align:right;font-variant-numeric:tabular-nums}
@@ -85,6 +93,26 @@ Block = Heading | Paragraph | Bullets | Table
 # -- Markdown ---------------------------------------------------------------------------------
 
 
+def escape_text(value: object) -> str:
+    """``value`` as literal Markdown text: a name holding ``]``, ``*`` or ``_`` stays the name in a
+    link, a table or a paragraph instead of becoming (or breaking) markup."""
+    return _SPECIAL.sub(r"\\\1", str(value))
+
+
+def code_span(value: object) -> str:
+    """``value`` as a code span, fenced by more backticks than any run of them it holds."""
+    s = str(value)
+    fence = "`" * (max((len(run) for run in re.findall("`+", s)), default=0) + 1)
+    pad = " " if s.startswith("`") or s.endswith("`") else ""
+    return f"{fence}{pad}{s}{pad}{fence}"
+
+
+def link_target(path: str) -> str:
+    """A relative path as a link's or image's target: blanks, brackets and the like percent-encoded,
+    so a file named ``my results (1).json`` stays one link."""
+    return quote(path, safe="/")
+
+
 def _markdown_block(block: Block) -> str:
     if isinstance(block, Heading):
         return "#" * block.level + " " + block.text
@@ -125,20 +153,28 @@ def inline_html(text: str, image_src: Callable[[str], str] = lambda src: src) ->
     for m in _INLINE.finditer(text):
         out.append(html.escape(text[pos:m.start()]))
         pos = m.end()
-        if m["code"] is not None:
-            out.append(f"<code>{html.escape(m['code'])}</code>")
+        if m["esc"] is not None:
+            out.append(html.escape(m["esc"]))
+        elif m["code"] is not None:
+            c = m["code"]  # CommonMark drops one blank each side (the padding of a span fenced by a backtick)
+            c = c[1:-1] if len(c) > 2 and c[0] == c[-1] == " " else c
+            out.append(f"<code>{html.escape(c)}</code>")
         elif (m["src"] or m["href"]) is not None and not _safe_target(m["src"] or m["href"]):
             out.append(html.escape(m[0]))  # shown as written, not followed
         elif m["bold"] is not None:
             out.append(f"<strong>{inline_html(m['bold'], image_src)}</strong>")
         elif m["src"] is not None:
-            out.append(f'<img src="{html.escape(image_src(m["src"]))}" alt="{html.escape(m["alt"])}">')
+            out.append(f'<img src="{html.escape(image_src(m["src"]))}" alt="{html.escape(_unescape(m["alt"]))}">')
         elif m["href"] is not None:
             out.append(f'<a href="{html.escape(m["href"])}">{inline_html(m["text"], image_src)}</a>')
         else:
             out.append(f"<em>{inline_html(m['em'], image_src)}</em>")
     out.append(html.escape(text[pos:]))
     return "".join(out)
+
+
+def _unescape(text: str) -> str:
+    return re.sub(_ESCAPED, r"\g<esc>", text)
 
 
 def images(blocks: Sequence[Block]) -> list[str]:
@@ -173,7 +209,7 @@ def html_page(blocks: Sequence[Block], title: str, base: Path, embed: bool | Non
     """The blocks as one HTML page. Image paths are relative to ``base``; they are inlined as
     data URIs when ``embed`` (default: when all of them together fit ``EMBED_LIMIT_BYTES``),
     else linked, so the page opens from its folder either way."""
-    paths = {src: base / src for src in images(blocks)}
+    paths = {src: base / unquote(src) for src in images(blocks)}
     if embed is None:
         embed = sum(p.stat().st_size for p in paths.values() if p.is_file()) * 4 / 3 < EMBED_LIMIT_BYTES
 

@@ -190,7 +190,9 @@ def render_receptive_png(depth_m: np.ndarray, mask: np.ndarray, q_values: np.nda
     ax.set_xticks([])
     ax.set_yticks([])
     if title:  # names of scenes and models, not TeX: a "$" in a file name is a dollar sign
-        ax.set_title(title, fontsize=10, parse_math=False)
+        from services.viz.figures import plain_text
+
+        ax.set_title(plain_text(title), fontsize=10)
 
     arrow_ax = fig.add_axes((0.40, 0.12, 0.20, 0.14))
     arrow_ax.set_xlim(-1.1, 1.1)

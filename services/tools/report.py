@@ -43,11 +43,14 @@ from services.tools.document import (
     Heading,
     Paragraph,
     Table,
+    code_span,
+    escape_text,
     html_page,
+    link_target,
     markdown,
 )
 from services.tools.options import REPORT_PROTOCOLS
-from shared.config import is_finite_number, is_whole
+from shared.config import is_whole
 from shared.errors import CogexploreError
 from shared.evaluation import (
     PAPER_BASELINE_STEPS,
@@ -58,6 +61,7 @@ from shared.evaluation import (
     ProtocolConfig,
     protocol_named,
 )
+from shared.evaluation.eval_log import EVAL_LOG, load_eval_log
 from shared.evaluation.protocol import evaluate_policy
 from shared.evaluation.results import (
     EvalResults,
@@ -70,7 +74,6 @@ from shared.evaluation.results import (
 )
 from shared.evaluation.setup import EvalSetup, setup_evaluation
 from shared.files import save_png
-from shared.jsontext import parse_json
 from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
 from shared.learning.stats import TrainingSummary, summarize_learner_log
 
@@ -78,7 +81,6 @@ log = logging.getLogger("cogexplore.report")
 
 BASELINES: tuple[str, ...] = ("random", "reactive")
 LEARNER_LOG = "learner.csv"
-EVAL_LOG = "eval.jsonl"
 # Meta fields that must agree for a stored result to stand for a new evaluation.
 PROTOCOL_KEYS: tuple[str, ...] = ("policy", "world", "speed_table", "starts", "episodes_per_start", "max_steps",
                                   "seed", "protocol", "sensor", "env")
@@ -94,6 +96,8 @@ class ReportModel:
 
     name: str
     setup: EvalSetup
+    stem: str
+    """The name in its file names: its slug, unique in the report (``_unique_slug``)."""
     results: dict[str, EvalResults] = field(default_factory=dict)
     reused_from: dict[str, Path] = field(default_factory=dict)
 
@@ -160,44 +164,21 @@ def _unique(name: str, taken: set[str]) -> str:
     return out
 
 
+def _unique_slug(name: str, taken: set[str]) -> str:
+    """``slug(name)``, with ``-2``, ``-3``, ... when one already in ``taken`` is the same but for
+    case: "a b" and "a-b" would otherwise write (and show) one another's files, and a case-blind
+    file system holds "A" and "a" as one file. Adds it to ``taken``."""
+    base = slug(name)
+    out, k = base, 2
+    while out.casefold() in taken:
+        out, k = f"{base}-{k}", k + 1
+    taken.add(out.casefold())
+    return out
+
+
 # ---------------------------------------------------------------------------------------------
 # Figures beyond services/viz/figures.py
 # ---------------------------------------------------------------------------------------------
-
-
-def _eval_row(line: str) -> dict[str, Any] | None:
-    """One row of ``eval.jsonl`` if it is one the evaluator could have written, else None."""
-    try:
-        row = parse_json(line, "an eval.jsonl row", allow_nan=False)
-    except CogexploreError:
-        return None
-
-    def count(value: Any, least: int) -> bool:
-        return is_whole(value) and value >= least
-
-    if not (isinstance(row, dict) and count(row.get("policy_version"), 0) and row["policy_version"] < 2**63
-            and isinstance(row.get("summary"), dict)):
-        return None
-    mean_steps = row["summary"].get("mean_steps")
-    if not (is_finite_number(mean_steps) and mean_steps >= 0):
-        return None
-    if not all(row.get(k) is None or count(row[k], 1) for k in ("episodes_per_start", "max_steps")):
-        return None
-    return row if isinstance(row.get("protocol", "paper"), str) else None
-
-
-def load_eval_log(path: Path) -> list[dict[str, Any]]:
-    """The evaluator service's ``eval.jsonl`` rows, sorted by version; a damaged or forged row (not
-    JSON, NaN, a negative version, a count that is not one) is skipped with a warning."""
-    rows, skipped = [], 0
-    for line in path.read_text(errors="replace").splitlines():
-        if line.strip():
-            row = _eval_row(line)
-            rows += [row] if row is not None else []
-            skipped += row is None
-    if skipped:
-        log.warning("%s: %d row(s) skipped: not an evaluation the evaluator writes", path, skipped)
-    return sorted(rows, key=lambda r: r["policy_version"])
 
 
 @dataclass(frozen=True)
@@ -259,6 +240,8 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
+    from services.viz.figures import plain_text
+
     fig = Figure(figsize=(7.0, 3.6))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
@@ -275,7 +258,7 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     ax.set_ylabel("mean moving steps")
     protocols = sorted({p.protocol for p in points})
     worlds = sorted({p.world or "world not recorded" for p in points})
-    ax.set_title(f"Evaluations during training: {', '.join(worlds)}, {', '.join(protocols)} protocol")
+    ax.set_title(plain_text(f"Evaluations during training: {', '.join(worlds)}, {', '.join(protocols)} protocol"))
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -348,6 +331,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
 
     # -- the models -------------------------------------------------------------------------
     taken: set[str] = set()
+    stems: set[str] = set()
     models: list[ReportModel] = []
     loaded: list[LoadedModel] = []
     run_has_checkpoint = model is not None or resolve_checkpoint(run) is not None
@@ -361,10 +345,12 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     world_name = world or (run_cfg or first_cfg or load_preset("paper")).env.world
     for m in loaded:
         setup = setup_evaluation("greedy", model=m, world=world_name, seed=seed)
-        models.append(ReportModel(_unique(m.label, taken), setup))
+        name = _unique(m.label, taken)
+        models.append(ReportModel(name, setup, _unique_slug(name, stems)))
     for name in baselines:
         setup = _baseline_setup(name, run_cfg, loaded[0] if loaded else None, world_name, seed)
-        models.append(ReportModel(_unique(name, taken), setup))
+        name = _unique(name, taken)
+        models.append(ReportModel(name, setup, _unique_slug(name, stems)))
 
     # -- results: reuse or evaluate ---------------------------------------------------------
     world_obj = load_world(world_name)
@@ -372,6 +358,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     results_dir = out / "results"
     # Ours first, then the evaluator service's (stats/eval/), then anything the user put in the run.
     search = [results_dir, run / "stats" / "eval", run / "stats", run, run / "results"]
+    result_files: set[str] = set()
     for protocol in conditions:
         saved: dict[str, Path] = {}
         for m in models:
@@ -379,6 +366,8 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
             found = find_results(search, want)
             if found is not None:
                 m.results[protocol.name], m.reused_from[protocol.name] = found
+                if found[1].parent == results_dir:  # not to be overwritten by another model's results
+                    result_files.add(found[1].stem.casefold())
                 log.info("%s, %s protocol: reusing %s", m.name, protocol.name, found[1])
                 continue
             log.info("%s, %s protocol: evaluating (%d starts x %d episodes, %d steps at most)", m.name,
@@ -387,8 +376,8 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
                 m.setup.policy_fn, world=world_name, sensor_cfg=m.setup.sensor_cfg, env_cfg=m.setup.env_cfg,
                 episodes_per_start=episodes_per_start, max_steps=max_steps, seed=seed, progress=progress,
                 meta={**m.setup.meta(), "model": m.name}, protocol=protocol)
-            saved[m.name] = save_results(m.results[protocol.name],
-                                         results_dir / f"{slug(m.name)}-{slug(protocol.name)}.json")
+            stem = _unique_slug(f"{m.stem}-{protocol.name}", result_files)
+            saved[m.name] = save_results(m.results[protocol.name], results_dir / f"{stem}.json")
         report.results[protocol.name] = {m.name: m.reused_from.get(protocol.name) or saved[m.name] for m in models}
 
     # -- heatmaps ---------------------------------------------------------------------------
@@ -396,7 +385,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     heatmaps: dict[str, Path] = {}
     for m in models:
         try:
-            heatmaps[m.name] = save_heatmap_png(world_obj, grid, m.results[lead], out / f"heatmap-{slug(m.name)}.png",
+            heatmaps[m.name] = save_heatmap_png(world_obj, grid, m.results[lead], out / f"heatmap-{m.stem}.png",
                                                 title=f"{m.name} on {world_name} ({lead} protocol)")
         except FigureError as exc:
             notes.append(f"No heatmap for {m.name}: {exc}")
@@ -441,6 +430,10 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     scene_rows: list[tuple[str, str]] = []
     receptive: dict[tuple[str, str], Path] = {}
     probe_notes: list[str] = []
+    receptive_files: set[str] = set()
+    scene_names: set[str] = set()
+    # One name per user image, however many share a file stem (a/door.png, b/door.png)
+    user_scenes = [_unique(f"user:{Path(f).stem}", scene_names) for f in probe_files]
     if not greedy:
         notes.append("No Q-value table or receptive fields: there is no checkpoint to probe.")
     for m in greedy:
@@ -454,12 +447,12 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
         for note in (n for p in probes for n in p.notes):
             if note not in probe_notes:
                 probe_notes.append(note)
-        for f in probe_files:
+        for f, scene in zip(probe_files, user_scenes):
             try:
                 depth, file_notes = load_probe_image(f, net.sensor_cfg)
             except ProbeError as exc:
                 raise ReportError(f"--probe {f}: {exc}") from None
-            scenes.append((f"user:{Path(f).stem}", depth, f"user image {f}"))
+            scenes.append((scene, depth, f"user image {f}"))
             probe_notes += [n for n in file_notes if n not in probe_notes]
         for scene, depth, description in scenes:
             if (scene, description) not in scene_rows:
@@ -474,8 +467,8 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
                 if note not in notes:
                     notes.append(note)
             else:
-                path = render_receptive_png(depth, mask, q, action,
-                                            out / "receptive" / f"{slug(m.name)}-{slug(scene)}.png",
+                stem = _unique_slug(f"{m.stem}-{scene}", receptive_files)
+                path = render_receptive_png(depth, mask, q, action, out / "receptive" / f"{stem}.png",
                                             title=f"{scene} / {m.name}")
                 receptive[(scene, m.name)] = path
                 report.figures.append(path)
@@ -483,51 +476,54 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
 
     # -- the document: one list of blocks, written as Markdown and as HTML ----------------------
     def rel(p: Path) -> str:
-        return os.path.relpath(p, out).replace(os.sep, "/")
+        return link_target(os.path.relpath(p, out).replace(os.sep, "/"))
 
-    doc: list[Block] = [Heading(1, f"Report: run `{run.name}`")]
+    doc: list[Block] = [Heading(1, f"Report: run {code_span(run.name)}")]
     free = free_area_m2(grid)
     doc += [Heading(2, "Protocol"), Bullets((
-        (f"World `{world_name}` ({len(starts)} start poses, {free:.1f} m² free), TEST speed table, "
+        (f"World {code_span(world_name)} ({len(starts)} start poses, {free:.1f} m² free), TEST speed table, "
          f"greedy policies (dropout off)."),
         f"{episodes_per_start} episode(s) per start, at most {max_steps} moving steps each; seed {seed}.",
-        *(f"Protocol {c.describe()}." for c in conditions),
+        *(f"Protocol {escape_text(c.describe())}." for c in conditions),
         *((("Jittered starts and sensor noise are drawn from (seed, start, episode) alone: every model meets "
             "the same."),) if not all(c.exact for c in conditions) else ()),
         ("Count = mean moving steps before a collision or the cap; Distance = mean straight-line distance "
          "from the start to the end pose (m); Coverage = mean % of the free area the camera saw.")))]
     model_rows = []
     for m in models:
-        src = f"`{m.model.path}` ({_versions(m.model)})" if m.model is not None else "baseline"
+        src = f"{code_span(m.model.path)} ({_versions(m.model)})" if m.model is not None else "baseline"
         links_ = []
         for c in conditions:
             res = report.results[c.name][m.name]
             how = "reused" if c.name in m.reused_from else "evaluated"
-            links_.append(f"{c.name} {how}: [{res.name}]({rel(res)})")
-        model_rows.append((m.name, m.setup.policy, src, "; ".join(links_)))
+            links_.append(f"{escape_text(c.name)} {how}: [{escape_text(res.name)}]({rel(res)})")
+        model_rows.append((escape_text(m.name), m.setup.policy, src, "; ".join(links_)))
     doc += [Heading(2, "Models"), Table(("Model", "Policy", "Source", "Results"), (False,) * 4, tuple(model_rows))]
     for c in conditions:
-        doc += [Heading(2, f"Table III, {c.name} protocol: moving steps and distance per start point"),
-                Paragraph(f"_{c.describe()}._"),
-                Table.from_markdown(table_markdown({m.name: m.results[c.name] for m in models}))]
+        doc += [Heading(2, f"Table III, {escape_text(c.name)} protocol: moving steps and distance per start point"),
+                Paragraph(f"_{escape_text(c.describe())}._"),
+                Table.from_markdown(table_markdown({escape_text(m.name): m.results[c.name] for m in models}))]
     # Beside the paper's own figures (its protocol: exact starts, no noise; Gazebo, 160 x 120 depth)
     means = {(m.name, c.name): aggregate(m.results[c.name].episodes)["overall"]["mean_steps"]
              for m in models for c in conditions}
-    paper_rows = [(m.name, "this report", *(f"{means[m.name, c.name]:.1f}" for c in conditions), "")
+    paper_rows = [(escape_text(m.name), "this report", *(f"{means[m.name, c.name]:.1f}" for c in conditions), "")
                   for m in models]
     paper_rows += [(f"paper: {name}", "Tai & Liu 2016, Table III", *("" for _ in conditions), f"{v:.1f}")
                    for name, v in [*PAPER_BASELINE_STEPS.items(),
                                    *((f"DRL-{k}", v) for k, v in PAPER_DRL_STEPS.items())]]
-    doc += [Heading(2, "Beside the paper's Table III: mean moving steps of 200"),
+    cap = (f"of {max_steps}" if max_steps == PAPER_MAX_STEPS
+           else f"of {max_steps} here, of {PAPER_MAX_STEPS} in the paper")  # another cap: not one scale
+    doc += [Heading(2, f"Beside the paper's Table III: mean moving steps {cap}"),
             Paragraph("The paper's figures come from its own protocol (exact starts, no sensor noise) in Gazebo; "
                       f"its best, DRL-40000, is {PAPER_DRL_STEPS[40000]}."),
-            Table(("Model", "Source", *(f"{c.name} protocol" for c in conditions), "paper's figure"),
+            Table(("Model", "Source", *(f"{escape_text(c.name)} protocol" for c in conditions), "paper's figure"),
                   (False, False) + (True,) * (len(conditions) + 1), tuple(paper_rows))]
     outcome_rows = []
     for c in conditions:
         for m in models:
             o = aggregate(m.results[c.name].episodes)["overall"]
-            outcome_rows.append((m.name, c.name, str(o["episodes"]), str(o["collisions"]["depth"]),
+            outcome_rows.append((escape_text(m.name), escape_text(c.name), str(o["episodes"]),
+                                 str(o["collisions"]["depth"]),
                                  str(o["collisions"]["contact"]), str(o["reached_cap"]),
                                  f"{o['mean_path_length_m']:.2f}"))
     doc += [Heading(3, "Outcomes"),
@@ -537,7 +533,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     if side_by_side is not None:
         doc.append(Paragraph(f"![heatmaps]({rel(side_by_side)})"))
     if heatmaps:
-        doc.append(Paragraph(" · ".join(f"[{n}]({rel(p)})" for n, p in heatmaps.items())))
+        doc.append(Paragraph(" · ".join(f"[{escape_text(n)}]({rel(p)})" for n, p in heatmaps.items())))
     doc.append(Heading(2, "Fig. 5: training loss"))
     if training is not None:
         doc.append(Paragraph(training_line(training)))
@@ -546,25 +542,29 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
         doc += [Heading(3, "Evaluations during training"), Paragraph(f"![evaluations]({rel(eval_png)})"),
                 Table(("Policy version", "Mean moving steps", "Protocol", "Episodes per start", "Step cap",
                        "Evaluation"), (True, True, False, True, True, False),
-                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", p.protocol, str(p.episodes_per_start or "-"),
+                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", escape_text(p.protocol),
+                             str(p.episodes_per_start or "-"),
                              str(p.max_steps or "-"), "**final** (Table III)" if p.final else "during training")
                             for p in report.eval_curve))]
     doc.append(Heading(2, "Table II: Q-values of the probe scenes"))
     if q_scenes:
-        doc += [Table.from_markdown(q_value_table_markdown(q_scenes)),
-                Table(("Scene", "What it shows"), (False, False), tuple(scene_rows)),
+        q_table = q_value_table_markdown({escape_text(scene): {escape_text(n): q for n, q in qs.items()}
+                                          for scene, qs in q_scenes.items()})
+        doc += [Table.from_markdown(q_table),
+                Table(("Scene", "What it shows"), (False, False),
+                      tuple((escape_text(s), escape_text(d)) for s, d in scene_rows)),
                 Heading(2, "Fig. 7: receptive fields (top 10 % of pool3, purple) and the chosen command")]
         if receptive:
             names = [m.name for m in greedy]
-            doc += [Table(("Scene", *names), (False,) * (len(names) + 1),
-                          tuple((scene, *(f"![{scene} {n}]({rel(receptive[(scene, n)])})"
+            doc += [Table(("Scene", *map(escape_text, names)), (False,) * (len(names) + 1),
+                          tuple((escape_text(scene), *(f"![{escape_text(f'{scene} {n}')}]({rel(receptive[(scene, n)])})"
                                           if (scene, n) in receptive else "-" for n in names))
                                 for scene, _ in scene_rows))]
     else:
         doc.append(Paragraph("_No checkpoint to probe: see the notes below._"))
     all_notes = notes + probe_notes
     if all_notes:
-        doc += [Heading(2, "Notes"), Bullets(tuple(all_notes))]
+        doc += [Heading(2, "Notes"), Bullets(tuple(map(escape_text, all_notes)))]
     report.markdown.write_text(markdown(doc))
     report.html.write_text(html_page(doc, f"Report: run {run.name}", out))
     return report

@@ -43,6 +43,12 @@ class FigureError(CogexploreError):
     """Bad input to a figure or table: empty results, a malformed log, wrong lengths."""
 
 
+def plain_text(text: str) -> str:
+    """``text`` for a matplotlib title or label, shown as written: a model or run named ``a$x$b`` would
+    otherwise be typeset as mathtext, and one named ``a$\\x$`` fail to draw."""
+    return text.replace("$", r"\$")
+
+
 # ---------------------------------------------------------------------------
 # Heatmaps
 # ---------------------------------------------------------------------------
@@ -86,9 +92,10 @@ def trajectory_heatmap(grid: OccupancyGrid, results: EvalResults | Sequence[Epis
 def save_heatmap_png(world: World, grid: OccupancyGrid, results: EvalResults | Sequence[EpisodeResult],
                      out_path: str | Path, title: str | None = None,
                      cell_m: float | None = HEATMAP_CELL_M, dpi: int = 120) -> Path:
-    """One model's trajectory heatmap over the world map (starts numbered from 1)."""
+    """One model's trajectory heatmap over the world map (starts numbered from 1); ``title`` is
+    plain text."""
     return render_map_png(world, grid, out_path, heatmap=trajectory_heatmap(grid, results, cell_m),
-                          title=title, dpi=dpi)
+                          title=None if title is None else plain_text(title), dpi=dpi)
 
 
 def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
@@ -113,7 +120,8 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
     axes = fig.subplots(nrows, ncols, squeeze=False)
     im = None
     for ax, (name, results) in zip(axes.flat, models.items()):
-        im = draw_map(ax, world, grid, heatmap=trajectory_heatmap(grid, results, cell_m), title=name, small=True)
+        im = draw_map(ax, world, grid, heatmap=trajectory_heatmap(grid, results, cell_m), title=plain_text(name),
+                      small=True)
     for ax in list(axes.flat)[n:]:
         ax.set_axis_off()
     fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02, label="normalised visits")
@@ -229,7 +237,7 @@ def save_loss_curve_png(log: Any, out_path: str | Path, smooth_window: int | Non
                         log_y: bool | str = "auto", title: str = "Training loss", dpi: int = 110) -> Path:
     """Loss against learner updates: raw points faint, a trailing moving average bold.
     ``smooth_window`` defaults to 1/50 of the rows (at least 1); ``log_y='auto'`` uses a log
-    axis when all losses are positive and span more than two decades."""
+    axis when all losses are positive and span more than two decades. ``title`` is plain text."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -247,7 +255,7 @@ def save_loss_curve_png(log: Any, out_path: str | Path, smooth_window: int | Non
         ax.set_yscale("log")
     ax.set_xlabel("learner update")
     ax.set_ylabel("loss")
-    ax.set_title(title)
+    ax.set_title(plain_text(title))
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()

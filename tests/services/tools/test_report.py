@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import base64
 import dataclasses
+import html
 import json
 import re
 from html.parser import HTMLParser
 from pathlib import Path
+from urllib.parse import unquote
 
 import numpy as np
 import pytest
@@ -19,11 +21,11 @@ from services.tools.report import (
     EvalPoint,
     build_report,
     eval_curve_points,
-    load_eval_log,
     save_eval_curve_png,
 )
 from shared.config import SensorConfig, load_preset, to_toml
 from shared.evaluation import PROTOCOLS
+from shared.evaluation.eval_log import load_eval_log
 from shared.evaluation.probes import (
     PROBE_DIR,
     PROBE_SCENES,
@@ -334,6 +336,104 @@ def test_a_pipe_in_a_model_name_stays_in_its_cell() -> None:
         Table.from_markdown("| a | b | c |\n|---|---|---|\n| x | y | z | w |")
 
 
+
+@pytest.fixture(scope="module")
+def odd_names(tmp_path_factory) -> tuple[Path, object, list[str]]:
+    """A report on three models of their own weights whose file names slug alike ("a b", "a-b") or hold
+    Markdown's link syntax (and a "$\\x$", which matplotlib's titles read as mathtext and failed to draw
+    after every evaluation had run), two user images of one stem, and a result to reuse from a file of an
+    odd name."""
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.dqn import DQNAgent
+
+    root = tmp_path_factory.mktemp("odd")
+    run = make_run(root / "exp")
+    files = []
+    for i, stem in enumerate(("a b", "a-b", "x](y) [z]\\*_w_*$\\x$")):
+        cfg = small_config()
+        agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=10 + i)
+        agent.update_count = agent.policy_version = 1000
+        saved = CheckpointManager(root / f"c{i}").save(agent, config=cfg.to_dict())
+        files.append(saved.rename(root / f"{stem}.safetensors"))
+    probes = []
+    for d, metres in (("p", 1.5), ("q", 0.5)):
+        (root / d).mkdir()
+        Image.fromarray(np.full((48, 64), int(metres * 1000), np.uint16)).save(root / d / "door.png")
+        probes.append(root / d / "door.png")
+    kw = dict(episodes_per_start=1, max_steps=3, baselines=(), device="cpu", progress=False, protocols=("paper",))
+    first = build_report(run, compare=files[:1], out_dir=root / "first", **kw)
+    (run / "stats").mkdir()  # found there by a later report: a file the user kept under a name of their own
+    (run / "stats" / "my results (1).json").write_bytes(first.results["paper"]["exp@1000"].read_bytes())
+    report = build_report(run, compare=files, probe_files=probes, **kw)
+    return run / "report", report, ["exp@1000", "a b@1000", "a-b@1000", "x](y) [z]\\*_w_*$\\x$@1000"]
+
+
+def test_models_whose_names_slug_alike_keep_their_own_files(odd_names) -> None:
+    # "a b" and "a-b" both wrote results/a-b-1000-paper.json, heatmap-a-b-1000.png and receptive/a-b-1000-*.png:
+    # the second overwrote the first, whose links then showed the other model's results and figures.
+    out, report, names = odd_names
+    paths = report.results["paper"]
+    assert list(paths) == names and len(set(paths.values())) == len(names)
+    for name, path in paths.items():
+        assert load_results(path).meta["model"] == name or path.name == "my results (1).json"
+    assert paths["a b@1000"].name == "a-b-1000-paper.json" and paths["a-b@1000"].name == "a-b-1000-2-paper.json"
+    assert len(set(report.figures)) == len(report.figures)
+    assert {p.name for p in out.glob("heatmap-*.png")} == {"heatmap-exp-1000.png", "heatmap-a-b-1000.png",
+                                                            "heatmap-a-b-1000-2.png", "heatmap-x-y-z-_w_-x-1000.png"}
+    # and two user images of one file stem are two scenes, each with its own row and figures
+    text = report.markdown.read_text()
+    assert "| user:door | exp@1000 |" in text and "| user:door (2) | exp@1000 |" in text
+    assert len(list((out / "receptive").glob("*.png"))) == len(names) * (len(PROBE_SCENES) + 2)
+    assert "| user:door | user image " + str(out.parent.parent / "p" / "door.png") in text
+    assert "| user:door (2) | user image " + str(out.parent.parent / "q" / "door.png") in text
+
+
+def test_markdown_syntax_in_a_name_stays_text(odd_names) -> None:
+    # A model named "x](y" closed its heatmap link early: the link pointed at "y@1000](heatmap-..." and
+    # both report files showed a broken link; "*_w_*" became emphasis; a reused results file named
+    # "my results (1).json" was no link at all.
+    out, report, names = odd_names
+    text = report.markdown.read_text()
+    # a link's or image's target, as CommonMark ends it (a code span's brackets are its text)
+    targets = re.findall(r"(?<!\\)\]\(([^)\s]+)\)", re.sub(r"(`+).+?\1", "", text))
+    assert len(targets) >= len(report.figures) + len(names)
+    for target in targets:
+        assert (out / unquote(target)).is_file(), target
+    assert "[my results (1).json](../stats/my%20results%20%281%29.json)" in text
+    page = PageParts()
+    page.feed(report.html.read_text())
+    assert all((out / unquote(href)).is_file() for href in page.links)
+    models = next(t for t in page.tables if t[0][0] == "Model")
+    assert [row[0] for row in models[1:]] == names
+    assert [row[1] for row in next(t for t in page.tables if t[0][:2] == ["Metric", "Model"])[1:5]] == names
+    # the name as written wherever a table shows it, and as the alt text of its receptive fields
+    assert {c for t in page.tables for row in t for c in row if "x](y" in c and "safetensors" not in c} == {names[-1]}
+    assert [alt for alt, _ in page.images if "x](y" in alt] == \
+        [f"{s} {names[-1]}" for s in [p.name for p in PROBE_SCENES] + ["user:door", "user:door (2)"]]
+
+
+def test_the_means_beside_the_papers_name_their_step_cap(odd_names) -> None:
+    # The heading read "mean moving steps of 200" above means of a 3-step cap.
+    text = odd_names[1].markdown.read_text()
+    assert "## Beside the paper's Table III: mean moving steps of 3 here, of 200 in the paper\n" in text
+
+
+def test_escaped_text_code_spans_and_targets_read_back_as_written(tmp_path: Path) -> None:
+    from services.tools.document import code_span, escape_text, inline_html, link_target
+
+    name = "x](y) [z] a\\b *c* _d_ `e` <i>&amp; ~~f~~ a|b"
+    (tmp_path / "a b (1).png").write_bytes(b"png")
+    doc = [Paragraph(f"[{escape_text(name)}]({link_target('a b (1).png')}) {code_span('p`q``r')}"),
+           Table(("Model", "n"), (False, True), ((escape_text(name), "1"),))]
+    page = PageParts()
+    page.feed(html_page(doc, "t", tmp_path))
+    assert page.links == ["a%20b%20%281%29.png"] and page.tables[0][1] == [name, "1"]
+    assert inline_html(escape_text(name)) == html.escape(name)
+    assert inline_html(code_span("p`q``r")) == "<code>p`q``r</code>"
+    assert inline_html(f"run {code_span('`x')}") == "run <code>`x</code>"
+    assert Table.from_markdown(markdown([doc[1]])) == doc[1]  # a | in a name stays in its cell
+
+
 # -- the evaluation curve -------------------------------------------------------------------------
 
 
@@ -400,7 +500,7 @@ def test_an_eval_log_row_the_evaluator_could_not_have_written_is_skipped(tmp_pat
              json.dumps(good).replace("42.5", "1e999"), "[" * 100_000, '{"policy_ver']
     path = tmp_path / "eval.jsonl"
     path.write_text("\n".join(lines) + "\n")
-    with caplog.at_level("WARNING", logger="cogexplore.report"):
+    with caplog.at_level("WARNING", logger="cogexplore.eval_log"):
         assert load_eval_log(path) == [good]
     assert "12 row(s) skipped" in caplog.text
 

@@ -91,6 +91,21 @@ def test_heatmap_pngs(tmp_path, world, grid) -> None:
         save_heatmaps_side_by_side(world, grid, {}, tmp_path / "none.png")
 
 
+def test_titles_holding_dollar_signs_draw_as_written(tmp_path, world, grid) -> None:
+    # A run or model named "a$\\x$" (a file name may hold anything) made matplotlib parse its title as
+    # mathtext: a ValueError at the end of a whole report's evaluations (and "a$x$b" set in italics).
+    from services.viz.figures import plain_text
+
+    res = [episode(0, 0, [(-1.2 + 0.1 * i, -1.2 + 0.1 * i) for i in range(20)])]
+    odd = "run$\\x$@1000"
+    assert plain_text(odd) == "run\\$\\x\\$@1000"
+    for png in (save_heatmap_png(world, grid, res, tmp_path / "one.png", title=odd, dpi=30),
+                save_heatmaps_side_by_side(world, grid, {odd: res, "b": res}, tmp_path / "side.png", dpi=30),
+                save_loss_curve_png([{"update": 0, "loss": 1.0}, {"update": 1, "loss": 0.5}], tmp_path / "loss.png",
+                                    title=f"Training loss ({odd})", dpi=30)):
+        assert png.read_bytes()[:8] == PNG_MAGIC
+
+
 # -- loss log --------------------------------------------------------------------------------
 
 
