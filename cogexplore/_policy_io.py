@@ -50,6 +50,9 @@ def metres(depth_m: Any) -> np.ndarray:
         return depth_from_mm(depth.astype(np.uint16))
     if not np.issubdtype(depth.dtype, np.floating):
         raise PolicyError(f"depth_m must be float metres (or uint16 millimetres), got {depth.dtype}")
+    if np.isneginf(depth).any():  # not a faulty value: an obstacle at the lens, no image to decide from
+        raise PolicyError("depth_m has -inf pixels, REP 117's returns too near to measure: an obstacle nearer "
+                          "than the camera sees, where no command was taught; stop the robot (cogexplore drive does)")
     if (depth < 0).any():
         raise PolicyError("depth_m has negative depths; expected metres >= 0 (0, NaN or inf: no return)")
     return depth
@@ -108,8 +111,8 @@ class CameraPolicy:
         0 = no return, as the simulated camera would have taken it.
 
         ``depth_m``: (H, W) (or (H, W, 1)) float metres at any size with the network's aspect
-        ratio, i.e. its field of view; NaN, infinity, 0 and masked pixels (``numpy.ma``) are no return;
-        uint16 is millimetres.
+        ratio, i.e. its field of view; NaN, +infinity, 0 and masked pixels (``numpy.ma``) are no return
+        (-infinity, too near to measure, is refused); uint16 is millimetres.
         Raises PolicyError for a wrong shape, an empty array or another aspect ratio.
         """
         return camera_observation(depth_m, self.sensor)

@@ -124,6 +124,7 @@ def test_the_previous_command_is_remembered_until_reset(policy: cogexplore.Polic
     (np.ones((480, 848)), "848 x 480 pixels; the network's camera is 40 x 30"),
     (np.ones((30, 40), dtype=np.int64), "float metres"),
     (-np.ones((30, 40)), "negative"),
+    (np.where(np.arange(40) == 3, -np.inf, np.ones((30, 40))), "too near to measure.*stop the robot"),
     ([[1.0, 2.0], [3.0]], "array of depths"),
 ])
 def test_bad_images_are_clear_errors(policy: cogexplore.Policy, depth, message: str) -> None:
