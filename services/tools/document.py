@@ -2,7 +2,8 @@
 
 Blocks hold their text in the small Markdown subset the tools write (```code```, ``**bold**``,
 ``_emphasis_``, ``[text](href)``, ``![alt](src)``, and ``\\`` before a punctuation mark meant
-literally); ``escape_text``, ``code_span`` and ``link_target`` put names and paths in.
+literally); ``shared.evaluation.results.escape_text``, ``code_span`` and ``link_target`` put names
+and paths in.
 ``markdown`` writes the blocks as they are, ``html`` translates them, so both files come from the
 same content. Tables that other modules produce as Markdown come in through ``Table.from_markdown``.
 """
@@ -33,8 +34,6 @@ _INLINE = re.compile(_ESCAPED
                      + rf"|\[(?P<text>{_BRACKETED}+)\]\((?P<href>[^)\s]+)\)"
                      + r"|(?<!\w)_(?P<em>(?:\\[!-/:-@\[-`{-~]|[^_\\])+?)_(?!\w)")
 _IMAGE = re.compile(rf"!\[{_BRACKETED}*\]\(([^)\s]+)\)")
-# What starts markup in Markdown text (GFM's too); a table cell's | is markdown_cell's to escape.
-_SPECIAL = re.compile(r"([\\`*_\[\]<>&~])")
 _STYLE = """body{font-family:system-ui,sans-serif;max-width:72rem;margin:2rem auto;padding:0 1rem;line-height:1.45}
 table{border-collapse:collapse;margin:0.8rem 0}th,td{border:1px solid #ccc;padding:0.25rem 0.6rem}
 th{background:#f3f3f3}td.num{text-align:right;font-variant-numeric:tabular-nums}
@@ -91,12 +90,6 @@ Block = Heading | Paragraph | Bullets | Table
 
 
 # -- Markdown ---------------------------------------------------------------------------------
-
-
-def escape_text(value: object) -> str:
-    """``value`` as literal Markdown text: a name holding ``]``, ``*`` or ``_`` stays the name in a
-    link, a table or a paragraph instead of becoming (or breaking) markup."""
-    return _SPECIAL.sub(r"\\\1", str(value))
 
 
 def code_span(value: object) -> str:

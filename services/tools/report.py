@@ -44,7 +44,6 @@ from services.tools.document import (
     Paragraph,
     Table,
     code_span,
-    escape_text,
     html_page,
     link_target,
     markdown,
@@ -67,6 +66,7 @@ from shared.evaluation.results import (
     EvalResults,
     ResultsError,
     aggregate,
+    escape_text,
     load_results,
     save_results,
     slug,
@@ -502,7 +502,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     for c in conditions:
         doc += [Heading(2, f"Table III, {escape_text(c.name)} protocol: moving steps and distance per start point"),
                 Paragraph(f"_{escape_text(c.describe())}._"),
-                Table.from_markdown(table_markdown({escape_text(m.name): m.results[c.name] for m in models}))]
+                Table.from_markdown(table_markdown({m.name: m.results[c.name] for m in models}))]
     # Beside the paper's own figures (its protocol: exact starts, no noise; Gazebo, 160 x 120 depth)
     means = {(m.name, c.name): aggregate(m.results[c.name].episodes)["overall"]["mean_steps"]
              for m in models for c in conditions}
@@ -548,9 +548,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
                             for p in report.eval_curve))]
     doc.append(Heading(2, "Table II: Q-values of the probe scenes"))
     if q_scenes:
-        q_table = q_value_table_markdown({escape_text(scene): {escape_text(n): q for n, q in qs.items()}
-                                          for scene, qs in q_scenes.items()})
-        doc += [Table.from_markdown(q_table),
+        doc += [Table.from_markdown(q_value_table_markdown(q_scenes)),
                 Table(("Scene", "What it shows"), (False, False),
                       tuple((escape_text(s), escape_text(d)) for s, d in scene_rows)),
                 Heading(2, "Fig. 7: receptive fields (top 10 % of pool3, purple) and the chosen command")]

@@ -20,7 +20,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from shared.errors import CogexploreError
-from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of, markdown_cell
+from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of, escape_text, markdown_cell
 from shared.files import save_png
 from shared.jsontext import parse_json
 from shared.learning.stats import read_csv_records
@@ -287,6 +287,6 @@ def q_value_table_markdown(scenes: Mapping[str, Mapping[str, Sequence[float] | n
                                   f"values, got {list(np.asarray(values).reshape(-1))}")
             best = int(np.argmax(q))
             cells = [f"**{v:.{decimals}f}**" if i == best else f"{v:.{decimals}f}" for i, v in enumerate(q)]
-            lines.append(f"| {markdown_cell(scene) if row == 0 else ''} | {markdown_cell(model)} | "
-                         + " | ".join(cells) + " |")
+            name = markdown_cell(escape_text(scene)) if row == 0 else ""
+            lines.append(f"| {name} | {markdown_cell(escape_text(model))} | " + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"

@@ -357,6 +357,16 @@ def episodes_of(results: EvalResults | Mapping[str, Any] | Sequence[EpisodeResul
     return tuple(results)
 
 
+_MARKDOWN_SPECIAL = re.compile(r"([\\`*_\[\]<>&~])")
+
+
+def escape_text(value: object) -> str:
+    """``value`` as literal Markdown text: a name holding ``]``, ``*``, ``_`` or ``<`` stays the name
+    in a link, a table or a paragraph instead of becoming (or breaking) markup or an HTML tag
+    (GFM's too; a table cell's ``|`` is :func:`markdown_cell`'s to escape)."""
+    return _MARKDOWN_SPECIAL.sub(r"\\\1", str(value))
+
+
 def markdown_cell(text: str) -> str:
     """``text`` as a Markdown pipe table's cell: its ``|`` escaped, as GFM reads it (in code spans
     too), so a model named ``a|b`` stays one cell."""
@@ -394,7 +404,8 @@ def table_markdown(models: Mapping[str, EvalResults | Mapping[str, Any] | Sequen
                     text = f"{v:.{decimals}f}"
                     bold = len(grid) > 1 and b is not None and f"{b:.{decimals}f}" == text
                     cells.append(f"**{text}**" if bold else text)
-            lines.append(f"| {label if row == 0 else ''} | {markdown_cell(name)} | " + " | ".join(cells) + " |")
+            lines.append(f"| {label if row == 0 else ''} | {markdown_cell(escape_text(name))} | "
+                         + " | ".join(cells) + " |")
     return "\n".join(lines) + "\n"
 
 

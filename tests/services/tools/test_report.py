@@ -419,7 +419,8 @@ def test_the_means_beside_the_papers_name_their_step_cap(odd_names) -> None:
 
 
 def test_escaped_text_code_spans_and_targets_read_back_as_written(tmp_path: Path) -> None:
-    from services.tools.document import code_span, escape_text, inline_html, link_target
+    from services.tools.document import code_span, inline_html, link_target
+    from shared.evaluation.results import escape_text
 
     name = "x](y) [z] a\\b *c* _d_ `e` <i>&amp; ~~f~~ a|b"
     (tmp_path / "a b (1).png").write_bytes(b"png")

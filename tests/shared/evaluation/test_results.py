@@ -225,6 +225,13 @@ def test_table_of_one_model_has_no_bold() -> None:
     assert "**" not in table_markdown({"only": EPISODES})
 
 
+def test_a_name_in_a_table_stays_the_name_as_written() -> None:
+    # `cogexplore.evaluate(lambda d: 2).table()` named its row <lambda>, which GitHub took for an
+    # HTML tag and hid; a checkpoint named run_*best*_a|b became emphasis and two cells.
+    table = table_markdown({"<lambda>": EPISODES, "run_*best*_a|b": EPISODES})
+    assert "| \\<lambda\\> |" in table and "| run\\_\\*best\\*\\_a\\|b |" in table
+
+
 # -- the protocol on the real environment ----------------------------------------------------
 
 
