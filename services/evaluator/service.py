@@ -7,14 +7,18 @@ On start it follows the ``weights`` stream, announces itself (liveliness ``alive
 and asks the learner's queryable for its newest weights (``services.bus.follower.WeightFollower``,
 as the actors do). Zenoh threads only park the newest message; the main loop takes it and
 evaluates it when it is due: the first weights it sees, then whenever the policy version (the
-learner's update count at publication) enters a new multiple of ``--every-updates``. A message for another architecture (fingerprint)
-or one that does not decode is counted by cause and dropped; the service carries on.
+learner's update count at publication) enters a new multiple of ``--every-updates``; weights whose
+evaluation the run's ``eval.jsonl`` holds already (the same digest, protocol, episodes and seed: the
+checkpoint a restarted learner resumed from and publishes first) are not evaluated twice. A message
+for another architecture (fingerprint) or one that does not decode is counted by cause and dropped;
+the service carries on.
 
 Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 10 per start), under
 ``--protocol`` (default ``robust``: jittered starts and sensor noise; ``paper``: exact starts)
 
 - publishes an ``EvalResult`` on ``stats/eval/<id>``;
-- appends one JSON line to ``runs/<run>/stats/eval.jsonl`` (summary, per start, rejects);
+- appends one JSON line to ``runs/<run>/stats/eval.jsonl`` (summary, per start, rejects, the
+  weights' digest; ``shared.evaluation.eval_log`` reads it);
 - saves the results JSON to ``runs/<run>/stats/eval/eval-<version:06d>.json`` (the report
   reuses it when the run's checkpoint holds the same weights);
 - writes a Rerun recording to ``runs/<run>/recordings/eval-<version:06d>.rrd`` (every
