@@ -115,7 +115,7 @@ class LatestSender:
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._pending is not None or self._closed)
-                if self._closed:
+                if self._pending is None:  # closed, and all offered was published
                     return
                 payload, self._pending = self._pending, None
             try:
@@ -124,6 +124,8 @@ class LatestSender:
                 log.exception("publishing weights failed")
 
     def close(self) -> None:
+        """Publish the newest offer if it is still pending (the learner's final weights), then stop
+        the thread; waits 5 s at most for a put in progress."""
         with self._cond:
             self._closed = True
             self._cond.notify()
@@ -142,8 +144,9 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     epoch = new_epoch()  # this process: its word replaces a quiet earlier learner's, whatever their update
     core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
-    if resume_from(checkpoints, core):
-        rewind(paths.stats, LearnerRow, core.updates)  # its updates after the checkpoint come again
+    resume_from(checkpoints, core)
+    # its updates after the checkpoint come again; with none (a learner killed before its first), all do
+    rewind(paths.stats, LearnerRow, core.updates)
     config_dict = cfg.to_dict()
 
     def save_checkpoint() -> None:
@@ -269,8 +272,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         publish_stats(time.monotonic())
         sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
         save_checkpoint()
-        time.sleep(0.2)  # let the sender thread hand the final weights to Zenoh
-        sender.close()
+        sender.close()  # after it has put the final weights, even behind a slow put of earlier ones
         actors.close()
         core.close()
     return {"updates": core.updates, "transitions": core.received, "rejected": rejects.total,

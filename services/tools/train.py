@@ -121,9 +121,9 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resumed = resume_from(checkpoints, core)
     save_config(cfg, paths)  # only now: a config that cannot resume the run (or run here) must not replace its own
-    if resumed:
-        rewind(paths.stats, LearnerRow, core.updates)
-        rewind(paths.stats, EpisodeRow, core.updates)
+    # its updates after the checkpoint come again; with none (a trainer killed before its first), all do
+    rewind(paths.stats, LearnerRow, core.updates)
+    rewind(paths.stats, EpisodeRow, core.updates)
     env = ExploreEnv(cfg.env, cfg.sensor)
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2,
                         label_prob=cfg.explore.expert_label_prob, safe_prob=cfg.explore.safe_label_prob)

@@ -10,9 +10,10 @@ update k + 1, each on one thread, so a stage that loses its core for a moment sl
 
 The price, stated: update k + 1's targets come from theta as it was *before* update k (one update
 older than in :meth:`DQNAgent.update`), a delay of the kind distributed DQN learners accept
-(Ape-X, R2D2); theta^- is the same target network either way. The worker reads its own copies of
-theta and theta^-, refreshed from the agent while it is idle, so no optimiser step ever writes
-under a forward pass. Every random draw (mirror flips, pixel shifts, dropout) stays on the calling
+(Ape-X, R2D2); theta^- is the same target network, except when update k syncs it: update k + 1
+still uses the one before (one update in every ``dqn.target_sync_every``). The worker reads its
+own copies of theta and theta^-, refreshed from the agent while it is idle, so no optimiser step
+ever writes under a forward pass. Every random draw (mirror flips, pixel shifts, dropout) stays on the calling
 thread, so a pipelined run repeats exactly whatever the threads' timing. The single-process trainer does not
 pipeline: there the environment already fills the second core between updates.
 """

@@ -168,3 +168,24 @@ def test_train_on_an_existing_run_keeps_its_recipe_unless_told_another(tmp_path:
     assert main(["train", "--run", "r", "--preset", "smoke", "--updates", "40", *common]) == 2
     assert "cannot resume" in capsys.readouterr().err and run.config.read_bytes() == saved
     assert main(["train", "--run", "r", "--updates", "40", *common]) == 0
+
+
+def test_a_trainer_restarted_without_a_checkpoint_does_not_log_its_updates_going_back(tmp_path: Path):
+    # Killed before its first checkpoint, a run starts again at update 0: its rows were trimmed only
+    # after a resume from a checkpoint, so learner.csv and episodes.csv went back to 0 mid-file.
+    import shutil
+
+    from services.cli import main
+    from services.runs import RunPaths
+    from shared.learning.stats import EpisodeRow, LearnerRow, read_csv_records
+
+    common = ["--runs-dir", str(tmp_path), "--quiet", "--run", "r", "--preset", "tiny",
+              "--set", "train.warmup_transitions=64", "--set", "train.log_every=5"]
+    assert main(["train", "--updates", "30", *common]) == 0
+    run = RunPaths(tmp_path / "r")
+    assert max(int(r["update"]) for r in read_csv_records(run.stats / LearnerRow.FILE)) > 10
+    shutil.rmtree(run.checkpoints)  # as if it had died before writing one
+    assert main(["train", "--updates", "10", *common]) == 0
+    for row_type in (LearnerRow, EpisodeRow):
+        updates = [int(r["update"]) for r in read_csv_records(run.stats / row_type.FILE)]
+        assert updates == sorted(updates) and max(updates) <= 10, (row_type.FILE, updates)
