@@ -173,7 +173,8 @@ def test_a_role_outside_its_part_steers_nothing(system: System):
             time.sleep(0.5)
     after = system.wait(lambda st: st.updates > before.updates + 5, 120, "more updates")
     assert received(after, "outsider") == 0
-    assert all(after.extra.get(f"weight_lag.{a}", 0.0) >= 0 for a in ACTORS), after.extra
+    # no actor took the forged weights (numbered 10^6, they would put it ahead of the learner): a lag >= 0 each
+    assert all(after.extra.get(f"weight_lag.{a}", -1.0) >= 0 for a in ACTORS), after.extra
     assert all(system.alive().values()), system.alive()
 
 
@@ -255,7 +256,7 @@ def test_forged_credit_is_ignored_and_a_restarted_actor_starts_from_nothing(syst
     for _ in range(10):
         assert within_credit(system.wait(lambda _: True, 10, "stats"))
         time.sleep(0.5)
-    assert st.extra.get("weight_lag.actor-1", 0.0) >= 0
+    assert st.extra.get("weight_lag.actor-1", -1.0) >= 0, st.extra  # on the learner's weights, not ahead of them
 
 
 def test_a_killed_learner_resumes_and_every_actor_is_on_its_weights_within_10_s(system: System):
@@ -285,11 +286,12 @@ def test_a_router_restart_is_rejoined(system: System):
     system.start("router", ["router", "--listen", system.endpoint, "--config", str(system.files.router_config)])
     with system.lock:
         system.stats = None
-    back = system.wait(lambda st: st.updates > before.updates + 5 and all(received(st, a) > received(before, a)
-                                                                        for a in ACTORS), 180,
-                       "updates and transitions after the router came back")
+    system.wait(lambda st: st.updates > before.updates + 5 and all(received(st, a) > received(before, a)
+                                                                for a in ACTORS), 180,
+                "updates and transitions after the router came back")
     assert all(system.alive().values()), system.alive()
-    assert back.transitions_rejected >= 0
+    # every actor's liveliness token is declared again through the new router
+    system.wait(lambda st: st.extra.get("actors_alive", 0) == len(ACTORS), 120, "every actor alive again")
 
 
 def test_kills_during_checkpoint_writes_leave_a_checkpoint_that_loads(tmp_path: Path):
@@ -306,6 +308,7 @@ def test_kills_during_checkpoint_writes_leave_a_checkpoint_that_loads(tmp_path: 
         deadline = time.monotonic() + 120
         while (not latest.exists() or latest.read_text() == last) and time.monotonic() < deadline:
             time.sleep(0.05)  # this process writes checkpoints now: one per update
+        assert latest.exists() and latest.read_text() != last, f"kill {kill}: no new checkpoint within 120 s"
         time.sleep(rng.uniform(0.0, 0.5))
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)

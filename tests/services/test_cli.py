@@ -162,9 +162,13 @@ def _parsers(parser, path=()):
 def test_every_option_of_every_command_says_what_it_does() -> None:
     from services.cli import build_parser
 
-    silent = [f"cogexplore {' '.join(path)} {action.option_strings[0]}"
-              for path, parser in _parsers(build_parser()) for action in parser._actions
-              if action.option_strings and not action.help]
+    parsers = list(_parsers(build_parser()))
+    options = [(path, action) for path, parser in parsers for action in parser._actions if action.option_strings]
+    # every command was walked, its subcommands too: the check below is not over an empty list
+    commands = {" ".join(path) for path, _ in parsers}
+    assert {"up", "actor", "learner", "evaluator", "evaluate", "train", "worlds demo", "model export"} <= commands
+    assert len(options) >= 200, len(options)
+    silent = [f"cogexplore {' '.join(path)} {action.option_strings[0]}" for path, action in options if not action.help]
     assert not silent, silent
 
 

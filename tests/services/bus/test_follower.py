@@ -75,8 +75,8 @@ def test_take_waits_for_weights_that_arrive_late():
     follower = follower_for(net)
     threading.Timer(0.2, follower.offer, args=(to_message(net, 1),)).start()
     started = time.monotonic()
-    assert follower.take(timeout_s=5.0).policy_version == 1
-    assert time.monotonic() - started < 4.0
+    assert follower.take(timeout_s=60.0).policy_version == 1
+    assert time.monotonic() - started < 30.0  # woken by the offer, not by its timeout
 
 
 def test_a_follower_gets_the_learners_newest_weights_through_a_real_router():
@@ -110,7 +110,7 @@ def test_leaving_following_closes_the_session_and_ends_the_query_thread_even_mid
                 assert [t for t in threading.enumerate() if t.name == "weights-query"]  # waiting for an answer
                 follower.fetch_latest(actor, keys, 60.0, background=True)  # a second, as on a learner's return
                 started = time.monotonic()
-            assert time.monotonic() - started < 5.0  # not the 60 s query timeout
+            assert time.monotonic() - started < 30.0  # not the 60 s query timeout
             assert actor.is_closed()
             assert not [t for t in threading.enumerate() if t.name == "weights-query"]
         held.clear()
@@ -263,19 +263,24 @@ def test_the_pulse_travels_with_the_followers_own_subscription_through_a_real_ro
             open_session(ZenohSettings(connect=(endpoint,)), wait_s=10) as actor:
         weights = declare_reliable_publisher(learner, keys.weights)
         with follower.following(actor, keys, query_timeout_s=1.0, on_flow=lambda m, k: gate_saw.append(m.learner_epoch)):
-            deadline = time.monotonic() + 10
-            while follower.take() is None and time.monotonic() < deadline:  # until the route is up
+            deadline = time.monotonic() + 30
+            while (first := follower.take()) is None and time.monotonic() < deadline:  # until the route is up
                 weights.put(to_message(net, 1, learner_epoch=learner_epoch).encode())
                 time.sleep(0.1)
+            assert first is not None and first.version == (learner_epoch, 1), "no route to the follower"
             for _ in range(20):  # 2 s of flow control only: twice the quiet time without weights
                 learner.put(keys.flow, flow_of(learner_epoch).encode())
                 time.sleep(0.1)
+            learner.put(keys.flow, flow_of(learner_epoch).encode())
             weights.put(to_message(net, 0, learner_epoch=forged).encode())
-            time.sleep(0.3)
-            assert follower.take() is None and gate_saw and set(gate_saw) == {learner_epoch}
+            # the learner's next weights, on the same publisher: they arrive after the forged ones, which
+            # by then have been offered and, the learner alive by its pulse alone, ignored
+            weights.put(to_message(net, 3, learner_epoch=learner_epoch).encode())
+            assert follower.take(timeout_s=30.0).version == (learner_epoch, 3)
+            assert gate_saw and set(gate_saw) == {learner_epoch}
             time.sleep(1.2)  # the learner quiet on both streams now: another epoch is followed
             weights.put(to_message(net, 2, learner_epoch=forged).encode())
-            assert follower.take(timeout_s=2.0).learner_epoch == forged
+            assert follower.take(timeout_s=30.0).learner_epoch == forged
 
 
 def test_weights_numbered_ahead_of_their_learners_pulse_never_hold_its_real_weights_off():

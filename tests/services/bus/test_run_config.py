@@ -4,6 +4,7 @@ checked against it with one; and one default preset for ``up`` and the services.
 from __future__ import annotations
 
 import argparse
+import logging
 import threading
 import time
 from collections.abc import Iterator
@@ -19,6 +20,7 @@ from services.bus.session import (
     free_tcp_port,
     open_router,
     open_session,
+    query_replies,
     serve_latest,
 )
 from services.evaluator.options import add_evaluator_arguments
@@ -48,6 +50,19 @@ def learner(router: str) -> Iterator[None]:
         queryable = serve_latest(session, KEYS.config, lambda: payload)  # noqa: F841
         time.sleep(0.2)  # the queryable reaches the router
         yield
+
+
+def wait_for_answers(session, count: int, timeout_s: float = 30.0) -> None:  # type: ignore[no-untyped-def]
+    """Until a get on the config key has ``count`` answers (every queryable has reached the router)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        oversize: list[int] = []
+        got = len(list(query_replies(session, KEYS.config, RunConfigMessage.MAX_BYTES, timeout_s=5.0,
+                                     oversize=oversize.append))) + len(oversize)
+        if got >= count:
+            return
+        assert time.monotonic() < deadline, f"{got} of {count} answers on {KEYS.config}"
+        time.sleep(0.05)
 
 
 def parse(add, argv: list[str]) -> argparse.Namespace:
@@ -81,7 +96,7 @@ def test_without_a_learner_the_wait_is_bounded(router: str) -> None:
     assert time.monotonic() - started < 5.0
 
 
-def test_a_named_preset_is_checked_once_a_learner_answers(router: str, tmp_path: Path) -> None:
+def test_a_named_preset_is_checked_once_a_learner_answers(router: str, tmp_path: Path, caplog) -> None:
     settings = ZenohSettings(connect=(router,))
     cfg, check = join_run_config(actor_args(router, tmp_path, "--preset", "paper"), RunPaths(tmp_path / RUN), settings,
                                  "this actor")
@@ -100,10 +115,13 @@ def test_a_named_preset_is_checked_once_a_learner_answers(router: str, tmp_path:
     # the same preset as the learner's passes, and the process is not stopped
     same = RunConfigCheck(KEYS, load_preset("smoke").with_overrides({"env.world": "corridor"}), "this actor")
     stop = threading.Event()
-    with open_session(settings) as session:
+    with open_session(settings) as session, caplog.at_level(logging.INFO, logger="cogexplore.config"):
         queryable = serve_latest(session, KEYS.config, lambda: payload)  # noqa: F841
         same.start(settings, stop)
-        time.sleep(1.5)
+        deadline = time.monotonic() + 60  # the check has had the learner's answer and found it the same
+        while "the configuration matches the run's (learner 'learner' of run 'cfg')" not in caplog.text:
+            assert time.monotonic() < deadline and not stop.is_set(), caplog.text
+            time.sleep(0.05)
         assert same.finish() is None and not stop.is_set()
 
 
@@ -122,11 +140,11 @@ def test_an_answer_beside_the_learners_neither_stops_a_process_nor_is_taken_on_t
         # twenty unreadable answers (the first sixteen replies were all that was read) and an oversized one
         for reply in [b"\x00garbage"] * 20 + [bytes(RunConfigMessage.MAX_BYTES + 1)]:
             queryables.append(serve_latest(outsider, KEYS.config, lambda reply=reply: reply))
-        time.sleep(0.3)  # the queryables reach the router
+        wait_for_answers(actor, len(queryables))  # the queryables reach the router
         for _ in range(3):
             assert ask_run_config(actor, KEYS).run_config == load_preset("smoke")
         queryables.append(serve_latest(outsider, KEYS.config, lambda: forged))
-        time.sleep(0.3)
+        wait_for_answers(actor, len(queryables))
         with pytest.raises(ConfigError, match="several answers on cogexplore/cfg/config that differ"):
             ask_run_config(actor, KEYS)
         for queryable in queryables:

@@ -86,6 +86,12 @@ def wait_until(predicate, timeout_s: float = 5.0) -> bool:  # type: ignore[no-un
     return predicate()
 
 
+def subscribed(session: zenoh.Session, key_expr: str):  # type: ignore[no-untyped-def]
+    """A predicate: some subscriber on ``key_expr`` is known to ``session`` (a put from it now reaches it)."""
+    probe = session.declare_publisher(key_expr)
+    return lambda: probe.matching_status.matching
+
+
 # --- settings ---------------------------------------------------------------------------------
 
 def test_settings_from_env() -> None:
@@ -312,7 +318,7 @@ def test_get_on_the_weights_queryable_returns_the_latest(router: str) -> None:
         stream: list[int] = []
         subscribe_messages(actor, KEYS.weights, WeightsMessage,
                            lambda msg, _key: stream.append(msg.policy_version), RejectCounter())
-        time.sleep(0.1)
+        assert wait_until(subscribed(learner, KEYS.weights), 30.0), "the subscription never reached the router"
         put_reliable(learner, KEYS.weights, weights(3).encode())
         assert wait_until(lambda: stream == [3])
         queryable.undeclare()
@@ -363,7 +369,7 @@ def test_router_process_serves_clients_and_stops_on_sigterm() -> None:
         got: list[bytes] = []
         with client(endpoint) as a, client(endpoint) as b:
             a.declare_subscriber(KEYS.weights, lambda s: got.append(s.payload.to_bytes()))
-            time.sleep(0.1)
+            assert wait_until(subscribed(b, KEYS.weights), 30.0), "the subscription never reached the router"
             put_reliable(b, KEYS.weights, b"ping")
             assert wait_until(lambda: got == [b"ping"])
         proc.send_signal(signal.SIGTERM)

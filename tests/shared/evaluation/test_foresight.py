@@ -41,9 +41,12 @@ def test_the_probe_only_observes_and_finds_the_last_safe_state_before_a_head_on_
     out = probe.summary(collided)
     assert out["collisions"] == sum(collided)
     # driving straight at a wall: turning was still safe some decisions before the wall, not at the end
+    found = 0
     for flags, hit in zip(probe.episodes, collided):
         if hit and any(flags):
             assert not flags[-1] and flags[np.flatnonzero(flags)[-1]]
+            found += 1
+    assert found >= 1, "no collision had a safe state before it: the check above never ran"
     with pytest.raises(ValueError, match="horizon"):
         ForesightProbe(straight, SENSOR, EnvConfig(), horizon=99)
 

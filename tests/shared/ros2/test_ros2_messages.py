@@ -202,7 +202,7 @@ def test_rejects_are_counted_like_every_wire_message() -> None:
     assert counter.counts == {"garbage": 1, "encoding": 1}
     assert set(CAUSES) == {"garbage", "truncated", "encoding", "shape", "non_finite", "oversize"}
     assert Ros2MessageError("too_small", "a receiver's own cause").cause == "too_small"
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="lowercase identifier, got 'Not A Cause'"):
         Ros2MessageError("Not A Cause")
 
 

@@ -92,7 +92,9 @@ def test_body_contact_is_a_collision_even_when_unseen():
         causes.append(info["collision_cause"])
         if term:
             break
-    assert "contact" in causes
+    # the touch ends the episode as a collision, by contact: the depth image never came within 0.01 m
+    assert term and causes[-1] == "contact", causes
+    assert info["min_depth_m"] > 0.01, info
 
 
 def test_step_cap_truncates_not_terminates():

@@ -31,7 +31,7 @@ def test_occupancy_grid_marks_a_known_box():
     assert maps.free_area_m2(grid) == pytest.approx(16.0 - box_area, abs=0.1)
     assert grid.free_area_m2 == maps.free_area_m2(grid)
     assert maps.occupancy_grid(_one_box_world(), resolution_m=0.05) is grid  # cached
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="read-only"):
         grid.occupied[0, 0] = True  # cached grids are read-only
 
 
@@ -100,9 +100,9 @@ def test_visit_counts_and_normalised_heatmap():
     assert heat.max() == 1.0 and heat[4, 4] == 0.5 and heat.min() == 0.0
     assert maps.normalize_heatmap(np.zeros((3, 3))).max() == 0.0
     assert maps.visit_counts(grid, np.zeros((0, 2))).sum() == 0
-    with pytest.raises(ValueError):
+    with pytest.raises(maps.MapError, match="finite and non-negative"):
         maps.normalize_heatmap(np.array([[-1.0]]))
-    with pytest.raises(ValueError):
+    with pytest.raises(maps.MapError, match=r"xy must be \(N, 2\) points, got shape \(3,\)"):
         maps.visit_counts(grid, np.array([1.0, 2.0, 3.0]))
 
 

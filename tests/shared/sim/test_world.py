@@ -3,6 +3,7 @@
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from shared.config import EnvConfig
@@ -433,8 +434,13 @@ def test_a_world_built_with_lists_still_makes_an_env():
 
     box = load_world("box-room")
     world = dataclasses.replace(box, starts=list(box.starts), extent=list(box.extent))
-    env = ExploreEnv(world=world, start_index=0)
+    env, same = ExploreEnv(world=world, start_index=0), ExploreEnv(world=box, start_index=0)
     try:
-        assert env.reset(seed=0)[1]["pose"] is not None
+        # the same env as the tuple-built world's: the same start pose and the same first image
+        depth, info = env.reset(seed=0)
+        want_depth, want_info = same.reset(seed=0)
+        assert np.allclose(info["pose"], want_info["pose"]) and np.array_equal(depth, want_depth)
+        assert np.allclose(info["pose"][:2], (box.starts[0].x, box.starts[0].y), atol=0.5), info["pose"]
     finally:
         env.close()
+        same.close()

@@ -133,7 +133,7 @@ def test_batch_layout_carries_each_frame_once() -> None:
     for i in range(4):
         assert np.array_equal(batch.next_depth(i), batch.depth_mm[i + 1])
     assert np.array_equal(batch.next_depth(4), batch.next_depth_mm)
-    with pytest.raises(IndexError):
+    with pytest.raises(IndexError, match="transition 5 of a batch of 5"):
         batch.next_depth(5)
     ended = make_batch(steps=3, truncated=True)
     assert ended.truncated_flags().tolist() == [False, False, True]
@@ -196,7 +196,7 @@ def test_shape_fingerprint_is_stable_and_sensitive() -> None:
     assert fp != shape_fingerprint({"b.weight": (4, 3), "a.bias": (4,)})
     assert fp != shape_fingerprint(shapes, {"fc1": 512})
     assert shape_fingerprint(shapes, {"fc1": 512}) == shape_fingerprint(shapes, {"fc1": 512})
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="non-empty mapping"):
         shape_fingerprint({})
 
 
