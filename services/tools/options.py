@@ -280,7 +280,8 @@ def add_model_export_arguments(p: argparse.ArgumentParser) -> None:
                    help="output ONNX path, instead of --out or beside it: the network for a robot computer "
                         "without torch (onnxruntime; `drive --onnx`), checked against torch before it is written")
     p.add_argument("--half", action="store_true", help="store the --out weights as float16 (half the size)")
-    p.add_argument("--card", metavar="JSON", help="a JSON object stored in the file's metadata (model card)")
+    p.add_argument("--card", metavar="FILE.json",
+                   help="a JSON file holding one object, stored in the exported file's metadata (model card)")
 
 
 def add_model_agreement_arguments(p: argparse.ArgumentParser) -> None:

@@ -49,10 +49,11 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
                              "machine's hostname and each --host): needed to listen beyond loopback")
     parser.add_argument("--host", action="append", default=[], metavar="NAME",
                         help="with --tls: another name or address other machines reach this one by (repeatable)")
-    parser.add_argument("--eval-every", type=count_argument, default=1000, help="evaluator: updates between evaluations")
+    parser.add_argument("--eval-every", type=count_argument, default=1000,
+                        help="evaluator: updates between evaluations (default 1000)")
     parser.add_argument("--no-evaluator", action="store_true", help="do not start the evaluator service")
     parser.add_argument("--final-episodes", type=count_argument, default=10,
-                        help="episodes per start in the final evaluation (paper: 10)")
+                        help="episodes per start in the final evaluation (default 10, the paper's)")
     parser.add_argument("--final-average", type=count_argument, default=4, metavar="K",
                         help="the final evaluation and report play the mean of the last K checkpoints' weights, "
                              "exported as RUN/<run>-meanK.safetensors (default 4: a DQN's greedy policy swings "
