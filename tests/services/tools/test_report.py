@@ -336,7 +336,6 @@ def test_a_pipe_in_a_model_name_stays_in_its_cell() -> None:
         Table.from_markdown("| a | b | c |\n|---|---|---|\n| x | y | z | w |")
 
 
-
 @pytest.fixture(scope="module")
 def odd_names(tmp_path_factory) -> tuple[Path, object, list[str]]:
     """A report on three models of their own weights whose file names slug alike ("a b", "a-b") or hold
