@@ -151,6 +151,13 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
         for world in worlds:
             load_world(world)
+        if args.json_out:  # 'w/a.xml' and 'w-a.xml' slug alike: one world's results would overwrite the other's
+            written: dict[Path, str] = {}
+            for world in worlds:
+                path = _json_path(args.json_out, world, True)
+                other = written.setdefault(path, world)
+                if other != world:
+                    raise EvaluateError(f"--json: worlds {other!r} and {world!r} would both write {path}")
     for world in worlds:
         setup, results, recorder, probe = _evaluate_one(args, world, model, ensemble, protocol)
         json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None

@@ -34,8 +34,8 @@ def run_export(args: argparse.Namespace) -> int:
                           "or both")
     if args.half and not args.out:
         raise ConfigError("--half stores the --out weights as float16; an --onnx export is float32")
-    from shared.learning.checkpoints import (average_models, ensemble_members, ensemble_models, export_weights,
-                                             load_model)
+    from shared.learning.checkpoints import (average_models, ensemble_members, ensemble_models, export_tensors,
+                                             export_weights, load_model)
 
     if args.ensemble and len(args.checkpoint) < 2:
         raise ConfigError("--ensemble joins several checkpoints: give at least two")
@@ -49,6 +49,8 @@ def run_export(args: argparse.Namespace) -> int:
         if not isinstance(card, dict):
             raise ConfigError(f"--card {args.card} must hold a JSON object")
     report: dict[str, Any] = {}
+    if args.out and args.onnx:  # a refused --out (float16 overflow) must not leave the ONNX file written
+        export_tensors(loaded.net, args.out, half=args.half)
     if args.onnx:  # first: its check against torch may refuse it, and then nothing is written
         from shared.learning.onnx_export import export_onnx
 

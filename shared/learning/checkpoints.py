@@ -421,16 +421,22 @@ def export_weights(path: Path | str, net: QNetwork | QEnsemble, policy_version: 
         meta["run_config"] = run_config.to_dict()
     if isinstance(net, QEnsemble):
         meta["members"] = [asdict(m.model_cfg) for m in net.members]
+    save_tensors_file(path, export_tensors(net, path, half=half), meta)
+    return path
+
+
+def export_tensors(net: QNetwork | QEnsemble, path: Path | str, *, half: bool = False) -> dict[str, torch.Tensor]:
+    """The tensors :func:`export_weights` writes to ``path``; CheckpointError for weights no loader
+    takes (float16 overflows past 65504), so a caller writing other files too can ask first."""
     tensors = weights_to_tensors(net)
     if half:
         tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
     bad = _non_finite(tensors)
-    if bad is not None:  # a file that no loader takes (float16 overflows past 65504)
+    if bad is not None:
         raise CheckpointError(f"{path}: not written: weight {bad} is not finite"
                               + (" in float16 (drop --half)" if half and _non_finite(weights_to_tensors(net)) is None
                                  else " (diverged weights?)"))
-    save_tensors_file(path, tensors, meta)
-    return path
+    return tensors
 
 
 def load_exported_weights(path: Path | str, device: str | torch.device = "cpu",

@@ -494,3 +494,18 @@ def test_evaluate_an_ensemble_records_its_members(tmp_path: Path, capsys) -> Non
     assert "env.control_period_s" in capsys.readouterr().err
     assert evaluate(["--policy", "random", "--world", "box-room", "--ensemble", str(first), "--quiet"]) == 2
     assert "ensemble plays the greedy policy" in capsys.readouterr().err
+
+
+def test_evaluate_refuses_worlds_whose_results_would_share_one_json_file(tmp_path: Path, capsys,
+                                                                         monkeypatch) -> None:
+    # 'w/a.xml' and 'w-a.xml' both slug to 'w-a.xml': the second world's results overwrote the
+    # first's, and both were printed as saved to the one file
+    monkeypatch.chdir(tmp_path)
+    xml = (Path(__file__).resolve().parents[3] / "shared" / "sim" / "worlds" / "two_rooms.xml").read_text()
+    (tmp_path / "w").mkdir()
+    (tmp_path / "w" / "a.xml").write_text(xml)
+    (tmp_path / "w-a.xml").write_text(xml)
+    assert evaluate(["--policy", "random", "--world", "w/a.xml,w-a.xml", "--max-steps", "1", "--json", "r.json",
+                     "--quiet"]) == 2
+    assert "would both write r-w-a.xml.json" in capsys.readouterr().err
+    assert not list(tmp_path.glob("r*.json"))

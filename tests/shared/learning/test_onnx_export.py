@@ -241,3 +241,20 @@ def test_model_export_option_errors_are_one_line(argv: list[str], message: str, 
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1 and [p.name for p in tmp_path.iterdir()] == ["dest"]
     assert not list((tmp_path / "dest").iterdir())
+
+
+def test_a_half_export_refused_for_overflow_writes_no_onnx_file_either(tmp_path: Path, capsys) -> None:
+    # --out F --half --onnx G: the ONNX file was written first, then float16 refused the weights,
+    # and a failed command left G behind
+    from shared.learning.checkpoints import CheckpointManager
+    from shared.learning.dqn import DQNAgent
+
+    cfg = load_preset("tiny")
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
+    with torch.no_grad():
+        agent.online.fc3.bias[0] = 1e5  # float32 holds it, float16 does not
+    ckpt = CheckpointManager(tmp_path / "ck").save(agent, config=cfg.to_dict())
+    out, onnx_path = tmp_path / "w.safetensors", tmp_path / "m.onnx"
+    assert main(["model", "export", str(ckpt), "--out", str(out), "--half", "--onnx", str(onnx_path)]) == 2
+    assert "not finite in float16" in capsys.readouterr().err
+    assert not out.exists() and not onnx_path.exists()
