@@ -6,7 +6,8 @@ command lines, meeting at one Zenoh router.
 
 The bus is closed to everyone but the run's own services (services.bus.security): the first ``up``
 of a run writes ``runs/<run>/secure/`` (a user and password per role, the access control list), the
-router loads its config and every process its role's. On loopback the links are plain TCP; a
+router loads its config and every process its role's. On loopback the links are plain TCP (TLS
+once the folder has certificates: its access control then admits every role over TLS only); a
 router that listens beyond the machine (``--listen tls/0.0.0.0:7447``) needs the folder with TLS
 certificates: ``--tls`` makes it so (for this machine's name and any ``--host``), as does ``cogexplore
 secure init runs/<run>/secure --tls --host <name>``; ``up`` refuses to start without them, or with a
@@ -38,6 +39,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from services.bus import ENV_LISTEN
 from services.bus.security import SecureFiles, SecurityError, init_secure
 from services.bus.session import (
     LivelinessWatch,
@@ -298,7 +300,9 @@ class Launcher:
         validate_name(self.run, "run name")
         self.paths = RunPaths(Path(args.runs_dir) / self.run)
         self.children: list[Child] = []
-        self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port)
+        # A run whose security folder has certificates admits every role over TLS only, loopback included.
+        tls = getattr(args, "tls", False) or (not getattr(args, "fresh", False) and SecureFiles(self.paths.secure).tls)
+        self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port, tls=tls)
         if getattr(args, "resume", False) and not self.paths.root.exists():
             raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
         self.lock = RunLock(self.paths, "up")  # before anything in the run folder is touched, --fresh included
@@ -359,6 +363,9 @@ class Launcher:
         handle = open(logfile, "ab")
         log_start = handle.seek(0, os.SEEK_END)
         env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
+        # Only the router listens: a shell's COGEXPLORE_ZENOH_LISTEN (a compose setting) would have every
+        # service bind that one endpoint, and all but the first fail.
+        env.pop(ENV_LISTEN, None)
         if self.args.rerun_connect:
             env["COGEXPLORE_RERUN_URL"] = self.args.rerun_connect  # evaluator and actors stream there
         process = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=handle,
@@ -433,8 +440,7 @@ class Launcher:
             bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True, disable=a.quiet,
                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} upd [{elapsed}{postfix}]")
             reason = "done"
-            evaluators = [c for c in self.children if c.role == "evaluator"]
-            evaluator_gone = False
+            gone: set[str] = set()  # actors and the evaluator that exited, said once each
             try:
                 while True:
                     if stop.is_set():
@@ -459,10 +465,13 @@ class Launcher:
                         last = max((c for c in self.children if c.role == "actor"), key=lambda c: c.process.returncode)
                         reason = f"failed: {last.name}"  # the learner would wait for transitions forever
                         break
-                    if evaluators and not evaluator_gone and evaluators[0].process.poll() is not None:
-                        evaluator_gone = True  # its figures are a curve; the final evaluation is up's own
-                        bar.write(f"the evaluator stopped (exit {evaluators[0].process.returncode}): training goes "
-                                  f"on without its curve; see {evaluators[0].logfile}", file=sys.stderr)
+                    for c in self.children:
+                        if c.role in ("actor", "evaluator") and c.name not in gone and (why := c.exited()):
+                            gone.add(c.name)
+                            # the evaluator's figures are a curve: the final evaluation is up's own
+                            goes_on = ("without its curve" if c.role == "evaluator" else
+                                       f"with {len(self._alive('actor'))} actor(s) of this machine")
+                            bar.write(f"{why}; training goes on {goes_on}", file=sys.stderr)
                     stop.wait(1.0)
                     figures = progress.figures(len(actors.alive))
                     if deadline is not None:
@@ -678,27 +687,32 @@ def _loopback(endpoint: str) -> bool:
     return endpoint_host_port(endpoint)[1] in ("127.0.0.1", "localhost", "::1")
 
 
-def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None) -> tuple[tuple[str, ...], str]:
+def router_endpoints(listen: tuple[str, ...] | list[str], port: int | None,
+                     tls: bool = False) -> tuple[tuple[str, ...], str]:
     """(where the router listens, where this machine's processes connect). By default a free
-    loopback port; with ``--listen``, those endpoints (TLS wherever they leave the machine) and the
+    loopback port (TLS for a run whose security folder has certificates, ``tls``); with ``--listen``,
+    those endpoints (TLS wherever they leave the machine, and one at least with ``tls``) and the
     first TLS one among them (on localhost when it is this machine's), else the first one."""
     if not listen:
-        endpoint = f"tcp/127.0.0.1:{port or free_tcp_port()}"
-        return (endpoint,), endpoint
+        listen = [f"{'tls' if tls else 'tcp'}/127.0.0.1:{port or free_tcp_port()}"]
     endpoints = parse_endpoints(list(listen), "--listen")
     for e in endpoints:
         if not _loopback(e) and not e.startswith("tls/"):
             raise SecurityError(f"--listen {e}: a router reachable from other machines listens with TLS only "
                                 f"(--listen tls/{e.split('/', 1)[1]})")
-    tls = [e for e in endpoints if e.startswith("tls/")]
-    if not tls:  # loopback only, no TLS: the first as it listens (localhost may not name ::1)
+    tls_endpoints = [e for e in endpoints if e.startswith("tls/")]
+    if tls and not tls_endpoints:  # its access control would refuse every role: the run would hang
+        raise SecurityError(f"--listen {','.join(endpoints)}: this run's security folder has TLS certificates and "
+                            f"its access control admits every role over TLS only (--listen "
+                            f"tls/{endpoints[0].split('/', 1)[1]})")
+    if not tls_endpoints:  # loopback only, no TLS: the first as it listens (localhost may not name ::1)
         return endpoints, endpoints[0]
     # With TLS the access control admits a role over TLS only, and Zenoh's TLS checks a host name:
     # localhost for this machine's own addresses, else the name the router listens on (--host).
-    _, host, _ = endpoint_host_port(tls[0])
+    _, host, _ = endpoint_host_port(tls_endpoints[0])
     if host in ("0.0.0.0", "::", "127.0.0.1", "::1", "localhost"):
-        return endpoints, f"tls/localhost:{tls[0].split('/', 1)[1].rsplit(':', 1)[1]}"
-    return endpoints, tls[0]
+        return endpoints, f"tls/localhost:{tls_endpoints[0].split('/', 1)[1].rsplit(':', 1)[1]}"
+    return endpoints, tls_endpoints[0]
 
 
 def secure_files(root: Path, run: str, tls: bool, *, make_tls: bool = False, hosts: Sequence[str] = ()) -> SecureFiles:

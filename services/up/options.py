@@ -42,8 +42,8 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                         help="where the router listens instead: tls/0.0.0.0:7447 with --tls so that actors on "
                              "other machines can join (beyond loopback TLS only), tcp/127.0.0.1:PORT for actors "
-                             "started by hand on this one (without TLS: once the run has TLS, its access control "
-                             "admits every role over TLS only); repeatable")
+                             "started by hand on this one (refused once the run has TLS: its access control admits "
+                             "every role over TLS only, and its loopback router listens with TLS); repeatable")
     parser.add_argument("--tls", action="store_true",
                         help="a new run's security folder gets TLS certificates (the router's for localhost, this "
                              "machine's hostname and each --host): needed to listen beyond loopback")

@@ -143,6 +143,46 @@ def test_the_processes_of_this_machine_connect_where_the_router_listens() -> Non
     assert router_endpoints(["tcp/127.0.0.1:7448", "tls/[::1]:7447"], None)[1] == "tls/localhost:7447"
 
 
+@pytest.mark.timeout(240)
+def test_a_run_whose_security_folder_has_tls_trains_over_tls_on_loopback(tmp_path: Path) -> None:
+    """Its access control admits every role over TLS only: on the default plain-TCP loopback router
+    (resuming a run first started with --listen tls/... --tls, or a compose run, or `up --tls`) every
+    session was refused its part and the run hung, silently, in "waiting for the learner"."""
+    from services.bus.security import init_secure
+
+    init_secure(tmp_path / RUN / "secure", RUN, tls=True)
+    trained = up(tmp_path, "--preset", "smoke", "--updates", "5", timeout_s=120)
+    assert trained.returncode == 0, trained.stderr[-3000:]
+    assert f"run {RUN!r}: router tls/localhost:" in trained.stderr and f"run {RUN!r} ended: done" in trained.stderr
+    assert checkpoint_updates(RunPaths(tmp_path / RUN)) == 5
+    # a plain TCP router named by hand would hang it the same way: refused in one line, before anything starts
+    logs = {p: p.read_bytes() for p in (tmp_path / RUN / "logs").glob("*.log")}
+    refused = up(tmp_path, "--updates", "10", "--listen", "tcp/127.0.0.1:9", timeout_s=60)
+    assert refused.returncode == 2 and refused.stderr.count("\n") == 1, refused.stderr
+    assert "admits every role over TLS only (--listen tls/127.0.0.1:9)" in refused.stderr
+    assert {p: p.read_bytes() for p in logs} == logs
+    # a new run given --tls alone: its loopback router listens with TLS too
+    launcher = Launcher(launcher_args(tmp_path / "new", "--tls"))
+    try:
+        assert launcher.listen[0].startswith("tls/127.0.0.1:") and launcher.endpoint.startswith("tls/localhost:")
+    finally:
+        launcher.close()
+
+
+@pytest.mark.timeout(240)
+def test_only_up_s_router_listens_whatever_the_shell_s_compose_variables(tmp_path: Path) -> None:
+    """The services read COGEXPLORE_ZENOH_LISTEN (compose passes it on); inherited from the shell, it
+    had the learner and every actor bind that one endpoint: the second to try failed and so did the run."""
+    from services.bus.session import free_tcp_port
+
+    env = dict(ENV, COGEXPLORE_ZENOH_LISTEN=f"tcp/127.0.0.1:{free_tcp_port()}")
+    result = subprocess.run([sys.executable, "-m", "services.cli", *UP, "--runs-dir", str(tmp_path), "--actors", "2",
+                             "--preset", "smoke", "--updates", "5"], cwd=REPO, env=env, capture_output=True,
+                            text=True, timeout=120, check=False)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert checkpoint_updates(RunPaths(tmp_path / RUN)) == 5
+
+
 def test_a_replay_memory_the_config_cannot_hold_is_refused_before_the_config_is_saved(tmp_path: Path) -> None:
     from services.up.launcher import RunStateError
 
@@ -338,6 +378,32 @@ def test_up_ends_failed_when_its_actors_die_or_its_learner_is_stopped_early(who:
     assert proc.returncode == 1, err[-2000:]
     expected = "ended: failed: actor-0" if who == "actor" else "its learner stopped at update"
     assert expected in err and "report:" not in err, err[-2000:]
+
+
+@pytest.mark.timeout(240)
+def test_an_actor_that_dies_while_another_trains_on_is_reported(tmp_path: Path) -> None:
+    """One actor of two gone: the run goes on, but it went without a word (the evaluator's exit was
+    reported, an actor's not), its progress line only showing one actor fewer."""
+    import os
+    import signal
+    import time
+
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", *UP, "--actors", "2", "--preset", "smoke",
+                             "--updates", "20", "--runs-dir", str(tmp_path)],
+                            cwd=REPO, env=ENV, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline, pids = time.monotonic() + 60, []
+        while not pids and time.monotonic() < deadline:
+            time.sleep(0.5)
+            pids = [int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit()
+                    and "actor-1\0" in _cmdline(p) and str(tmp_path) in _cmdline(p)]
+        assert pids, "no actor-1 process found"
+        os.kill(pids[0], signal.SIGKILL)
+        _, err = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    assert proc.returncode == 0 and f"run {RUN!r} ended: done" in err, err[-2000:]
+    assert "its actor-1 exited (-9): " in err and "training goes on with 1 actor(s) of this machine" in err, err[-2000:]
 
 
 def _cmdline(proc_dir: Path) -> str:
