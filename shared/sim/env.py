@@ -109,6 +109,9 @@ class _Scene:
     data: mujoco.MjData
     robot: Robot
     camera: DepthCamera
+    clearance_cap_m: float
+    """The largest clearance the env compares a cell's with (the robot's radius, a random start's
+    clearance): the clearance map is exact below it, which bounds its cost in a vast world."""
     _clear: tuple[Any, np.ndarray] | None = None
     _clearance: tuple[Any, np.ndarray] | None = None
     _canvas: Any = None
@@ -130,15 +133,17 @@ class _Scene:
         check_starts_fit(world, cfg, sensor)
         model = build_model(world.mjcf, cfg, sensor)
         data = mujoco.MjData(model)
-        return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor))
+        return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor),
+                   max(cfg.robot_radius_m, cfg.random_start_clearance_m))
 
     def clearance(self) -> tuple[Any, np.ndarray]:
-        """The occupancy grid and each cell's distance (m) to the nearest obstacle cell."""
+        """The occupancy grid and each cell's distance (m) to the nearest obstacle cell (exact below
+        ``clearance_cap_m``, at least it beyond)."""
         if self._clearance is None:
             from shared.sim.maps import clearance_map, occupancy_grid
 
             grid = occupancy_grid(self.world, MAP_RESOLUTION_M)
-            self._clearance = grid, clearance_map(grid.occupied, grid.resolution_m)
+            self._clearance = grid, clearance_map(grid.occupied, grid.resolution_m, self.clearance_cap_m)
         return self._clearance
 
     def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:

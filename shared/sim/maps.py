@@ -303,9 +303,12 @@ def occupancy_grid(world: Mappable, resolution_m: float = 0.05) -> OccupancyGrid
 # ---------------------------------------------------------------------------
 
 
-def clearance_map(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
+def clearance_map(occupied: np.ndarray, resolution_m: float, max_m: float | None = None) -> np.ndarray:
     """Exact Euclidean distance (m) from each cell centre to the nearest occupied cell centre
-    (0 on occupied cells); separable two-pass transform, no scipy needed."""
+    (0 on occupied cells); separable two-pass transform, no scipy needed. With ``max_m``, only
+    distances below it are exact and the others read ``max_m`` or more: the row pass costs one
+    sweep per cell of the largest distance it resolves, so a world with an obstacle kilometres
+    from the rest would otherwise take hours."""
     occ = np.asarray(occupied, dtype=bool)
     if occ.ndim != 2:
         raise MapError(f"occupied must be a 2-D array, got shape {occ.shape}")
@@ -328,9 +331,11 @@ def clearance_map(occupied: np.ndarray, resolution_m: float) -> np.ndarray:
     # on a procedural world: an actor builds a hundred of them).
     out = g ** 2
     g2 = out.copy()
+    # A cell whose distance is below max_m has its nearest occupied cell fewer than max_m away.
+    stop = math.inf if max_m is None else (max_m / resolution_m) ** 2
     for dx in range(1, nx):
         shift = dx * dx
-        if shift >= out.max():
+        if shift >= min(out.max(), stop):
             break
         np.minimum(out[:, dx:], g2[:, :-dx] + shift, out=out[:, dx:])
         np.minimum(out[:, :-dx], g2[:, dx:] + shift, out=out[:, :-dx])

@@ -236,6 +236,24 @@ def test_random_starts_are_clear_varied_and_never_used_by_the_test_protocol():
     assert a == b
 
 
+@pytest.mark.timeout(60)
+def test_a_world_with_an_obstacle_kilometres_away_draws_its_starts_at_once(tmp_path):
+    # A 4 m room and a pillar 2 km east: the map spans 2 km, and the clearance map's row pass swept
+    # once per cell of its largest distance (40,000 sweeps, minutes) before the first jittered start.
+    path = tmp_path / "far.xml"
+    walls = "".join(f'<geom type="box" pos="{x} {y} 1" size="{hx} {hy} 1"/>'
+                    for x, y, hx, hy in ((2, 0, 0.05, 2), (-2, 0, 0.05, 2), (0, 2, 2, 0.05), (0, -2, 2, 0.05)))
+    path.write_text(f'<mujoco><worldbody><geom name="floor" type="plane" size="0 0 1"/>{walls}'
+                    '<geom type="cylinder" pos="2000 0 1" size="0.2 1"/>'
+                    '<site name="start_a" pos="-1 0 0"/></worldbody></mujoco>')
+    env = ExploreEnv(EnvConfig(world=str(path), random_start_prob=1.0), sensor=SensorConfig(width=40, height=30))
+    obs, info = env.reset(seed=0, options={"start_index": 0, "start_jitter": (0.05, 3.0)})
+    assert info["pose"][0] == pytest.approx(-1.0, abs=0.05) and shared.sim.env.min_valid_depth(obs) >= 0.65
+    obs, info = env.reset(seed=1)  # a random start, on the same map
+    assert info["random_start"] and shared.sim.env.min_valid_depth(obs) >= 0.65
+    env.close()
+
+
 def test_random_start_config_is_validated():
     from shared.config import ConfigError
 

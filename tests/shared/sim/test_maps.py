@@ -65,6 +65,20 @@ def test_grid_works_for_any_geom_shape_at_robot_height(tmp_path):
     assert not grid.is_free(0.7, 0.7) and grid.is_free(1.1, 1.1)  # mesh footprint: a right triangle
 
 
+@pytest.mark.parametrize("max_m", [0.15, 0.6, 5.0])
+def test_a_capped_clearance_map_is_exact_below_its_cap(max_m):
+    rng = np.random.default_rng(4)
+    occ = np.zeros((30, 300), dtype=bool)
+    occ[:, :100] = rng.random((30, 100)) < 0.01
+    occ[0, 0] = True  # the right of the grid lies up to 10 m from any occupied cell
+    exact = maps.clearance_map(occ, 0.05)
+    capped = maps.clearance_map(occ, 0.05, max_m)
+    below = exact < max_m
+    assert below.any() and (~below).any()
+    np.testing.assert_array_equal(capped[below], exact[below])
+    assert np.all(capped[~below] >= max_m)
+
+
 def test_label_components_on_a_known_mask():
     mask = np.array([[1, 1, 0, 1],
                      [0, 1, 0, 1],
