@@ -175,13 +175,25 @@ class SecureFiles:
         """The folder holds a CA and certificates (links are TLS with client certificates)."""
         return (self.root / "ca.pem").is_file()
 
+    def _credentials(self, fix: str = "") -> dict[str, Any]:
+        """The credentials file's content; SecurityError naming ``secure init`` (with ``fix``) when
+        it is missing or unreadable."""
+        try:
+            content = json.loads(self.credentials.read_text())
+            if not isinstance(content, dict):
+                raise TypeError("not a JSON object")
+            return content
+        except (OSError, ValueError, TypeError, RecursionError) as exc:
+            raise SecurityError(f"{self.credentials} is missing or unreadable ({exc}): run "
+                                f"`cogexplore secure init {self.root}{fix}`") from None
+
     def meta(self) -> dict[str, Any]:
         """What ``init`` recorded: the run, whether TLS, the router's names."""
-        try:
-            return json.loads(self.credentials.read_text())["meta"]
-        except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
-            raise SecurityError(f"{self.credentials} is missing or unreadable ({exc}): run "
-                                f"`cogexplore secure init {self.root}`") from None
+        meta = self._credentials().get("meta")
+        if not isinstance(meta, dict):
+            raise SecurityError(f"{self.credentials} is missing or unreadable (no meta): run "
+                                f"`cogexplore secure init {self.root}`")
+        return meta
 
     def check(self, run: str, tls: bool = False) -> "SecureFiles":
         """Raise SecurityError unless the folder is complete, made for ``run``, and has TLS when asked."""
@@ -202,43 +214,43 @@ class SecureFiles:
 
     def current_rules(self, run: str) -> dict[str, Any]:
         """The access control this release gives ``run``'s users (those of the credentials file)."""
+        users = self._credentials(" --force").get("users")
         try:
-            users = {role: json.loads(self.credentials.read_text())["users"][role]["user"] for role in ROLES}
-        except (OSError, ValueError, KeyError, TypeError, RecursionError) as exc:
-            raise SecurityError(f"{self.credentials} is missing or unreadable ({exc}): run "
+            names = {role: users[role]["user"] for role in ROLES}
+        except (KeyError, TypeError) as exc:
+            raise SecurityError(f"{self.credentials} is missing or unreadable (users: {exc}): run "
                                 f"`cogexplore secure init {self.root} --force`") from None
-        return access_control(run, users, self.tls)
+        return access_control(run, names, self.tls)
 
-    def _router_files(self) -> list[Path]:
-        return [p for p in (self.router_config, self.root / "router-zenohd.json5") if p.is_file()]
+    def _router_configs(self) -> list[tuple[Path, Any]]:
+        """Each router config there is and its content (None where it does not read as JSON)."""
+        out = []
+        for path in (self.router_config, self.root / "router-zenohd.json5"):
+            if path.is_file():
+                try:
+                    out.append((path, json.loads(path.read_text())))
+                except (OSError, ValueError, RecursionError):
+                    out.append((path, None))
+        return out
 
     def outdated_rules(self, run: str) -> list[Path]:
         """The router configs whose access control differs from :meth:`current_rules` (files written
         by an older release, whose rules lack what a service now needs)."""
         rules = self.current_rules(run)
-        outdated = []
-        for path in self._router_files():
-            try:
-                written = json.loads(path.read_text()).get("access_control")
-            except (OSError, ValueError, AttributeError, RecursionError):
-                written = None
-            outdated += [path] if written != rules else []
-        return outdated
+        return [path for path, config in self._router_configs()
+                if not isinstance(config, dict) or config.get("access_control") != rules]
 
     def refresh_rules(self, run: str) -> list[Path]:
         """Rewrite the access control of the router configs that are :meth:`outdated_rules`, the rest of
         each file (passwords, certificates, paths) as it is; returns the files rewritten."""
         rules, rewritten = self.current_rules(run), []
-        for path in self.outdated_rules(run):
-            try:
-                config = json.loads(path.read_text())
-            except (OSError, ValueError, RecursionError) as exc:
-                raise SecurityError(f"{path} is unreadable ({exc}): run `cogexplore secure init {self.root} "
-                                    "--force`") from None
+        for path, config in self._router_configs():
             if not isinstance(config, dict):
-                raise SecurityError(f"{path} is not a router config: run `cogexplore secure init {self.root} --force`")
-            _write_private(path, _json5({**config, "access_control": rules}))
-            rewritten.append(path)
+                raise SecurityError(f"{path} is not a readable router config: run `cogexplore secure init "
+                                    f"{self.root} --force`")
+            if config.get("access_control") != rules:
+                _write_private(path, _json5({**config, "access_control": rules}))
+                rewritten.append(path)
         return rewritten
 
 

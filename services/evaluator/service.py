@@ -181,9 +181,10 @@ class EvaluatorService:
             return None
         self.last_version = message.version
         weights_digest = weights_sha256(self.net)
-        key = evaluation_key({"policy_version": version, "weights_sha256": weights_digest, "world": self.world,
-                              "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
-                              "max_steps": self.max_steps, "seed": self.seed})
+        evaluated_as = {"policy_version": version, "weights_sha256": weights_digest, "world": self.world,
+                        "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
+                        "max_steps": self.max_steps, "seed": self.seed}  # its row's, and its key
+        key = evaluation_key(evaluated_as)
         if not repeat and key in self.evaluated:
             log.info("policy version %d: these weights were evaluated already (%s), not again", version, EVAL_LOG)
             return None
@@ -204,9 +205,7 @@ class EvaluatorService:
         duration = time.monotonic() - started
         save_results(results, stats / "eval" / f"eval-{version:06d}.json")
         summary = results.summary
-        row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, "policy_version": version,
-               "weights_sha256": weights_digest, "world": self.world, "protocol": self.protocol.name,
-               "episodes_per_start": self.episodes_per_start, "max_steps": self.max_steps, "seed": self.seed,
+        row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, **evaluated_as,
                "duration_s": round(duration, 3), "summary": summary["overall"], "per_start": summary["per_start"],
                "recording": results.meta.get("recording"),  # None: not recorded, or it could not be written
                "streamed_to": live,

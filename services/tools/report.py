@@ -31,7 +31,7 @@ import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone home
 
@@ -156,11 +156,13 @@ def _protocol_meta(setup: EvalSetup, world: str, episodes_per_start: int, max_st
     return want | setup.draws_meta()
 
 
-def _unique(name: str, taken: set[str]) -> str:
+def _unique(name: str, taken: set[str], form: str = "{} ({})", fold: Callable[[str], str] = str) -> str:
+    """``name``, or ``form`` of it and 2, 3, ... when one already in ``taken`` (compared by ``fold``);
+    adds it to ``taken``."""
     out, k = name, 2
-    while out in taken:
-        out, k = f"{name} ({k})", k + 1
-    taken.add(out)
+    while fold(out) in taken:
+        out, k = form.format(name, k), k + 1
+    taken.add(fold(out))
     return out
 
 
@@ -168,12 +170,7 @@ def _unique_slug(name: str, taken: set[str]) -> str:
     """``slug(name)``, with ``-2``, ``-3``, ... when one already in ``taken`` is the same but for
     case: "a b" and "a-b" would otherwise write (and show) one another's files, and a case-blind
     file system holds "A" and "a" as one file. Adds it to ``taken``."""
-    base = slug(name)
-    out, k = base, 2
-    while out.casefold() in taken:
-        out, k = f"{base}-{k}", k + 1
-    taken.add(out.casefold())
-    return out
+    return _unique(slug(name), taken, "{}-{}", str.casefold)
 
 
 # ---------------------------------------------------------------------------------------------
