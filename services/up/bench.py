@@ -139,11 +139,14 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     overrides = list(overrides or [])
     temporary = runs_dir is None
     root = Path(tempfile.mkdtemp(prefix="cogexplore-bench-")) if temporary else Path(runs_dir)
+    launcher = None
     try:
         launcher = Launcher(_launcher_args(actors, preset, overrides, root, device))
         launcher.config = resolve_config(launcher.args, launcher.paths)
         save_config(launcher.config, launcher.paths)
     except BaseException:
+        if launcher is not None:
+            launcher.close()
         if temporary:
             shutil.rmtree(root, ignore_errors=True)  # nothing ran: nothing to keep
         raise
@@ -204,10 +207,13 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
                 for sub in subs:
                     sub.undeclare()
     finally:
-        # The launcher's order: learner first (final weights, checkpoint), then the rest.
-        launcher.stop(("learner",), timeout_s=60.0)
-        launcher.stop(("actor",))
-        launcher.stop(("router",))
+        try:
+            # The launcher's order: learner first (final weights, checkpoint), then the rest.
+            launcher.stop(("learner",), timeout_s=60.0)
+            launcher.stop(("actor",))
+            launcher.stop(("router",))
+        finally:
+            launcher.close()  # the run is let go however it ended (a traceback kept would hold it)
         if temporary and succeeded:
             shutil.rmtree(root, ignore_errors=True)  # on failure the logs stay for the error message
 

@@ -226,21 +226,22 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
     args.no_evaluator = False
     args.eval_every = 1_000_000
     launcher = Launcher(args)
-    launcher.config = resolve_config(args, launcher.paths)
-    save_config(launcher.config, launcher.paths)
-    keys = RunKeys(launcher.run)
-    valid = _valid_messages(launcher.config)
-    rng = random.Random(seed)
-    makers = {name: Payloads(msg, rng, max_bytes, impossible) for name, (msg, impossible) in valid.items()}
-    targets = [("actor", "transitions", keys.transitions("fuzz")), ("actor", "stats/episode", keys.episode_stats("fuzz")),
-               ("learner", "weights", keys.weights), ("learner", "flow", keys.flow),
-               ("learner", "stats/learner", keys.learner_stats("fuzz")),
-               ("evaluator", "stats/eval", keys.eval_results("fuzz")), ("actor", "query", keys.weights_latest)]
     sent: Counter = Counter()
     sent_kinds: Counter = Counter()
     stats_rejects = RejectCounter("fuzzed stats")
     started = time.monotonic()
     try:
+        launcher.config = resolve_config(args, launcher.paths)
+        save_config(launcher.config, launcher.paths)
+        keys = RunKeys(launcher.run)
+        valid = _valid_messages(launcher.config)
+        rng = random.Random(seed)
+        makers = {name: Payloads(msg, rng, max_bytes, impossible) for name, (msg, impossible) in valid.items()}
+        targets = [("actor", "transitions", keys.transitions("fuzz")),
+                   ("actor", "stats/episode", keys.episode_stats("fuzz")),
+                   ("learner", "weights", keys.weights), ("learner", "flow", keys.flow),
+                   ("learner", "stats/learner", keys.learner_stats("fuzz")),
+                   ("evaluator", "stats/eval", keys.eval_results("fuzz")), ("actor", "query", keys.weights_latest)]
         launcher.start()
         with open_session(launcher.settings("viewer"), wait_s=60) as viewer:
             # what the services report while the run goes on: the start waits until every receiver
@@ -326,9 +327,12 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                 sub.undeclare()
         alive = {c.name: c.process.poll() is None for c in launcher.children}
     finally:
-        launcher.stop(("learner",), timeout_s=60.0)
-        launcher.stop(("actor", "evaluator"))
-        launcher.stop(("router",))
+        try:
+            launcher.stop(("learner",), timeout_s=60.0)
+            launcher.stop(("actor", "evaluator"))
+            launcher.stop(("router",))
+        finally:
+            launcher.close()  # the run is let go however it ended (a traceback kept would hold it)
     counted = {c.name: _final_counts(c.logfile) for c in launcher.children if c.role != "router"}
     result = {
         "payloads_sent": sum(sent.values()), "by_key": dict(sent), "by_kind": dict(sent_kinds),

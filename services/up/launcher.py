@@ -360,18 +360,17 @@ class Launcher:
 
     def _spawn(self, role: str, name: str, argv: list[str]) -> Child:
         logfile = self.paths.logs / f"{name}.log"
-        handle = open(logfile, "ab")
-        log_start = handle.seek(0, os.SEEK_END)
         env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
         # Only the router listens: a shell's COGEXPLORE_ZENOH_LISTEN (a compose setting) would have every
         # service bind that one endpoint, and all but the first fail.
         env.pop(ENV_LISTEN, None)
         if self.args.rerun_connect:
             env["COGEXPLORE_RERUN_URL"] = self.args.rerun_connect  # evaluator and actors stream there
-        process = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=handle,
-                                   stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                   start_new_session=True, preexec_fn=_die_with_parent)
-        handle.close()
+        with open(logfile, "ab") as handle:  # the child has its own copy: ours goes, the start failed or not
+            log_start = handle.seek(0, os.SEEK_END)
+            process = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=handle,
+                                       stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                       start_new_session=True, preexec_fn=_die_with_parent)
         child = Child(role, name, process, logfile, log_start)
         self.children.append(child)
         return child
@@ -528,6 +527,9 @@ class Launcher:
                 self.stop(("actor", "evaluator"))
                 self.stop(("router",))
         print(f"run {self.run!r} ended: {reason}", file=sys.stderr)
+        # A learner stopped here (Ctrl-C, --minutes, its actors gone) writes its final checkpoint on its
+        # way out: a non-zero exit then means that checkpoint is missing or torn, whatever the reason.
+        final_failed = self._final_checkpoint_failed(reason)
         if reason.startswith("failed"):
             who = reason.split(": ", 1)[1]
             child = next((c for c in self.children if c.name == who), None)
@@ -535,11 +537,23 @@ class Launcher:
             print(why or f"see {self.paths.logs / (who + '.log')}", file=sys.stderr)
             return 1
         if a.no_report:
-            return 0
+            return 1 if final_failed else 0
         if not checkpoint_updates(self.paths):  # none, or the learner's at update 0 (stopped in its warm-up)
             print(f"run {self.run!r} has no trained checkpoint yet: no final evaluation or report", file=sys.stderr)
             return 130 if reason == "interrupted" else 1
-        return self.final_report()
+        if final_failed:
+            print(f"run {self.run!r}: the final evaluation and report are of its last checkpoint that was saved",
+                  file=sys.stderr)
+        code = self.final_report()
+        return code or (1 if final_failed else 0)
+
+    def _final_checkpoint_failed(self, reason: str) -> bool:
+        """Whether the learner, stopped by up, exited other than cleanly (said in one line)."""
+        learner = next((c for c in self.children if c.role == "learner"), None)
+        if learner is None or reason == "failed: learner" or learner.process.returncode == 0:
+            return False  # a learner that failed on its own is reported as the run's failure
+        print(f"run {self.run!r}: its final checkpoint failed: {learner.exited()}", file=sys.stderr)
+        return True
 
     def final_model(self) -> Path:
         """What the final evaluation and report play: the mean of the run's last ``--final-average``

@@ -1,0 +1,100 @@
+"""How `cogexplore up` and the tools built on its launcher (``bench system``, ``bench fuzz``) end:
+a learner whose final checkpoint fails at the stop is said and exits non-zero, and the run is let go
+(another `up` may start it) whichever way the tool ends."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from service_processes import ENV, REPO
+
+from services.runs import RunLock, RunPaths, save_config
+from services.up import bench, fuzz
+from shared.config import load_preset
+from shared.learning.stats import LearnerRow
+
+RUN = "stopped"
+
+
+@pytest.mark.timeout(240)
+def test_a_final_checkpoint_that_fails_after_ctrl_c_is_said_and_up_exits_non_zero(tmp_path: Path) -> None:
+    # up reported "ended: interrupted" and exited 0 over a learner that had exited 2 at its last write
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--run", RUN, "--actors", "1", "--preset",
+                             "smoke", "--updates", "1000000", "--set", "train.checkpoint_every=1000000", "--runs-dir",
+                             str(tmp_path), "--quiet", "--no-tensorboard", "--no-evaluator", "--no-report"],
+                            cwd=REPO, env=ENV, stderr=subprocess.PIPE, text=True)
+    try:
+        paths = RunPaths(tmp_path / RUN)
+        csv = paths.stats / LearnerRow.FILE
+        deadline = time.monotonic() + 120
+        # a row of its statistics: the learner is in its loop, its stop handler in place
+        while not (csv.exists() and len(csv.read_text().splitlines()) >= 2) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert csv.exists(), "the learner never reported"
+        # a folder where the final checkpoint's pointer goes: its last write fails (root included,
+        # whom a read-only folder would not stop)
+        (paths.checkpoints / "latest").mkdir(parents=True)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    assert proc.returncode == 1, err[-2000:]
+    assert f"run {RUN!r} ended: interrupted" in err, err[-2000:]
+    said = [line for line in err.splitlines() if "final checkpoint failed" in line]
+    assert len(said) == 1 and "its learner exited (2): " in said[0] and "Is a directory" in said[0], err[-2000:]
+
+
+def _free_to_start(runs_dir: Path, prefix: str) -> None:
+    """The run the tool made (its name has the time and pid) can be held by another `up` now."""
+    (lock,) = runs_dir.glob(f".{prefix}-*.up.lock")
+    RunLock(RunPaths(runs_dir / lock.name[1:-len(".up.lock")]), "up").release()
+
+
+@pytest.mark.timeout(180)
+def test_bench_system_lets_the_run_go_when_it_fails(tmp_path: Path) -> None:
+    # the launcher's hold on the run stayed as long as anything kept the error (its traceback)
+    with pytest.raises(bench.BenchError, match="not in a steady state") as failed:
+        bench.run(1, 1.0, preset="smoke", startup_timeout_s=0.0, runs_dir=tmp_path)
+    _free_to_start(tmp_path, bench._RUN_PREFIX)
+    assert failed.traceback  # kept until here
+
+
+@pytest.mark.timeout(240)
+def test_bench_fuzz_lets_the_run_go_when_it_fails(tmp_path: Path) -> None:
+    paths = RunPaths(tmp_path / "recipe").make()  # a learner that cannot start: the run fails at once
+    save_config(load_preset("smoke").with_overrides({"train.init_from": str(tmp_path / "missing.safetensors")}), paths)
+    runs = tmp_path / "runs"
+    with pytest.raises(fuzz.FuzzError, match="the run did not start") as failed:
+        fuzz.run(10, preset=str(paths.config), runs_dir=runs)
+    _free_to_start(runs, bench._RUN_PREFIX)
+    assert failed.traceback
+
+
+def test_a_process_that_cannot_be_started_leaves_no_log_file_open(tmp_path: Path) -> None:
+    # the log opened for the child stayed open while anything kept the error (its traceback)
+    import argparse
+
+    from services.up.launcher import Launcher
+    from services.up.options import add_up_arguments
+
+    parser = argparse.ArgumentParser()
+    add_up_arguments(parser)
+    launcher = Launcher(parser.parse_args(["--run", RUN, "--runs-dir", str(tmp_path), "--quiet"]))
+    try:
+        launcher.args.rerun_connect = "rerun+http://\0"  # no environment holds it: the start fails
+        with pytest.raises(ValueError) as failed:
+            launcher.start()
+        opened = []
+        for fd in Path("/proc/self/fd").iterdir():
+            try:
+                opened.append(fd.readlink())
+            except OSError:  # the listing's own
+                continue
+        assert launcher.paths.logs / "router.log" not in opened and failed.traceback
+    finally:
+        launcher.close()
