@@ -190,7 +190,7 @@ def render_receptive_png(depth_m: np.ndarray, mask: np.ndarray, q_values: np.nda
     ax.set_xticks([])
     ax.set_yticks([])
     if title:  # names of scenes and models, not TeX: a "$" in a file name is a dollar sign
-        from services.viz.figures import plain_text
+        from shared.sim.maps import plain_text
 
         ax.set_title(plain_text(title), fontsize=10)
 

@@ -237,7 +237,7 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     from matplotlib.figure import Figure
     from matplotlib.ticker import MaxNLocator
 
-    from services.viz.figures import plain_text
+    from shared.sim.maps import plain_text
 
     fig = Figure(figsize=(7.0, 3.6))
     FigureCanvasAgg(fig)

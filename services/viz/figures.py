@@ -28,6 +28,7 @@ from shared.sim.maps import (
     OccupancyGrid,
     draw_map,
     normalize_heatmap,
+    plain_text,
     render_map_png,
     visit_counts,
 )
@@ -41,12 +42,6 @@ PAPER_COMMAND_LABELS: tuple[str, ...] = ("Left", "H-Left", "Straight", "H-Right"
 
 class FigureError(CogexploreError):
     """Bad input to a figure or table: empty results, a malformed log, wrong lengths."""
-
-
-def plain_text(text: str) -> str:
-    """``text`` for a matplotlib title or label, shown as written: a model or run named ``a$x$b`` would
-    otherwise be typeset as mathtext, and one named ``a$\\x$`` fail to draw."""
-    return text.replace("$", r"\$")
 
 
 # ---------------------------------------------------------------------------
@@ -92,10 +87,10 @@ def trajectory_heatmap(grid: OccupancyGrid, results: EvalResults | Sequence[Epis
 def save_heatmap_png(world: World, grid: OccupancyGrid, results: EvalResults | Sequence[EpisodeResult],
                      out_path: str | Path, title: str | None = None,
                      cell_m: float | None = HEATMAP_CELL_M, dpi: int = 120) -> Path:
-    """One model's trajectory heatmap over the world map (starts numbered from 1); ``title`` is
-    plain text."""
+    """One model's trajectory heatmap over the world map (starts numbered from 1); ``title`` (default
+    the world's name, a file world's path) is plain text."""
     return render_map_png(world, grid, out_path, heatmap=trajectory_heatmap(grid, results, cell_m),
-                          title=None if title is None else plain_text(title), dpi=dpi)
+                          title=title, dpi=dpi)
 
 
 def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
@@ -120,8 +115,7 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
     axes = fig.subplots(nrows, ncols, squeeze=False)
     im = None
     for ax, (name, results) in zip(axes.flat, models.items()):
-        im = draw_map(ax, world, grid, heatmap=trajectory_heatmap(grid, results, cell_m), title=plain_text(name),
-                      small=True)
+        im = draw_map(ax, world, grid, heatmap=trajectory_heatmap(grid, results, cell_m), title=name, small=True)
     for ax in list(axes.flat)[n:]:
         ax.set_axis_off()
     fig.colorbar(im, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02, label="normalised visits")
@@ -281,10 +275,13 @@ def q_value_table_markdown(scenes: Mapping[str, Mapping[str, Sequence[float] | n
         if not models:
             raise FigureError(f"scene {scene!r} has no model")
         for row, (model, values) in enumerate(models.items()):
-            q = np.asarray(values, dtype=np.float64).reshape(-1)
+            try:
+                q = np.asarray(values, dtype=np.float64).reshape(-1)
+            except (TypeError, ValueError):  # text, a ragged list, an object
+                q = np.full(1, np.nan)
             if q.shape != (len(PAPER_COMMAND_LABELS),) or not np.all(np.isfinite(q)):
                 raise FigureError(f"scene {scene!r} model {model!r}: need {len(PAPER_COMMAND_LABELS)} finite "
-                                  f"values, got {list(np.asarray(values).reshape(-1))}")
+                                  f"values, got {str(values)[:80]}")
             best = int(np.argmax(q))
             cells = [f"**{v:.{decimals}f}**" if i == best else f"{v:.{decimals}f}" for i, v in enumerate(q)]
             name = markdown_cell(escape_text(scene)) if row == 0 else ""

@@ -19,6 +19,10 @@ results JSON); episodes keep their 0-based index::
     train/<metric>                Scalars per learner update (loss, mean_q, epsilon, ...)
     log/episodes                  TextLog: one line per finished episode
 
+An actor's stream (:class:`EpisodeStream`) plays its episodes in several worlds (``extra_worlds``):
+there ``world/map`` and its children are logged at each episode's first frame instead of
+statically, and ``world/trajectory`` is cleared then, so an episode is seen over its own world.
+
 Timelines: ``episode_step`` (step within the episode), ``episode`` (running episode count of
 this recording), ``update`` (learner update / policy version) and ``eval_frame`` (a step
 counter over the whole recording). ``eval_frame`` is extra: ``episode_step`` restarts each
@@ -65,7 +69,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from shared.config import ACTION_NAMES, EnvConfig, SensorConfig
-from shared.depth import MM_PER_M
+from shared.depth import MM_PER_M, UINT16_MAX, depth_to_mm, range_gate
 from shared.errors import CogexploreError
 from shared.evaluation import PAPER_MAX_STEPS
 from shared.files import TMP_MARK
@@ -106,6 +110,13 @@ _METRIC_NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 
 class RerunLogError(CogexploreError):
     """Bad input to the recorder: wrong shapes, unknown metric names, use after close."""
+
+
+def depth_image_mm(depth_m: np.ndarray) -> np.ndarray:
+    """A float depth image (metres) as the uint16 millimetres a recording holds: NaN, infinity and
+    depths <= 0 (or past what uint16 holds) are no return, 0, as ``shared.depth`` reads them; an
+    infinity saturated to 65.5 m would show as the farthest return."""
+    return depth_to_mm(range_gate(depth_m, 0.0, UINT16_MAX / MM_PER_M))
 
 
 def q_entity(action: int) -> str:
@@ -172,12 +183,15 @@ def web_viewer_address(grpc_url: str, web_port: int, host: str = "localhost") ->
 class ViewerLink:
     """A viewer URL that may be down: ``up()`` checks it (a TCP connect, milliseconds) before
     each stream, so a missing viewer costs nothing instead of Rerun's 5 s connect stall. The
-    first failure is logged as a warning, later changes (down again, back up) at info."""
+    first failure is logged as a warning, later changes (down again, back up) at info. ``rechecks``:
+    whether the caller checks again later (the warning tells the user whether a viewer started
+    afterwards will be found)."""
 
-    def __init__(self, url: str, what: str = "streaming", timeout_s: float = 1.0):
+    def __init__(self, url: str, what: str = "streaming", timeout_s: float = 1.0, rechecks: bool = True):
         parse_viewer_url(url)  # a malformed URL fails at start-up, not at the first stream
         self.url = url
         self.what = what
+        self.rechecks = rechecks
         self.timeout_s = timeout_s
         self._up: bool | None = None
         self._warned = False
@@ -189,8 +203,12 @@ class ViewerLink:
             self.failures += 1
             if not self._warned:
                 self._warned = True
-                log.warning("no Rerun viewer at %s: %s live is off until one answers (checked again each "
-                            "time; files are written as usual)", self.url, self.what)
+                if self.rechecks:
+                    log.warning("no Rerun viewer at %s: %s live is off until one answers (checked again each "
+                                "time; files are written as usual)", self.url, self.what)
+                else:
+                    log.warning("no Rerun viewer at %s: %s live is off for this run (checked only at its start: "
+                                "start the viewer first; a file is written as usual)", self.url, self.what)
             elif self._up:
                 log.info("Rerun viewer at %s went away: %s live is off", self.url, self.what)
         elif self._up is False:
@@ -340,8 +358,10 @@ class EvalRecorder:
     also serves the web viewer on ``web_port`` (``web_url``; it lives until the process
     ends). Each recorder has its own ``RecordingStream``; only the web viewer is global.
     ``recording_id``: recorders with the same id add to one recording in the viewer (the
-    actors' streams). ``image_every`` logs every n-th depth image only (a full 12 x 10 x
-    200-step protocol is 24,000 images, ~0.9 GB of millimetres).
+    actors' streams); ``scene_per_episode`` logs the map at each episode's start (and clears the
+    trajectories before it) for such a recording, whose episodes may be in different worlds.
+    ``image_every`` logs every n-th depth image only (a full 12 x 10 x 200-step protocol is
+    24,000 images, ~0.9 GB of millimetres).
 
     The file is written under a temporary name (:class:`RecordingFile`) and takes its name at
     :meth:`commit` or ``close(keep=True)``: a recording that fails or is cancelled leaves the file
@@ -353,13 +373,15 @@ class EvalRecorder:
                  serve: bool = False, serve_port: int = DEFAULT_GRPC_PORT, serve_web: bool = False,
                  web_port: int = DEFAULT_WEB_PORT, recording_name: str | None = None,
                  recording_id: str | None = None, image_every: int = 1,
-                 robot_radius_m: float = 0.18, blueprint: rrb.Blueprint | None = None):
+                 robot_radius_m: float = 0.18, blueprint: rrb.Blueprint | None = None,
+                 scene_per_episode: bool = False):
         if not isinstance(image_every, int) or image_every < 1:
             raise RerunLogError(f"image_every must be an integer >= 1, got {image_every!r}")
         self.world = world
         self.grid = grid
         self.sensor_cfg = sensor_cfg
         self.image_every = image_every
+        self.scene_per_episode = scene_per_episode
         self.path: Path | None = None
         """The recording's file (its final name: it exists once committed)."""
         self.file: RecordingFile | None = None
@@ -432,29 +454,8 @@ class EvalRecorder:
     def _log_static(self, robot_radius_m: float) -> None:
         rec = self.rec
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
-        if self.grid is not None:
-            ny, nx = self.grid.shape
-            x0, y0 = self.grid.origin_xy
-            # Free light, occupied dark. Row 0 of OccupancyGrid.occupied is the lowest y, and
-            # GridMap puts the first row at ``translation`` (its lower-left corner), as a ROS
-            # OccupancyGrid does.
-            pixels = np.where(self.grid.occupied, 60, 235).astype(np.uint8)
-            rec.log(MAP, rr.GridMap(
-                data=pixels.tobytes(),
-                format=rr.components.ImageFormat(width=nx, height=ny, color_model="L", channel_datatype="U8"),
-                cell_size=self.grid.resolution_m, translation=[x0, y0, 0.0]), static=True)
-        xmin, ymin, xmax, ymax = self.world.extent
-        rec.log(EXTENT, rr.LineStrips3D([[(xmin, ymin, 0.01), (xmax, ymin, 0.01), (xmax, ymax, 0.01),
-                                           (xmin, ymax, 0.01), (xmin, ymin, 0.01)]],
-                                         colors=[(120, 120, 120)], radii=0.01), static=True)
-        starts = self.world.starts
-        if starts:
-            length = 0.4
-            rec.log(STARTS, rr.Arrows3D(
-                origins=[(s.x, s.y, 0.03) for s in starts],
-                vectors=[(length * math.cos(s.yaw), length * math.sin(s.yaw), 0.0) for s in starts],
-                labels=[str(i + 1) for i in range(len(starts))], colors=[(220, 30, 30)], radii=0.025),
-                static=True)
+        if not self.scene_per_episode:
+            self._log_scene(static=True)
         circle = [(robot_radius_m * math.cos(a), robot_radius_m * math.sin(a), 0.05)
                   for a in np.linspace(0.0, 2 * math.pi, 33)]
         rec.log(ROBOT, rr.LineStrips3D([circle], colors=[(30, 90, 200)], radii=0.015),
@@ -469,6 +470,36 @@ class EvalRecorder:
         for a, name in enumerate(ACTION_NAMES):
             rec.log(q_entity(a), rr.SeriesLines(names=name, colors=_COMMAND_COLORS[a]), static=True)
         rec.log(ACTION, rr.SeriesPoints(names="command", markers="circle", marker_sizes=4.0), static=True)
+
+    def _log_scene(self, static: bool) -> None:
+        """The world's map, extent and start poses: static, or from now on (what an earlier world
+        logged there is cleared)."""
+        rec = self.rec
+        if not static:
+            rec.log(MAP, rr.Clear(recursive=True))
+        if self.grid is not None:
+            ny, nx = self.grid.shape
+            x0, y0 = self.grid.origin_xy
+            # Free light, occupied dark. Row 0 of OccupancyGrid.occupied is the lowest y, and
+            # GridMap puts the first row at ``translation`` (its lower-left corner), as a ROS
+            # OccupancyGrid does.
+            pixels = np.where(self.grid.occupied, 60, 235).astype(np.uint8)
+            rec.log(MAP, rr.GridMap(
+                data=pixels.tobytes(),
+                format=rr.components.ImageFormat(width=nx, height=ny, color_model="L", channel_datatype="U8"),
+                cell_size=self.grid.resolution_m, translation=[x0, y0, 0.0]), static=static)
+        xmin, ymin, xmax, ymax = self.world.extent
+        rec.log(EXTENT, rr.LineStrips3D([[(xmin, ymin, 0.01), (xmax, ymin, 0.01), (xmax, ymax, 0.01),
+                                           (xmin, ymax, 0.01), (xmin, ymin, 0.01)]],
+                                         colors=[(120, 120, 120)], radii=0.01), static=static)
+        starts = self.world.starts
+        if starts:
+            length = 0.4
+            rec.log(STARTS, rr.Arrows3D(
+                origins=[(s.x, s.y, 0.03) for s in starts],
+                vectors=[(length * math.cos(s.yaw), length * math.sin(s.yaw), 0.0) for s in starts],
+                labels=[str(i + 1) for i in range(len(starts))], colors=[(220, 30, 30)], radii=0.025),
+                static=static)
 
     # -- episodes ------------------------------------------------------------------------
 
@@ -512,6 +543,12 @@ class EvalRecorder:
         self._episode = (int(start_index), int(episode))
         self._trajectory = []
         self._step = 0
+        if self.scene_per_episode:
+            # At the episode's first frame: scrubbed to any episode, the viewer shows its own world,
+            # and no path of an earlier episode (of another world, perhaps) over it.
+            self._set_episode_time(0)
+            self.rec.log(TRAJECTORY, rr.Clear(recursive=True))
+            self._log_scene(static=False)
 
     def log_step(self, step: int, pose: Sequence[float], depth_m: np.ndarray | None,
                  q_values: Sequence[float] | np.ndarray | None, action: int | None) -> None:
@@ -550,7 +587,7 @@ class EvalRecorder:
         if depth.shape != want:
             raise RerunLogError(f"depth_m must be {want} (the sensor's H, W), got {depth.shape}")
         if depth.dtype != np.uint16:
-            depth = np.rint(np.clip(np.nan_to_num(depth, nan=0.0), 0.0, 65.535) * MM_PER_M).astype(np.uint16)
+            depth = depth_image_mm(depth)
         return rr.DepthImage(depth, meter=MM_PER_M,
                              depth_range=(0.0, self.sensor_cfg.max_range_m * MM_PER_M))
 
@@ -730,7 +767,9 @@ class EpisodeStream:
         streamed (every n-th is)."""
         self._active = not self._closed and int(episode) % self.every_episodes == 0
         if self._active:
-            self._put(("begin", int(episode), int(start_index), world or self.world))
+            # a begin that found the queue full streams none of its steps: the worker would take
+            # them for the episode before's (its end may have been dropped too)
+            self._active = self._put(("begin", int(episode), int(start_index), world or self.world))
         return self._active
 
     def log_step(self, step: int, pose: Sequence[float], depth_m: np.ndarray | None,
@@ -757,13 +796,15 @@ class EpisodeStream:
             fields["final_pose"] = tuple(float(v) for v in final_pose)
         self._put(("end", fields))
 
-    def _put(self, item: tuple[Any, ...]) -> None:
+    def _put(self, item: tuple[Any, ...]) -> bool:
         try:
             self._queue.put_nowait(item)
         except queue.Full:
             if self.dropped == 0:
                 log.warning("Rerun stream %r falls behind: dropping steps (the actor goes on)", self.recording_name)
             self.dropped += 1
+            return False
+        return True
 
     def close(self, timeout_s: float = 10.0) -> None:
         """Finish what is queued (at most ``timeout_s``), close the stream and stop the worker."""
@@ -840,7 +881,7 @@ class EpisodeStream:
             grid = self._grids[world.name] = occupancy_grid(world)
         return EvalRecorder(None, world, grid, self.sensor_cfg, connect_url=self.url,
                             recording_name=self.recording_name, recording_id=self.recording_id,
-                            robot_radius_m=self.robot_radius_m)
+                            robot_radius_m=self.robot_radius_m, scene_per_episode=True)
 
     def _finish(self, recorder: EvalRecorder | None) -> None:
         if recorder is not None:
@@ -943,7 +984,9 @@ class DriveRecorder:
     :meth:`close`, so an earlier recording of the same name stays until this one is whole."""
 
     def __init__(self, rrd: str | Path | None, *, connect_url: str | None = None, robot: str = "robot"):
-        self.link = ViewerLink(connect_url, "drive streaming") if connect_url else None  # a bad URL: before the file
+        # checked once: the stream's sinks are set when it opens, a viewer started later is not added
+        self.link = (ViewerLink(connect_url, "drive streaming", rechecks=False)
+                     if connect_url else None)  # a bad URL: before the file
         self.path = Path(rrd) if rrd is not None else None
         # a log of a drive: what a killed drive recorded is kept for the next drive to name
         self.file = RecordingFile(self.path, orphans="keep") if self.path is not None else None
@@ -970,8 +1013,7 @@ class DriveRecorder:
         rec = self.rec
         rec.set_time(TIMELINE_DECISION, sequence=int(d.decision))
         if depth_m is not None:
-            depth = np.rint(np.clip(np.nan_to_num(depth_m, nan=0.0, posinf=0.0), 0.0, 65.535) * MM_PER_M)
-            rec.log(f"{DRIVE}/depth", rr.DepthImage(depth.astype(np.uint16), meter=MM_PER_M))
+            rec.log(f"{DRIVE}/depth", rr.DepthImage(depth_image_mm(depth_m), meter=MM_PER_M))
         rec.log(f"{DRIVE}/command", rr.Scalars(float(d.command) if d.command is not None else -1.0))
         rec.log(f"{DRIVE}/twist/linear_mps", rr.Scalars(d.linear_mps))
         rec.log(f"{DRIVE}/twist/angular_rps", rr.Scalars(d.angular_rps))

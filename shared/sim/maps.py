@@ -546,12 +546,19 @@ MAP_OBSTACLE_RGB = (43, 43, 43)
 """Occupied cells on every top-down map."""
 
 
+def plain_text(text: str) -> str:
+    """``text`` for a matplotlib title or label, shown as written: a model, run or world file named
+    ``a$x$b`` would otherwise be typeset as mathtext, and one named ``a$\\x$`` fail to draw."""
+    return text.replace("$", r"\$")
+
+
 def draw_map(ax: Any, world: Mappable, grid: OccupancyGrid, heatmap: np.ndarray | None = None,
              trajectories: Iterable[np.ndarray] | None = None, title: str | None = None,
              small: bool = False) -> Any:
     """Draw the top-down map on a matplotlib axis: obstacles dark, starts as numbered arrows
     along their headings, optional heatmap (2-D cells over the grid's extent, 0 = not drawn) and
-    trajectories (each (N, 2+) xy). Returns the heatmap's image (for a colorbar) or None."""
+    trajectories (each (N, 2+) xy). ``title`` (default the world's name) is plain text. Returns
+    the heatmap's image (for a colorbar) or None."""
     from matplotlib.colors import ListedColormap
 
     xmin, ymin, xmax, ymax = grid.extent
@@ -580,7 +587,7 @@ def draw_map(ax: Any, world: Mappable, grid: OccupancyGrid, heatmap: np.ndarray 
     ax.set_xlim(xmin, xmax)
     ax.set_ylim(ymin, ymax)
     ax.set_aspect("equal")
-    ax.set_title(title if title is not None else world.name, fontsize=10 if small else None)
+    ax.set_title(plain_text(title if title is not None else world.name), fontsize=10 if small else None)
     if small:
         ax.tick_params(labelsize=7)
     else:

@@ -94,7 +94,7 @@ def test_heatmap_pngs(tmp_path, world, grid) -> None:
 def test_titles_holding_dollar_signs_draw_as_written(tmp_path, world, grid) -> None:
     # A run or model named "a$\\x$" (a file name may hold anything) made matplotlib parse its title as
     # mathtext: a ValueError at the end of a whole report's evaluations (and "a$x$b" set in italics).
-    from services.viz.figures import plain_text
+    from shared.sim.maps import plain_text
 
     res = [episode(0, 0, [(-1.2 + 0.1 * i, -1.2 + 0.1 * i) for i in range(20)])]
     odd = "run$\\x$@1000"
@@ -104,6 +104,15 @@ def test_titles_holding_dollar_signs_draw_as_written(tmp_path, world, grid) -> N
                 save_loss_curve_png([{"update": 0, "loss": 1.0}, {"update": 1, "loss": 0.5}], tmp_path / "loss.png",
                                     title=f"Training loss ({odd})", dpi=30)):
         assert png.read_bytes()[:8] == PNG_MAGIC
+
+
+def test_a_heatmap_without_a_title_names_its_world_as_written(tmp_path, world, grid) -> None:
+    # The default title is the world's name, a file world's path: one holding "$\\x$" failed to draw.
+    import dataclasses
+
+    res = [episode(0, 0, [(-1.2 + 0.1 * i, -1.2 + 0.1 * i) for i in range(20)])]
+    odd = dataclasses.replace(world, name="rooms/a$\\x$.xml", kind="file")
+    assert save_heatmap_png(odd, grid, res, tmp_path / "one.png", dpi=30).read_bytes()[:8] == PNG_MAGIC
 
 
 # -- loss log --------------------------------------------------------------------------------
@@ -246,3 +255,6 @@ def test_q_value_table_errors() -> None:
         q_value_table_markdown({"S1": {"SL": [1.0, 2.0]}})
     with pytest.raises(FigureError, match="at least one scene"):
         q_value_table_markdown({})
+    for odd in (["a", 1, 2, 3, 4], [[1, 2], [3]], {"left": 1.0}):  # text, ragged, an object: named, not a traceback
+        with pytest.raises(FigureError, match="need 5 finite values"):
+            q_value_table_markdown({"S1": {"SL": odd}})

@@ -370,3 +370,89 @@ def test_episode_stream_calls_never_wait_on_the_worker(tmp_path: Path) -> None:
     assert stream.dropped > 0 and stream.steps_logged + stream.dropped >= 2000
     link = ViewerLink(server.url)
     assert not link.up()  # the server is gone
+
+
+def temporal_rows(path: Path, entity: str) -> list[dict]:
+    """The temporal rows of ``entity`` (no leading '/') in a file ``rerun --save`` wrote, each a dict of
+    its columns."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # streamed: no footer
+        out = []
+        for chunk in RrdReader(path).stream().to_chunks():
+            if chunk.entity_path.lstrip("/") != entity or chunk.is_static:
+                continue
+            batch = chunk.to_record_batch()
+            columns = {n: batch.column(n).to_pylist() for n in batch.schema.names
+                       if n not in ("log_time", "rerun.controls.RowId")}
+            out += [{n: columns[n][i] for n in columns} for i in range(batch.num_rows)]
+        return out
+
+
+def test_an_actors_episodes_in_other_worlds_are_each_seen_over_their_own_world(tmp_path: Path) -> None:
+    # The actors play extra worlds (the 40x30 presets: 200 procedural ones). The map was static, so
+    # each streamed episode replaced it for the whole recording: every path, scrubbed to any time,
+    # drawn over the last world's map, and the paths of every world drawn over each other.
+    worlds = [load_world("box-room"), load_world("procedural:1")]
+    cfg = load_preset("smoke")
+    with ViewerServer(tmp_path / "server.rrd") as server:
+        stream = EpisodeStream(server.url, worlds[0], cfg.sensor, recording_name="worlds", every_episodes=1)
+        for episode, world in enumerate(worlds):
+            assert stream.begin_episode(episode, 0, world)
+            for step in range(3):
+                stream.log_step(step, (0.1 * step, 0.0, 0.0), None, [0.0] * 5, 2)
+            stream.end_episode({"steps": 3, "truncated": True}, final_pose=(0.3, 0.0, 0.0))
+        stream.close()
+    assert stream.episodes_streamed == 2
+    first_frame = {}  # episode -> its first eval_frame
+    for r in temporal_rows(server.path, "policy/action"):
+        first_frame[r["episode"]] = min(r["eval_frame"], first_frame.get(r["episode"], r["eval_frame"]))
+    extents = {r["eval_frame"]: r["LineStrips3D:strips"][0] for r in temporal_rows(server.path, "world/map/extent")}
+    assert sorted(extents) == sorted(first_frame.values())
+    for episode, world in enumerate(worlds):
+        xmin, ymin, xmax, ymax = world.extent
+        assert extents[first_frame[episode]][2][:2] == pytest.approx([xmax, ymax])
+    assert len([r for r in temporal_rows(server.path, "world/map") if r.get("GridMap:data")]) == 2
+    clears = sorted(r["eval_frame"] for r in temporal_rows(server.path, "world/trajectory"))
+    assert clears == [first_frame[0], first_frame[1]]  # the earlier episode's path is gone with its world
+
+
+class GatedLink(ViewerLink):
+    """A real viewer check that first waits for the test's go: the stream's worker is held at an
+    episode's begin while the env loop fills the queue."""
+
+    def __init__(self, url: str):
+        super().__init__(url)
+        self.entered = threading.Event()
+        self.go = threading.Event()
+
+    def up(self) -> bool:
+        self.entered.set()
+        self.go.wait(30)
+        return super().up()
+
+
+def test_an_episode_whose_begin_was_dropped_logs_nothing_into_the_episode_before(tmp_path: Path) -> None:
+    # A full queue dropped episode 0's end and episode 1's begin; episode 1's steps were then queued
+    # and the worker logged them as episode 0's: one path jumping from one start to another.
+    world = load_world("box-room")
+    cfg = load_preset("smoke")
+    with ViewerServer(tmp_path / "server.rrd") as server:
+        stream = EpisodeStream(server.url, world, cfg.sensor, recording_name="drops", every_episodes=1,
+                               queue_size=4)
+        stream.link = link = GatedLink(server.url)
+        assert stream.begin_episode(0, 0)
+        assert link.entered.wait(10)  # the worker has taken episode 0's begin
+        for step in range(10):  # four queued, the other steps and the end dropped
+            stream.log_step(step, (0.0, 0.0, 0.0), None, [0.0] * 5, 2)
+        stream.end_episode({"steps": 10, "truncated": True})
+        streamed = stream.begin_episode(1, 3)
+        link.go.set()
+        for step in range(10):
+            stream.log_step(step, (1.0, 1.0, 0.0), None, [0.0] * 5, 0)
+            time.sleep(0.02)  # the worker drains the queue meanwhile
+        stream.end_episode({"steps": 10, "truncated": True})
+        stream.close()
+    assert stream.dropped >= 7
+    actions = [r["Scalars:scalars"][0] for r in temporal_rows(server.path, "policy/action")]
+    assert actions == [2.0] * 4, actions  # episode 0's four steps, none of episode 1's
+    assert not streamed

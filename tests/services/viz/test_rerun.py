@@ -190,6 +190,27 @@ def _views(item):
             yield from _views(child)
 
 
+def test_depth_without_a_return_is_recorded_as_no_return(tmp_path, world, grid) -> None:
+    # NaN, infinity and negative depths are "no return" (shared.depth): +inf was recorded as 65535 mm,
+    # the farthest return there is, in the evaluation's recording and the drive's.
+    from services.viz.rerun import DriveRecorder
+
+    sensor = SensorConfig()
+    depth = np.full((sensor.height, sensor.width), 2.0, np.float32)
+    depth[0, :4] = (np.inf, -np.inf, np.nan, -1.0)
+    path = tmp_path / "odd.rrd"
+    with EvalRecorder(path, world, grid, sensor) as rec:
+        rec.begin_episode(0, 0)
+        rec.log_step(0, (0.0, 0.0, 0.0), depth, None, None)
+        rec.end_episode({"steps": 1})
+    drive = DriveRecorder(tmp_path / "drive.rrd", robot="bot")
+    drive.log_decision(_decision(1), depth)
+    drive.close()
+    for rrd, entity in ((path, DEPTH), (tmp_path / "drive.rrd", "drive/depth")):
+        mm = np.frombuffer(bytes(read_rows(rrd)[entity][0]["DepthImage:buffer"][0]), np.uint16)
+        assert mm[:5].tolist() == [0, 0, 0, 0, 2000], rrd
+
+
 def test_recorder_on_callers_stream_and_misuse(tmp_path, world) -> None:
     path = tmp_path / "own.rrd"
     stream = rr.RecordingStream("cogexplore-test")
@@ -397,3 +418,20 @@ def test_the_drive_recording_replaces_an_earlier_one_only_when_it_is_whole(tmp_p
     verify(path)
     assert len(read_rows(path)["drive/command"]) == 3
     assert [p.name for p in tmp_path.iterdir()] == ["drive.rrd"]
+
+
+def test_a_drive_without_its_viewer_says_it_will_not_look_for_one_again(tmp_path, caplog) -> None:
+    # The drive checks its viewer once, when it opens; the warning said "checked again each time",
+    # so a user started the viewer afterwards and waited for a stream that never came.
+    import logging
+
+    from services.bus.session import free_tcp_port
+    from services.viz.rerun import local_viewer_url
+
+    caplog.set_level(logging.WARNING, logger="cogexplore")
+    recorder = DriveRecorder(tmp_path / "drive.rrd", connect_url=local_viewer_url(free_tcp_port()), robot="bot")
+    recorder.log_decision(_decision(1), None)
+    recorder.close()
+    warned = [r.getMessage() for r in caplog.records if "no Rerun viewer" in r.getMessage()]
+    assert len(warned) == 1 and "checked again" not in warned[0] and "start the viewer first" in warned[0]
+    assert (tmp_path / "drive.rrd").exists()

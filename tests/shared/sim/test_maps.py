@@ -231,3 +231,20 @@ def test_render_map_png_writes_a_figure(tmp_path):
     assert image.shape[0] > 400 and image.shape[1] > 400
     plain = maps.render_map_png(world, grid, tmp_path / "plain.png")
     assert plain.stat().st_size > 10_000
+
+
+def test_a_map_names_a_world_file_with_dollars_as_written(tmp_path):
+    # `worlds show` titles a file world's map with its path: "$\x$" in it failed to draw as mathtext
+    import dataclasses
+
+    import matplotlib.pyplot as plt
+
+    world = dataclasses.replace(load_world("box-room"), name="rooms/a$\\x$.xml", kind="file")
+    grid = maps.occupancy_grid(world)
+    assert maps.render_map_png(world, grid, tmp_path / "odd.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    fig, ax = plt.subplots()
+    try:
+        maps.draw_map(ax, world, grid, title="cost $5")
+        assert ax.get_title() == "cost \\$5"  # drawn as "cost $5": the escape is matplotlib's
+    finally:
+        plt.close(fig)
