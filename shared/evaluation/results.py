@@ -369,8 +369,9 @@ def escape_text(value: object) -> str:
 
 def markdown_cell(text: str) -> str:
     """``text`` as a Markdown pipe table's cell: its ``|`` escaped, as GFM reads it (in code spans
-    too), so a model named ``a|b`` stays one cell."""
-    return str(text).replace("|", "\\|")
+    too), so a model named ``a|b`` stays one cell, and a line break read as a space (a row is one
+    line: the rest of the name would start a paragraph below the table)."""
+    return " ".join(str(text).replace("|", "\\|").splitlines())
 
 
 def table_markdown(models: Mapping[str, EvalResults | Mapping[str, Any] | Sequence[EpisodeResult]],

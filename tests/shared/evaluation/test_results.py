@@ -232,6 +232,13 @@ def test_a_name_in_a_table_stays_the_name_as_written() -> None:
     assert "| \\<lambda\\> |" in table and "| run\\_\\*best\\*\\_a\\|b |" in table
 
 
+def test_a_name_with_a_line_break_stays_in_its_row() -> None:
+    table = table_markdown({"two\nlines": EPISODES, "other": EPISODES})
+    lines = table.splitlines()
+    assert all(line.startswith("|") for line in lines), table
+    assert any("| two lines |" in line for line in lines)
+
+
 # -- the protocol on the real environment ----------------------------------------------------
 
 
