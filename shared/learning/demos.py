@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import json
 import math
+import zipfile
+import zlib
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -56,6 +58,9 @@ VERSION = 1
 SHIPPED_DEMOS = Path(__file__).resolve().parents[1] / "pretrained" / "paper-indoor-demos.npz"
 """``pretrained:demos``: the shipped demonstrations (``paper-indoor``, fast-40x30's sensor; see
 shared/pretrained/MODEL_CARD.md)."""
+MAX_DEMO_FILE_BYTES = 4 * 2**30
+"""The most a demonstration file may unpack to (some 100 000 images of 160x120): a damaged or
+hostile archive must not take the learner's memory."""
 
 
 class DemoError(CogexploreError):
@@ -230,11 +235,22 @@ def load_demonstrations(path: str | Path, frame_shape: tuple[int, int] | None = 
     images must have it."""
     path = SHIPPED_DEMOS if str(path) == "pretrained:demos" else Path(path)
     try:
-        with np.load(path, allow_pickle=False) as npz:
+        # mmap: a lone .npy array (no archive) is mapped, not read whatever its size
+        npz = np.load(path, mmap_mode="r", allow_pickle=False)
+        if not isinstance(npz, np.lib.npyio.NpzFile):
+            raise ValueError("one array, not an .npz archive")
+        with npz:
+            unpacked = sum(info.file_size for info in npz.zip.infolist())
+            if unpacked > MAX_DEMO_FILE_BYTES:
+                raise ValueError(f"it unpacks to {unpacked} bytes, more than {MAX_DEMO_FILE_BYTES}")
             arrays = {k: npz[k] for k in npz.files}
+        plain = [k for k, v in arrays.items() if not isinstance(v, np.ndarray)]
+        if plain:  # np.load gives a member that is no .npy array as its bytes
+            raise ValueError(f"{plain[0]!r} is not an array")
     except FileNotFoundError:
         raise DemoError(f"{path}: no such demonstration file") from None
-    except (OSError, ValueError, EOFError) as exc:  # not an npz, damaged, or object arrays
+    # not an npz, damaged (zip or deflate data), object arrays, or an array header claiming more than it holds
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error, MemoryError) as exc:
         raise DemoError(f"{path} is not a readable demonstration file: {exc}") from None
     if "meta" not in arrays:
         raise DemoError(f"{path}: no metadata: not a demonstration file")
@@ -251,7 +267,7 @@ def load_demonstrations(path: str | Path, frame_shape: tuple[int, int] | None = 
             depth_mm, actions, rewards = arrays[f"depth_mm.{i}"], arrays[f"actions.{i}"], arrays[f"rewards.{i}"]
             terminated = entry["terminated"]
             world, start, speed = str(entry["world"]), int(entry["start_index"]), str(entry["speed_table"])
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, OverflowError) as exc:  # overflow: a start_index of 1e999
             raise DemoError(f"{path}: demonstration {i} is incomplete ({exc})") from None
         problem = None
         if depth_mm.dtype != np.uint16 or depth_mm.ndim != 3:

@@ -147,17 +147,20 @@ class TrainingSummary:
 
 def read_csv(path: str | Path) -> Iterator[list[str]]:
     """The rows of a statistics CSV file, header first. A line the csv module cannot parse is
-    skipped, not fatal: a power loss can leave a tail of NUL bytes (one field past the csv
-    module's size limit), and bytes that are not UTF-8 become U+FFFD."""
+    skipped, not fatal, and so is one of NUL bytes only: a power loss can leave a tail of NUL bytes
+    (past 128 KiB, one field over the csv module's size limit), and bytes that are not UTF-8 become
+    U+FFFD."""
     with open(path, newline="", errors="replace") as fh:
         reader = csv.reader(fh)
         while True:
             try:
-                yield next(reader)
+                row = next(reader)
             except StopIteration:
                 return
             except csv.Error:
                 continue
+            if not row or "".join(row).strip("\0"):
+                yield row
 
 
 def read_csv_records(path: str | Path) -> Iterator[dict[str, str | None]]:
@@ -235,6 +238,12 @@ def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
     return len(rows) - len(keep)
 
 
+def _has_header(path: Path, row_type: type[_Row]) -> bool:
+    """Whether the first row of ``path`` is a header of ``row_type``'s (any version: it names the step column)."""
+    first = next((r for r in read_csv(path) if r), None)
+    return first is not None and row_type.STEP in first
+
+
 class CsvLog(Generic[RowT]):
     """Appends rows of one record type to ``<stats dir>/<its FILE>``, the header first when the file
     is new; every row is flushed, so a crash loses at most the row being written."""
@@ -242,10 +251,12 @@ class CsvLog(Generic[RowT]):
     def __init__(self, stats_dir: Path, row_type: type[RowT]):
         self.row_type = row_type
         self.path = Path(stats_dir) / row_type.FILE
-        new = not self.path.exists()
+        existed = self.path.exists()
+        # a power loss just after a log's start can leave it empty or NULs: it needs its header again
+        new = not existed or not _has_header(self.path, row_type)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "a", newline="")
-        if not new and ends_torn(self.path):
+        if existed and ends_torn(self.path):
             self._file.write("\r\n")  # a killed writer's torn last line: the next row starts its own
         self._writer = csv.writer(self._file)
         if new:

@@ -1,7 +1,9 @@
 """Planner demonstrations: the env snapshot, the planner, recording, files, and the DQfD update."""
 
 import dataclasses
+import io
 import json
+import zipfile
 
 import numpy as np
 import pytest
@@ -9,6 +11,7 @@ import torch
 
 from shared.config import ConfigError, DQNConfig, ModelConfig, SensorConfig, load_preset
 from shared.evaluation import PROTOCOLS
+from shared.learning import demos as demos_module
 from shared.learning.demos import (
     DemoError,
     Demonstration,
@@ -309,3 +312,47 @@ def test_the_shipped_demonstration_still_replays_in_todays_world():
             np.testing.assert_array_equal(again.depth_mm, demo.depth_mm)
     finally:
         env.close()
+
+
+def test_a_damaged_archive_or_one_that_is_no_demonstration_file_is_refused_clearly(tmp_path):
+    # a user's file: torn, bit-flipped, a lone .npy, or a zip with plain members gave tracebacks
+    # (BadZipFile, zlib.error, TypeError, AttributeError) instead of a DemoError
+    path = save_demonstrations(tmp_path / "d.npz", [_demo(5)])
+    data = path.read_bytes()
+    (tmp_path / "torn.npz").write_bytes(data[:len(data) // 2])
+    np.save(tmp_path / "one.npy", np.zeros(3))
+    with zipfile.ZipFile(tmp_path / "plain.npz", "w") as z:
+        z.writestr("meta", json.dumps({"format": "cogexplore-demos", "version": 1, "demos": []}))
+    for name in ("torn.npz", "one.npy", "plain.npz"):
+        with pytest.raises(DemoError, match="not a readable demonstration file"):
+            load_demonstrations(tmp_path / name)
+    with np.load(path) as npz:
+        content = {k: npz[k] for k in npz.files}
+    meta = json.loads(content["meta"].tobytes())
+    meta["demos"][0]["start_index"] = 1e999  # JSON that Python reads as infinity
+    np.savez(tmp_path / "inf.npz", **{**content, "meta": np.frombuffer(json.dumps(meta).encode(), np.uint8)})
+    with pytest.raises(DemoError, match="incomplete"):
+        load_demonstrations(tmp_path / "inf.npz")
+    for offset in range(40, len(data) - 30, 37):  # each byte flip: a clear refusal or a good file
+        flipped = bytearray(data)
+        flipped[offset] ^= 0xFF
+        (tmp_path / "flipped.npz").write_bytes(bytes(flipped))
+        try:
+            load_demonstrations(tmp_path / "flipped.npz")
+        except DemoError:
+            pass
+
+
+def test_a_demonstration_file_too_large_to_unpack_is_refused_before_it_is_read(tmp_path, monkeypatch):
+    path = save_demonstrations(tmp_path / "d.npz", [_demo(20)])  # 21 images of 30x40: 50 KB unpacked
+    monkeypatch.setattr(demos_module, "MAX_DEMO_FILE_BYTES", 40_000, raising=False)
+    with pytest.raises(DemoError, match=r"readable demonstration file: it unpacks to 5\d{4} bytes, more than 40000$"):
+        load_demonstrations(path)
+    monkeypatch.undo()
+    # an array header that claims far more than its member holds: refused, not a MemoryError
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {"descr": "<u2", "fortran_order": False, "shape": (2**40,)})
+    with zipfile.ZipFile(tmp_path / "claims.npz", "w") as z:
+        z.writestr("meta.npy", header.getvalue() + b"\0" * 64)
+    with pytest.raises(DemoError, match="not a readable demonstration file"):
+        load_demonstrations(tmp_path / "claims.npz")

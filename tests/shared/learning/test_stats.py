@@ -141,3 +141,17 @@ def test_a_folder_that_cannot_be_made_turns_tensorboard_off_with_one_warning(tmp
     warnings = [r.getMessage() for r in caplog.records if r.name == "cogexplore.stats"]
     assert len(warnings) == 1 and "TensorBoard off" in warnings[0] and str(tmp_path / "tb") in warnings[0]
     assert TensorBoardLog(None).enabled is False
+
+
+@pytest.mark.parametrize("left", [b"", b"\0" * 60], ids=["empty", "nul-bytes"])
+def test_a_log_whose_header_a_power_loss_took_gets_one_again(tmp_path: Path, left: bytes):
+    # A power loss right after a run's start can leave its log empty or NULs: the resumed learner's
+    # rows were appended without a header, and every reader took the first row for the header.
+    path = tmp_path / "learner.csv"
+    path.write_bytes(left)
+    assert rewind(tmp_path, LearnerRow, 0) == 0
+    with CsvLog(tmp_path, LearnerRow) as log:
+        log.write(row(time_s=2.0, update=20))
+    t = summarize_learner_log(path)
+    assert t is not None and (t.updates, t.learner_s) == (20, 2.0)
+    assert [r for r in read_csv(path) if r][0] == list(LearnerRow.columns())
