@@ -36,7 +36,7 @@ from services.process import setup_logging, stop_event_on_signals
 from services.runs import RunLock, RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointManager
-from shared.learning.learner import LearnerCore, RateMeter, check_start_sources, resume_from
+from shared.learning.learner import LearnerCore, RateMeter, resume_from
 from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
 from shared.learning.weights import to_message
@@ -136,8 +136,9 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 learner_id: str = "learner", weights_every: int = 25, stats_every_s: float = 1.0,
                 flow_slack: int | None = None, device: str | None = None, save_replay: bool = True,
                 tensorboard: Path | None = None, pipeline: bool = False) -> dict:
-    """The learner loop. Returns final counters. ``tensorboard``: a folder for its rows as TensorBoard events;
-    ``pipeline``: TD targets one update ahead on a second thread (LearnerCore)."""
+    """The learner loop; saves ``cfg`` as the run's config where it has none. Returns final counters.
+    ``tensorboard``: a folder for its rows as TensorBoard events; ``pipeline``: TD targets one update
+    ahead on a second thread (LearnerCore)."""
     keys = RunKeys(run)
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
@@ -145,6 +146,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
     resume_from(checkpoints, core)
+    if not paths.config.exists():  # only now: a transfer or demonstration file it cannot read refused the run
+        save_config(cfg, paths)
     # its updates after the checkpoint come again; with none (a learner killed before its first), all do
     rewind(paths.stats, LearnerRow, core.updates)
     config_dict = cfg.to_dict()
@@ -249,7 +252,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             if core.updates - last_published >= weights_every:
                 sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
                 last_published = core.updates
-            if core.updates and core.updates % cfg.train.checkpoint_every == 0 and due:
+            # the last update's checkpoint is the final one below: written here too, it was written twice
+            if core.updates and core.updates % cfg.train.checkpoint_every == 0 and due and not core.done:
                 save_checkpoint()
             # 3. control and statistics
             now = time.monotonic()
@@ -285,9 +289,6 @@ def run_learner_command(args: argparse.Namespace) -> int:
     cfg = resolve_config(args, paths)
     if args.updates is not None:
         cfg = cfg.with_overrides({"train.total_updates": args.updates})
-    if not paths.config.exists():
-        check_start_sources(cfg)  # a transfer or demonstration file it cannot read: no config for a run that never ran
-        save_config(cfg, paths)
     pipeline = args.pipeline == "on" or (args.pipeline == "auto"
                                          and resolve_device(cfg.train.device).type == "cpu")
     # pipelined, the two stages run side by side: each takes half the cores torch would use

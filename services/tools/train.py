@@ -75,7 +75,7 @@ class _Training:
             self.bar.update(1)
             if core.updates % train.log_every == 0:
                 self.log_row()
-            if core.updates % train.checkpoint_every == 0:
+            if core.updates % train.checkpoint_every == 0 and not core.done:  # the last one is the final save's
                 self.save()
 
     def log_row(self) -> None:

@@ -260,6 +260,11 @@ class LearnerCore:
             self.dropped_nonfinite += removed
             log.warning("update %d skipped: %d sampled transition(s) gave a non-finite loss and were removed "
                         "from the replay memory", self.updates + 1, removed)
+            if self._pipeline is not None:
+                # the next batch was drawn before they left the memory: it would skip its update over
+                # them again (or, all of them, call the network diverged)
+                self._pipeline.take()
+                self._pipeline.submit(self._sample())
             return None
         if self.cfg.replay.prioritized:  # the replay memory's own samples come first
             n_replay = self._replay_rows(batch)

@@ -6,10 +6,14 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+
 from services.bus.session import ZenohSettings, free_tcp_port, open_router
 from services.learner.service import LatestSender, run_learner
 from services.runs import RunPaths
 from shared.config import load_preset
+from shared.learning.checkpoints import CheckpointManager, export_weights
+from shared.learning.learner import LearnerCore
 from shared.learning.stats import CsvLog, LearnerRow, read_csv_records
 
 
@@ -65,3 +69,68 @@ def test_a_learner_restarted_without_a_checkpoint_does_not_log_its_updates_going
     updates = [int(r["update"]) for r in read_csv_records(paths.stats / LearnerRow.FILE)]
     # the rows after update 0 went: their updates come again (they were logged as 0, 100, 200, 300, 0, ...)
     assert updates and set(updates) == {0}
+
+
+def _run_with_transitions(paths: RunPaths, cfg, count: int = 200) -> None:
+    """A checkpoint at update 0 whose replay memory holds ``count`` transitions: updates are due at once,
+    with no actor."""
+    core = LearnerCore(cfg, device="cpu")
+    for i in range(count):
+        core.add_transition("s", np.full((30, 40), 1.0 + 0.1 * (i % 7), np.float32), i % 5, cfg.env.reward_move,
+                            np.full((30, 40), 1.1, np.float32), False, False)
+    CheckpointManager(paths.checkpoints).save(core.agent, replay=core.replay, config=cfg.to_dict(),
+                                              extra=core.checkpoint_extra())
+
+
+def _learn(cfg, paths: RunPaths) -> dict:
+    """``run_learner`` until ``total_updates``, through a router of its own."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        return run_learner(cfg, "run", paths, ZenohSettings(mode="client", connect=(endpoint,)), threading.Event())
+
+
+def test_the_last_update_s_checkpoint_is_written_once(tmp_path: Path, monkeypatch):
+    # At total_updates the loop's periodic checkpoint and then the final one wrote the same file twice.
+    saved: list[int] = []
+    save = CheckpointManager.save
+
+    def counted(self, agent, **kwargs):
+        saved.append(agent.update_count)
+        return save(self, agent, **kwargs)
+
+    cfg = load_preset("smoke").with_overrides({"train.total_updates": 10, "train.checkpoint_every": 5})
+    paths = RunPaths(tmp_path / "run").make()
+    _run_with_transitions(paths, cfg)
+    monkeypatch.setattr(CheckpointManager, "save", counted)
+    assert _learn(cfg, paths)["updates"] == 10
+    assert saved == [5, 10]
+    # an end off the period, and a resume that has nothing left to do, still write their final checkpoint
+    assert _learn(cfg.with_overrides({"train.total_updates": 13}), paths)["updates"] == 13
+    assert _learn(cfg.with_overrides({"train.total_updates": 13}), paths)["updates"] == 13
+    assert saved == [5, 10, 13, 13]
+    assert [p.name for p in CheckpointManager(paths.checkpoints).checkpoints()] == [
+        f"ckpt-{u:09d}.safetensors" for u in (5, 10, 13)]  # keep_checkpoints: the newest 3
+
+
+def test_a_new_run_s_transfer_file_is_read_once_and_its_config_saved(tmp_path: Path, monkeypatch):
+    # `cogexplore learner` on a new run read its train.init_from file twice: once to refuse a bad one
+    # before saving the config, then again in the learner.
+    import shared.learning.learner as learner_module
+    from services.cli import main
+
+    source = export_weights(tmp_path / "w.safetensors", LearnerCore(load_preset("smoke"), device="cpu").agent.online)
+    reads: list[str] = []
+    read = learner_module.init_agent_weights
+
+    def counted(agent, path):
+        reads.append(str(path))
+        return read(agent, path)
+
+    monkeypatch.setattr(learner_module, "init_agent_weights", counted)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        assert main(["learner", "--run", "new", "--runs-dir", str(tmp_path), "--preset", "smoke", "--connect", endpoint,
+                     "--set", f"train.init_from={source}", "--set", "train.total_updates=0"]) == 0
+    assert reads == [str(source)]
+    saved = load_preset(tmp_path / "new" / "config.toml")
+    assert saved.train.init_from == str(source) and saved.train.total_updates == 0

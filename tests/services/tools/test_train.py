@@ -189,3 +189,25 @@ def test_a_trainer_restarted_without_a_checkpoint_does_not_log_its_updates_going
     for row_type in (LearnerRow, EpisodeRow):
         updates = [int(r["update"]) for r in read_csv_records(run.stats / row_type.FILE)]
         assert updates == sorted(updates) and max(updates) <= 10, (row_type.FILE, updates)
+
+
+def test_the_last_update_s_checkpoint_is_written_once(tmp_path: Path, monkeypatch):
+    # At total_updates the periodic checkpoint and then the final one wrote the same file twice.
+    saved: list[int] = []
+    save = CheckpointManager.save
+
+    def counted(self, agent, **kwargs):
+        saved.append(agent.update_count)
+        return save(self, agent, **kwargs)
+
+    monkeypatch.setattr(CheckpointManager, "save", counted)
+    cfg = load_preset("smoke").with_overrides({"train.total_updates": 10, "train.checkpoint_every": 5})
+    paths = RunPaths(tmp_path / "r")
+    assert train_single_process(cfg, paths, progress=False, tensorboard=False)["updates"] == 10
+    assert saved == [5, 10]
+    # an end off the period, and a resume that has nothing left to do, still write their final checkpoint
+    for _ in range(2):
+        train_single_process(cfg.with_overrides({"train.total_updates": 13}), paths, progress=False, tensorboard=False)
+    assert saved == [5, 10, 13, 13]
+    assert [p.name for p in CheckpointManager(paths.checkpoints).checkpoints()] == [
+        f"ckpt-{u:09d}.safetensors" for u in (5, 10, 13)]  # keep_checkpoints: the newest 3

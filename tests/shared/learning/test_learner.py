@@ -134,6 +134,27 @@ def test_transitions_with_a_non_finite_loss_leave_replay_and_the_learner_goes_on
     core.close()
 
 
+@pytest.mark.parametrize("pipeline", [False, True])
+def test_an_update_skipped_for_a_non_finite_loss_is_skipped_once(pipeline: bool):
+    # Pipelined, the next batch was drawn before the offending transition left the replay memory: its
+    # update was skipped over the same transition again, removing nothing.
+    cfg = load_preset("smoke").with_overrides({"dqn.batch_size": 8, "dqn.n_step": 1, "dqn.loss": "mse"})
+    core = LearnerCore(cfg, device="cpu", pipeline=pipeline)
+    for i in range(3):  # one poisoned of three: nearly every batch of 8 draws it
+        core.replay.add(("s", i), _frame(1.0 + 0.1 * i), i, 3.4e38 if i == 1 else 1.0, _frame(1.2), False)
+    skipped = sum(core.train_step() is None for _ in range(10))
+    assert (skipped, core.dropped_nonfinite, core.updates) == (1, 1, 9)
+    core.close()
+    # Batches of 2 from one good and one poisoned: the batch drawn before the removal could hold the
+    # removed transition alone, and the learner stopped, calling its network diverged (DQNError).
+    cfg = cfg.with_overrides({"dqn.batch_size": 2, "replay.prioritized": False, "train.seed": 1})
+    core = LearnerCore(cfg, device="cpu", pipeline=pipeline)
+    for i in range(2):
+        core.replay.add(("s", i), _frame(1.0 + 0.1 * i), i, 3.4e38 if i == 1 else 1.0, _frame(1.2), False)
+    assert core.train_step() is None and core.train_step() is not None
+    core.close()
+
+
 def test_a_resumed_replay_memory_keeps_nothing_the_task_cannot_produce(tmp_path):
     from shared.learning.checkpoints import CheckpointManager
     from shared.learning.learner import resume_from
