@@ -73,13 +73,14 @@ def card_summary(card: dict[str, Any]) -> str:
               f"{data['episodes']} episodes, split by episode) from {', '.join(data['worlds'])}"),
              "labels: " + ", ".join(f"{k} {v}" for k, v in data["label_counts"].items()),
              (f"test accuracy {card['accuracy']:.3f} (balanced {card['balanced_accuracy']:.3f}; "
-              f"always-majority {data['majority_class_rate']:.3f}; the paper's SL model: 0.802 on its own data)"),
+              f"always {card['majority_command']} {card['majority_accuracy']:.3f}; "
+              "the paper's SL model: 0.802 on its own data)"),
              "per class: " + ", ".join(f"{k} {'-' if v is None else f'{v:.3f}'}"
                                       for k, v in card["per_class_accuracy"].items()),
              "confusion (rows: expert label, columns: predicted):",
-             "  " + " ".join(f"{n[:6]:>7}" for n in ACTION_NAMES)]
+             "  " + " " * 10 + "".join(f"{n:>11}" for n in ACTION_NAMES)]  # over the rows' name column
     for name, row in zip(ACTION_NAMES, card["confusion_matrix"]):
-        lines.append(f"  {name[:10]:<10} " + " ".join(f"{v:>7d}" for v in row))
+        lines.append(f"  {name:<10}" + "".join(f"{v:>11d}" for v in row))
     return "\n".join(lines)
 
 

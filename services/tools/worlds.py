@@ -99,7 +99,12 @@ def run_demo(args: argparse.Namespace) -> int:
         bad = [s for s in args.start if not 1 <= s <= n_starts]
         if bad:
             raise DemoError(f"--start {bad[0]}: {args.world} has starts 1-{n_starts}")
-        for start in args.start:
+        starts = list(dict.fromkeys(args.start))  # a start given twice would be planned and recorded twice
+        if len(starts) < len(args.start):
+            twice = sorted({s for s in args.start if args.start.count(s) > 1})
+            print(f"cogexplore worlds demo: note: start {' '.join(map(str, twice))} given more than once; "
+                  "planned once", file=sys.stderr)
+        for start in starts:
             for k in range(args.episodes):
                 draw = StartDraw(episode_seed(args.seed, start - 1, k), protocol.start_jitter_m,
                                  protocol.start_jitter_deg) if protocol.jittered else None

@@ -222,7 +222,7 @@ def dataset_request(worlds: Sequence[str], frames: int, sensor_cfg: SensorConfig
 
 
 def _random_free_pose(expert: CommandExpert, rng: np.random.Generator, min_clear: float) -> tuple[float, float, float]:
-    cells = np.argwhere(expert.clearance >= min_clear)
+    cells = np.argwhere(expert.clearance >= min_clear)  # exact: min_clear is below the map's cap
     if cells.size == 0:
         raise SupervisedError(f"world {expert.world.name!r} has no point {min_clear} m from every obstacle")
     iy, ix = cells[rng.integers(len(cells))]

@@ -34,6 +34,13 @@ if TYPE_CHECKING:
     from shared.sim.world import World
 
 
+CLEARANCE_CAP_M = 8.0
+"""The expert's clearance map is exact below at least this (m), and reads at least it beyond:
+above any clearance in the shipped worlds (procedural rooms are at most about 10 m across), so
+capping the beam's openness here changes nothing there, and above the largest random-start
+clearance (``DriveConfig.min_start_clearance_m``, below 5 m)."""
+
+
 class SupervisedError(CogexploreError):
     """Bad settings, a dataset or model file that is missing, partial or does not fit."""
 
@@ -119,7 +126,12 @@ class CommandExpert:
         self.sensor_cfg = sensor_cfg or SensorConfig()
         self.cfg = cfg or ExpertConfig()
         self.grid = occupancy_grid(world, self.cfg.resolution_m)
-        self.clearance = clearance_map(self.grid.occupied, self.grid.resolution_m)
+        # Exact below every clearance the expert compares or scores (contact, view wedge, space_cap_m,
+        # openness, random starts): the map's row pass costs one sweep per cell of the largest
+        # distance it resolves, hours for a world with an obstacle kilometres from the rest.
+        self.clearance_cap_m = max(CLEARANCE_CAP_M, self.cfg.space_cap_m,
+                                   self.env_cfg.robot_radius_m + self.cfg.contact_margin_m)
+        self.clearance = clearance_map(self.grid.occupied, self.grid.resolution_m, self.clearance_cap_m)
         angular, linear = SPEED_TABLES[self.env_cfg.speed_table]
         self.angular_rps = np.asarray(angular, dtype=np.float64)
         self.linear_mps = float(linear)
@@ -220,7 +232,9 @@ class CommandExpert:
         return self._flat[iy * (self._nx + 2) + ix]
 
     def clearance_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        """Clearance (m) of world points; 0 outside the map."""
+        """Clearance (m) of world points; 0 outside the map. Exact below ``clearance_cap_m``;
+        a point at least that far from every obstacle reads ``clearance_cap_m`` or more (not its
+        distance)."""
         ix, iy = self.grid.world_to_cell(x, y)
         inside = self.grid.contains(ix, iy)
         ny, nx = self.grid.shape
@@ -341,8 +355,9 @@ class CommandExpert:
         """Whether some command sequence from pose (x, y, yaw) stays safe for ``steps`` steps (the
         plans' step checks). First the plans (one command, a turn, straight: enough in open space),
         then, where none is safe that long, a beam search that keeps the ``beam`` most open poses
-        (clearance at the pose and 0.5 m ahead) at each depth: deterministic, and a lower bound (the
-        beam may miss a sequence), so a tight place can count as one with no way out."""
+        (clearance at the pose and 0.5 m ahead, each capped at ``clearance_cap_m``) at each depth:
+        deterministic, and a lower bound (the beam may miss a sequence), so a tight place can count
+        as one with no way out."""
         safe, _ = self.plan_scores(x, y, yaw)
         if safe.max() >= steps:
             return True
@@ -357,7 +372,10 @@ class CommandExpert:
                 poses = poses[unique]
             if len(poses) > beam:
                 ahead = poses[:, :2] + 0.5 * np.stack([np.cos(poses[:, 2]), np.sin(poses[:, 2])], axis=1)
-                openness = self._lookup(poses[:, :2], 0.0, 0.0, 0.0) + self._lookup(ahead, 0.0, 0.0, 0.0)
+                # capped: beyond the cap the map is not exact (more open than that is open enough)
+                cap = self.clearance_cap_m
+                openness = (np.minimum(self._lookup(poses[:, :2], 0.0, 0.0, 0.0), cap)
+                            + np.minimum(self._lookup(ahead, 0.0, 0.0, 0.0), cap))
                 poses = poses[np.argsort(-openness, kind="stable")[:beam]]
         return True
 

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import numpy as np
 import pytest
 import torch
 
-from shared.config import ConfigError, EnvConfig, SensorConfig, TrainConfig, load_preset
+from shared.config import ACTION_NAMES, ConfigError, EnvConfig, SensorConfig, TrainConfig, load_preset
 from shared.expert.dataset import (
     DriveConfig,
     SupervisedDataset,
@@ -173,6 +174,63 @@ def test_a_way_out_is_found_by_the_beam_where_no_plan_shape_reaches_and_not_in_t
     first_none = found.index(False)
     assert 0 < first_none and not any(found[first_none:])
     assert expert.has_way_out(x, y, yaw, H) == expert.has_way_out(x, y, yaw, H)  # deterministic
+
+
+def _far_pillar_world(tmp_path, distance_m: float):
+    """A 4 m room (start inside at (-1, 0) facing +x) and a pillar ``distance_m`` east of it."""
+    path = tmp_path / f"far-{distance_m:g}.xml"
+    walls = "".join(f'<geom type="box" pos="{x} {y} 1" size="{hx} {hy} 1"/>'
+                    for x, y, hx, hy in ((2, 0, 0.05, 2), (-2, 0, 0.05, 2), (0, 2, 2, 0.05), (0, -2, 2, 0.05)))
+    path.write_text(f'<mujoco><worldbody><geom name="floor" type="plane" size="0 0 1"/>{walls}'
+                    f'<geom type="cylinder" pos="{distance_m} 0 1" size="0.2 1"/>'
+                    '<site name="start_a" pos="-1 0 0"/></worldbody></mujoco>')
+    return load_world(str(path))
+
+
+def _uncapped(expert: CommandExpert) -> CommandExpert:
+    """The expert on the exact clearance map (no cap), swapped in before its first question."""
+    expert.clearance = clearance_map(expert.grid.occupied, expert.grid.resolution_m)
+    expert._prepare_lookup()
+    return expert
+
+
+def _answers(expert: CommandExpert, poses, horizon: int) -> list:
+    return [(expert.scores(*p).tolist(), expert.label(*p), expert.safe_commands(*p, horizon).tolist(),
+             expert.has_way_out(*p, horizon), expert.survival_steps(*p, horizon=8).tolist()) for p in poses]
+
+
+@pytest.mark.timeout(60)
+def test_the_expert_of_a_world_with_an_obstacle_kilometres_away_is_built_at_once(tmp_path):
+    # A pillar 2 km east of the room: the uncapped clearance map's row pass swept once per cell of
+    # its largest distance (40,000 sweeps: minutes to hours) before the first label.
+    expert = CommandExpert(_far_pillar_world(tmp_path, 2000.0), TEST_ENV, SMALL_SENSOR)
+    assert expert.clearance_cap_m == 8.0
+    assert expert.label(-1.0, 0.0, 0.0) == 2 and expert.safe_commands(-1.0, 0.0, 0.0, 4)[2]
+    assert expert.clearance_at(np.array([1000.0]), np.array([0.0]))[0] >= expert.clearance_cap_m
+
+
+def test_the_capped_clearance_map_changes_no_answer_of_the_expert(tmp_path):
+    # A pillar 60 m away: open floor up to 28 m from any obstacle, beyond the cap, where the capped
+    # map reads "at least the cap"; every answer is still the exact map's.
+    world = _far_pillar_world(tmp_path, 60.0)
+    capped, exact = CommandExpert(world, TEST_ENV, SMALL_SENSOR), _uncapped(CommandExpert(world, TEST_ENV, SMALL_SENSOR))
+    cap = capped.clearance_cap_m
+    assert exact.clearance.max() > 3 * cap
+    below = exact.clearance < cap
+    assert np.array_equal(capped.clearance[below], exact.clearance[below]) and np.all(capped.clearance[~below] >= cap)
+    rng = np.random.default_rng(0)
+    poses = [(-1.0, 0.0, 0.0), (1.7, 0.0, 0.0), (-1.8, -1.8, math.pi)]  # the start, a wall ahead, a corner
+    poses += [(float(x), float(y), float(t)) for x, y, t in zip(rng.uniform(-1.9, 1.9, 12), rng.uniform(-1.9, 1.9, 12),
+                                                                rng.uniform(-math.pi, math.pi, 12))]
+    poses += [(30.0, 0.0, 0.0), (55.0, 1.0, 2.0), (59.0, 0.0, 0.0)]  # open floor, and facing the pillar
+    assert _answers(capped, poses, 12) == _answers(exact, poses, 12)
+    # and on a shipped world the capped map is the exact one, bit for bit, and so is every answer
+    world = load_world("paper-indoor")
+    train = EnvConfig(speed_table="train")
+    capped, exact = CommandExpert(world, train, SMALL_SENSOR), _uncapped(CommandExpert(world, train, SMALL_SENSOR))
+    assert np.array_equal(capped.clearance, exact.clearance)
+    starts = [(s.x, s.y, s.yaw) for s in world.starts]
+    assert _answers(capped, starts, train.trap_horizon_steps) == _answers(exact, starts, train.trap_horizon_steps)
 
 
 def test_expert_guide_drives_the_drawn_share_of_episodes_with_the_experts_commands():
@@ -350,6 +408,28 @@ def test_sl_training_is_clearly_above_chance(trained, dataset):
     cm = np.asarray(card["confusion_matrix"])
     assert cm.shape == (5, 5) and cm.sum() == card["data"]["test_frames"]
     assert math.isclose(card["accuracy"], np.trace(cm) / cm.sum())
+
+
+def test_the_majority_baseline_is_the_training_majority_answered_on_the_test_split(trained, dataset):
+    # It was the whole dataset's majority share (0.680 here) beside the test accuracy; the test split's
+    # share of the training split's majority label is 0.659.
+    from services.tools.pretrain import card_summary
+
+    _net, card, _path = trained
+    train, test = dataset.split()
+    labels = np.asarray(dataset.labels)
+    majority = int(np.bincount(labels[train], minlength=5).argmax())
+    assert card["majority_command"] == ACTION_NAMES[majority] == "straight"
+    assert card["majority_accuracy"] == pytest.approx(np.mean(labels[test] == majority))
+    assert card["majority_accuracy"] != pytest.approx(np.bincount(labels).max() / len(labels))
+    assert f"always straight {card['majority_accuracy']:.3f};" in card_summary(card)
+    # the confusion matrix's column names stand over their columns
+    lines = card_summary(card).splitlines()
+    header, rows = lines[-6], lines[-5:]
+    def column_ends(line: str) -> list[int]:
+        return [m.end() for m in re.finditer(r"\S+", line)]
+
+    assert all(column_ends(row)[1:] == column_ends(header) for row in rows), "\n".join(lines[-6:])
 
 
 def test_model_file_round_trips_with_its_card(trained, tmp_path):
