@@ -29,6 +29,7 @@ every payload sent to them, so a slow machine delays the counts instead of losin
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import random
 import re
@@ -243,7 +244,7 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                    ("learner", "stats/learner", keys.learner_stats("fuzz")),
                    ("evaluator", "stats/eval", keys.eval_results("fuzz")), ("actor", "query", keys.weights_latest)]
         launcher.start()
-        with open_session(launcher.settings("viewer"), wait_s=60) as viewer:
+        with open_session(launcher.settings("viewer"), wait_s=60) as viewer, contextlib.ExitStack() as closing:
             # what the services report while the run goes on: the start waits until every receiver
             # has joined (an evaluator still loading would miss the first payloads), the end until the
             # learner and the actor have counted every payload sent to them (a loaded machine drains late)
@@ -266,8 +267,10 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                     raise FuzzError(f"the run did not start (logs in {launcher.paths.logs}; seen: {seen}; "
                                     f"stats rejected: {stats_rejects.counts})")
                 time.sleep(0.5)
-            sessions = {role: open_session(ZenohSettings(mode="client", connect=(launcher.endpoint,),
-                                                         config_file=str(launcher.secure.config(role))), wait_s=30)
+            # closed (their publishers with them) however the fuzzing ends, before the viewer's session
+            sessions = {role: closing.enter_context(open_session(
+                ZenohSettings(mode="client", connect=(launcher.endpoint,),
+                              config_file=str(launcher.secure.config(role))), wait_s=30))
                         for role in ("actor", "learner", "evaluator")}
             import zenoh
 
@@ -319,10 +322,6 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
             time.sleep(1.0)  # the evaluator takes the same weights stream as the actor
             drain_s = time.monotonic() - drain_started
             answered = query_latest(sessions["actor"], keys.weights_latest, timeout_s=5.0) is not None
-            for p in publishers.values():
-                p.undeclare()
-            for s in sessions.values():
-                s.close()
             for sub in subs:
                 sub.undeclare()
         alive = {c.name: c.process.poll() is None for c in launcher.children}
