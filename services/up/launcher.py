@@ -93,7 +93,15 @@ class Child:
                 lines = f.read().decode(errors="replace").strip().splitlines()
         except OSError:
             lines = []
-        return f"its {self.name} exited ({code}): {lines[-1] if lines else 'no output'} (see {self.logfile})"
+        how = f"exited ({code})" if code >= 0 else f"was ended by {_signal_name(-code)}"
+        return f"its {self.name} {how}: {lines[-1] if lines else 'no output'} (see {self.logfile})"
+
+
+def _signal_name(signum: int) -> str:
+    try:
+        return signal.Signals(signum).name
+    except ValueError:
+        return f"signal {signum}"
 
 
 LEARNER_WAITS = 0.1
@@ -516,13 +524,28 @@ class Launcher:
         stop = threading.Event()
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
               file=sys.stderr)
-        with stop_signals_handled(lambda *_: stop.set()):
+        def on_stop_signal(signum: int, _frame: object) -> None:
+            if not stop.is_set():
+                stop.set()
+                return
+            # asked again while the learner writes its final checkpoint (up to a minute): now, without it
+            name = signal.Signals(signum).name
+            print(f"run {self.run!r}: {name} again: killing its services now (the last checkpoint saved stays)",
+                  file=sys.stderr)
+            for c in self.children:
+                if c.process.poll() is None:
+                    c.process.kill()
+
+        with stop_signals_handled(on_stop_signal):
             try:
                 self.start()
                 reason = self.monitor(stop)
             finally:
                 # Order matters: the learner writes its final checkpoint first, then the
                 # producers and the evaluator go, the router last.
+                if stop.is_set():
+                    print(f"run {self.run!r}: stopping: its learner writes its final checkpoint (Ctrl-C again "
+                          "to stop at once without it)", file=sys.stderr)
                 self.stop(("learner",), timeout_s=60.0)
                 self.stop(("actor", "evaluator"))
                 self.stop(("router",))

@@ -4,6 +4,7 @@ a learner whose final checkpoint fails at the stop is said and exits non-zero, a
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -47,6 +48,46 @@ def test_a_final_checkpoint_that_fails_after_ctrl_c_is_said_and_up_exits_non_zer
     assert f"run {RUN!r} ended: interrupted" in err, err[-2000:]
     said = [line for line in err.splitlines() if "final checkpoint failed" in line]
     assert len(said) == 1 and "its learner exited (2): " in said[0] and "Is a directory" in said[0], err[-2000:]
+
+
+def _children(pid: int) -> list[int]:
+    return [int(c) for c in Path(f"/proc/{pid}/task/{pid}/children").read_text().split()]
+
+
+def _cmdline(pid: int) -> str:
+    return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode()
+
+
+@pytest.mark.timeout(240)
+def test_a_second_ctrl_c_stops_at_once_without_the_final_checkpoint(tmp_path: Path) -> None:
+    # up waited up to a minute for a learner that did not stop, whatever the user pressed meanwhile
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "up", "--run", RUN, "--actors", "1", "--preset",
+                             "smoke", "--updates", "1000000", "--runs-dir", str(tmp_path), "--quiet",
+                             "--no-tensorboard", "--no-evaluator", "--no-report"],
+                            cwd=REPO, env=ENV, stderr=subprocess.PIPE, text=True)
+    learner = None
+    try:
+        csv = RunPaths(tmp_path / RUN).stats / LearnerRow.FILE
+        deadline = time.monotonic() + 120
+        while not (csv.exists() and len(csv.read_text().splitlines()) >= 2) and time.monotonic() < deadline:
+            time.sleep(0.5)
+        assert csv.exists(), "the learner never reported"
+        (learner,) = [c for c in _children(proc.pid) if " learner " in _cmdline(c)]
+        os.kill(learner, signal.SIGSTOP)  # a learner that does not get round to its last write
+        proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(1.0)  # the first stops the run: up asks the learner, which does not answer
+            proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=45)  # not the minute up gives a learner
+    finally:
+        proc.kill()
+        if learner is not None and Path(f"/proc/{learner}").exists():
+            os.kill(learner, signal.SIGKILL)
+    assert "Ctrl-C again to stop at once" in err and "SIGINT again: killing its services now" in err, err[-2000:]
+    assert proc.returncode == 1, err[-2000:]
+    said = [line for line in err.splitlines() if "final checkpoint failed" in line]
+    assert len(said) == 1 and "SIGKILL" in said[0], err[-2000:]
 
 
 def _free_to_start(runs_dir: Path, prefix: str) -> None:
