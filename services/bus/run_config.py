@@ -16,7 +16,7 @@ import time
 
 import zenoh
 
-from services.bus.session import TransportError, ZenohSettings, open_service_session, query_replies
+from services.bus.session import TransportError, ZenohSettings, open_service_session, open_session, query_replies
 from services.runs import RunPaths, resolve_config
 from shared.config import ConfigError, ConfigMismatchError, RunConfig, require_same_run
 from shared.wire.keys import RunKeys
@@ -111,11 +111,16 @@ class RunConfigCheck:
         self._thread.start()
 
     def _run(self, settings: ZenohSettings, stop: threading.Event) -> None:
+        # finish() ends the wait for a router too: a check left retrying zenoh.open past it may still be
+        # inside Zenoh when the interpreter exits (see WeightFollower.following)
+        def give_up() -> str | None:
+            return "stopped" if stop.is_set() or self._finishing.is_set() else None
+
         try:
-            with open_service_session(settings, stop) as session:
+            with open_session(settings, wait_s=settings.router_wait_s, give_up=give_up) as session:
                 self._check(session, stop)
         except TransportError:
-            pass  # no router: the service's own session says so
+            pass  # no router, or finished first: the service's own session says so
         if self.error is not None:
             stop.set()
 

@@ -256,7 +256,10 @@ class SecureFiles:
 
 def _write_private(path: Path, text: str | bytes) -> None:
     def write(tmp: Path) -> None:  # created 0600: never readable by others, not even for a moment
-        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        # created anew: a file or link left at that name (a killed writer, a planted link) would keep its
+        # own mode, or take the secret where it points
+        tmp.unlink(missing_ok=True)
+        fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, 0o600)
         with os.fdopen(fd, "wb") as fh:
             fh.write(text.encode() if isinstance(text, str) else text)
 
@@ -278,12 +281,13 @@ def init_secure(root: str | Path, run: str, *, tls: bool = False, hosts: Sequenc
                             "service of the run then needs the new files)")
     files.root.mkdir(parents=True, exist_ok=True)
     os.chmod(files.root, 0o700)
+    # The credentials file says the folder is complete (--keep keeps it, init refuses it without --force):
+    # written last, and an old one removed first, so that a folder cut short (a full disk, a kill) is
+    # made anew by the next init rather than kept with half its files or mixing two sets of passwords.
+    files.credentials.unlink(missing_ok=True)
     users = {role: f"{run}-{role}" for role in ROLES}
     passwords = {role: secrets.token_urlsafe(24) for role in ROLES}
     names = list(dict.fromkeys([*DEFAULT_HOSTS, *hosts]))
-    _write_private(files.credentials, _json5({
-        "meta": {"run": run, "tls": tls, "hosts": names, "created": datetime.datetime.now(datetime.UTC).isoformat()},
-        "users": {role: {"user": users[role], "password": passwords[role]} for role in ROLES}}))
     _write_private(files.root / "users.txt", "".join(f"{users[r]}:{passwords[r]}\n" for r in ROLES))
     if tls:
         _write_certificates(files.root, names)
@@ -308,6 +312,9 @@ def init_secure(root: str | Path, run: str, *, tls: bool = False, hosts: Sequenc
                                          "connect_private_key": f"{role}.key", "enable_mtls": True}}
         _write_private(files.config(role), _json5({"mode": "client", "scouting": {"multicast": {"enabled": False}},
                                                    "transport": transport}))
+    _write_private(files.credentials, _json5({
+        "meta": {"run": run, "tls": tls, "hosts": names, "created": datetime.datetime.now(datetime.UTC).isoformat()},
+        "users": {role: {"user": users[role], "password": passwords[role]} for role in ROLES}}))
     return files
 
 

@@ -202,7 +202,9 @@ class ZenohSettings:
         """A fresh ``zenoh.Config`` (a config is consumed by ``zenoh.open``)."""
         config = self._base_config()
         mode = self.effective_mode
-        if self.mode is not None or self.config_file is None:
+        # A file that names no mode leaves Zenoh's own default, peer: a session that needs no router,
+        # listens on every interface and scouts by multicast, while effective_mode says client.
+        if self.mode is not None or self.config_file is None or _json_value(config, "mode") != mode:
             config.insert_json5("mode", json.dumps(mode))
         connect = self.effective_connect
         if connect:

@@ -125,6 +125,20 @@ def test_a_named_preset_is_checked_once_a_learner_answers(router: str, tmp_path:
         assert same.finish() is None and not stop.is_set()
 
 
+def test_finishing_a_check_that_waits_for_its_router_ends_the_wait() -> None:
+    # finish() waited 5 s and left the check retrying zenoh.open for the rest of --router-wait, into
+    # the interpreter's exit
+    settings = ZenohSettings(connect=(f"tcp/127.0.0.1:{free_tcp_port()}",), router_wait_s=60.0)
+    check = RunConfigCheck(KEYS, load_preset("smoke"), "this actor")
+    stop = threading.Event()
+    check.start(settings, stop)
+    time.sleep(0.5)  # it is waiting for the router
+    started = time.monotonic()
+    assert check.finish() is None
+    assert time.monotonic() - started < 3.0 and check._thread is not None and not check._thread.is_alive()
+    assert not stop.is_set()
+
+
 def test_an_answer_beside_the_learners_neither_stops_a_process_nor_is_taken_on_trust(router: str) -> None:
     # The first reply was taken: garbage from anyone stopped every new actor ("a configuration this
     # build cannot read"), and a readable config from anyone was taken when it came first.

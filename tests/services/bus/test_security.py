@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import stat
 import time
 from pathlib import Path
@@ -13,7 +14,7 @@ import pytest
 
 from services.bus import ROLES
 from services.bus.options import add_secure_init_arguments
-from services.bus.security import SecurityError, export_role, init_secure, run_secure_init
+from services.bus.security import SecureFiles, SecurityError, export_role, init_secure, run_secure_init
 from services.bus.session import (
     LivelinessWatch,
     TransportError,
@@ -272,3 +273,51 @@ def test_a_folder_an_older_release_made_gets_this_releases_rules_and_keeps_its_p
         assert heard == [b"pulse"]
         learner.close()
         evaluator.close()
+
+
+def init_args(root: Path, *extra: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_secure_init_arguments(parser)
+    return parser.parse_args([str(root), "--run", RUN, *extra])
+
+
+def passwords_in(files) -> set[tuple[str, str]]:  # type: ignore[no-untyped-def]
+    """Every (user, password) pair the folder's files name: one per role when they agree."""
+    pairs = {(u["user"], u["password"]) for u in json.loads(files.credentials.read_text())["users"].values()}
+    pairs |= {tuple(line.split(":", 1)) for line in (files.root / "users.txt").read_text().splitlines()}
+    for role in ROLES:
+        auth = json.loads(files.config(role).read_text())["transport"]["auth"]["usrpwd"]
+        pairs.add((auth["user"], auth["password"]))
+    return pairs
+
+
+@pytest.mark.parametrize("force", [False, True])
+def test_a_folder_cut_short_is_made_anew_by_the_next_init_not_kept_half_made(tmp_path: Path, capsys, force: bool):
+    # The credentials file, the mark of a complete folder, was written first: a folder cut short (a full
+    # disk, a kill) was kept by --keep and `up`, refused as incomplete, and `secure init` refused it too.
+    root = tmp_path / "secure"
+    if force:  # replacing a complete folder: no mix of its passwords and the new ones is kept
+        init_secure(root, RUN).config("actor").unlink()
+    (root / "actor.json5").mkdir(parents=True)  # writing it fails, as a full disk would
+    with pytest.raises(OSError):
+        init_secure(root, RUN, force=force)
+    (root / "actor.json5").rmdir()
+    assert run_secure_init(init_args(root, "--keep")) == 0
+    capsys.readouterr()
+    files = SecureFiles(root).check(RUN)
+    assert len(passwords_in(files)) == len(ROLES), "one password per role, in every file"
+
+
+def test_a_file_or_link_left_where_a_secret_is_written_is_replaced_not_written_through(tmp_path: Path):
+    root, outside = tmp_path / "secure", tmp_path / "outside.txt"
+    root.mkdir()
+    outside.write_text("")
+    outside.chmod(0o644)
+    (root / f".credentials.json.tmp-{os.getpid()}").symlink_to(outside)
+    stale = root / f".users.txt.tmp-{os.getpid()}"
+    stale.write_text("left by a killed writer\n")
+    stale.chmod(0o644)
+    files = init_secure(root, RUN)
+    assert outside.read_text() == "", "the passwords went where the link pointed"
+    for path in files.root.iterdir():
+        assert stat.S_IMODE(path.lstat().st_mode) == 0o600 and not path.is_symlink(), path.name

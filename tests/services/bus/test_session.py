@@ -130,6 +130,14 @@ def test_config_file_is_the_base_and_fields_override_it(tmp_path: Path) -> None:
     assert json.loads(from_file.to_config().get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
     overridden = ZenohSettings(config_file=str(path), mode="client", connect=("tcp/127.0.0.1:9",))
     assert json.loads(overridden.to_config().get_json("mode")) == "client"
+    # a file that names no mode (TLS settings only, say) is a client, as effective_mode says: Zenoh's
+    # default, peer, opened without a router and listened on every interface
+    no_mode = tmp_path / "no-mode.json5"
+    no_mode.write_text("{ transport: {} }")
+    settings = ZenohSettings(config_file=str(no_mode), connect=(f"tcp/127.0.0.1:{free_tcp_port()}",))
+    assert settings.effective_mode == "client" == json.loads(settings.to_config().get_json("mode"))
+    with pytest.raises(TransportError, match="cannot open a Zenoh session"):
+        open_session(settings)
     bad = tmp_path / "bad.json5"
     bad.write_text("{ mode: ")
     with pytest.raises(TransportConfigError, match="invalid"):
