@@ -6,9 +6,9 @@ dataclasses, a few constants), so ``cogexplore --help`` and every ``cogexplore C
 start in a fraction of a second, and a command imports only what it runs. A user-facing error
 (:class:`shared.errors.CogexploreError`: a bad setting, file, world, checkpoint, endpoint...) is
 caught here, once, and printed as one line with exit status 2; so is an OSError (a path that is a
-folder, no permission, a full disk), whose traceback goes to the log at debug level. A reader of
-stdout that goes away (``cogexplore bench env | head -1``) ends the command quietly, as it ends
-``yes | head -1``.
+folder, no permission, a full disk) or a MemoryError (a replay memory larger than the machine's),
+whose traceback goes to the log at debug level. A reader of stdout that goes away (``cogexplore bench
+env | head -1``) ends the command quietly, as it ends ``yes | head -1``.
 """
 
 from __future__ import annotations
@@ -203,7 +203,9 @@ def main(argv: list[str] | None = None) -> int:
     except CogexploreError as exc:
         print(error_line(args._command, exc), file=sys.stderr)
         return 2
-    except OSError as exc:  # a path that is a folder, no permission, a full disk: the user's to fix, in one line
+    except (OSError, MemoryError) as exc:
+        # a path that is a folder, no permission, a full disk; a config that asks for more memory than the
+        # machine has (a replay.capacity of large images): the user's to fix, in one line
         if isinstance(exc, BrokenPipeError) and _stdout_reader_gone():
             # what is still buffered for stdout would fail again at exit: send it nowhere
             os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
@@ -211,7 +213,8 @@ def main(argv: list[str] | None = None) -> int:
         import logging
 
         logging.getLogger("cogexplore").debug("%s failed", args._command, exc_info=True)
-        print(error_line(args._command, exc), file=sys.stderr)
+        print(error_line(args._command, f"out of memory: {exc}" if isinstance(exc, MemoryError) else exc),
+              file=sys.stderr)
         return 2
 
 

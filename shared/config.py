@@ -371,7 +371,7 @@ class EnvConfig:
                and 1 <= self.trap_horizon_steps <= 100, s,
                "trap_horizon_steps", self.trap_horizon_steps, "an integer in [1, 100]")
         _check(self.start_index is None or is_count(self.start_index),
-               s, "start_index", self.start_index, "None or an integer in [0, 2**63)")
+               s, "start_index", self.start_index, "none (a start drawn each episode) or an integer in [0, 2**63)")
         _check(is_finite_number(self.random_start_prob) and 0 <= self.random_start_prob <= 1, s, "random_start_prob",
                self.random_start_prob, "a probability in [0, 1]")
         _check(is_finite_number(self.random_start_clearance_m) and 0 < self.random_start_clearance_m < 5, s,
@@ -449,9 +449,9 @@ class EnvConfig:
 
 
 DEPTH_ENCODINGS: tuple[str, ...] = ("metric", "inverse")
+"""ModelConfig.depth_encoding values (shared.learning.model.encode_depth)."""
 CONV_PRECISIONS: tuple[str, ...] = ("float32", "bfloat16", "auto")
 """``dqn.conv_precision`` values (shared.learning.model.conv_autocast_dtype)."""
-"""ModelConfig.depth_encoding values (shared.learning.model.encode_depth)."""
 
 
 @dataclass(frozen=True)
@@ -774,9 +774,10 @@ class TrainConfig:
         # the learner asks for total_updates / replay_ratio transitions: an infinite count is a crash
         _check(math.isfinite(self.total_updates / self.replay_ratio), s, "replay_ratio", self.replay_ratio,
                f"large enough that total_updates ({self.total_updates}) / replay_ratio is a finite number")
-        _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda")
-               or self.device.startswith("cuda:")), s, "device", self.device,
-               "'auto', 'cpu', 'cuda' or 'cuda:<n>'")
+        cuda_index = self.device.removeprefix("cuda:") if isinstance(self.device, str) else ""
+        _check(isinstance(self.device, str) and (self.device in ("auto", "cpu", "cuda") or (
+               self.device.startswith("cuda:") and cuda_index.isascii() and cuda_index.isdigit())),
+               s, "device", self.device, "'auto', 'cpu', 'cuda' or 'cuda:<n>'")
         _check(isinstance(self.init_conv_from, str) and (self.init_conv_from in ("", "pretrained:sl") or (
                self.init_conv_from.strip() == self.init_conv_from and self.init_conv_from.endswith(".safetensors"))),
                s, "init_conv_from", self.init_conv_from,
@@ -833,6 +834,14 @@ class RunConfig:
 _SECTIONS: dict[str, type] = {f.name: f.default_factory().__class__ for f in fields(RunConfig)}  # type: ignore[misc]
 
 
+def _is_utf8(text: str) -> bool:
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
 def section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: str) -> Any:
     """``base`` (a config section of type ``cls``) with the fields in ``data`` over it, as a preset's
     ``[section]`` is read: ConfigError for an unknown field or a value of the wrong type."""
@@ -849,6 +858,9 @@ def section_from_dict(cls: type, data: Mapping[str, Any], base: Any, section: st
             value = float(value)
         if value == "none" and "None" in str(hint):
             value = None
+        # a lone surrogate (an undecodable byte of argv) has no UTF-8: the run's config.toml could not be saved
+        _check(not isinstance(value, str) or _is_utf8(value), section, name, value,
+               "text in UTF-8 (an undecodable byte on the command line?)")
         values[name] = value
     try:
         return replace(base, **values)

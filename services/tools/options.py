@@ -158,7 +158,9 @@ def add_experiment_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-steps", type=int, default=200, help="steps per test episode at most (default 200)")
     parser.add_argument("--seed", type=int, default=TEST_SEED,
                         help=f"seed of the supervised model's training and of the test episodes (default {TEST_SEED})")
-    parser.add_argument("--device", default=None, help="torch device for training: auto, cpu, cuda")
+    parser.add_argument("--device", default=None,
+                        help="torch device for training: auto, cpu, cuda, cuda:N (default: the preset's train.device; "
+                             "auto for the supervised model)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     add_protocol_arguments(parser, default="paper")
 
@@ -185,7 +187,7 @@ def add_pretrain_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--class-balance", type=float, default=0.5,
                         help="class weights (1/frequency)**this: 0 plain loss, 1 balanced (default 0.5)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the data episodes and the training (default 0)")
-    parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N")
+    parser.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     parser.add_argument("--json", action="store_true", help="print the model card as JSON")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -200,7 +202,8 @@ def add_train_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override one config field (repeatable)")
     parser.add_argument("--run", default=None, help="run name (default: train-<date>-<time>)")
     add_runs_dir_argument(parser)
-    parser.add_argument("--device", default=None, help="auto, cpu, cuda, cuda:N")
+    parser.add_argument("--device", default=None,
+                        help="torch device: auto, cpu, cuda, cuda:N (default: the config's train.device)")
     parser.add_argument("--updates", type=count_argument, default=None, help="override train.total_updates")
     parser.add_argument("--minutes", type=positive_number_argument, default=None, help="stop after this many minutes")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -237,3 +237,49 @@ def test_a_reader_that_stops_reading_ends_the_command_quietly(tmp_path: Path) ->
     done = subprocess.run([sys.executable, "-m", "services.cli", "worlds", "list"], cwd=REPO, capture_output=True,
                           text=True, timeout=120, env={**os.environ, "RERUN_ANALYTICS": "0"})
     assert done.returncode == 0 and "box-room" in done.stdout
+
+
+def test_text_the_run_folder_cannot_hold_is_refused_before_the_run_starts(tmp_path: Path, capsys) -> None:
+    # an undecodable byte of argv (a lone surrogate) passed the config; saving config.toml was a traceback
+    argv = ["train", "--preset", "tiny", "--runs-dir", str(tmp_path), "--run", "r", "--updates", "1", "--quiet",
+            "--no-tensorboard", "--set", "env.extra_worlds=\udcff"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore train: error: [env] extra_worlds = '\\udcff' is invalid: text in UTF-8")
+    assert err.count("\n") == 1
+
+
+@pytest.mark.skipif(Path("/proc/sys/vm/overcommit_memory").exists()
+                    and Path("/proc/sys/vm/overcommit_memory").read_text().strip() == "1",
+                    reason="this kernel promises any allocation: the memory would be asked for page by page")
+def test_a_replay_memory_larger_than_the_machine_is_one_line(tmp_path: Path, capsys) -> None:
+    # 10 million 1024 x 1024 frames: 21.5 TiB; was a numpy MemoryError traceback
+    argv = ["train", "--preset", "tiny", "--runs-dir", str(tmp_path), "--run", "r", "--updates", "1", "--quiet",
+            "--no-tensorboard", "--set", "replay.capacity=10000000", "--set", "sensor.width=1024",
+            "--set", "sensor.height=1024"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cogexplore train: error: out of memory: ") and "TiB" in err and err.count("\n") == 1
+
+
+def test_every_option_of_the_tools_names_its_default() -> None:
+    import argparse
+
+    from services.cli import COMMANDS, Command, build_parser
+
+    tools = {name for name, c in COMMANDS.items() if isinstance(c, Command) and c.options.startswith("services.tools.")}
+    tools |= {f"{name} {action}" for name, g in COMMANDS.items() if not isinstance(g, Command)
+              for action, c in g.actions.items() if c.options.startswith("services.tools.")}
+    assert {"train", "evaluate", "pretrain", "experiment", "worlds demo", "model select"} <= tools
+    quiet = []
+    for path, parser in _parsers(build_parser()):
+        if " ".join(path) not in tools:
+            continue
+        for action in parser._actions:
+            if not action.option_strings or action.help in (None, argparse.SUPPRESS):
+                continue
+            has_value = action.default not in (None, False, True, [], (), argparse.SUPPRESS)
+            # a device left unset is still some device: the help says which
+            if (has_value or "--device" in action.option_strings) and "default" not in action.help:
+                quiet.append(f"cogexplore {' '.join(path)} {action.option_strings[0]}")
+    assert not quiet, quiet

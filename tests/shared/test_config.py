@@ -128,3 +128,29 @@ def test_a_procedural_seed_is_listed_as_its_world_is_named() -> None:
     assert parse_world_list("procedural:0201, procedural:201, procedural:200-202, procedural:000") == (
         "procedural:201", "procedural:200", "procedural:202", "procedural:0")
     assert set(parse_world_list("procedural:0201")) & set(parse_world_list("procedural:200-202"))
+
+
+def test_text_that_cannot_be_saved_is_refused_naming_its_field() -> None:
+    # an undecodable byte on the command line arrives as a lone surrogate: it passed every check, and
+    # writing the run's config.toml then failed with a UnicodeEncodeError traceback
+    with pytest.raises(ConfigError, match=r"^\[env\] extra_worlds = '\\udcff' is invalid: text in UTF-8"):
+        RunConfig().with_overrides({"env.extra_worlds": "\udcff"})
+    cfg = RunConfig().with_overrides({"env.world": "wörld-€"})
+    assert from_dict(tomllib.loads(to_toml(cfg))) == cfg
+
+
+def test_no_start_index_is_written_as_the_error_says() -> None:
+    key, value = parse_override("env.start_index=none")
+    assert RunConfig().with_overrides({key: value}).env.start_index is None
+    with pytest.raises(ConfigError) as info:
+        RunConfig().with_overrides(dict([parse_override("env.start_index=-1")]))
+    allowed = str(info.value).partition("is invalid: ")[2]
+    assert allowed.split()[0] == "none", allowed  # was "None", which --set reads as the text 'None' and refuses
+
+
+@pytest.mark.parametrize("device", ["cuda:x", "cuda:", "cuda:-1", "cuda:1.5", "cuda:0 "])
+def test_a_device_is_a_cuda_index_or_a_name(device: str) -> None:
+    # these passed the config and failed only when the run had started, as torch read them
+    with pytest.raises(ConfigError, match=r"^\[train\] device = .* is invalid: 'auto', 'cpu', 'cuda' or 'cuda:<n>'"):
+        RunConfig().with_overrides({"train.device": device})
+    assert RunConfig().with_overrides({"train.device": "cuda:1"}).train.device == "cuda:1"
