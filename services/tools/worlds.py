@@ -83,7 +83,9 @@ def run_demo(args: argparse.Namespace) -> int:
     from shared.sim.env import ExploreEnv
 
     protocol = PROTOCOLS[args.protocol]
-    if args.episodes < 1 or (args.episodes > 1 and not protocol.jittered):
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes must be an integer >= 1, got {args.episodes}")
+    if args.episodes > 1 and not protocol.jittered:
         raise ConfigError(f"--episodes {args.episodes}: give 1, or more with --protocol robust (the {protocol.name} "
                           "protocol's starts are exact: every episode would be the same)")
     if args.seed < 0:  # numpy's refusal, in the first draw, was a traceback

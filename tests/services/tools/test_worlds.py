@@ -31,3 +31,12 @@ def test_demo_plans_a_start_given_twice_once_and_says_so(tmp_path: Path, capsys)
     assert [p["start"] for p in plans] == [2, 1]  # in the order given
     assert [d.start_index for d in load_demonstrations(out)] == [1, 0]
     assert captured.err == "cogexplore worlds demo: note: start 2 given more than once; planned once\n"
+
+
+def test_demo_refuses_no_episodes_as_a_count(tmp_path: Path, capsys) -> None:
+    # It blamed the protocol's exact starts, also under the robust protocol, whose starts are drawn.
+    out = tmp_path / "d.npz"
+    assert main(["worlds", "demo", "box-room", "--start", "1", "--protocol", "robust", "--episodes", "0",
+                 "--quiet", "--out", str(out)]) == 2
+    assert capsys.readouterr().err == "cogexplore worlds demo: error: --episodes must be an integer >= 1, got 0\n"
+    assert not out.exists()
