@@ -6,7 +6,7 @@ dataclasses, a few constants), so ``cogexplore --help`` and every ``cogexplore C
 start in a fraction of a second, and a command imports only what it runs. A user-facing error
 (:class:`shared.errors.CogexploreError`: a bad setting, file, world, checkpoint, endpoint...) is
 caught here, once, and printed as one line with exit status 2; so is an OSError (a path that is a
-folder, no permission, a full disk) or a MemoryError (a replay memory larger than the machine's),
+folder, no permission, a full disk) or a MemoryError (a setting that asks more than the machine has),
 whose traceback goes to the log at debug level. A reader of stdout that goes away (``cogexplore bench
 env | head -1``) ends the command quietly, as it ends ``yes | head -1``.
 """

@@ -58,6 +58,12 @@ class ModelError(CogexploreError):
     """Bad network input, incompatible weights or an image too small for the conv stack."""
 
 
+MAX_FC1_WEIGHTS = 2**29
+"""The most weights fc1 may have (2 GiB in float32; a learner holds four such: the network, its
+target and Adam's two moments): exactly a 1024 x 1024 image at the default fc1 (512); the paper's
+160 x 120 image at the largest fc1 (8192) has 157 million."""
+
+
 def pool3_shape(sensor_cfg: SensorConfig) -> tuple[int, int, int]:
     """(C, H, W) of pool3 for images of the sensor's size (each pool floors odd sizes)."""
     h, w = sensor_cfg.height, sensor_cfg.width
@@ -290,6 +296,10 @@ class QNetwork(nn.Module):
         self.pool3_shape = pool3_shape(self.sensor_cfg)
         flat = int(np.prod(self.pool3_shape))
         cfg = self.model_cfg
+        if flat * cfg.fc1 > MAX_FC1_WEIGHTS:  # each field in its range, together more than a machine holds
+            raise ModelError(f"fc1 would have {flat * cfg.fc1:,} weights ({flat:,} pool3 values of a "
+                             f"{self.sensor_cfg.width}x{self.sensor_cfg.height} image x model.fc1 = {cfg.fc1}), "
+                             f"more than {MAX_FC1_WEIGHTS:,}: lower sensor.width/height or model.fc1")
         self.trunk = ConvTrunk(cfg.depth_encoding, cfg.frame_stack)
         self.fc1 = nn.Linear(flat, cfg.fc1)
         self.previous_action_fc = (nn.Linear(NUM_ACTIONS * cfg.action_history, cfg.fc1, bias=False)

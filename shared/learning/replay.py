@@ -156,23 +156,27 @@ class ReplayMemory:
         if self.frame_capacity < 4:
             raise ReplayError(f"frame_capacity must be >= 4, got {self.frame_capacity}")
         n, f = self.capacity, self.frame_capacity
-        # np.zeros maps untouched pages lazily: a large memory costs RAM only as it fills
-        self._frames = np.zeros((f, *self.frame_shape), dtype=np.uint16)
-        self._frame_id = np.full(f, -1, dtype=np.int64)  # global id of the frame in each slot
-        self._frame_refs = np.full((f, 2), -1, dtype=np.int64)  # transition ids using the frame
-        self._tid = np.full(n, -1, dtype=np.int64)
-        self._obs_fid = np.full(n, -1, dtype=np.int64)
-        self._next_fid = np.full(n, -1, dtype=np.int64)
-        self._next_tid = np.full(n, -1, dtype=np.int64)
-        self._prev_tid = np.full(n, -1, dtype=np.int64)  # the chain's predecessor (-1: episode start)
-        self._reward = np.zeros(n, dtype=np.float32)
-        self._action = np.zeros(n, dtype=np.uint8)
-        self._expert_action = np.full(n, -1, dtype=np.int8)  # the expert's command in obs, -1: none
-        self._safe_commands = np.zeros(n, dtype=np.uint8)  # its safe-set bitmask in obs, 0: none
-        self._previous_action = np.full((n, MAX_ACTION_HISTORY), -1, dtype=np.int8)  # most recent first
-        self._terminated = np.zeros(n, dtype=bool)
-        self._truncated = np.zeros(n, dtype=bool)
-        self._valid = np.zeros(n, dtype=bool)
+        try:
+            # np.zeros maps untouched pages lazily: a large memory costs RAM only as it fills
+            self._frames = np.zeros((f, *self.frame_shape), dtype=np.uint16)
+            self._frame_id = np.full(f, -1, dtype=np.int64)  # global id of the frame in each slot
+            self._frame_refs = np.full((f, 2), -1, dtype=np.int64)  # transition ids using the frame
+            self._tid = np.full(n, -1, dtype=np.int64)
+            self._obs_fid = np.full(n, -1, dtype=np.int64)
+            self._next_fid = np.full(n, -1, dtype=np.int64)
+            self._next_tid = np.full(n, -1, dtype=np.int64)
+            self._prev_tid = np.full(n, -1, dtype=np.int64)  # the chain's predecessor (-1: episode start)
+            self._reward = np.zeros(n, dtype=np.float32)
+            self._action = np.zeros(n, dtype=np.uint8)
+            self._expert_action = np.full(n, -1, dtype=np.int8)  # the expert's command in obs, -1: none
+            self._safe_commands = np.zeros(n, dtype=np.uint8)  # its safe-set bitmask in obs, 0: none
+            self._previous_action = np.full((n, MAX_ACTION_HISTORY), -1, dtype=np.int8)  # most recent first
+            self._terminated = np.zeros(n, dtype=bool)
+            self._truncated = np.zeros(n, dtype=bool)
+            self._valid = np.zeros(n, dtype=bool)
+        except MemoryError as exc:  # more than the machine will map: name the setting, not the array
+            raise ReplayError(f"replay.capacity = {n} of {self.frame_shape[1]}x{self.frame_shape[0]} images "
+                              f"needs more memory than this machine has ({exc})") from None
         self._frames_written = 0
         self._transitions_added = 0
         self._num_valid = 0

@@ -259,7 +259,8 @@ def test_a_replay_memory_larger_than_the_machine_is_one_line(tmp_path: Path, cap
             "--set", "sensor.height=1024"]
     assert main(argv) == 2
     err = capsys.readouterr().err
-    assert err.startswith("cogexplore train: error: out of memory: ") and "TiB" in err and err.count("\n") == 1
+    assert err.startswith("cogexplore train: error: replay.capacity = 10000000 of 1024x1024 images needs more "
+                          "memory than this machine has (") and "TiB" in err and err.count("\n") == 1
 
 
 def test_every_option_of_the_tools_names_its_default() -> None:

@@ -383,3 +383,17 @@ def test_a_frame_stack_network_reads_its_images_as_channels_and_starts_from_a_on
     with torch.no_grad():  # fused
         fused = pair(x, [1, 4])
     torch.testing.assert_close(fused, torch.stack([m(x, [1, 4]) for m in pair.members]).mean(0))
+
+
+def test_a_network_too_large_for_a_machine_is_refused_naming_its_fields(monkeypatch) -> None:
+    # each field in its range, together 34 GB of fc1: torch's allocator failed with a traceback
+    with pytest.raises(ModelError, match=r"fc1 would have 8,589,934,592 weights .*lower sensor.width/height or model.fc1"):
+        QNetwork(ModelConfig(fc1=8192), SensorConfig(width=1024, height=1024))
+    import shared.learning.model as model
+
+    paper = QNetwork().fc1.weight.numel()
+    monkeypatch.setattr(model, "MAX_FC1_WEIGHTS", paper)  # the limit itself is allowed
+    assert QNetwork().fc1.weight.numel() == paper
+    monkeypatch.setattr(model, "MAX_FC1_WEIGHTS", paper - 1)
+    with pytest.raises(ModelError, match="fc1 would have"):
+        QNetwork()
