@@ -3,7 +3,7 @@ image and in the paper's test protocol.
 
     import cogexplore
 
-    policy = cogexplore.load_policy("pretrained")       # the shipped DRL model (or a checkpoint, export, run dir)
+    policy = cogexplore.load_policy("pretrained")       # the shipped DRL model (or a checkpoint, weights file, run dir)
     command = policy.act(depth_m)                       # an (H, W) image in metres, any resolution -> 0..4
     linear_mps, angular_rps = policy.twist(command)     # what to send the robot, for policy.control_period_s
     results = cogexplore.evaluate(policy, world="paper-indoor", episodes_per_start=1)

@@ -17,6 +17,10 @@ COMMAND_NAMES: tuple[str, ...] = ACTION_NAMES
 ASPECT_TOLERANCE = 0.05
 """How far (relative) an image's width / height may be from the network's before it is refused:
 another aspect ratio is another field of view, which resizing cannot make up."""
+MILLIMETRES_LIKELY_M = 100.0
+"""A float image whose typical return (the median) lies beyond this many metres holds millimetres, not
+metres: the 16-bit image converted to float without its scale (a common ROS slip). Read as metres,
+every pixel would be beyond the camera's range, no return, and the network drive blind."""
 
 
 class Command(NamedTuple):
@@ -55,6 +59,10 @@ def metres(depth_m: Any) -> np.ndarray:
                           "than the camera sees, where no command was taught; stop the robot (cogexplore drive does)")
     if (depth < 0).any():
         raise PolicyError("depth_m has negative depths; expected metres >= 0 (0, NaN or inf: no return)")
+    returns = depth[np.isfinite(depth) & (depth > 0)]
+    if returns.size and float(np.median(returns)) > MILLIMETRES_LIKELY_M:
+        raise PolicyError(f"depth_m's typical depth is {float(np.median(returns)):.0f} m: millimetres in a float "
+                          "image? Divide by 1000, or pass the uint16 millimetres as they are")
     return depth
 
 
@@ -70,12 +78,17 @@ def checked_q_values(q_values: Any, label: str) -> np.ndarray:
     return q
 
 
+def same_aspect(width: int, height: int, sensor: SensorConfig) -> bool:
+    """Whether a ``width`` x ``height`` image has the aspect ratio of ``sensor``'s (to ``ASPECT_TOLERANCE``)."""
+    return abs((width / height) / (sensor.width / sensor.height) - 1.0) <= ASPECT_TOLERANCE
+
+
 def camera_observation(depth_m: Any, sensor: SensorConfig) -> np.ndarray:
     """``depth_m`` as the network's camera (``sensor``) sees it: float32 (H, W) metres at the
     network's size, 0 = no return (``Policy.observation``, which documents the input)."""
     depth = metres(depth_m)
     h, w = depth.shape
-    if abs((w / h) / (sensor.width / sensor.height) - 1.0) > ASPECT_TOLERANCE:
+    if not same_aspect(w, h, sensor):
         raise PolicyError(f"depth_m is {w} x {h} pixels; the network's camera is {sensor.width} x {sensor.height} "
                           f"({sensor.hfov_deg:g} x {sensor.vfov_deg:g} degrees): crop the image to that field of "
                           "view first")

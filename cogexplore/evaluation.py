@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from cogexplore._policy_io import CameraPolicy
+from cogexplore._policy_io import CameraPolicy, same_aspect
 from cogexplore.policy import Policy
 from shared.evaluation import (
     DEFAULT_PROTOCOL,
@@ -125,6 +125,10 @@ def evaluate(policy: Policy | Callable[[np.ndarray], Any], world: str | None = N
         if not (isinstance(resolution, (tuple, list)) and len(resolution) == 2):
             raise PolicyError(f"resolution must be (width, height), got {resolution!r}")
         sensor = dataclasses.replace(sensor, width=resolution[0], height=resolution[1])
+        if isinstance(policy, CameraPolicy) and not same_aspect(sensor.width, sensor.height, policy.sensor):
+            # else refused at the first step, as an image to crop: these have the network's field of view
+            raise PolicyError(f"resolution {sensor.width} x {sensor.height} is not the aspect ratio of the network's "
+                              f"{policy.sensor.width} x {policy.sensor.height} camera, whose images it takes")
     results = evaluate_policy(_Controller(policy), world=setup.world, sensor_cfg=sensor, env_cfg=setup.env_cfg,
                               episodes_per_start=episodes_per_start, max_steps=max_steps, seed=seed, starts=starts,
                               policy_version=policy_version,

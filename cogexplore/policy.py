@@ -76,7 +76,8 @@ class Policy(CameraPolicy):
 def load_policy(source: str | os.PathLike[str] = "pretrained", *, device: str = "auto") -> Policy:
     """A :class:`Policy` from ``source``: ``pretrained`` (the shipped DRL model), a checkpoint file
     or directory, a run folder or a weights export, whatever ``cogexplore evaluate --checkpoint``
-    takes. ``device``: ``auto`` (CUDA when present), ``cpu``, ``cuda``, ``cuda:1``...
+    takes (an ONNX export: :func:`cogexplore.load_onnx_policy`). ``device``: ``auto`` (CUDA when
+    present), ``cpu``, ``cuda``, ``cuda:1``...
     Raises a CogexploreError (one line) for a missing or unreadable model."""
     if not isinstance(source, (str, os.PathLike)):
         raise PolicyError(f"source must be 'pretrained' or a path, got {type(source).__name__}")

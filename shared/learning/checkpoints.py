@@ -694,6 +694,10 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
         dev = resolve_device(device)
     except ModelError as exc:
         raise CheckpointError(str(exc)) from None
+    if str(source).lower().endswith(".onnx") and Path(source).is_file():  # else refused as corrupt safetensors
+        raise CheckpointError(f"{source} is an ONNX export: it runs without torch, through "
+                              "cogexplore.load_onnx_policy or `cogexplore drive --onnx`; here give the weights "
+                              "it was exported from")
     path = resolve_checkpoint(source)
     if path is None:
         raise CheckpointError(f"{source} holds no checkpoint yet")

@@ -126,6 +126,12 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
                           control_period_s=_control_period_s(model),
                           label=label, source=source, policy_version=int(version), weights_sha256=weights_sha256(net),
                           cogexplore_version=_cogexplore_version(), extra=dict(extra or {}))
+    try:
+        text = info.to_json()
+    except (TypeError, ValueError) as exc:  # json.dumps: keys of mixed types, an extra that holds itself
+        raise OnnxModelError(f"{path}: not written: its metadata is not JSON: {exc}") from None
+    # read back as the runner will, before anything is written: a NaN in ``extra`` or ``label`` is no JSON
+    OnnxPolicyInfo.from_json(text, f"{path}: not written")
     data = _serialise(net, info)
     _check_against_torch(net, data, path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -95,10 +95,13 @@ class OnnxPolicyInfo:
                 raise ValueError(f"control_period_s must be a number of seconds > 0, got {period!r}")
             if not (is_whole(version) and version >= 0):
                 raise ValueError(f"policy_version must be a whole number >= 0, got {version!r}")
+            extra = data.get("extra") or {}
+            if not isinstance(extra, dict):  # dict() would take a list of pairs, or fail on others cryptically
+                raise ValueError(f"extra must be a JSON object, got {type(extra).__name__}")
             info = cls(sensor=configs.sensor, model=configs.model, control_period_s=float(period),
                        label=str(data["label"]), source=str(data["source"]),
                        policy_version=int(version), weights_sha256=str(data["weights_sha256"]),
-                       cogexplore_version=str(data["cogexplore_version"]), extra=dict(data.get("extra") or {}))
+                       cogexplore_version=str(data["cogexplore_version"]), extra=extra)
         except (ConfigError, KeyError, TypeError, ValueError, OverflowError) as exc:
             detail = f"missing {exc}" if isinstance(exc, KeyError) else str(exc)
             raise OnnxModelError(f"{where}: its {METADATA_KEY!r} metadata is invalid: {detail}") from None

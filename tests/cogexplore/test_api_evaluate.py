@@ -101,3 +101,15 @@ def test_evaluate_errors_are_clear() -> None:
             cogexplore.evaluate(lambda depth: 2, seed=seed, episodes_per_start=1, max_steps=3)
     with pytest.raises(cogexplore.CogexploreError, match="protocol must be"):
         cogexplore.evaluate(lambda depth: 2, protocol=3, max_steps=3)
+
+
+def test_a_resolution_a_policy_refuses_is_a_clear_error_before_any_episode() -> None:
+    # Before: refused at the first step as "depth_m is 64 x 64 pixels ... crop the image to that field
+    # of view first", advice for an image that has the network's field of view.
+    policy = cogexplore.load_policy(device="cpu")
+    with pytest.raises(cogexplore.CogexploreError, match=r"^resolution 64 x 64 is not the aspect ratio of the "
+                                                         r"network's 40 x 30 camera"):
+        cogexplore.evaluate(policy, resolution=(64, 64), starts=[0], episodes_per_start=1, max_steps=3)
+    # a callable takes any size
+    assert cogexplore.evaluate(lambda depth: 2, resolution=(64, 64), starts=[0], episodes_per_start=1,
+                               max_steps=3).meta["sensor"]["width"] == 64

@@ -96,6 +96,17 @@ def test_no_return_nan_inf_and_beyond_range_read_alike(policy: cogexplore.Policy
     assert policy.observation(image[..., None]).shape == (30, 40)
 
 
+def test_millimetres_in_a_float_image_are_refused_not_read_as_no_return(policy: cogexplore.Policy,
+                                                                       scenes: list[dict[str, np.ndarray]]) -> None:
+    # Every pixel read as beyond the range: the network chose its blind command whatever the scene.
+    image = scenes[0][(640, 480)]
+    with pytest.raises(PolicyError, match=r"typical depth is \d+ m: millimetres in a float image\?"):
+        policy.act((image * 1000).astype(np.float32))
+    far = image.copy()  # metres beyond the camera on some pixels are no return, as before
+    far[: far.shape[0] // 8] = 150.0
+    np.testing.assert_array_equal(policy.observation(far), policy.observation(np.where(far > 100, 0.0, far)))
+
+
 def test_the_previous_command_is_remembered_until_reset(policy: cogexplore.Policy,
                                                         scenes: list[dict[str, np.ndarray]]) -> None:
     image = scenes[3]["env"]

@@ -191,6 +191,9 @@ def test_a_broken_or_foreign_file_is_a_one_line_error(onnx_path: Path, tmp_path:
         _with_metadata(onnx_path, tmp_path / "text.onnx", lambda t: re.sub(r'"control_period_s": [0-9.]+',
                                                                           '"control_period_s": "0.5"', t)):
             "control_period_s must be a number",
+        # dict() made a list of pairs a mapping, and failed on others with its own words
+        _with_metadata(onnx_path, tmp_path / "extra.onnx", lambda t: json.dumps({**json.loads(t), "extra": [[1, 2]]})):
+            "metadata is invalid: extra must be a JSON object, got list",
         _with_graph(onnx_path, tmp_path / "nan.onnx", nan_bias): "Q-values that are not finite",
         _with_graph(onnx_path, tmp_path / "batch2.onnx", batch_of_two): "the graph fails",
     }
@@ -202,6 +205,22 @@ def test_a_broken_or_foreign_file_is_a_one_line_error(onnx_path: Path, tmp_path:
         with pytest.raises(PolicyError, match="threads"):
             load_onnx_policy(onnx_path, threads=threads)
     assert issubclass(OnnxModelError, cogexplore.CogexploreError)
+
+
+def test_load_policy_and_evaluate_send_an_onnx_file_to_its_runner(onnx_path: Path, tmp_path: Path, capsys) -> None:
+    # Before: "is neither a checkpoint nor a weights export: ... not a readable safetensors file
+    # (partial or corrupt?)", twice, of a sound export.
+    from services.cli import main
+
+    shouting = tmp_path / "DRL.ONNX"
+    shouting.write_bytes(onnx_path.read_bytes())
+    said = r"is an ONNX export: it runs without torch, through cogexplore.load_onnx_policy or `cogexplore drive --onnx`"
+    for source in (onnx_path, str(shouting)):
+        with pytest.raises(cogexplore.CogexploreError, match=said):
+            cogexplore.load_policy(source, device="cpu")
+    assert main(["evaluate", "--checkpoint", str(onnx_path), "--world", "box-room", "--episodes-per-start", "1"]) == 2
+    err = capsys.readouterr().err
+    assert re.search(said, err) and err.count("\n") == 1, err
 
 
 def test_evaluate_plays_an_onnx_policy_as_the_torch_policy_of_its_network(torch_policy: cogexplore.Policy,

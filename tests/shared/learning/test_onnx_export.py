@@ -5,6 +5,7 @@ provenance, and a broken export never lands on disk."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -258,3 +259,20 @@ def test_a_half_export_refused_for_overflow_writes_no_onnx_file_either(tmp_path:
     assert main(["model", "export", str(ckpt), "--out", str(out), "--half", "--onnx", str(onnx_path)]) == 2
     assert "not finite in float16" in capsys.readouterr().err
     assert not out.exists() and not onnx_path.exists()
+
+
+def test_metadata_the_runner_cannot_read_is_never_written(tmp_path: Path) -> None:
+    # Before, a NaN in extra (or label) was written as JSON's non-standard NaN: an export that passed
+    # every check and that load_onnx_policy then refused on the robot; keys of mixed types were a TypeError.
+    from cogexplore.onnx_runner import load_onnx_policy
+
+    net = _smoke_net()
+    path = tmp_path / "model.onnx"
+    for kwargs, message in (({"extra": {"card": {"score": float("nan")}}}, "not readable JSON"),
+                            ({"label": float("nan")}, "not readable JSON"),
+                            ({"extra": {1: "a", "b": 2}}, "metadata is not JSON")):
+        with pytest.raises(OnnxModelError, match=f"^{re.escape(str(path))}: not written: .*{message}"):
+            export_onnx(net, path, **kwargs)
+        assert not path.exists()
+    assert load_onnx_policy(export_onnx(net, path, extra={"card": {"score": 1.5}})).info.extra == \
+        {"card": {"score": 1.5}}
