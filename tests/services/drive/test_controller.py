@@ -138,7 +138,9 @@ def test_minus_inf_is_an_obstacle_too_near_to_measure_not_a_bad_image(policy, st
     # no return, as for NaN, so it is refused as NaN is (before, it was driven on).
     ("20 m everywhere", None, NO_VALID_DEPTH),
     ("saturated millimetres", None, NO_VALID_DEPTH),
-    ("5 km everywhere", None, NO_VALID_DEPTH),
+    # Thousands of metres are millimetres in a float image (a 16-bit image converted without its
+    # scale): refused as a bad image, whose message says so, not read as no return.
+    ("5 km everywhere", None, BAD_DEPTH),
 ])
 def test_a_bad_image_stops_the_robot_and_is_counted(policy, start_image, name, payload, cause):
     if payload is None:
