@@ -97,7 +97,9 @@ class RunLock:
         check_runs_folder(paths.root.parent)
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
-            self._file: IO[str] | None = open(self.path, "a+")
+            # not through a symlink: the pid written below would replace whatever file it points at
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+            self._file: IO[str] | None = open(fd, "r+", errors="replace")
         except OSError as exc:
             raise RunInUseError(f"cannot hold run {paths.root.name!r}: {self.path}: {exc.strerror or exc}") from None
         try:
@@ -142,7 +144,8 @@ def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
     elif run_config is not None:
         cfg = run_config
     else:
-        saved = paths is not None and paths.config.exists()
+        # a dangling symlink is a saved config that cannot be read, not a run without one
+        saved = paths is not None and (paths.config.exists() or paths.config.is_symlink())
         cfg = load_preset(paths.config, complete=True) if saved else load_preset(default_preset)
     if own_device:
         cfg = cfg.with_overrides({"train.device": "auto"})

@@ -69,6 +69,7 @@ from shared.evaluation import (
     PROTOCOLS,
     ProtocolConfig,
 )
+from shared.files import atomic_write_text, save_png
 from shared.jsontext import read_json_file
 
 log = logging.getLogger("cogexplore.experiment")
@@ -240,8 +241,6 @@ class ExperimentState:
         self.save()
 
     def save(self) -> None:
-        from shared.files import atomic_write_text
-
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.path, json.dumps(self.data, indent=2) + "\n")
 
@@ -270,10 +269,13 @@ class Experiment:
         return cfg.with_overrides(parsed)
 
     def _check_unseen(self) -> None:
+        from shared.sim.world import canonical_world_name
+
         trained = {self.o.world, *parse_world_list(self.cfg.env.extra_worlds)}
         if not self.o.sl_model:
             trained.update(self.o.sl_worlds)
-        seen = [w for w in self.o.unseen_worlds if w in trained]
+        trained = {canonical_world_name(w) for w in trained}  # procedural:07 is the world procedural:7
+        seen = [w for w in self.o.unseen_worlds if canonical_world_name(w) in trained]
         if seen:
             raise ExperimentError(f"--unseen-worlds {', '.join(seen)}: the runs or the SL data play "
                                   + ("it" if len(seen) == 1 else "them") + "; choose worlds never trained on")
@@ -480,10 +482,10 @@ class Experiment:
 
         results = self._results_on()
         table = table_markdown(results)
-        (self.out / "table.md").write_text(table)
+        atomic_write_text(self.out / "table.md", table)  # a rewrite cut short keeps the last report whole
         heatmaps = self._heatmaps(self.o.world, results, "heatmaps.png")
         wall = self.wallclock_markdown()
-        (self.out / "wallclock.md").write_text(wall)
+        atomic_write_text(self.out / "wallclock.md", wall)
         unseen = self.write_generalisation()
         curve = self.save_learning_curve()
         sl = self.state.done("sl") or {}
@@ -515,7 +517,7 @@ class Experiment:
             lines += ["", "Stopped early by --minutes-per-stage: " + ", ".join(
                 f"{n} (at {self.state.data['stages'][n]['updates']} updates)" for n in early) + "."]
         path = self.out / "report.md"
-        path.write_text("\n".join(lines) + "\n")
+        atomic_write_text(path, "\n".join(lines) + "\n")
         return path
 
     def write_generalisation(self) -> str:
@@ -546,7 +548,7 @@ class Experiment:
                      for i, v in enumerate(values)]
             lines.append(f"| {label} | " + " | ".join(cells) + " |")
         text = "\n".join(lines) + "\n" + "".join(f"\n![{f.stem}]({f.name})\n" for f in figures)
-        (self.out / "generalisation.md").write_text(text)
+        atomic_write_text(self.out / "generalisation.md", text)
         return text
 
     def save_learning_curve(self) -> Path | None:
@@ -601,9 +603,7 @@ class Experiment:
         axes[0].legend(fontsize=8, loc="upper left")
         fig.suptitle(f"Experiment {self.o.experiment}: DRL learning curve on {self.o.world}")
         fig.tight_layout()
-        path = self.out / "learning_curve.png"
-        fig.savefig(path, dpi=110)
-        return path
+        return save_png(fig, self.out / "learning_curve.png", dpi=110)
 
     def wallclock_markdown(self) -> str:
         lines = ["| Stage | Seconds | Updates | Cumulative DRL seconds |", "|---|---:|---:|---:|"]
@@ -618,6 +618,13 @@ class Experiment:
 
     # -- all of it ----------------------------------------------------------------------------
     def run(self) -> Path:
+        # a state is saved before any stage starts: runs without one are another experiment's, whose
+        # training stages would resume them (trained in another world, on another preset) as this one's
+        leftovers = [str(p) for p in (self.runs_dir / RL_RUN, self.runs_dir / DRL_RUN)
+                     if not self.state.path.is_file() and (p.exists() or p.is_symlink())]
+        if leftovers:
+            raise ExperimentError(f"{self.out} holds the runs of an experiment without its {STATE_FILE} "
+                                  f"({', '.join(leftovers)}): use another --out, or move them away")
         self.out.mkdir(parents=True, exist_ok=True)
         self.state.save()
         done_drl = [int(n.split("-", 1)[1]) for n in self.state.data["stages"] if n.startswith("drl-")]

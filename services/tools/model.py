@@ -34,12 +34,16 @@ def run_export(args: argparse.Namespace) -> int:
                           "or both")
     if args.half and not args.out:
         raise ConfigError("--half stores the --out weights as float16; an --onnx export is float32")
+    from services.tools.selection import check_output
     from shared.learning.checkpoints import (average_models, ensemble_members, ensemble_models, export_tensors,
                                              export_weights, load_model)
 
     if args.ensemble and len(args.checkpoint) < 2:
         raise ConfigError("--ensemble joins several checkpoints: give at least two")
     sources = [load_model(c) for c in args.checkpoint]
+    for what, out in (("--out", args.out), ("--onnx", args.onnx)):
+        if out:
+            check_output(Path(out), [s.path for s in sources], what)
     loaded = ensemble_models(sources) if args.ensemble else average_models(sources)
     if args.members:
         loaded = ensemble_members(loaded, [m.strip() for m in args.members.split(",")])

@@ -31,6 +31,7 @@ import dataclasses
 import json
 import logging
 import math
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -47,7 +48,7 @@ from shared.evaluation import (
     TEST_SEED,
     ProtocolConfig,
 )
-from shared.files import append_line
+from shared.files import append_line, save_png
 from shared.jsontext import parse_json
 
 log = logging.getLogger("cogexplore.select")
@@ -165,6 +166,8 @@ def wall_minutes(learner_csv: str | Path) -> tuple[np.ndarray, np.ndarray] | Non
                 u, t = int(row["update"]), float(row["time_s"])
             except (KeyError, TypeError, ValueError):
                 continue
+            if not (math.isfinite(t) and t >= 0):  # a damaged cell: a NaN or infinite clock broke the figure's axis
+                continue
             if t < last:  # a resumed run's clock starts again
                 offset += last
             last = t
@@ -173,7 +176,7 @@ def wall_minutes(learner_csv: str | Path) -> tuple[np.ndarray, np.ndarray] | Non
                 minutes.append((offset + t) / 60.0)
     except OSError:
         return None
-    if len(updates) < 2:
+    if len(updates) < 2 or minutes[-1] <= minutes[0]:  # a clock that never moved maps no update to a minute
         return None
     return np.asarray(updates, dtype=np.float64), np.asarray(minutes, dtype=np.float64)
 
@@ -214,10 +217,7 @@ def save_selection_png(scores: Sequence[WindowScore], out_path: str | Path, *, g
     ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8)  # outside: the lines fill the plot
     ax.set_title(title or "mean of consecutive checkpoints' weights, by window")
     fig.tight_layout()
-    out = Path(out_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
-    return out
+    return save_png(fig, out_path, dpi=fig.dpi)  # a rerun cut short keeps the last figure whole
 
 
 def _extrapolate(x: Any, xp: np.ndarray, fp: np.ndarray) -> np.ndarray:
@@ -289,6 +289,22 @@ def _load_cache(path: Path, key: dict[str, Any]) -> dict[str, WindowScore]:
     return cache
 
 
+def check_output(out: Path, sources: Sequence[Path], what: str = "--out") -> None:
+    """SelectionError for an export path no file can take (a folder: ``.``, an existing one), found
+    before any work, or one of the ``sources`` being read (a run's checkpoint): the export would
+    replace it, and the run would lose it."""
+    out = Path(out)
+    if out.name in ("", "..") or out.is_dir():
+        raise SelectionError(f"{what} {str(out)!r}: Is a directory (give a file name)")
+    for src in sources:
+        try:
+            same = out.exists() and os.path.samefile(out, src)
+        except OSError:
+            continue
+        if same:
+            raise SelectionError(f"{what} {out} is {src}, a model it reads: write the export elsewhere")
+
+
 def run_checkpoints(run: Path) -> list[tuple[int, Path]]:
     """(update count, path) of every checkpoint of a run folder or checkpoints directory."""
     from shared.learning.checkpoints import CheckpointManager
@@ -309,9 +325,18 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
     from shared.evaluation.protocol import evaluate_policy
     from shared.evaluation.setup import setup_evaluation
     from shared.learning.checkpoints import CheckpointError, average_models, export_weights, load_model
-    from shared.sim.world import load_world
+    from shared.learning.model import ModelError, resolve_device
+    from shared.sim.world import canonical_world_name, load_world
 
     echo = echo or (lambda _msg: None)
+    try:
+        resolve_device(o.device)  # else every window is skipped as if its checkpoints were damaged
+    except ModelError as exc:
+        raise SelectionError(f"--device: {exc}") from None
+    # procedural:0301 is procedural:301: a test world must not pass as another name of the gate world
+    o = dataclasses.replace(o, gate_world=canonical_world_name(o.gate_world),
+                            validation_worlds=tuple(dict.fromkeys(map(canonical_world_name, o.validation_worlds))),
+                            test_worlds=tuple(dict.fromkeys(map(canonical_world_name, o.test_worlds))))
     for name in ("gate_min", "gate_start_min"):
         value = getattr(o, name)
         if not (isinstance(value, (int, float)) and math.isfinite(value)):
@@ -323,7 +348,9 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
                              + ", ".join(sorted(set(o.test_worlds) & {o.gate_world, *o.validation_worlds})))
     for w in (o.gate_world, *o.validation_worlds, *o.test_worlds):
         load_world(w)  # a bad name or a broken file fails before any window is played
-    todo = windows(run_checkpoints(o.run), o.window, first_end=o.first_end, last_end=o.last_end, stride=o.stride)
+    found = run_checkpoints(o.run)
+    check_output(o.out, [p for _, p in found])
+    todo = windows(found, o.window, first_end=o.first_end, last_end=o.last_end, stride=o.stride)
     if not todo:
         raise SelectionError(f"no window of {o.window} checkpoints ends in the given range")
     echo(f"protocol {o.protocol.describe()}")
@@ -380,9 +407,13 @@ def select(o: SelectOptions, echo: Callable[[str], None] | None = None) -> dict[
                                                                           if len(skipped) > 1 else ""))
     chosen, rule = choose(scores, o.gate_min, o.gate_start_min)
     model = average_models([load_model(p, o.device) for p in chosen.sources])
+    if model.weights_sha256 != chosen.weights_sha256:  # rewritten since it was scored: its scores are not this one's
+        raise SelectionError(f"the checkpoints of the window ending at {chosen.end_update} changed while the "
+                             "windows were scored (a run resumed or written meanwhile?); run the selection again")
     selection = {"rule": rule, "window": o.window, "end_update": chosen.end_update, "gate_world": o.gate_world,
                  "gate_min": o.gate_min, "gate_start_min": o.gate_start_min, "gate": chosen.gate,
-                 "gate_worst_start": chosen.gate_worst_start, "validation_worlds": list(o.validation_worlds),
+                 "gate_worst_start": chosen.gate_worst_start, "weights_sha256": chosen.weights_sha256,
+                 "validation_worlds": list(o.validation_worlds),
                  "validation": chosen.validation, "windows_scored": len(scores), "windows_skipped": skipped,
                  "protocol": o.protocol.to_dict(),
                  "seed": o.seed}

@@ -292,3 +292,50 @@ def test_a_given_sl_model_s_card_is_read_as_untrusted(card, tmp_path):
                                                    "--sl-model", str(model)]))
     accuracy = Experiment(options, echo=lambda _msg: None)._pretrain()["accuracy"]
     assert accuracy == (0.75 if card == {"accuracy": 0.75} else None)
+
+
+@pytest.mark.parametrize("seen", [["--world", "procedural:07", "--unseen-worlds", "procedural:7"],
+                                  ["--sl-worlds", "box-room,procedural:0101", "--unseen-worlds", "procedural:101"]])
+def test_a_trained_world_written_another_way_is_not_unseen(seen, tmp_path):
+    # procedural:07 is the world procedural:7: it was tested as a world no run had played
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    args = parser.parse_args([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", *seen])
+    with pytest.raises(ExperimentError, match="never trained on"):
+        Experiment(options_from_args(args))
+    assert not (tmp_path / "x").exists()
+
+
+def test_a_report_rewrite_cut_short_by_a_full_disk_leaves_the_last_one_whole(tmp_path):
+    # the report's files were written in place: a rerun that failed mid-file left half a table
+    argv = [*TINY, "--out", str(tmp_path), "--checkpoints", "20", "--unseen-worlds", ""]
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    experiment = Experiment(options_from_args(parser.parse_args(argv)), echo=lambda _msg: None)
+    for label, policy, checkpoint in experiment.models()[-2:]:  # reactive and random: no training
+        experiment._stage(experiment.eval_stage(label), lambda a=(label, policy, checkpoint): experiment._evaluate(
+            *a, world="box-room"))
+    experiment.write_report()
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
+    assert {"table.md", "report.md", "wallclock.md"} <= set(before)
+    script = ("import argparse, resource, signal, sys; "
+              "signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+              "resource.setrlimit(resource.RLIMIT_FSIZE, (100, resource.RLIM_INFINITY)); "  # a disk that fills
+              "from services.tools.experiment import Experiment, options_from_args; "
+              "from services.tools.options import add_experiment_arguments; "
+              "p = argparse.ArgumentParser(); add_experiment_arguments(p); "
+              f"Experiment(options_from_args(p.parse_args({argv!r}))).write_report()")
+    done = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[3],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "File too large" in done.stderr, done.stderr[-2000:]
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
+
+
+def test_runs_left_without_their_state_are_not_resumed_as_this_experiment_s(tmp_path, capsys):
+    # a state file moved away "to start afresh" left runs/rl: the RL stage resumed that run (trained in
+    # another world, on another preset) and reported it as this experiment's baseline
+    (tmp_path / "runs" / "rl" / "checkpoints").mkdir(parents=True)
+    assert main([*TINY, "--out", str(tmp_path), "--checkpoints", "20"]) == 2
+    err = capsys.readouterr().err
+    assert "holds the runs of an experiment without its state.json" in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]  # nothing written, nothing trained

@@ -16,6 +16,7 @@ from services.tools.selection import (
     SelectOptions,
     WindowScore,
     choose,
+    save_selection_png,
     select,
     wall_minutes,
     window_rows_markdown,
@@ -280,3 +281,84 @@ def test_select_cli_errors_are_clear_and_write_nothing(tmp_path: Path, capsys) -
     assert main(["model", "select", str(run), "--out", str(out), "--window", "2", "--gate-world", "box-room",
                  "--gate-min", "0", "--validate", "box-room", "--max-steps", "4"]) == 0
     assert json.loads(capsys.readouterr().out)["chosen"]["end_update"] == 200 and out.exists()
+
+
+def test_a_damaged_clock_in_learner_csv_is_skipped_not_a_traceback(tmp_path: Path) -> None:
+    # a NaN or infinite time_s reached the figure's axis: ValueError after the export was written
+    csv = tmp_path / "learner.csv"
+    csv.write_text("time_s,update\n0,0\nnan,100\ninf,150\n-5,170\n120,200\n")
+    updates, minutes = wall_minutes(csv)
+    assert updates.tolist() == [0, 200] and minutes.tolist() == pytest.approx([0.0, 2.0])
+    csv.write_text("time_s,update\n5,100\n5,200\n")  # a clock that never moved: no minutes axis
+    assert wall_minutes(csv) is None
+    run = make_run(tmp_path / "run", (100, 200))
+    (run / "stats").mkdir()
+    (run / "stats" / "learner.csv").write_text("time_s,update\n0,0\ninf,100\n60,200\n")
+    summary = select(SelectOptions(run=run, out=tmp_path / "best.safetensors", window=1, gate_world="box-room",
+                                   gate_min=0.0, validation_worlds=("corridor",), max_steps=3))
+    assert summary["chosen_minutes"] in (None, 1.0) and Path(summary["figure"]).is_file()
+
+
+def test_a_test_world_written_another_way_is_still_the_gate_world(tmp_path: Path) -> None:
+    # procedural:05 is the world procedural:5: as a test world it was played in the choice too
+    run = make_run(tmp_path / "run", (100,))
+    for gate, test in (("procedural:05", "procedural:5"), ("procedural:5", "procedural:005")):
+        with pytest.raises(SelectionError, match="a test world is also the gate"):
+            select(SelectOptions(run=run, out=tmp_path / "best.safetensors", window=1, gate_world=gate,
+                                 validation_worlds=("corridor",), test_worlds=(test,), max_steps=3))
+    assert not (tmp_path / "best.safetensors").exists()
+
+
+def test_a_bad_device_is_one_error_not_every_window_skipped(tmp_path: Path, capsys) -> None:
+    run = make_run(tmp_path / "run", (100, 200))
+    out = tmp_path / "best.safetensors"
+    assert main(["model", "select", str(run), "--out", str(out), "--window", "1", "--device", "bogus"]) == 2
+    err = capsys.readouterr().err
+    assert "--device" in err and "skipped" not in err and "cannot be read" not in err
+    assert not out.exists()
+
+
+def test_checkpoints_rewritten_while_scored_are_not_exported_as_scored(tmp_path: Path) -> None:
+    # a run resumed from an older checkpoint saves the same update counts anew: the export took the new
+    # weights under the old weights' scores
+    run = make_run(tmp_path / "run", (100, 200))
+    other = make_run(tmp_path / "other", (50, 100, 200))  # other seeds at 100 and 200: other weights
+
+    def echo(line: str) -> None:
+        if line.startswith("[2/2]"):  # every window scored, the choice not yet exported
+            for u in (100, 200):
+                name = f"ckpt-{u:09d}.safetensors"
+                (other / "checkpoints" / name).replace(run / "checkpoints" / name)
+
+    out = tmp_path / "best.safetensors"
+    with pytest.raises(SelectionError, match="changed while the windows were scored"):
+        select(SelectOptions(run=run, out=out, window=1, gate_world="box-room", gate_min=0.0,
+                             validation_worlds=("corridor",), max_steps=3), echo=echo)
+    assert not out.exists()
+    # scored as they are now, the choice is exported with the digest it was scored with
+    summary = select(SelectOptions(run=run, out=out, window=1, gate_world="box-room", gate_min=0.0,
+                                   validation_worlds=("corridor",), max_steps=3))
+    _, meta = load_exported_weights(out)
+    assert meta["selection"]["weights_sha256"] == summary["chosen"]["weights_sha256"] \
+        == load_model(summary["chosen"]["sources"][0]).weights_sha256
+
+
+def test_a_figure_cut_short_by_a_full_disk_leaves_the_last_one_whole(tmp_path: Path) -> None:
+    # the figure was written in place: a rerun that failed mid-file left half a PNG
+    import subprocess
+    import sys
+
+    png = tmp_path / "best-windows.png"
+    scores = [score(100, 50.0, None), score(200, 80.0, 60.0)]
+    save_selection_png(scores, png, gate_min=70.0)
+    before = png.read_bytes()
+    script = ("import resource, signal, sys; from pathlib import Path; "
+              "signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+              "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY)); "  # a disk that fills
+              "from services.tools.selection import WindowScore, save_selection_png; "
+              "s = [WindowScore(100, 'a', 90.0, None, {}, ()), WindowScore(200, 'b', 10.0, 5.0, {}, ())]; "
+              f"save_selection_png(s, Path({str(png)!r}), gate_min=50.0)")
+    done = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[3],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode != 0 and "File too large" in done.stderr, done.stderr[-2000:]
+    assert png.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == [png.name]
