@@ -35,6 +35,7 @@ session, and with it the liveliness token, is closed on the way out.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -68,7 +69,7 @@ from services.options import protocol_from_args
 from services.process import default_process_id, lower_priority, setup_logging, stop_event_on_signals
 from services.runs import run_paths
 from services.viz.rerun import ViewerLink, evaluate_recorded
-from shared.config import ConfigError, RunConfig
+from shared.config import ConfigError, RunConfig, is_whole
 from shared.errors import CogexploreError, StopRequested
 from shared.evaluation import (
     DEFAULT_PROTOCOL,
@@ -118,6 +119,8 @@ class EvaluatorService:
                             ("max_steps", max_steps), ("image_every", image_every)):
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
                 raise ConfigError(f"{name} must be an integer >= 1, got {value!r}")
+        if not (is_whole(seed) and seed >= 0):  # refused now, not by the protocol when the first weights come
+            raise ConfigError(f"seed must be an integer >= 0, got {seed!r}")
         self.cfg = cfg
         self.run_name = validate_name(run, "run name")
         self.keys = RunKeys(run)
@@ -182,7 +185,8 @@ class EvaluatorService:
         self.last_version = message.version
         weights_digest = weights_sha256(self.net)
         evaluated_as = {"policy_version": version, "weights_sha256": weights_digest, "world": self.world,
-                        "protocol": self.protocol.name, "episodes_per_start": self.episodes_per_start,
+                        "protocol": self.protocol.name, "protocol_config": self.protocol.to_dict(),
+                        "episodes_per_start": self.episodes_per_start,
                         "max_steps": self.max_steps, "seed": self.seed}  # its row's, and its key
         key = evaluation_key(evaluated_as)
         if not repeat and key in self.evaluated:
@@ -244,7 +248,8 @@ class EvaluatorService:
     def run(self, stop: threading.Event, once: bool = False, wait_weights_s: float = 60.0) -> int:
         """Evaluate until ``stop`` is set (or, with ``once``, the latest weights once). Returns
         a process exit status: 0, or 1 when ``once`` found no weights within ``wait_weights_s``."""
-        with open_service_session(self.settings, stop) as session, \
+        # the board closed also when no session opens: its writer thread would outlive the service
+        with contextlib.closing(self.board), open_service_session(self.settings, stop) as session, \
                 self.weights.following(session, self.keys, self.query_timeout_s):
             # Announced once subscribed: whoever sees the token can publish weights to us.
             token = declare_alive(session, self.keys.alive("evaluator", self.evaluator_id))
@@ -273,7 +278,6 @@ class EvaluatorService:
                 return 0
             finally:
                 token.undeclare()
-                self.board.close()
                 log.info("evaluator %s stopping (rejected weights: %s)", self.evaluator_id,
                          json.dumps(self.rejects.counts))
 
@@ -326,6 +330,9 @@ def run_evaluator(args: argparse.Namespace, stop: threading.Event | None = None)
     except TransportError as exc:
         log.error("%s", exc)
         return 1
+    except CogexploreError as exc:  # an evaluation the protocol cannot run here (a start with no clear draw)
+        print(f"cogexplore evaluator: error: {exc}", file=sys.stderr)
+        return 2
     finally:
         refused = check.finish() if check is not None else None
     if refused is not None:

@@ -146,6 +146,10 @@ def run_evaluate(args: argparse.Namespace) -> int:
     model, ensemble = None, args.ensemble
     worlds = _worlds_of(args)
     several = len(worlds) > 1
+    if args.json_out:  # refused now, not once the whole run is done and its results cannot be written
+        folder = next((p for p in (_json_path(args.json_out, w or "", several) for w in worlds) if p.is_dir()), None)
+        if folder is not None:
+            raise EvaluateError(f"--json: {folder} is a folder; give the results file's name")
     if several:  # a world that does not load is refused before hours go into the ones before it
         from shared.sim.world import load_world
 

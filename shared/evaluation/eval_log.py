@@ -7,7 +7,9 @@ damaged (a killed evaluator cuts its last row short) or hand-edited: readers ski
 
 from __future__ import annotations
 
+import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -19,9 +21,10 @@ EVAL_LOG = "eval.jsonl"
 """The file's name in a run's ``stats/`` folder."""
 
 EVALUATION_KEY_FIELDS: tuple[str, ...] = ("policy_version", "weights_sha256", "world", "protocol",
-                                          "episodes_per_start", "max_steps", "seed")
+                                          "protocol_config", "episodes_per_start", "max_steps", "seed")
 """What makes two rows the same evaluation: the same weights at the same version, played under the
-same protocol, episodes and seed (the protocol's draws come from the seed, so it repeats exactly)."""
+same protocol, episodes and seed (the protocol's draws come from the seed, so it repeats exactly).
+``protocol_config`` is the protocol's every field: its name alone is ``custom`` for any overridden set."""
 
 log = logging.getLogger("cogexplore.eval_log")
 
@@ -64,7 +67,9 @@ def load_eval_log(path: Path) -> list[dict[str, Any]]:
 def evaluation_key(row: dict[str, Any]) -> tuple[Any, ...] | None:
     """The row's :data:`EVALUATION_KEY_FIELDS`, or None for a row that does not name its weights
     (written before the evaluator recorded their digest): such a row never stands for another."""
-    key = tuple(row.get(k) for k in EVALUATION_KEY_FIELDS)
+    # an object as canonical text: hashable, and equal whatever order its fields were written in
+    key = tuple(json.dumps(v, sort_keys=True) if isinstance(v, Mapping) else v
+                for v in (row.get(k) for k in EVALUATION_KEY_FIELDS))
     if not isinstance(row.get("weights_sha256"), str) or not all(v is None or isinstance(v, (str, int)) for v in key):
         return None
     return key

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -84,8 +84,8 @@ def render_probe(scene: ProbeScene, sensor_cfg: SensorConfig | None = None) -> n
     from shared.config import EnvConfig
     from shared.sim.env import ExploreEnv
 
-    cfg = sensor_cfg or SensorConfig()
-    clean = SensorConfig(**{**asdict(cfg), "noise_std_m": 0.0, "dropout_prob": 0.0})
+    # every noise field: a robust run's sensor (load_probes(net.sensor_cfg)) adds the distance-dependent one
+    clean = (sensor_cfg or SensorConfig()).noise_free()
     env = ExploreEnv(EnvConfig(world=scene.world), clean)
     try:
         env.robot.set_pose(scene.x, scene.y, scene.yaw)

@@ -27,6 +27,7 @@ from services.bus.session import (
 )
 from services.evaluator.service import EvaluatorService, recording_path
 from shared.config import ConfigError, load_preset
+from shared.errors import StopRequested
 from shared.evaluation import PROTOCOLS
 from shared.evaluation.results import load_results
 from shared.learning.model import QNetwork
@@ -212,6 +213,36 @@ def test_a_preset_the_runs_weights_do_not_fit_stops_the_evaluator_in_one_line(ro
                            "(learner 'learner' of run 'proc'"), last
 
 
+def test_a_protocol_that_cannot_run_here_stops_the_evaluator_in_one_line(router: str, tmp_path: Path) -> None:
+    # A collision distance no jittered view of box-room's starts keeps: every evaluation would fail the
+    # same way. It was a traceback (status 1) when the first weights came; a negative --seed was too.
+    payload = to_message(small_net(), 42).encode()
+    with open_session(ZenohSettings(connect=(router,))) as session:
+        queryable = serve_latest(session, RunKeys("proc").weights_latest, lambda: payload)
+        proc = service_process(router, tmp_path, "--once", "--set", "env.collision_distance_m=0.85")
+        out, _ = proc.communicate(timeout=120)
+        queryable.undeclare()
+    assert proc.returncode == 2 and "Traceback" not in out, out
+    assert out.strip().splitlines()[-1].startswith("cogexplore evaluator: error: start 1 of world 'box-room': "
+                                                   "none of 100 poses drawn"), out
+    assert not (tmp_path / "proc" / "stats" / "eval.jsonl").exists()
+    with pytest.raises(ConfigError, match="seed must be an integer >= 0, got -1"):
+        EvaluatorService(load_preset("paper").with_overrides(OVERRIDES), "proc", tmp_path, ZenohSettings(), "ev-1",
+                         seed=-1)
+
+
+def test_no_router_leaves_no_tensorboard_writer_behind(tmp_path: Path) -> None:
+    service = EvaluatorService(load_preset("paper").with_overrides(OVERRIDES), "svc", tmp_path / "svc",
+                               ZenohSettings(connect=("tcp/127.0.0.1:9",), router_wait_s=0.0), "ev-1", record=False,
+                               tensorboard=tmp_path / "tb")
+    assert service.board.enabled
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(StopRequested):
+        service.run(stop)
+    assert not service.board.enabled  # closed, its writer thread ended
+
+
 def test_weights_numbered_below_the_last_evaluated_are_due_a_forged_version_holds_nothing_off(tmp_path: Path) -> None:
     # A learner's versions only rise: one forged message numbered 2^40 - 1, once evaluated, made
     # every real version "not due" for the rest of the learner's life.
@@ -247,6 +278,24 @@ def test_a_restarted_evaluator_skips_the_weights_its_run_evaluated_unless_asked_
     # Another protocol, seed or episode count is another evaluation.
     assert EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", episodes_per_start=1,
                             max_steps=3, record=False, seed=7).evaluate(to_message(net, 5), repeat=False)
+
+
+def test_two_overridden_protocols_are_two_evaluations_not_one(tmp_path: Path) -> None:
+    # Every overridden set is named "custom": keyed by the name, an evaluator restarted with another
+    # --start-jitter-m skipped the weights as evaluated already, and its run had no row of its protocol.
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+
+    def evaluator(protocol) -> EvaluatorService:
+        return EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", episodes_per_start=1,
+                                max_steps=3, record=False, protocol=protocol)
+
+    narrow, wide = (PROTOCOLS["robust"].overridden(start_jitter_m=m) for m in (0.02, 0.04))
+    assert narrow.name == wide.name == "custom"
+    net = small_net()
+    assert evaluator(narrow).evaluate(to_message(net, 5), repeat=False) is not None
+    row = evaluator(wide).evaluate(to_message(net, 5), repeat=False)
+    assert row is not None and row["protocol_config"] == wide.to_dict()
+    assert evaluator(narrow).evaluate(to_message(net, 5, learner_epoch=1), repeat=False) is None  # this one ran
 
 
 def test_a_row_cut_short_before_costs_only_itself_not_the_next_evaluation(tmp_path: Path) -> None:

@@ -405,6 +405,19 @@ def test_evaluate_refuses_bad_options_clearly(argv: list[str], message: str, cap
     assert list(tmp_path.iterdir()) == []  # refused before any file: a recording, a world's results
 
 
+@pytest.mark.parametrize("worlds", ["box-room", "box-room,corridor"])
+def test_evaluate_refuses_a_json_path_that_is_a_folder_before_it_runs(worlds: str, capsys, tmp_path: Path) -> None:
+    # The results were written once every episode had run: a folder there failed the run at its end.
+    folder = tmp_path / ("r" if worlds == "box-room" else "r-corridor.json")
+    folder.mkdir()
+    assert evaluate(["--policy", "reactive", "--world", worlds, "--episodes-per-start", "1", "--max-steps", "2",
+                     "--json", str(tmp_path / "r"), "--set", "sensor.width=64", "--set", "sensor.height=48",
+                     "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert f"error: --json: {folder} is a folder" in captured.err and "protocol" not in captured.out
+    assert sorted(tmp_path.iterdir()) == [folder]
+
+
 def test_greedy_policy_takes_the_best_q_value(tmp_path: Path) -> None:
     model = load_model(make_run(tmp_path / "run"))
     policy = make_policy("greedy", net=model.net)
