@@ -59,6 +59,8 @@ START_DRAW_TRIES = 100
 FAILURE_START_TRIES = 20
 """Draws of a failure start (a remembered collision, a step back from it, a jitter) before the reset
 starts the episode as it would without them (``EnvConfig.failure_start_prob``)."""
+RESET_OPTIONS = ("start_index", "start_jitter")
+"""The ``reset`` options the env takes (see :class:`ExploreEnv`); any other is refused, not ignored."""
 log = logging.getLogger("cogexplore.env")
 
 
@@ -249,6 +251,7 @@ class ExploreEnv(gym.Env):
         self._trail: list[tuple[float, float]] = []  # the episode's (x, y), start first, for rgb_array
         self._path_length = 0.0
         self._steps = 0
+        self._needs_reset = True
         self._random_start = False
         self._failure_start_now = False
         # The poses of the episode's last steps and the collisions kept with theirs (failure_start_prob).
@@ -271,11 +274,17 @@ class ExploreEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        self._needs_reset = True  # until this reset is through: a failed one leaves no episode to step
         if seed is not None:
             self._noise_seed = int(self.np_random.integers(2**63))
             for name, scene in self._scenes.items():
                 scene.camera.reseed(self._camera_seed(name))
-        options = options or {}
+        options = {} if options is None else options
+        if not isinstance(options, dict):
+            raise EnvError(f"reset options must be a dict, got {type(options).__name__}")
+        unknown = [k for k in options if k not in RESET_OPTIONS]
+        if unknown:  # a misspelt start_index would silently give random starts
+            raise EnvError(f"reset options {', '.join(map(repr, unknown))}: the env takes {', '.join(RESET_OPTIONS)}")
         fixed = "start_index" in options or self.env_config.start_index is not None
         pose = None  # a random free or failure start's pose (the robot is there, its image in self._depth)
         if not fixed and self._failures and self.np_random.random() < self.env_config.failure_start_prob:
@@ -328,6 +337,7 @@ class ExploreEnv(gym.Env):
         self._recent_poses.append((x, y, yaw))
         self._path_length = 0.0
         self._steps = 0
+        self._needs_reset = False
         return self._depth, self._info(None, min_valid_depth(self._depth))
 
     def step(self, action):
@@ -344,6 +354,8 @@ class ExploreEnv(gym.Env):
                 and abs(linear_mps) <= MAX_TWIST_MPS and abs(angular_rps) <= MAX_TWIST_RPS):
             raise EnvError(f"twist ({linear_mps!r} m/s, {angular_rps!r} rad/s): both must be numbers within "
                            f"±{MAX_TWIST_MPS:g} m/s and ±{MAX_TWIST_RPS:g} rad/s")
+        if self._needs_reset:  # the robot would drive from wherever MuJoCo put it, a wall perhaps
+            raise EnvError("step before reset: call env.reset() first")
         cfg = self.env_config
         touched = self.robot.drive(float(linear_mps), float(angular_rps), cfg.substeps)
         self._depth = self.camera.capture(self.data)

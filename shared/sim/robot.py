@@ -98,7 +98,7 @@ def add_robot(spec: mujoco.MjSpec, env: EnvConfig, sensor: SensorConfig) -> None
 def build_model(world_mjcf: str, env: EnvConfig, sensor: SensorConfig) -> mujoco.MjModel:
     """Compile a world's static scene with the robot added, under MuJoCo's built-in physics options
     and sizes whatever the world's MJCF sets (its ``<option>`` and ``<size>`` only concern moving
-    bodies, and the robot is the only one)."""
+    bodies, and the robot is the only one), with an offscreen buffer that holds the camera's image."""
     spec = mujoco.MjSpec.from_string(world_mjcf)
     for field in _OPTION_FIELDS:
         setattr(spec.option, field, getattr(_BUILTIN.option, field))
@@ -111,6 +111,10 @@ def build_model(world_mjcf: str, env: EnvConfig, sensor: SensorConfig) -> mujoco
     # Stiff velocity servos on a light disc are unstable under explicit Euler; the implicit
     # integrator treats actuator damping implicitly and stays stable at any gain.
     spec.option.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST
+    # The GL depth camera renders offscreen into this buffer: it must hold the image, whatever
+    # MuJoCo's 640 x 480 default or the world's <visual><global offwidth> says.
+    spec.visual.global_.offwidth = max(_BUILTIN.visual.global_.offwidth, sensor.width)
+    spec.visual.global_.offheight = max(_BUILTIN.visual.global_.offheight, sensor.height)
     add_robot(spec, env, sensor)
     return spec.compile()
 

@@ -678,11 +678,18 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
 
     Refused, besides what MuJoCo refuses: moving bodies, physics options that would reach the robot
     (:func:`_check_options`), geoms the robot or its camera would treat unlike an obstacle
-    (:func:`_check_geoms`), a non-finite start and a 'floor' that is no floor."""
-    p = Path(path)
-    label = f"MJCF file '{path}'"
+    (:func:`_check_geoms`), a non-finite start, a start whose heading is vertical, a 'floor' that is
+    no floor and text that is not UTF-8."""
+    try:
+        return _load_world_file(Path(path), f"MJCF file '{path}'", name or str(path))
+    except UnicodeDecodeError as exc:  # MuJoCo reads any bytes; its names and MJCF text come back as str
+        raise WorldError(f"MJCF file '{path}' holds text that is not UTF-8 (byte "
+                         f"{exc.object[exc.start:exc.start + 1]!r} in a name or comment): save it as UTF-8") from None
+
+
+def _load_world_file(p: Path, label: str, name: str) -> World:
     if not p.is_file():
-        raise WorldError(f"{label} does not exist")
+        raise WorldError(f"{label} {'is not a file' if p.exists() else 'does not exist'}")
     try:
         spec = mujoco.MjSpec.from_file(str(p))
     except ValueError as exc:
@@ -719,6 +726,9 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
             if not all(math.isfinite(v) for v in (start.x, start.y, start.yaw)):
                 raise WorldError(f"{label}: start site '{site}' has no finite position and heading "
                                  f"(x {start.x}, y {start.y}, yaw {start.yaw})")
+            if math.hypot(xmat[0], xmat[3]) < _MIN_HEADING_XY:  # the heading would be rounding noise
+                raise WorldError(f"{label}: start site '{site}' has its x axis (the start's heading) pointing "
+                                 "straight up or down; turn it about z only (euler=\"0 0 <degrees>\")")
             starts.append(start)
     if not starts:
         raise WorldError(f"{label} has no start sites: add sites named start_<something> "
@@ -742,9 +752,13 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
         spec.worldbody.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_PLANE,
                                 pos=[(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0], size=[0.0, 0.0, 0.25],
                                 rgba=[0.35, 0.35, 0.38, 1.0])
-    world = World(name=name or str(path), mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file")
+    world = World(name=name, mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file")
     validate_starts(world)
     return world
+
+
+_MIN_HEADING_XY = 1e-6
+"""Least horizontal part of a start site's x axis from which its heading is read."""
 
 
 # The <option> flags that would change whether the robot collides or moves (contacts, constraints,

@@ -462,3 +462,37 @@ def test_the_trap_reward_is_validated_bounds_what_a_learner_accepts_and_stays_ou
     assert "-49 to 1 per move" in trap.describe_rewards()
     # The protocol counts steps: it never pays for the trap's map checks.
     assert protocol_env_config(trap, "paper-indoor", 200).reward_trap_penalty == 0.0
+
+
+@pytest.mark.parametrize("options", [{"start_idx": 2}, {"start_index": 2, "jitter": (0.1, 5)}, [("start_index", 2)]])
+def test_a_reset_option_the_env_does_not_take_is_refused_not_ignored(options):
+    # A misspelt start_index would otherwise play random starts under an evaluation that fixed one.
+    env = ExploreEnv(world="box-room")
+    try:
+        with pytest.raises(EnvError, match="reset options") as err:
+            env.reset(seed=0, options=options)
+        assert "\n" not in str(err.value)
+        env.reset(seed=0, options={"start_index": 2, "start_jitter": None})
+        assert env.robot.pose()[:2] == pytest.approx((env.world.starts[2].x, env.world.starts[2].y))
+    finally:
+        env.close()
+
+
+def test_a_step_before_reset_or_after_a_failed_reset_is_refused():
+    # Before a reset the robot stands wherever MuJoCo put it (the origin: in paper-indoor's hall, a
+    # pose no start has), and a failed reset may have switched worlds under the episode.
+    env = ExploreEnv(world="paper-indoor")
+    try:
+        for step in (lambda: env.step(2), lambda: env.step_twist(0.2, 0.0)):
+            with pytest.raises(EnvError, match="before reset"):
+                step()
+        env.reset(seed=0)
+        env.step(2)
+        with pytest.raises(EnvError):
+            env.reset(seed=0, options={"start_index": 99})
+        with pytest.raises(EnvError, match="before reset"):
+            env.step(2)
+        env.reset(seed=0)
+        assert env.step(2)[4]["step"] == 1
+    finally:
+        env.close()

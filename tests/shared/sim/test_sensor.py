@@ -174,3 +174,46 @@ def test_floor_depths_are_where_each_rows_ray_meets_the_floor():
     model, data, _, _ = _room(wall_x=50.0)  # nothing in range but the floor
     depth = DepthCamera(model, sensor).capture(data)
     np.testing.assert_allclose(depth[-1], floor[-1], rtol=1e-5)
+
+
+_SMALL_BUFFER = '<mujoco><visual><global offwidth="10" offheight="10"/></visual><worldbody/></mujoco>'
+
+
+@pytest.mark.parametrize("mjcf, width, height", [(_SMALL_BUFFER, 160, 120), ("<mujoco/>", 1024, 600)])
+def test_the_offscreen_buffer_holds_the_cameras_image(mjcf, width, height):
+    # The GL backend renders into it: smaller (a world's <visual>, or MuJoCo's 640 x 480 default for
+    # a wide sensor) and the camera fails as if there were no OpenGL at all.
+    model = build_model(mjcf, EnvConfig(), SensorConfig(width=width, height=height))
+    assert model.vis.global_.offwidth >= width and model.vis.global_.offheight >= height
+
+
+_GL_WIDE_PROBE = """
+import json
+import mujoco
+from shared.config import EnvConfig, SensorConfig
+from shared.sim.robot import Robot, build_model
+from shared.sim.sensor import DepthCamera, SensorError
+xml = ('<mujoco><visual><global offwidth="10" offheight="10"/></visual><worldbody>'
+       '<geom name="floor" type="plane" size="0 0 1"/><geom type="box" pos="1.05 0 1" size="0.05 2 1"/>'
+       '</worldbody></mujoco>')
+sensor = SensorConfig(width=800, height=48, backend="gl")
+model = build_model(xml, EnvConfig(), sensor)
+data = mujoco.MjData(model)
+Robot(model, data).set_pose(0.0, 0.0, 0.0)
+try:
+    gl = DepthCamera(model, sensor).capture(data)
+except SensorError as exc:
+    print(json.dumps({"error": str(exc)}))
+else:
+    print(json.dumps({"centre": float(gl[24, 400])}))
+"""
+
+
+def test_the_gl_backend_renders_an_image_wider_than_mujocos_default_buffer():
+    done = subprocess.run([sys.executable, "-c", _GL_WIDE_PROBE], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "MUJOCO_GL": "egl"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    out = json.loads(done.stdout.strip().splitlines()[-1])
+    if "error" in out and "framebuffer" not in out["error"]:
+        pytest.skip(f"no EGL context here: {out['error']}")
+    assert out.get("centre") == pytest.approx(1.0, abs=GL_TOLERANCE_M), out

@@ -444,3 +444,39 @@ def test_a_world_built_with_lists_still_makes_an_env():
     finally:
         env.close()
         same.close()
+
+
+@pytest.mark.parametrize("where", ["model", "geom", "site", "comment"])
+def test_a_file_that_is_not_utf8_is_a_one_line_world_error(tmp_path, where):
+    # MuJoCo reads any bytes; the names (and MJCF text) it hands back would not decode.
+    text = _ROOM.format(floor='<geom name="ground" type="plane" size="0 0 1"/>', head="",
+                        sites='<site name="start_a" pos="0 -2 0" euler="0 0 90"/>')
+    marked = {"model": ('model="user-room"', 'model="user-r\udcffoom"'),
+              "geom": ('name="ground"', 'name="gr\udcffund"'),
+              "site": ('<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
+                       '<site name="start_a" pos="0 -2 0" euler="0 0 90"/><site name="\udcff" pos="0 0 0"/>'),
+              "comment": ('<compiler angle="degree"/>', '<!-- \udcff --><compiler angle="degree"/>')}[where]
+    assert marked[0] in text
+    path = tmp_path / "latin1.xml"
+    path.write_bytes(text.replace(*marked, 1).encode("utf-8", "surrogateescape"))
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert str(path) in str(err.value) and "not UTF-8" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_directory_named_like_a_world_file_is_not_called_missing(tmp_path):
+    (tmp_path / "world.xml").mkdir()
+    with pytest.raises(WorldError, match="is not a file"):
+        load_world(str(tmp_path / "world.xml"))
+
+
+@pytest.mark.parametrize("orient", ['euler="0 90 0"', 'zaxis="1 0 0"', 'xyaxes="0 0 -1 0 1 0"'])
+def test_a_start_site_whose_heading_points_up_or_down_is_refused(tmp_path, orient):
+    # Its heading would be atan2 of rounding noise: some arbitrary direction, silently.
+    path = _write(tmp_path, "tilted.xml", f'<site name="start_a" pos="0 -2 0" euler="0 0 90"/>'
+                                          f'<site name="start_tilted" pos="0 0 0" {orient}/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "start site 'start_tilted'" in str(err.value) and "straight up or down" in str(err.value)
+    path = _write(tmp_path, "leaning.xml", '<site name="start_a" pos="0 -2 0" euler="0 60 90"/>')
+    assert load_world(str(path)).starts[0].yaw == pytest.approx(math.pi / 2, abs=1e-6)  # a tilt keeps its heading
