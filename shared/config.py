@@ -21,6 +21,7 @@ import tomllib
 import numpy as np
 
 from shared.errors import CogexploreError
+from shared.files import read_regular_file
 
 PRESET_DIR = Path(__file__).with_name("presets")
 DEFAULT_PRESET = "robust-40x30"
@@ -899,7 +900,7 @@ def load_preset(name_or_path: str | Path, *, complete: bool = False) -> RunConfi
         if not path.exists():
             raise ConfigError(f"unknown preset {str(name_or_path)!r}; known: {preset_names()}")
     try:
-        data = tomllib.loads(path.read_text())
+        data = tomllib.loads(read_regular_file(path).decode())
     except FileNotFoundError:
         raise ConfigError(f"preset file {path} does not exist") from None
     except OSError as exc:  # a folder, no permission

@@ -5,7 +5,9 @@ one, and no temporary file beside it. numpy-free and torch-free."""
 
 from __future__ import annotations
 
+import errno
 import os
+import stat
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -13,6 +15,16 @@ from typing import Any
 TMP_MARK = ".tmp-"
 """In the name of a temporary file being written (``.<name>.tmp-<pid>``): what a cleaner of
 stale temporaries looks for."""
+
+
+def read_regular_file(path: str | Path) -> bytes:
+    """The bytes of ``path``, a user's file: OSError for anything but a regular file (a folder, a
+    FIFO, whose read would wait for a writer that never comes, ``/dev/zero``, which never ends)."""
+    # non-blocking open: a FIFO with no writer opens at once, to be refused, instead of hanging here
+    with open(path, "rb", opener=lambda name, flags: os.open(name, flags | os.O_NONBLOCK)) as fh:
+        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file")
+        return fh.read()
 
 
 def fsync_dir(path: Path) -> None:

@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.errors import CogexploreError
+from shared.files import read_regular_file
 
 
 def _refuse_constant(name: str) -> Any:
@@ -43,7 +44,7 @@ def read_json_file(path: Path | str, what: str, error: type[CogexploreError] = C
     """The JSON document in ``path`` (see :func:`parse_json`); ``error`` when it cannot be read."""
     path = Path(path)
     try:
-        data = path.read_bytes()
+        data = read_regular_file(path)
     except OSError as exc:
         raise error(f"{what} {path} cannot be read: {exc.strerror or exc}") from None
     return parse_json(data, f"{what} {path}", error, allow_nan=allow_nan)

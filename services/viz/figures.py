@@ -21,7 +21,7 @@ import numpy as np
 
 from shared.errors import CogexploreError
 from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of, escape_text, markdown_cell
-from shared.files import save_png
+from shared.files import read_regular_file, save_png
 from shared.jsontext import parse_json
 from shared.learning.stats import read_csv_records
 from shared.sim.maps import (
@@ -176,7 +176,7 @@ def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, S
             if path.suffix == ".csv":
                 records = list(read_csv_records(path))
             else:
-                text = path.read_text()
+                text = read_regular_file(path).decode()
         except FileNotFoundError:
             raise FigureError(f"loss log {path} does not exist") from None
         except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, binary bytes

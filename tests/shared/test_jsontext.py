@@ -95,3 +95,22 @@ def test_a_procedural_seed_of_thousands_of_digits_is_a_clear_error() -> None:
     with pytest.raises(ConfigError, match="18 digits"):
         parse_world_list(f"procedural:1-{seed}")
     assert parse_world_list("procedural:7") == ("procedural:7",)
+
+
+@pytest.mark.timeout(30)
+def test_a_fifo_or_a_device_given_as_a_file_is_refused_not_waited_on(tmp_path: Path) -> None:
+    # A FIFO with no writer held the read (and the command) forever; /dev/zero would never end.
+    import os
+
+    from services.viz.figures import FigureError, load_loss_log
+    from shared.config import ConfigError, load_preset
+
+    fifo = tmp_path / "pipe.toml"
+    os.mkfifo(fifo)
+    with pytest.raises(ConfigError, match="pipe.toml cannot be read: not a regular file"):
+        load_preset(fifo)
+    for path in (fifo, Path("/dev/zero")):
+        with pytest.raises(CogexploreError, match="cannot be read: not a regular file"):
+            read_json_file(path, "card")
+    with pytest.raises(FigureError, match="not a regular file"):
+        load_loss_log(fifo)
