@@ -275,7 +275,11 @@ def occupancy_grid(world: Mappable, resolution_m: float = 0.05) -> OccupancyGrid
     cached = _GRID_CACHE.get(key)
     if cached is not None:
         return cached
-    grid = empty_grid(world.extent, resolution_m)
+    try:
+        grid = empty_grid(world.extent, resolution_m)
+    except MapError as exc:  # the world's, not a caller's: name it (an obstacle placed kilometres away?)
+        raise MapError(f"world {world.name!r}: {exc}: its obstacles and starts span more than a map of "
+                       "rooms holds (one placed far from the rest?)") from None
     model = mujoco.MjSpec.from_string(world.mjcf).compile()
     data = mujoco.MjData(model)
     mujoco.mj_kinematics(model, data)

@@ -248,3 +248,17 @@ def test_a_map_names_a_world_file_with_dollars_as_written(tmp_path):
         assert ax.get_title() == "cost \\$5"  # drawn as "cost $5": the escape is matplotlib's
     finally:
         plt.close(fig)
+
+
+def test_a_world_too_wide_for_a_map_is_named_in_the_error(tmp_path):
+    # "grid of 40001 x 81 cells ... is too large" named neither the world nor what made it so
+    from shared.sim.world import load_world_file
+
+    path = tmp_path / "very-far.xml"
+    path.write_text('<mujoco><worldbody><geom name="floor" type="plane" size="0 0 1"/>'
+                    '<geom type="box" pos="0 2 1" size="2 0.05 1"/>'
+                    '<geom type="cylinder" pos="1000000 0 1" size="0.2 1"/>'
+                    '<site name="start_a" pos="-1 0 0"/></worldbody></mujoco>')
+    world = load_world_file(path)
+    with pytest.raises(maps.MapError, match=r"world '.*very-far.xml': grid of .* is too large: its obstacles"):
+        maps.occupancy_grid(world)
