@@ -23,6 +23,10 @@ Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 1
   reuses it when the run's checkpoint holds the same weights);
 - writes a Rerun recording to ``runs/<run>/recordings/eval-<version:06d>.rrd`` (every
   ``--image-every``-th depth image, every step's pose, Q-values and command);
+- where those names hold another evaluation of the version (another protocol, or other weights
+  after a learner restart), names both ``eval-<version:06d>-<8 hex digits of the evaluation's
+  digest>`` instead (``EvaluatorService.files_stem``), so that each row of ``eval.jsonl`` keeps its own
+  files (the row names both: ``recording``, ``results``);
 - with ``--rerun-connect URL`` (default: env ``COGEXPLORE_RERUN_URL``), also streams that
   recording live to the Rerun viewer there. The viewer is checked before each evaluation: one
   that does not answer is warned about once and skipped (the ``.rrd`` files go on), one that
@@ -79,10 +83,10 @@ from shared.evaluation import (
     TEST_SEED,
     ProtocolConfig,
 )
-from shared.evaluation.eval_log import EVAL_LOG, evaluation_key, load_eval_log
+from shared.evaluation.eval_log import EVAL_LOG, evaluation_digest, evaluation_key, load_eval_log
 from shared.evaluation.policies import GreedyPolicy
 from shared.evaluation.protocol import EvaluationCancelled
-from shared.evaluation.results import EvalResults, save_results
+from shared.evaluation.results import EvalResults, ResultsError, load_results, save_results
 from shared.files import append_line
 from shared.learning.checkpoints import weights_sha256
 from shared.learning.model import (
@@ -98,12 +102,19 @@ from shared.wire.messages import MAX_EVAL_EPISODES, EvalResult, RejectCounter, W
 
 EVALUATOR_NICENESS = 10
 """Scheduling niceness of a long-running evaluator (0 = as the learner; 19 = the lowest)."""
+EVALUATION_META = "evaluation_sha256"
+"""The results meta field holding :func:`evaluation_digest`: which evaluation a file holds."""
 log = logging.getLogger("cogexplore.evaluator")
 
 
-def recording_path(recordings: Path, policy_version: int) -> Path:
-    """``recordings/eval-<version:06d>.rrd``."""
-    return recordings / f"eval-{policy_version:06d}.rrd"
+def result_stem(policy_version: int, digest: str | None = None) -> str:
+    """``eval-<version:06d>``, with ``-<digest's first 8 hex digits>`` when given."""
+    return f"eval-{policy_version:06d}" + (f"-{digest[:8]}" if digest else "")
+
+
+def recording_path(recordings: Path, policy_version: int, digest: str | None = None) -> Path:
+    """``recordings/<result_stem>.rrd``."""
+    return recordings / f"{result_stem(policy_version, digest)}.rrd"
 
 
 class EvaluatorService:
@@ -174,6 +185,20 @@ class EvaluatorService:
 
     # -- one evaluation -------------------------------------------------------------------------
 
+    def files_stem(self, version: int, digest: str) -> str:
+        """The name of an evaluation's results and recording: the version's plain one unless a file
+        of that name holds another evaluation (or one that does not say), then with its digest."""
+        plain = result_stem(version)
+        results = self.root / "stats" / "eval" / f"{plain}.json"
+        if results.exists():
+            try:
+                mine = load_results(results).meta.get(EVALUATION_META) == digest
+            except ResultsError:  # damaged: not known to be this evaluation's
+                mine = False
+        else:  # a recording without results (its evaluator killed in between) is someone's too
+            mine = not recording_path(self.root / "recordings", version).exists()
+        return plain if mine else result_stem(version, digest)
+
     def evaluate(self, message: WeightsMessage, stop: threading.Event | None = None,
                  session: Any = None, repeat: bool = True) -> dict[str, Any] | None:
         """Load ``message`` and run the protocol; write, record and publish the result.
@@ -193,13 +218,15 @@ class EvaluatorService:
             log.info("policy version %d: these weights were evaluated already (%s), not again", version, EVAL_LOG)
             return None
         stats = self.root / "stats"
-        rrd = recording_path(self.root / "recordings", version) if self.record else None
+        digest = evaluation_digest(key)
+        stem = self.files_stem(version, digest)
+        rrd = self.root / "recordings" / f"{stem}.rrd" if self.record else None
         log.info("evaluating policy version %d on %s (%s protocol, %d episode(s) per start, %d steps)", version,
                  self.world, self.protocol.name, self.episodes_per_start, self.max_steps)
         started = time.monotonic()
         meta = {"policy": "greedy", "model": f"{self.run_name}@{version}", "policy_version": version,
                 "fingerprint": self.fingerprint, "weights_sha256": weights_digest,
-                "evaluator_id": self.evaluator_id}
+                "evaluator_id": self.evaluator_id, EVALUATION_META: digest}
         live = self.viewer.url if self.viewer is not None and self.viewer.up() else None
         results = evaluate_recorded(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
                                     episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
@@ -207,11 +234,12 @@ class EvaluatorService:
                                     recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
                                     stop=stop, rerun_connect=live, protocol=self.protocol)
         duration = time.monotonic() - started
-        save_results(results, stats / "eval" / f"eval-{version:06d}.json")
+        results_path = save_results(results, stats / "eval" / f"{stem}.json")
         summary = results.summary
         row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, **evaluated_as,
                "duration_s": round(duration, 3), "summary": summary["overall"], "per_start": summary["per_start"],
                "recording": results.meta.get("recording"),  # None: not recorded, or it could not be written
+               "results": str(results_path),
                "streamed_to": live,
                "rejected_weights": self.rejects.counts}
         stats.mkdir(parents=True, exist_ok=True)

@@ -56,11 +56,12 @@ from shared.evaluation import (
     PAPER_DRL_STEPS,
     PAPER_EPISODES_PER_START,
     PAPER_MAX_STEPS,
+    PROTOCOLS,
     TEST_SEED,
     ProtocolConfig,
     protocol_named,
 )
-from shared.evaluation.eval_log import EVAL_LOG, load_eval_log
+from shared.evaluation.eval_log import EVAL_LOG, load_eval_log, row_protocol
 from shared.evaluation.protocol import evaluate_policy
 from shared.evaluation.results import (
     EvalResults,
@@ -191,6 +192,21 @@ class EvalPoint:
     """The test protocol's name (rows the evaluator wrote before it recorded one ran the paper's)."""
     world: str | None = None
     """The world evaluated in, as the evaluator was given it (None: a row that did not say)."""
+    protocol_config: ProtocolConfig | None = None
+    """The protocol's every field (None: a row from before the evaluator recorded them)."""
+
+    @property
+    def protocol_set(self) -> ProtocolConfig | str:
+        """What the points of one curve share: the protocol's fields, a named protocol's for a row
+        that gave only its name; the name alone for a ``custom`` one that did (its fields unknown)."""
+        return self.protocol_config or PROTOCOLS.get(self.protocol) or self.protocol
+
+    @property
+    def protocol_label(self) -> str:
+        """The protocol as the report names it: a named protocol by its name, any other set with
+        what it sets (two ``custom`` ones must read apart)."""
+        config = self.protocol_config
+        return config.describe() if config is not None and config != PROTOCOLS.get(config.name) else self.protocol
 
     @classmethod
     def from_row(cls, row: Mapping[str, Any]) -> EvalPoint:
@@ -198,7 +214,7 @@ class EvalPoint:
         world = row.get("world")
         return cls(row["policy_version"], float(row["summary"]["mean_steps"]), row.get("episodes_per_start"),
                    row.get("max_steps"), protocol=str(row.get("protocol", "paper")),
-                   world=world if isinstance(world, str) else None)
+                   world=world if isinstance(world, str) else None, protocol_config=row_protocol(row))
 
     @classmethod
     def final_of(cls, results: EvalResults, world: str) -> EvalPoint | None:
@@ -210,23 +226,24 @@ class EvalPoint:
             return None
         return cls(int(version), float(results.summary["overall"]["mean_steps"]),
                    meta.get("episodes_per_start"), meta.get("max_steps"), final=True,
-                   protocol=results.protocol.name, world=world)
+                   protocol=results.protocol.name, world=world, protocol_config=results.protocol)
 
 
 def eval_curve_points(rows: Sequence[Mapping[str, Any]], final: EvalPoint | None = None
                       ) -> tuple[list[EvalPoint], int]:
-    """The evaluator's periodic evaluations in the world and protocol of its newest one, and the
-    final one if it was measured in the same, by policy version; and how many rows were left out
-    (other worlds or protocols: one line must not join two tasks). The final evaluation stands in
-    for a periodic one of the same version (it is Table III's number), so no version is drawn twice."""
+    """The evaluator's periodic evaluations in the world and protocol (:attr:`EvalPoint.protocol_set`)
+    of its newest one, and the final one if it was measured in the same, by policy version; and how
+    many rows were left out (other worlds or protocols: one line must not join two tasks). The final
+    evaluation stands in for a periodic one of the same version (it is Table III's number), so no
+    version is drawn twice."""
     if not rows:
         return [], 0
     every = [EvalPoint.from_row(r) for r in rows]
-    task = (every[-1].world, every[-1].protocol)
-    points = [p for p in every if (p.world, p.protocol) == task]
+    task = (every[-1].world, every[-1].protocol_set)
+    points = [p for p in every if (p.world, p.protocol_set) == task]
     left_out = len(every) - len(points)
     # A row from before the evaluator recorded its world ran the run's own, the report's default.
-    if final is not None and final.protocol == task[1] and task[0] in (None, final.world):
+    if final is not None and final.protocol_set == task[1] and task[0] in (None, final.world):
         points = [p for p in points if p.policy_version != final.policy_version] + [final]
     return sorted(points, key=lambda p: p.policy_version), left_out
 
@@ -253,9 +270,10 @@ def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 
     ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel("policy version (learner updates)")
     ax.set_ylabel("mean moving steps")
-    protocols = sorted({p.protocol for p in points})
+    protocols = sorted({p.protocol_label for p in points})
     worlds = sorted({p.world or "world not recorded" for p in points})
-    ax.set_title(plain_text(f"Evaluations during training: {', '.join(worlds)}, {', '.join(protocols)} protocol"))
+    ax.set_title(plain_text(f"Evaluations during training: {', '.join(worlds)}\nprotocol {'; '.join(protocols)}"),
+                 fontsize="medium")
     ax.grid(alpha=0.3)
     ax.legend()
     fig.tight_layout()
@@ -539,7 +557,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
         doc += [Heading(3, "Evaluations during training"), Paragraph(f"![evaluations]({rel(eval_png)})"),
                 Table(("Policy version", "Mean moving steps", "Protocol", "Episodes per start", "Step cap",
                        "Evaluation"), (True, True, False, True, True, False),
-                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", escape_text(p.protocol),
+                      tuple((str(p.policy_version), f"{p.mean_steps:.1f}", escape_text(p.protocol_label),
                              str(p.episodes_per_start or "-"),
                              str(p.max_steps or "-"), "**final** (Table III)" if p.final else "during training")
                             for p in report.eval_curve))]

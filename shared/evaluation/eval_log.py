@@ -7,14 +7,16 @@ damaged (a killed evaluator cuts its last row short) or hand-edited: readers ski
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from shared.config import is_finite_number, is_whole
+from shared.config import ConfigError, is_finite_number, is_whole
 from shared.errors import CogexploreError
+from shared.evaluation import ProtocolConfig
 from shared.jsontext import parse_json
 
 EVAL_LOG = "eval.jsonl"
@@ -50,6 +52,17 @@ def eval_log_row(line: str) -> dict[str, Any] | None:
     return row if isinstance(row.get("protocol", "paper"), str) else None
 
 
+def row_protocol(row: Mapping[str, Any]) -> ProtocolConfig | None:
+    """The protocol a row recorded every field of (``protocol_config``, under its ``protocol`` name);
+    None for a row from before the evaluator recorded them, or one whose fields are not this
+    version's protocol fields (the row is still read: only its protocol's settings are unknown)."""
+    try:
+        config = ProtocolConfig.from_dict(row["protocol_config"])
+    except (KeyError, ConfigError):
+        return None
+    return config if config.name == row.get("protocol", "paper") else None
+
+
 def load_eval_log(path: Path) -> list[dict[str, Any]]:
     """The evaluator service's ``eval.jsonl`` rows, sorted by version; a damaged or forged row (not
     JSON, NaN, a negative version, a count that is not one) is skipped with a warning."""
@@ -73,3 +86,8 @@ def evaluation_key(row: dict[str, Any]) -> tuple[Any, ...] | None:
     if not isinstance(row.get("weights_sha256"), str) or not all(v is None or isinstance(v, (str, int)) for v in key):
         return None
     return key
+
+
+def evaluation_digest(key: tuple[Any, ...]) -> str:
+    """The SHA-256 (hex) of an :func:`evaluation_key`: one evaluation's name, whatever its version shares."""
+    return hashlib.sha256(json.dumps(key).encode()).hexdigest()

@@ -315,3 +315,34 @@ def test_a_row_cut_short_before_costs_only_itself_not_the_next_evaluation(tmp_pa
     assert lines[0] == '{"policy_version": 3, "summ' and log.read_text().endswith("\n")
     assert [json.loads(line)["policy_version"] for line in lines[1:]] == [5, 15]
     assert [r["policy_version"] for r in load_eval_log(log)] == [5, 15]
+
+
+def test_each_evaluation_of_one_version_keeps_its_own_files(tmp_path: Path) -> None:
+    # Another protocol (an evaluator restarted with --start-jitter-m) or other weights at the same
+    # version (a restarted learner) once overwrote the first evaluation's files, and its row then
+    # pointed at the other evaluation's recording and results.
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    settings = ZenohSettings(connect=("tcp/127.0.0.1:9",))  # evaluate() itself needs no router
+    custom = PROTOCOLS["robust"].overridden(start_jitter_m=0.04)
+
+    def evaluate(net: QNetwork, protocol=PROTOCOLS["robust"], learner_epoch: int = 0) -> dict:
+        service = EvaluatorService(cfg, "same", tmp_path, settings, "ev-1", episodes_per_start=1, max_steps=3,
+                                   image_every=3, protocol=protocol)
+        row = service.evaluate(to_message(net, 12, learner_epoch=learner_epoch), repeat=True)
+        assert row is not None
+        return row
+
+    net, other_net = small_net(), small_net()
+    first = evaluate(net)
+    rows = [first, evaluate(net, custom), evaluate(other_net, learner_epoch=1), evaluate(net)]
+    # The common case keeps its plain name, and the same evaluation again (--once) its own files.
+    assert [Path(r["recording"]).name for r in rows].count("eval-000012.rrd") == 2
+    assert rows[3]["recording"] == first["recording"] and len({r["recording"] for r in rows}) == 3
+    assert Path(first["results"]).name == "eval-000012.json" and len({r["results"] for r in rows}) == 3
+    for row in rows:
+        saved = load_results(row["results"])
+        assert Path(row["recording"]).stem == Path(row["results"]).stem
+        assert saved.meta["recording"] == row["recording"] and saved.meta["weights_sha256"] == row["weights_sha256"]
+        assert saved.protocol.to_dict() == row["protocol_config"]
+        assert saved.summary["overall"]["mean_steps"] == pytest.approx(row["summary"]["mean_steps"])
+        verify_rrd(Path(row["recording"]))

@@ -457,7 +457,8 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
                                          EvalPoint.final_of(final, world))
     assert left_out == 0
     assert points == [EvalPoint(0, 3.0, 1, 200, protocol="robust", world=world),
-                      EvalPoint(1000, final_steps, 1, 4, final=True, protocol="robust", world=world)]
+                      EvalPoint(1000, final_steps, 1, 4, final=True, protocol="robust", world=world,
+                                protocol_config=PROTOCOLS["robust"])]
     # A periodic evaluation of the final version is not drawn a second time: the final one stands for it.
     again, left_out = eval_curve_points([periodic, {**periodic, "policy_version": 1000,
                                                     "summary": {"mean_steps": 7.0}}], EvalPoint.final_of(final, world))
@@ -488,6 +489,40 @@ def test_eval_curve_ends_in_the_final_evaluation_at_its_version(tmp_path: Path) 
     paper = load_results(older.results["paper"]["short@1000"])
     assert older.eval_curve == [EvalPoint(0, 3.0, 1, 200, world=world), EvalPoint.final_of(paper, world)]
     assert older.eval_curve[1].protocol == "paper"
+
+
+def test_eval_curve_keeps_two_custom_protocols_apart(tmp_path: Path) -> None:
+    # Both are named "custom" in eval.jsonl: their points were drawn as one line, labelled alike.
+    near, far = (PROTOCOLS["robust"].overridden(start_jitter_m=m) for m in (0.04, 0.5))
+
+    def row(version: int, protocol: str, steps: float, config: dict | None = None) -> dict:
+        return {"policy_version": version, "protocol": protocol, "world": "box-room", "episodes_per_start": 1,
+                "max_steps": 200, "summary": {"mean_steps": steps}} | ({"protocol_config": config} if config else {})
+
+    rows = [row(0, "custom", 3.0, near.to_dict()), row(1000, "custom", 50.0, far.to_dict()),
+            row(2000, "custom", 4.0, near.to_dict())]
+    points, left_out = eval_curve_points(rows)
+    assert [p.policy_version for p in points] == [0, 2000] and left_out == 1
+    final = EvalPoint(3000, 9.0, 1, 200, final=True, protocol="custom", world="box-room")
+    assert eval_curve_points(rows, dataclasses.replace(final, protocol_config=far)) == (points, 1)
+    points, _ = eval_curve_points(rows, dataclasses.replace(final, protocol_config=near))
+    assert [p.policy_version for p in points] == [0, 2000, 3000]
+    assert {p.protocol_label for p in points} == {near.describe()} and "±4 cm" in near.describe()
+    png = save_eval_curve_png(points, tmp_path / "curve.png")
+    assert png.read_bytes()[:8] == PNG_MAGIC
+    # Rows from before the evaluator recorded the fields: a named protocol's name stands for its
+    # fields, a custom one's for none that a row records.
+    older = [row(0, "robust", 3.0), row(500, "custom", 7.0), row(1000, "robust", 4.0, PROTOCOLS["robust"].to_dict())]
+    points, left_out = eval_curve_points(older)
+    assert [(p.policy_version, p.protocol_label) for p in points] == [(0, "robust"), (1000, "robust")]
+    assert left_out == 1
+    points, left_out = eval_curve_points([*older, row(2000, "custom", 8.0, near.to_dict())])
+    assert [p.policy_version for p in points] == [2000] and left_out == 3
+    # Fields this version does not know (or under another name) are not a protocol: the row is drawn by its name.
+    unknown = row(3000, "custom", 6.0, {**near.to_dict(), "future_field": 1})
+    renamed = row(4000, "custom", 5.0, {**far.to_dict(), "name": "x"})
+    points, _ = eval_curve_points([row(500, "custom", 7.0), unknown, renamed])
+    assert [(p.policy_version, p.protocol_config) for p in points] == [(500, None), (3000, None), (4000, None)]
 
 
 def test_an_eval_log_row_the_evaluator_could_not_have_written_is_skipped(tmp_path: Path, caplog) -> None:
