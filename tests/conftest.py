@@ -21,6 +21,22 @@ def one_torch_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture
+def checkpoint_saves(monkeypatch) -> list[int]:
+    """The update count of every checkpoint written from now on (each one is still written)."""
+    from shared.learning.checkpoints import CheckpointManager
+
+    saved: list[int] = []
+    save = CheckpointManager.save
+
+    def counted(self, agent, **kwargs):
+        saved.append(agent.update_count)
+        return save(self, agent, **kwargs)
+
+    monkeypatch.setattr(CheckpointManager, "save", counted)
+    return saved
+
+
 @pytest.fixture(autouse=True)
 def _restore_root_logging():
     """A CLI entry point under test may point the root logger at pytest's captured stderr, which

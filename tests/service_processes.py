@@ -50,3 +50,12 @@ def client(endpoint: str):
     from services.bus.session import ZenohSettings, open_session
 
     return open_session(ZenohSettings(mode="client", connect=(endpoint,)))
+
+
+def run_on_a_full_disk(code: str, limit_bytes: int) -> subprocess.CompletedProcess:
+    """Python ``code`` in a process that may write no file past ``limit_bytes`` (a disk that fills: a
+    write beyond it fails with "File too large")."""
+    script = ("import resource, signal; signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
+              f"resource.setrlimit(resource.RLIMIT_FSIZE, ({int(limit_bytes)}, resource.RLIM_INFINITY))\n" + code)
+    return subprocess.run([sys.executable, "-c", script], cwd=REPO, env=ENV, capture_output=True, text=True,
+                          timeout=120)

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from service_processes import run_on_a_full_disk
 
 from services.cli import main as cli
 from services.tools.experiment import (
@@ -318,15 +319,11 @@ def test_a_report_rewrite_cut_short_by_a_full_disk_leaves_the_last_one_whole(tmp
     experiment.write_report()
     before = {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()}
     assert {"table.md", "report.md", "wallclock.md"} <= set(before)
-    script = ("import argparse, resource, signal, sys; "
-              "signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
-              "resource.setrlimit(resource.RLIMIT_FSIZE, (100, resource.RLIM_INFINITY)); "  # a disk that fills
-              "from services.tools.experiment import Experiment, options_from_args; "
-              "from services.tools.options import add_experiment_arguments; "
-              "p = argparse.ArgumentParser(); add_experiment_arguments(p); "
-              f"Experiment(options_from_args(p.parse_args({argv!r}))).write_report()")
-    done = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[3],
-                          capture_output=True, text=True, timeout=120)
+    done = run_on_a_full_disk("import argparse; "
+                              "from services.tools.experiment import Experiment, options_from_args; "
+                              "from services.tools.options import add_experiment_arguments; "
+                              "p = argparse.ArgumentParser(); add_experiment_arguments(p); "
+                              f"Experiment(options_from_args(p.parse_args({argv!r}))).write_report()", 100)
     assert done.returncode != 0 and "File too large" in done.stderr, done.stderr[-2000:]
     assert {p.name: p.read_bytes() for p in tmp_path.iterdir() if p.is_file()} == before
 

@@ -345,20 +345,15 @@ def test_checkpoints_rewritten_while_scored_are_not_exported_as_scored(tmp_path:
 
 def test_a_figure_cut_short_by_a_full_disk_leaves_the_last_one_whole(tmp_path: Path) -> None:
     # the figure was written in place: a rerun that failed mid-file left half a PNG
-    import subprocess
-    import sys
+    from service_processes import run_on_a_full_disk
 
     png = tmp_path / "best-windows.png"
     scores = [score(100, 50.0, None), score(200, 80.0, 60.0)]
     save_selection_png(scores, png, gate_min=70.0)
     before = png.read_bytes()
-    script = ("import resource, signal, sys; from pathlib import Path; "
-              "signal.signal(signal.SIGXFSZ, signal.SIG_IGN); "
-              "resource.setrlimit(resource.RLIMIT_FSIZE, (4096, resource.RLIM_INFINITY)); "  # a disk that fills
-              "from services.tools.selection import WindowScore, save_selection_png; "
-              "s = [WindowScore(100, 'a', 90.0, None, {}, ()), WindowScore(200, 'b', 10.0, 5.0, {}, ())]; "
-              f"save_selection_png(s, Path({str(png)!r}), gate_min=50.0)")
-    done = subprocess.run([sys.executable, "-c", script], cwd=Path(__file__).resolve().parents[3],
-                          capture_output=True, text=True, timeout=120)
+    done = run_on_a_full_disk("from pathlib import Path; "
+                              "from services.tools.selection import WindowScore, save_selection_png; "
+                              "s = [WindowScore(100, 'a', 90.0, None, {}, ()), WindowScore(200, 'b', 10.0, 5.0, {}, ())]; "
+                              f"save_selection_png(s, Path({str(png)!r}), gate_min=50.0)", 4096)
     assert done.returncode != 0 and "File too large" in done.stderr, done.stderr[-2000:]
     assert png.read_bytes() == before and [p.name for p in tmp_path.iterdir()] == [png.name]

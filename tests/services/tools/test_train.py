@@ -191,16 +191,9 @@ def test_a_trainer_restarted_without_a_checkpoint_does_not_log_its_updates_going
         assert updates == sorted(updates) and max(updates) <= 10, (row_type.FILE, updates)
 
 
-def test_the_last_update_s_checkpoint_is_written_once(tmp_path: Path, monkeypatch):
+def test_the_last_update_s_checkpoint_is_written_once(tmp_path: Path, checkpoint_saves: list[int]):
     # At total_updates the periodic checkpoint and then the final one wrote the same file twice.
-    saved: list[int] = []
-    save = CheckpointManager.save
-
-    def counted(self, agent, **kwargs):
-        saved.append(agent.update_count)
-        return save(self, agent, **kwargs)
-
-    monkeypatch.setattr(CheckpointManager, "save", counted)
+    saved = checkpoint_saves
     cfg = load_preset("smoke").with_overrides({"train.total_updates": 10, "train.checkpoint_every": 5})
     paths = RunPaths(tmp_path / "r")
     assert train_single_process(cfg, paths, progress=False, tensorboard=False)["updates"] == 10
