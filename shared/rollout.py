@@ -128,7 +128,7 @@ class Rollout:
         self.max_steps = max_steps
         self.check_action = check_action
         self.env_steps = env_steps
-        """Env steps taken (from ``env_steps`` on)."""
+        """Env steps taken (from ``env_steps`` on); a caller may move it on (an actor to its run's count)."""
         self.episodes = 0
         """Episodes begun."""
         self.episode: Episode | None = None

@@ -70,6 +70,11 @@ class TransitionBatcher:
         """Transitions held but not yet sent."""
         return len(self._frames)
 
+    def flush(self) -> TransitionBatch | None:
+        """The transitions held, as a batch cut mid-episode (the last one's next image included), or
+        None when none is: what an actor that stops still owes the learner."""
+        return self._cut(self._obs_mm, False, False) if self._frames else None
+
     def _cut(self, next_mm: np.ndarray, terminated: bool, truncated: bool) -> TransitionBatch:
         batch = TransitionBatch.from_steps(
             actor_id=self.actor_id, episode=self.episode, first_step=self._first_step,

@@ -5,8 +5,11 @@ transitions out in small reliable batches, weights in without ever blocking the 
 
 Flow per step: take the newest weights the subscriber has parked (if any) -> pick an
 action -> step the env -> batch the transition -> publish a batch when full or when the
-episode ends. While no learner is alive (liveliness), the loop pauses instead of
-publishing into the void, and resumes by itself when one is back.
+episode ends (and the last steps when the actor stops). Epsilon runs over the fleet's env steps:
+this actor's own times ``--num-actors``, but never behind the learner's count of the run's (a
+restarted actor, or a resumed run, goes on where the run is). While no learner is alive
+(liveliness), the loop pauses instead of publishing into the void, and resumes by itself when
+one is back.
 
 With ``--rerun-connect URL`` (env ``COGEXPLORE_RERUN_URL``) every ``--rerun-every-episodes``-th
 episode (env ``COGEXPLORE_RERUN_EVERY_EPISODES``, default 20) also goes live to that Rerun
@@ -64,6 +67,7 @@ from shared.wire.messages import (
     FlowControl,
     LearnerEpochs,
     RejectCounter,
+    TransitionBatch,
     future_epoch_error,
     new_epoch,
 )
@@ -111,6 +115,8 @@ class FlowGate:
         self._lost = 0  # sent, and never to be counted by the learner (not counted within horizon_s)
         self.ignored = 0
         """Flow-control messages of another learner process than the one followed, or from the future."""
+        self.run_steps = 0
+        """Transitions the followed learner has received in all: the run's env steps (a resumed run's too)."""
         self.changed = threading.Event()
 
     def on_flow(self, message: FlowControl, _key: str = "") -> None:
@@ -136,6 +142,7 @@ class FlowGate:
                 self._sends.clear()
             self._credit = message.credit
             self._received_from_me = received
+            self.run_steps = message.transitions_received
         self.changed.set()
 
     def reset(self) -> None:
@@ -200,9 +207,19 @@ class Outbox:
                                  self.guide.teacher_label(step.info["pose"]),
                                  self.guide.safe_label(step.info["pose"]))
         if batch is not None:
-            self.publisher.put(batch.encode())
-            self.gate.sent(batch.steps)
-            self.batches += 1
+            self._send(batch)
+
+    def flush(self) -> None:
+        """Send the steps of the episode still playing (the actor stops): each is a whole transition
+        (its next image included), stored by the learner as any batch cut mid-episode is."""
+        batch = self.batcher.flush()
+        if batch is not None:
+            self._send(batch)
+
+    def _send(self, batch: TransitionBatch) -> None:
+        self.publisher.put(batch.encode())
+        self.gate.sent(batch.steps)
+        self.batches += 1
 
     def end_episode(self, episode: Episode) -> None:
         info = episode.info
@@ -337,11 +354,17 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                 outbox.policy_version = message.policy_version
                 counters["weights_loaded"] += 1
 
+            # epsilon's step: this process's own count times the fleet's size, but no less than the run's
+            # (a restarted actor, or any of a resumed run, started again at eps_start)
+            loop.env_steps = max(loop.env_steps, -(-gate.run_steps // num_actors))
             step = loop.step()
             counters["env_steps"] += 1
             if step.last:
                 counters["episodes"] += 1
                 loop.begin_episode()
+        if paused_since is not None:  # stopped while paused: that wait counts too
+            counters["paused_s"] += time.monotonic() - paused_since
+        outbox.flush()
         learners.close()
     env.close()
     counters.update(batches=outbox.batches, policy_version=outbox.policy_version, rejected_weights=rejects.total)

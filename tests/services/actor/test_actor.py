@@ -36,6 +36,20 @@ def test_batcher_cuts_at_size_and_episode_end_and_never_spans_episodes():
     assert int(b.depth_mm[0, 0, 0]) == 2000
 
 
+def test_batcher_flush_gives_the_steps_held_as_a_batch_cut_mid_episode():
+    batcher = TransitionBatcher("a", batch_steps=4)
+    assert batcher.flush() is None  # nothing begun
+    batcher.begin_episode(_frame(1.0), start_index=1)
+    for k in range(1, 3):
+        assert batcher.add(1, 1.0, _frame(1.0 + 0.1 * k), False, False, 0, (0.0, 0.0, 0.0)) is None
+    held = batcher.flush()
+    assert held.steps == 2 and held.first_step == 0 and not (held.terminated or held.truncated)
+    assert int(held.next_depth_mm[0, 0]) == 1200  # the last step's next image: a whole transition
+    assert batcher.flush() is None and batcher.pending == 0
+    after = batcher.add(2, 1.0, _frame(1.3), False, False, 0, (0.0, 0.0, 0.0))
+    assert after is None and batcher.flush().first_step == 2  # the episode goes on where it was
+
+
 def test_flow_gate_counts_in_flight_transitions_once():
     gate = FlowGate("a", horizon_s=10.0)
     assert not gate.open(now=0.0), "no word from the learner yet: hold, rather than send beyond what it wants"
