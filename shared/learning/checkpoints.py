@@ -47,8 +47,9 @@ import json
 import logging
 import os
 import re
+import stat
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -59,7 +60,7 @@ import safetensors.torch
 import torch
 from safetensors import SafetensorError
 
-from shared.files import TMP_MARK, atomic_write_text, write_atomically
+from shared.files import TMP_MARK, atomic_write_text, read_regular_file, write_atomically
 from shared.config import (
     ROBOT_FIELDS,
     ConfigError,
@@ -82,6 +83,7 @@ from shared.learning.model import (
     SupervisedNet,
     architecture_fingerprint,
     average_weights,
+    check_weights_fit,
     copy_conv_weights,
     load_tensors,
     resolve_device,
@@ -125,7 +127,21 @@ def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[s
                                                                     metadata={_META_KEY: json.dumps(meta)}))
 
 
+def _require_regular_file(path: Path) -> None:
+    """CheckpointError unless ``path`` is a regular file: safetensors would wait for ever for a FIFO's
+    writer, in Rust where no signal stops it, and read ``/dev/zero`` without end."""
+    try:
+        mode = path.stat().st_mode
+    except FileNotFoundError:
+        raise CheckpointError(f"{path} does not exist") from None
+    except OSError as exc:  # a symlink loop, no permission
+        raise CheckpointError(f"{path} cannot be read: {exc.strerror or exc}") from None
+    if not stat.S_ISREG(mode):
+        raise CheckpointError(f"{path} is not a regular file (a folder, a FIFO, a device?)")
+
+
 def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
+    _require_regular_file(path)
     try:
         with safetensors.safe_open(str(path), framework="numpy") as f:
             raw = (f.metadata() or {}).get(_META_KEY)
@@ -171,7 +187,11 @@ def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict
 def _non_finite(tensors: Mapping[str, torch.Tensor]) -> str | None:
     """The name of the first floating-point tensor with a NaN or an infinity; None when all are finite."""
     for name, t in tensors.items():
-        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+        if not t.is_floating_point():
+            continue
+        if t.dtype not in (torch.float16, torch.bfloat16, torch.float32, torch.float64):
+            t = t.float()  # float8 has no isfinite; its NaN stays NaN in float32
+        if not bool(torch.isfinite(t).all()):
             return name
     return None
 
@@ -280,6 +300,21 @@ def load_checkpoint(path: Path | str) -> Checkpoint:
                       replay_digest=rinfo["digest"] if rinfo else None)
 
 
+def _writer_alive(tmp_name: str) -> bool:
+    """Whether the process that names a temporary file (``.<name>.tmp-<pid>``) still runs: its file is
+    being written (this process's, or another's, e.g. an export into this folder), not left by a crash."""
+    pid = tmp_name.rpartition(TMP_MARK)[2]
+    if not (pid.isascii() and pid.isdigit() and 0 < int(pid) < 2**22):
+        return False
+    try:
+        os.kill(int(pid), 0)
+    except PermissionError:  # another user's process
+        return True
+    except OSError:
+        return False
+    return True
+
+
 def _replay_suffix(digest: str) -> str:
     return f".replay-{digest[:12]}.safetensors"
 
@@ -334,8 +369,8 @@ class CheckpointManager:
         pointer = self.directory / LATEST
         if not pointer.exists():
             return None
-        try:
-            name = pointer.read_text().strip()
+        try:  # a FIFO would wait for ever, /dev/zero would fill the memory
+            name = read_regular_file(pointer).decode().strip()
         except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, bytes that are no name
             raise CheckpointError(f"{pointer} cannot be read: {exc}") from None
         if not _NAME_RE.match(name):
@@ -357,7 +392,10 @@ class CheckpointManager:
         for old in ckpts[: max(0, len(ckpts) - (self.keep - 1))]:
             old.unlink(missing_ok=True)
         live_replays = set()
-        for p in self.checkpoints()[-self.keep_replays:]:
+        # the new checkpoint's first: `latest` names it even when an older timeline left higher-numbered
+        # files (a resume that fell back past a damaged one), which must not take its replay's place
+        others = [p for p in self.checkpoints() if p != newest]
+        for p in [newest, *others[max(0, len(others) - (self.keep_replays - 1)):]]:
             try:
                 rinfo = _replay_info(p, _read_meta(p, FORMAT))
             except CheckpointError:
@@ -367,8 +405,7 @@ class CheckpointManager:
         for p in self.directory.iterdir():
             # orphans: replays of pruned, re-saved or older checkpoints, temporaries of crashed writers
             orphan_replay = _REPLAY_RE.match(p.name) and p.name not in live_replays
-            stale_tmp = p.name.startswith(".") and TMP_MARK in p.name and not p.name.endswith(
-                f"{TMP_MARK}{os.getpid()}")
+            stale_tmp = p.name.startswith(".") and TMP_MARK in p.name and not _writer_alive(p.name)
             if orphan_replay or stale_tmp:
                 p.unlink(missing_ok=True)
 
@@ -414,9 +451,10 @@ def export_weights(path: Path | str, net: QNetwork | QEnsemble, policy_version: 
     ``extra`` is JSON-able metadata kept beside the weights (e.g. a model card)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {"format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
+    # extra first: a key of its own named like one of the file's would make it unloadable
+    meta = {**dict(extra or {}), "format": WEIGHTS_FORMAT, "version": VERSION, "policy_version": int(policy_version),
             "fingerprint": architecture_fingerprint(net),
-            "model": asdict(net.model_cfg), "sensor": asdict(net.sensor_cfg), **dict(extra or {})}
+            "model": asdict(net.model_cfg), "sensor": asdict(net.sensor_cfg)}
     if run_config is not None:
         meta["run_config"] = run_config.to_dict()
     if isinstance(net, QEnsemble):
@@ -446,26 +484,40 @@ def load_exported_weights(path: Path | str, device: str | torch.device = "cpu",
     path = Path(path)
     tensors, meta = load_tensors_file(path, WEIGHTS_FORMAT)
     members = meta.get("members")
-    try:
+
+    def build() -> QNetwork | QEnsemble:
         sensor = SensorConfig(**meta["sensor"])
         if members is None:
-            net: QNetwork | QEnsemble = QNetwork(ModelConfig(**meta["model"]), sensor)
-        elif not (isinstance(members, list) and 2 <= len(members) <= MAX_ENSEMBLE_MEMBERS
-                  and all(isinstance(m, dict) for m in members)):
+            return QNetwork(ModelConfig(**meta["model"]), sensor)
+        if not (isinstance(members, list) and 2 <= len(members) <= MAX_ENSEMBLE_MEMBERS
+                and all(isinstance(m, dict) for m in members)):
             raise CheckpointError(f"{path}: an ensemble's members must be a list of 2 to {MAX_ENSEMBLE_MEMBERS} "
                                   "model configs")
-        else:
-            net = QEnsemble([QNetwork(ModelConfig(**m), sensor) for m in members])
+        return QEnsemble([QNetwork(ModelConfig(**m), sensor) for m in members])
+
+    try:
+        probe = _on_meta_device(build)
     except (ConfigError, ModelError, TypeError, KeyError) as exc:
         raise CheckpointError(f"{path}: architecture metadata is invalid: {exc}") from None
-    if architecture_fingerprint(net) != meta.get("fingerprint"):
+    if architecture_fingerprint(probe) != meta.get("fingerprint"):
         raise CheckpointError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its own "
                               "architecture (written by another version?)")
     try:
-        load_tensors(net, tensors)
+        check_weights_fit(probe, tensors)
     except ModelError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
+    net = build()
+    load_tensors(net, tensors)
     return net.to(device).eval(), meta
+
+
+def _on_meta_device(build: Callable[[], Any]) -> Any:
+    """``build()``'s network on the meta device: its shapes, at no memory. A file's config is checked
+    against its tensors there first (:func:`check_weights_fit`), so that a forged config claiming far
+    more weights than the file holds (16 members of 2 GiB) is refused before anything is allocated:
+    a network then never costs more memory than its file."""
+    with torch.device("meta"):
+        return build()
 
 
 # --------------------------------------------------------------------------- shipped models
@@ -559,16 +611,22 @@ def load_supervised(path: str | Path, device: str | torch.device = "cpu") -> tup
         tensors, meta = load_tensors_file(path, MODEL_FORMAT)
     except CheckpointError as exc:
         raise CheckpointError(f"not a supervised model (write one with `cogexplore pretrain`): {exc}") from None
+
+    def build() -> SupervisedNet:
+        return SupervisedNet(SensorConfig(**meta["sensor"]), meta.get("depth_encoding", "metric"))
+
     try:
-        net = SupervisedNet(SensorConfig(**meta["sensor"]), meta.get("depth_encoding", "metric"))
+        probe = _on_meta_device(build)
     except (ConfigError, ModelError, TypeError, KeyError) as exc:
         raise CheckpointError(f"{path}: sensor or depth-encoding metadata is invalid: {exc}") from None
-    if architecture_fingerprint(net) != meta.get("fingerprint"):
+    if architecture_fingerprint(probe) != meta.get("fingerprint"):
         raise CheckpointError(f"{path}: fingerprint {meta.get('fingerprint')} does not match its architecture")
     try:
-        load_tensors(net, tensors)
+        check_weights_fit(probe, tensors)
     except ModelError as exc:
         raise CheckpointError(f"{path}: {exc}") from None
+    net = build()
+    load_tensors(net, tensors)
     return net.to(resolve_device(device)).eval(), meta
 
 
@@ -672,6 +730,9 @@ def resolve_checkpoint(source: str | Path) -> Path | None:
     if p.is_file():
         return p
     if not p.is_dir():
+        if os.path.lexists(p):  # is_file and is_dir say False for these too
+            raise CheckpointError(f"checkpoint {str(source)!r} is neither a file nor a folder (a FIFO, a device, "
+                                  "a dangling or looping symlink?)")
         raise CheckpointError(f"checkpoint {str(source)!r} does not exist (give a checkpoint file, a checkpoint "
                               "directory, a run folder or a weights export)")
     directory = p / "checkpoints" if (p / "checkpoints").is_dir() else p
@@ -724,12 +785,13 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
             sensor_cfg = run_config.sensor if "sensor" not in meta else _stored_config(meta["sensor"], "sensor")
         except AttributeError:
             raise CheckpointError(f"{ckpt.path} stores neither the model/sensor config nor a run config") from None
-        net = QNetwork(model_cfg, sensor_cfg)
         online = {k[len("online."):]: v for k, v in ckpt.tensors.items() if k.startswith("online.")}
         try:
-            load_tensors(net, online)
+            check_weights_fit(_on_meta_device(lambda: QNetwork(model_cfg, sensor_cfg)), online)
         except ModelError as exc:
             raise CheckpointError(f"{ckpt.path}: the online weights do not fit the stored config: {exc}") from None
+        net = QNetwork(model_cfg, sensor_cfg)
+        load_tensors(net, online)
         net = net.to(dev).eval()
         return LoadedModel(net, ckpt.path, "checkpoint", ckpt.policy_version, architecture_fingerprint(net),
                            weights_sha256(net), run_config)

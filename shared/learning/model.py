@@ -647,9 +647,9 @@ def _what_it_reads(net: nn.Module) -> dict[str, Any]:
     return out
 
 
-def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
-    """Load ``weights_to_tensors`` output into ``net`` with a clear error on any mismatch; every
-    name and shape is checked before the first copy, so a misfit leaves ``net`` as it was."""
+def check_weights_fit(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
+    """ModelError unless ``tensors`` has exactly ``net``'s names, shapes and a dtype it takes (works
+    on a network built on the meta device, before any memory is spent on it)."""
     own = net.state_dict()
     missing = sorted(set(own) - set(tensors))
     extra = sorted(set(tensors) - set(own))
@@ -658,6 +658,16 @@ def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
     for n, t in own.items():
         if tuple(tensors[n].shape) != tuple(t.shape):
             raise ModelError(f"weight {n}: shape {tuple(tensors[n].shape)}, network wants {tuple(t.shape)}")
+        # copy_ casts anything: integers or booleans would load as weights, complex ones lose a part
+        if t.is_floating_point() and not tensors[n].is_floating_point():
+            raise ModelError(f"weight {n}: dtype {tensors[n].dtype}, network wants floating-point weights")
+
+
+def load_tensors(net: nn.Module, tensors: dict[str, torch.Tensor]) -> None:
+    """Load ``weights_to_tensors`` output into ``net`` with a clear error on any mismatch; every
+    name, shape and dtype is checked before the first copy, so a misfit leaves ``net`` as it was."""
+    check_weights_fit(net, tensors)
+    own = net.state_dict()
     with torch.no_grad():
         for n, t in own.items():
             t.copy_(tensors[n])  # copy_ keeps the destination's (channels-last) layout and device

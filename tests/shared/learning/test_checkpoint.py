@@ -1,5 +1,6 @@
 """Checkpoints: round trip, exact resume, atomicity, corrupt files, pruning, weights export."""
 
+import dataclasses
 import json
 import os
 import re
@@ -19,7 +20,7 @@ from shared.learning.checkpoints import (
     save_checkpoint,
 )
 from shared.learning.dqn import DQNAgent
-from shared.learning.model import QEnsemble
+from shared.learning.model import QEnsemble, architecture_fingerprint
 from shared.learning.replay import ReplayMemory
 
 TINY = SensorConfig(width=40, height=30)
@@ -537,3 +538,164 @@ def test_a_checkpoint_with_forged_metadata_is_skipped_not_a_crash(tmp_path):
     assert resumed is not None and resumed.path == good and any(forged.name in s for s in manager.skipped)
     core.agent.update_count = 30
     assert manager.save(core.agent, config=cfg.to_dict()).name == "ckpt-000000030.safetensors"  # pruning reads it too
+
+
+def _in_a_child(code: str, tmp_path, memory_gib: int = 4) -> list:
+    """The JSON lines ``code`` prints, run in a child Python whose address space is capped after its
+    imports: a FIFO that safetensors waits on (in Rust: no signal stops it) or a read without end hangs
+    or fills the child, not the test run."""
+    import subprocess
+    import sys
+    prelude = ("import json, os, resource, sys\n"
+               "from pathlib import Path\n"
+               "from shared.learning import checkpoints as C\n"
+               f"resource.setrlimit(resource.RLIMIT_AS, ({memory_gib} << 30, {memory_gib} << 30))\n"
+               "def attempt(f):\n"
+               "    try:\n"
+               "        f(); return 'loaded'\n"
+               "    except C.CheckpointError as exc:\n"
+               "        return 'CheckpointError: ' + str(exc)\n"
+               "    except BaseException as exc:\n"
+               "        return type(exc).__name__ + ': ' + str(exc)\n")
+    try:
+        done = subprocess.run([sys.executable, "-c", prelude + code], capture_output=True, text=True, timeout=60,
+                              cwd=os.getcwd(), env=dict(os.environ, PYTHONPATH=os.getcwd()))
+    except subprocess.TimeoutExpired:
+        pytest.fail("the child hung")
+    assert done.returncode == 0, done.stderr[-2000:]
+    return [json.loads(line) for line in done.stdout.splitlines()]
+
+
+def test_a_fifo_or_a_device_where_a_file_should_be_is_refused_not_waited_on_nor_read_for_ever(tmp_path):
+    from shared.learning.checkpoints import load_model
+
+    agent, _ = setup(DQNConfig())
+    cm = CheckpointManager(tmp_path / "run" / "checkpoints")
+    agent.update_count = 1
+    good = cm.save(agent)
+    fifo = cm.path_for(2)
+    os.mkfifo(fifo)  # a newer "checkpoint" that latest names
+    (cm.directory / "latest").write_text(fifo.name + "\n")
+    os.mkfifo(tmp_path / "latest-fifo")
+    os.symlink("/dev/zero", tmp_path / "latest-zero")
+    out = _in_a_child(f"""
+cm = C.CheckpointManager(Path({str(cm.directory)!r}))
+ckpt = cm.load_latest()
+print(json.dumps([ckpt.path.name, cm.skipped]))
+print(json.dumps(attempt(lambda: C.load_exported_weights({str(fifo)!r}))))
+for pointer in ("latest-fifo", "latest-zero"):
+    os.replace(Path({str(tmp_path)!r}) / pointer, cm.directory / "latest")
+    ckpt = cm.load_latest()
+    print(json.dumps([ckpt.path.name, cm.skipped]))
+""", tmp_path)
+    assert out[0][0] == good.name and "ckpt-000000002.safetensors is not a regular file" in out[0][1][0]
+    assert out[1].startswith("CheckpointError: ") and "is not a regular file" in out[1]
+    for name, skipped in out[2:]:
+        assert name == good.name and skipped[0].startswith(f"{cm.directory / 'latest'} cannot be read")
+    os.unlink(cm.directory / "latest")
+    os.symlink("latest", cm.directory / "latest")  # a symlink loop
+    assert load_model(cm.directory).path == good
+    with pytest.raises(CheckpointError, match="neither a file nor a folder .a FIFO"):
+        load_model(fifo)
+
+
+def _forge_export(tmp_path, name, tensors=None, **meta_changes):
+    """A weights export whose tensors or metadata are replaced, its digest recomputed (the digest
+    only proves the bytes are the writer's, and a forger writes them)."""
+    from shared.learning.checkpoints import load_tensors_file, save_tensors_file
+
+    agent, _ = setup(DQNConfig())
+    good = export_weights(tmp_path / "good.safetensors", agent.online)
+    own, meta = load_tensors_file(good, "cogexplore-weights")
+    meta = {k: v for k, v in {**meta, **meta_changes}.items() if k != "digest"}
+    save_tensors_file(tmp_path / name, own if tensors is None else tensors(own), meta)
+    return tmp_path / name
+
+
+@pytest.mark.parametrize("dtype", [torch.int64, torch.bool, torch.complex64, torch.uint8])
+def test_weights_of_a_dtype_the_network_does_not_compute_in_are_refused(tmp_path, dtype):
+    forged = _forge_export(tmp_path, "w.safetensors",
+                           lambda t: {**t, "fc3.weight": (t["fc3.weight"] * 100).to(dtype)})
+    with pytest.raises(CheckpointError, match=f"fc3.weight: dtype {dtype}, network wants floating-point"):
+        load_exported_weights(forged)
+
+
+def test_weights_in_float8_load_and_a_nan_among_them_is_refused_not_a_traceback(tmp_path):
+    ok = _forge_export(tmp_path, "f8.safetensors", lambda t: {**t, "fc3.bias": t["fc3.bias"].to(torch.float8_e4m3fn)})
+    net, _ = load_exported_weights(ok)
+    assert net.fc3.bias.dtype == torch.float32
+
+    def nan_in_float8(t):
+        bias = t["fc3.bias"].clone()
+        bias[0] = float("nan")
+        return {**t, "fc3.bias": bias.to(torch.float8_e4m3fn)}
+    with pytest.raises(CheckpointError, match="fc3.bias holds NaN"):
+        load_exported_weights(_forge_export(tmp_path, "nan8.safetensors", nan_in_float8))
+
+
+def test_a_forged_config_claiming_networks_far_larger_than_the_file_is_refused_before_any_memory(tmp_path):
+    """A few kB whose metadata claims 16 networks of 2 GiB each: refused from the file's tensors,
+    before a byte of the 32 GiB is taken (the child may use 4 GiB)."""
+    from shared.learning.model import MAX_FC1_WEIGHTS, MAX_ENSEMBLE_MEMBERS, QNetwork
+
+    sensor = SensorConfig(width=640, height=480)
+    flat = 64 * (480 // 8) * (640 // 8)
+    big = ModelConfig(fc1=MAX_FC1_WEIGHTS // flat)
+    with torch.device("meta"):
+        fingerprint = architecture_fingerprint(QEnsemble([QNetwork(big, sensor)] * MAX_ENSEMBLE_MEMBERS))
+    forged = _forge_export(tmp_path, "huge.safetensors", sensor=dataclasses.asdict(sensor),
+                           model=dataclasses.asdict(big), members=[dataclasses.asdict(big)] * MAX_ENSEMBLE_MEMBERS,
+                           fingerprint=fingerprint)
+    single = _forge_export(tmp_path, "huge1.safetensors", sensor=dataclasses.asdict(sensor),
+                           model=dataclasses.asdict(big))
+    out = _in_a_child(f"""
+print(json.dumps(attempt(lambda: C.load_exported_weights({str(forged)!r}))))
+print(json.dumps(attempt(lambda: C.load_model({str(single)!r}))))
+""", tmp_path)
+    assert out[0].startswith("CheckpointError: ") and "weights do not fit QEnsemble" in out[0]
+    assert out[1].startswith("CheckpointError: ")
+
+
+def test_export_metadata_cannot_be_overridden_by_extra(tmp_path):
+    """A caller's extra (a card, a selection) named like the file's own keys would make the export
+    unloadable (another version) or another network."""
+    agent, _ = setup(DQNConfig())
+    path = export_weights(tmp_path / "w.safetensors", agent.online, 7,
+                          extra={"version": "2.1", "format": "mine", "policy_version": 3, "note": "kept"})
+    net, meta = load_exported_weights(path)
+    assert meta["policy_version"] == 7 and meta["note"] == "kept"
+
+
+def test_the_newest_save_keeps_its_replay_beside_higher_numbered_leftovers(tmp_path):
+    """A run resumed from an older checkpoint (its newest one was damaged, or ``latest`` was not
+    rewritten after it) saves below the leftover: that save, which ``latest`` names, keeps its replay."""
+    agent, mem = setup(DQNConfig())
+    fill(mem)
+    cm = CheckpointManager(tmp_path, keep=3, keep_replays=1)
+    agent.update_count = 30
+    cm.save(agent, replay=mem)
+    (tmp_path / "latest").write_text(cm.path_for(10).name + "\n")  # the pointer of the timeline resumed
+    agent.update_count = 20
+    newest = cm.save(agent, replay=mem)
+    assert cm.latest() == newest and cm.load().replay_path.exists()
+
+
+def test_pruning_leaves_a_live_writers_temporary_file_and_removes_a_dead_ones(tmp_path):
+    """Another process writing into the folder (an export, a second manager) keeps its file being
+    written; a crashed writer's is removed."""
+    import subprocess
+    import sys
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        writing = tmp_path / f".mean.safetensors.tmp-{live.pid}"
+        crashed = tmp_path / f".ckpt-000000001.safetensors.tmp-{int(dead.stdout)}"
+        writing.write_bytes(b"half")
+        crashed.write_bytes(b"half")
+        agent, _ = setup(DQNConfig())
+        CheckpointManager(tmp_path).save(agent)
+        assert writing.exists() and not crashed.exists()
+    finally:
+        live.kill()
+        live.wait()
