@@ -119,7 +119,8 @@ def _subscriber(endpoint: str, seconds: float, ready: Any, control: Any, results
                          "rejected": rejects.total, "seconds": stats["last"] - stats["first"]})
 
 
-def _publisher(endpoint: str, steps: int, height: int, width: int, seconds: float, results: Any) -> None:
+def _publisher(endpoint: str, steps: int, height: int, width: int, seconds: float, results: Any,
+               drained: Any) -> None:
     batch = make_batch(steps, height, width)
     payload = batch.encode()  # encode cost is measured by the codec figure; this isolates transport
     settings = ZenohSettings(mode="client", connect=(endpoint,))
@@ -135,7 +136,9 @@ def _publisher(endpoint: str, steps: int, height: int, width: int, seconds: floa
             sent += 1
         elapsed = time.perf_counter() - start
         results.put({"role": "publisher", "sent": sent, "seconds": elapsed, "bytes": len(payload)})
-        time.sleep(0.2)  # let the last samples leave before the session closes
+        # open until the subscriber has counted: a session closed with samples still queued drops them
+        # (a fixed 0.2 s lost one on a loaded machine)
+        drained.get(timeout=60)
 
 
 def _loopback(steps: int, height: int, width: int, seconds: float, processes: bool) -> dict[str, Any]:
@@ -143,16 +146,16 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
     with open_router([endpoint]):
         if processes:
             ctx = multiprocessing.get_context("spawn")
-            ready, control, results = ctx.Queue(), ctx.Queue(), ctx.Queue()
+            ready, control, results, drained = ctx.Queue(), ctx.Queue(), ctx.Queue(), ctx.Queue()
             sub_args = (endpoint, seconds, ready, control, results)
             workers: list[Any] = [ctx.Process(target=_subscriber, args=sub_args)]
         else:
-            ready, control, results = queue.Queue(), queue.Queue(), queue.Queue()
+            ready, control, results, drained = queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue()
             workers = [threading.Thread(target=_subscriber, args=(endpoint, seconds, ready, control, results))]
         workers[0].start()
         try:
             _report(ready, 60, "subscriber (starting)")
-            pub_args = (endpoint, steps, height, width, seconds, results)
+            pub_args = (endpoint, steps, height, width, seconds, results, drained)
             pub = (ctx.Process(target=_publisher, args=pub_args) if processes
                    else threading.Thread(target=_publisher, args=pub_args))
             workers.append(pub)
@@ -163,6 +166,7 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
             control.put(first["sent"])
             sub = _report(results, 60, "subscriber")
         finally:
+            drained.put(True)  # the publisher may close (also when the subscriber failed)
             for worker in workers:
                 worker.join(timeout=30)
     sent, received = first["sent"], sub["received"]
