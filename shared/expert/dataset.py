@@ -19,6 +19,8 @@ from __future__ import annotations
 
 import json
 import math
+import os
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
@@ -30,7 +32,7 @@ import numpy as np
 from shared.config import ACTION_NAMES, NUM_ACTIONS, EnvConfig, SensorConfig, is_whole
 from shared.errors import CogexploreError
 from shared.expert.expert import CommandExpert, ExpertConfig, SupervisedError
-from shared.files import TMP_MARK, atomic_write_text
+from shared.files import TMP_MARK, atomic_write_text, fsync_dir, write_atomically
 from shared.jsontext import read_json_file
 from shared.rollout import Rollout, Step
 
@@ -46,6 +48,8 @@ MANIFEST = "manifest.json"
 _ARRAYS = ("depth_mm", "labels", "episodes", "worlds", "poses")
 DATASET_FILES = frozenset({MANIFEST, *(f"{name}.npy" for name in _ARRAYS)})
 """The files of a dataset folder: all a new dataset may replace there."""
+_WRITING = tuple(f".{name}{TMP_MARK}" for name in sorted(DATASET_FILES))
+"""How the temporary files of :func:`shared.files.write_atomically` for them begin."""
 
 
 def _clear_dataset_files(out: Path) -> None:
@@ -55,10 +59,15 @@ def _clear_dataset_files(out: Path) -> None:
         raise SupervisedError(f"{out} is a file, not a dataset folder")
     if out.is_dir():
         foreign = sorted(p.name for p in out.iterdir() if not (p.is_file() and (
-            p.name in DATASET_FILES or p.name.startswith(f".{MANIFEST}{TMP_MARK}"))))  # a manifest being written
+            p.name in DATASET_FILES or p.name.startswith(_WRITING))))  # a file a killed writer left
         if foreign:
             raise SupervisedError(f"{out} holds what is not a dataset's ({', '.join(foreign[:5])}"
                                   f"{', ...' if len(foreign) > 5 else ''}): give --data a new or empty folder")
+        # The manifest goes first, and durably: after a power cut, an old manifest beside new arrays of
+        # the same shapes would pass for a whole dataset.
+        if (out / MANIFEST).is_file():
+            (out / MANIFEST).unlink()
+            fsync_dir(out)
         for p in out.iterdir():
             p.unlink()
     out.mkdir(parents=True, exist_ok=True)
@@ -132,9 +141,11 @@ class SupervisedDataset:
         for name in _ARRAYS:
             f = root / f"{name}.npy"
             want = manifest["files"][name]
+            if not f.is_file():  # np.load would wait for ever for a FIFO's writer
+                raise SupervisedError(f"{f} is missing or not a regular file")
             try:
                 a = np.load(f, mmap_mode="r", allow_pickle=False)
-            except (OSError, ValueError) as exc:
+            except (OSError, ValueError, EOFError) as exc:  # EOFError: an empty file
                 raise SupervisedError(f"{f} cannot be read: {exc}") from None
             if list(a.shape) != want["shape"] or str(a.dtype) != want["dtype"]:
                 raise SupervisedError(f"{f} is {a.dtype} {list(a.shape)}, the manifest says "
@@ -143,7 +154,12 @@ class SupervisedDataset:
         labels = np.asarray(arrays["labels"])
         if labels.size and int(labels.max()) >= NUM_ACTIONS:
             raise SupervisedError(f"{root}: labels must be in 0..{NUM_ACTIONS - 1}, found {int(labels.max())}")
-        return cls(root, manifest, **arrays)
+        ds = cls(root, manifest, **arrays)
+        # refused here, so that open_or_generate makes a new one, not at training, for every run
+        train, test = ds.split()
+        if not (len(train) and len(test)):
+            raise SupervisedError(f"{path}: test_episodes leave {len(train)} train and {len(test)} test frames")
+        return ds
 
     def __len__(self) -> int:
         return int(self.labels.shape[0])
@@ -308,6 +324,38 @@ class _Frames:
         self.bar.update(1)
 
 
+def _open_depth_file(path: Path, frames: int, height: int, width: int) -> np.memmap:
+    """The (frames, height, width) uint16 memmap at ``path``, its blocks reserved: a disk that fills
+    while the frames are written would end the process with SIGBUS, without a word."""
+    need = frames * height * width * 2
+    free = shutil.disk_usage(path.parent).free
+    if need > free:
+        raise SupervisedError(f"{frames} frames of {width} x {height} need {need / 1e6:.1f} MB, "
+                              f"{path.parent} has {free / 1e6:.1f} MB free: collect fewer frames")
+    try:
+        depth = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint16, shape=(frames, height, width))
+        if hasattr(os, "posix_fallocate"):  # the free space may have gone since it was measured
+            fd = os.open(path, os.O_WRONLY)
+            try:
+                os.posix_fallocate(fd, 0, os.fstat(fd).st_size)
+            finally:
+                os.close(fd)
+    except OSError as exc:
+        path.unlink(missing_ok=True)
+        raise SupervisedError(f"{path}: no room for {frames} frames of {width} x {height}: "
+                              f"{exc.strerror or exc}") from None
+    return depth
+
+
+def _save_array(path: Path, arr: np.ndarray) -> None:
+    """``arr`` as a plain .npy at ``path``, whole and on disk before the manifest is written."""
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:  # a file object: np.save would add ".npy" to the temporary name
+            np.save(fh, arr, allow_pickle=False)
+
+    write_atomically(path, write)
+
+
 def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
                      sensor_cfg: SensorConfig | None = None, env_cfg: EnvConfig | None = None,
                      expert_cfg: ExpertConfig | None = None, drive_cfg: DriveConfig | None = None,
@@ -338,7 +386,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
     out = Path(out_dir)
     _clear_dataset_files(out)
     h, w = sensor_cfg.height, sensor_cfg.width
-    depth = np.lib.format.open_memmap(out / "depth_mm.npy", mode="w+", dtype=np.uint16, shape=(frames, h, w))
+    depth = _open_depth_file(out / "depth_mm.npy", frames, h, w)
     labels = np.zeros(frames, np.uint8)
     episodes = np.zeros(frames, np.int32)
     world_idx = np.zeros(frames, np.uint8)
@@ -372,7 +420,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
                     episode += 1
             finally:
                 env.close()
-    depth.flush()
+    depth.flush()  # msync(MS_SYNC): on disk before the manifest that declares it whole
     del depth
     if episode < 2:
         _clear_dataset_files(out)
@@ -390,7 +438,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
         test_eps.append(int(e))
         covered += int(lengths[e])
     for name, arr in (("labels", labels), ("episodes", episodes), ("worlds", world_idx), ("poses", poses)):
-        np.save(out / f"{name}.npy", arr, allow_pickle=False)
+        _save_array(out / f"{name}.npy", arr)
     counts = np.bincount(labels, minlength=NUM_ACTIONS)
     manifest = {
         "format": DATA_FORMAT, "version": VERSION, "created_unix": time.time(),

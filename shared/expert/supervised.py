@@ -25,6 +25,7 @@ import torch.nn.functional as F
 from shared.config import (
     ACTION_NAMES,
     DEPTH_ENCODINGS,
+    MAX_SEED,
     NUM_ACTIONS,
     EnvConfig,
     SensorConfig,
@@ -38,7 +39,7 @@ from shared.expert.dataset import (
     open_or_generate,
 )
 from shared.expert.expert import ExpertConfig, SupervisedError
-from shared.learning.checkpoints import save_supervised, supervised_model_path
+from shared.learning.checkpoints import card_path, save_supervised, supervised_model_path
 from shared.learning.model import (
     SupervisedNet,
     mirror_images,
@@ -46,6 +47,12 @@ from shared.learning.model import (
     reduce_allocator_page_faults,
     resolve_device,
 )
+
+
+def _check_seed(seed: Any) -> None:
+    # bounded as train.seed is: torch.manual_seed overflows past 2**64, after the data is collected
+    if not (is_whole(seed) and 0 <= seed <= MAX_SEED):
+        raise SupervisedError(f"seed must be an integer in [0, {MAX_SEED}] (2**53 - 1), got {seed!r}")
 
 
 @dataclass(frozen=True)
@@ -70,8 +77,7 @@ class TrainSettings:
     these conv layers must use the same one."""
 
     def __post_init__(self) -> None:
-        if not (is_whole(self.seed) and self.seed >= 0):
-            raise SupervisedError(f"seed must be an integer >= 0, got {self.seed!r}")
+        _check_seed(self.seed)
         if self.depth_encoding not in DEPTH_ENCODINGS:
             raise SupervisedError(f"depth_encoding must be one of {', '.join(DEPTH_ENCODINGS)}, "
                                   f"got {self.depth_encoding!r}")
@@ -227,11 +233,14 @@ def pretrain(out: str | Path, *, worlds: Sequence[str], frames: int, sensor_cfg:
              test_fraction: float = 0.2, progress: bool = True) -> PretrainResult:
     """Generate (or reuse) the data, train, and write the model and its card to ``out``."""
     out = supervised_model_path(out)  # refused now, not after the data and the training
-    if not (is_whole(seed) and seed >= 0):
-        raise SupervisedError(f"seed must be an integer >= 0, got {seed!r}")
+    _check_seed(seed)
     settings = settings or TrainSettings(seed=seed)
     resolve_device(settings.device)  # a device this machine lacks fails now, not after collecting the data
     data_dir = Path(data_dir) if data_dir is not None else out.with_name(out.name.removesuffix(".safetensors") + "-data")
+    for path in (out, card_path(out)):  # written at the end: refused now, not after the data and the training
+        if path.is_dir() or path.absolute() == data_dir.absolute():
+            raise SupervisedError(f"{path} is {'a folder' if path.is_dir() else 'the dataset folder (--data)'}: "
+                                  "the model and its card need a file of their own")
     request = dataset_request(worlds, frames, sensor_cfg, env_cfg, expert_cfg or ExpertConfig(),
                               drive_cfg or DriveConfig(), seed, test_fraction)
     t0 = time.monotonic()

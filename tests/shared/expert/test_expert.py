@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 
 import numpy as np
@@ -377,8 +378,11 @@ def _float_labels(manifest: dict, root) -> None:
     lambda m, _root: m["sensor"].__setitem__("width", -3),
     lambda m, _root: m["sensor"].update(width=80, height=60),  # another image size than the arrays'
     _float_labels,
+    lambda m, _root: m.__setitem__("test_episodes", []),  # training refused it, in every run, with the same folder
+    lambda m, _root: m.__setitem__("test_episodes", list(range(m["episodes"]))),
+    lambda m, _root: m.__setitem__("test_episodes", [m["episodes"] + 5]),
 ], ids=["no-files", "files-list", "no-labels-entry", "no-test-episodes", "test-episodes-text", "no-sensor",
-        "bad-sensor", "sensor-size", "float-labels"])
+        "bad-sensor", "sensor-size", "float-labels", "no-test-split", "no-train-split", "unknown-test-episode"])
 def test_a_damaged_manifest_is_refused_clearly_and_regenerated(tmp_path, change):
     # An edited or foreign manifest used to crash with a KeyError or TypeError (or later, in the
     # split or the network) instead of being refused, so `pretrain --data` gave a traceback.
@@ -394,6 +398,67 @@ def test_a_damaged_manifest_is_refused_clearly_and_regenerated(tmp_path, change)
     again, reused = open_or_generate(root, dataset_request(*args), progress=False)
     assert not reused and len(again) == 24 and again.manifest["created_unix"] != created
     assert again.split()[1].size > 0
+
+
+def _tiny_dataset(root, seed: int = 0) -> SupervisedDataset:
+    return generate_dataset(root, worlds=["box-room"], frames=24, sensor_cfg=SMALL_SENSOR, env_cfg=TEST_ENV,
+                            drive_cfg=DriveConfig(episode_steps=6), seed=seed, test_fraction=0.3, progress=False)
+
+
+@pytest.mark.timeout(30)
+def test_an_array_that_is_a_fifo_a_device_or_empty_is_refused_not_waited_on(tmp_path):
+    # np.load waited for ever for a FIFO's writer, and an empty file (what a power cut leaves of
+    # an unsynced write) escaped as an EOFError traceback instead of a regenerated dataset.
+    root = tmp_path / "d"
+    _tiny_dataset(root)
+    (root / "labels.npy").unlink()
+    os.mkfifo(root / "labels.npy")
+    with pytest.raises(SupervisedError, match="labels.npy is missing or not a regular file"):
+        SupervisedDataset.open(root)
+    (root / "labels.npy").unlink()
+    os.symlink("/dev/zero", root / "labels.npy")
+    with pytest.raises(SupervisedError, match="labels.npy is missing or not a regular file"):
+        SupervisedDataset.open(root)
+    (root / "labels.npy").unlink()
+    (root / "labels.npy").write_bytes(b"")
+    with pytest.raises(SupervisedError, match="labels.npy cannot be read"):
+        SupervisedDataset.open(root)
+    request = dataset_request(["box-room"], 24, SMALL_SENSOR, TEST_ENV, ExpertConfig(), DriveConfig(episode_steps=6),
+                              0, 0.3)
+    again, reused = open_or_generate(root, request, progress=False)
+    assert not reused and len(again) == 24
+
+
+def test_a_dataset_too_big_for_the_disk_is_refused_before_anything_is_written(tmp_path):
+    # The depth file is a sparse memmap: a disk that filled during the collection killed the process
+    # with SIGBUS, and a size past the file system's limit gave "[Errno 22] Invalid argument".
+    with pytest.raises(SupervisedError, match=r"10+ frames of 40 x 30 need .* MB free: collect fewer frames"):
+        generate_dataset(tmp_path / "d", worlds=["box-room"], frames=10**12, sensor_cfg=SMALL_SENSOR,
+                         env_cfg=TEST_ENV, progress=False)
+    assert list((tmp_path / "d").iterdir()) == []
+
+
+def test_the_arrays_are_on_disk_before_the_manifest_and_the_old_manifest_goes_first(tmp_path, monkeypatch):
+    # After a power cut, a manifest on disk must not stand beside arrays that are not (unsynced
+    # np.save files), nor an old manifest beside a new dataset's arrays.
+    root = tmp_path / "d"
+    _tiny_dataset(root)
+    synced: list[str] = []
+    real_fsync = os.fsync
+
+    def fsync(fd: int) -> None:
+        synced.append(os.path.basename(os.readlink(f"/proc/self/fd/{fd}")))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    (root / ".labels.npy.tmp-99999").write_bytes(b"\x93NUMPY")  # what a writer killed mid-array leaves
+    ds = _tiny_dataset(root, seed=1)
+    manifest_at = next(i for i, name in enumerate(synced) if name.startswith(".manifest.json.tmp-"))
+    for name in ("labels", "episodes", "worlds", "poses"):
+        assert any(n.startswith(f".{name}.npy.tmp-") for n in synced[:manifest_at]), (name, synced)
+    assert synced[0] == "d", synced  # the old manifest's removal, before any new file
+    assert ds.manifest["request"]["seed"] == 1 and sorted(p.name for p in root.iterdir()) == sorted(
+        ["manifest.json", "depth_mm.npy", "labels.npy", "episodes.npy", "worlds.npy", "poses.npy"])
 
 
 # --------------------------------------------------------------------------------- training
@@ -550,8 +615,11 @@ def test_evaluate_policy_sl_and_rl(trained, tmp_path, capsys):
 
 @pytest.mark.parametrize(("argv", "message"), [
     (["--out", "sl.pt"], "must end in .safetensors"),
-    (["--out", "sl.safetensors", "--seed", "-1"], "seed must be an integer >= 0"),
+    (["--out", "sl.safetensors", "--seed", "-1"], "seed must be an integer in [0, "),
+    (["--out", "sl.safetensors", "--seed", str(2**64)], "seed must be an integer in [0, "),  # failed after collecting
     (["--out", "sl.safetensors", "--device", "gpu"], "unknown device 'gpu'"),  # failed after collecting
+    (["--out", "sl.safetensors", "--data", "sl.safetensors"], "is the dataset folder (--data)"),  # after training
+    (["--out", "sl.safetensors", "--data", "sl.card.json"], "is the dataset folder (--data)"),
 ])
 def test_pretrain_refuses_an_output_or_seed_it_cannot_use_before_collecting(argv, message, tmp_path, capsys,
                                                                          monkeypatch):
@@ -561,3 +629,15 @@ def test_pretrain_refuses_an_output_or_seed_it_cannot_use_before_collecting(argv
     assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "60", "--epochs", "1",
                  *argv]) == 2
     assert message in capsys.readouterr().err and list(tmp_path.iterdir()) == []  # no data collected
+
+
+@pytest.mark.parametrize("folder", ["sl.safetensors", "sl.card.json"])
+def test_pretrain_refuses_a_model_path_that_is_a_folder_before_collecting(folder, tmp_path, capsys, monkeypatch):
+    # Refused by the last write, after the data was collected and the model trained.
+    from services.cli import main
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / folder).mkdir()
+    assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "60", "--epochs", "1",
+                 "--out", "sl.safetensors"]) == 2
+    assert f"{folder} is a folder" in capsys.readouterr().err and [p.name for p in tmp_path.iterdir()] == [folder]
