@@ -14,7 +14,8 @@ The safety rules, in the order they are checked:
    A policy that fails on it (a runtime error of torch or onnxruntime) stops the robot, as a refused
    image does.
 4. No valid image for ``watchdog_s`` stops the robot, and the stop is repeated each control period
-   until images return.
+   until images return. A command decided ``watchdog_s`` or more after its image arrived (a policy
+   that stalled) is a stop too, except in lock step, where the simulator waits for it.
 
 A stop is sent at once when the robot was moving; while it stands, at most once per control period,
 so a flood of garbage cannot flood ``cmd_vel``. After the stop at exit nothing more is decided. The
@@ -110,7 +111,7 @@ class Decision:
     reject_cause: str | None = None
     """Set when a refused image caused this stop."""
     error: str | None = None
-    """What went wrong, for a stop the policy's failure caused."""
+    """What went wrong, for a stop a refused image or the policy's failure caused (for the log)."""
 
     @property
     def is_stop(self) -> bool:
@@ -164,9 +165,9 @@ class DriveController:
         try:
             depth = self._read(payload)
         except Ros2MessageError as exc:
-            return self._reject(exc.cause, received_s)
-        except CogexploreError:  # the policy's camera refused it: negative depths, another aspect ratio
-            return self._reject(BAD_DEPTH, received_s)
+            return self._reject(exc.cause, received_s, str(exc))
+        except CogexploreError as exc:  # the policy's camera refused it: negative depths, millimetres in metres
+            return self._reject(BAD_DEPTH, received_s, str(exc))
         # Beyond the camera's range is no return, as the network sees it (range-gated to 0): an image
         # that reads its maximum everywhere is as blind as one that reads NaN everywhere.
         nearest = nearest_valid_depth(depth, float(self.policy.sensor.max_range_m))
@@ -186,9 +187,14 @@ class DriveController:
                 raise FloatingPointError(f"the network's Q-values are not finite: {q_values}")
             twist = self.policy.twist(int(command), self.config.speed_table)
         except Exception as exc:  # noqa: BLE001 -- whatever the network's runtime raises, the robot stops
-            decision = self._reject(POLICY_ERROR, received_s)
-            return None if decision is None else dataclasses.replace(decision, error=f"{type(exc).__name__}: {exc}"[:300])
+            return self._reject(POLICY_ERROR, received_s, f"{type(exc).__name__}: {exc}")
         now = self.clock()
+        if not self.config.lockstep and now - received_s >= self.config.watchdog_s:
+            # The image went stale while the policy decided (a GPU stall, a loaded CPU): the shell's
+            # watchdog has stopped the robot meanwhile, and a command from that image would undo it.
+            decision = self._stop("watchdog", now, nearest, received_s)
+            return None if decision is None else dataclasses.replace(
+                decision, error=f"the policy took {now - received_s:.2f} s on one image")
         self.last_command_s = received_s
         self.moving = twist.linear_mps != 0 or twist.angular_rps != 0
         return self._decided(Decision(twist.linear_mps, twist.angular_rps, int(command), None, nearest,
@@ -235,10 +241,11 @@ class DriveController:
         self.last_depth_m = depth
         return depth
 
-    def _reject(self, cause: str, now_s: float) -> Decision | None:
+    def _reject(self, cause: str, now_s: float, error: str | None = None) -> Decision | None:
         self.rejects[cause] = self.rejects.get(cause, 0) + 1
         decision = self._stop("reject", now_s)
-        return None if decision is None else dataclasses.replace(decision, reject_cause=cause)
+        return None if decision is None else dataclasses.replace(
+            decision, reject_cause=cause, error=None if error is None else error[:300])
 
     def _stop(self, reason: str, now_s: float, nearest: float | None = None,
               received_s: float | None = None) -> Decision | None:

@@ -5,6 +5,11 @@ format), runs the watchdog every 20 ms, publishes a :class:`shared.wire.robot.Dr
 per decision on ``cogexplore/@robot/<robot>/diagnostics``, resets the policy on
 ``cogexplore/@robot/<robot>/reset``, and sends a zero twist on SIGINT/SIGTERM and whenever the
 process is about to exit, before its session closes.
+
+Images are decided on a thread of their own, the newest first: one waits while the policy decides,
+and a newer one replaces it (Zenoh queues a Python callback's samples without bound, so a node
+slower than its camera decided on ever older images). A policy that stalls holds neither the
+watchdog nor the exit stop: they stop the robot without it.
 """
 
 from __future__ import annotations
@@ -65,8 +70,24 @@ class DriveNode:
                                   else args.collision_distance),
             control_period_s=args.control_period, lockstep=args.lockstep))
         self.lock = threading.Lock()
+        """Held around the controller, a decision included."""
+        self.send_lock = threading.RLock()
+        """Held around each twist sent, so that nothing follows the exit stop (reentrant: the exit
+        stop holds it around its ``_send``)."""
         self.recorder = recorder
         self.done = threading.Event()
+        self.pending: tuple[bytes | int, float] | None = None
+        """The newest image not yet decided (its size when it was refused unread), with its arrival."""
+        self.pending_ready = threading.Condition()
+        self.closing = False
+        self.deciding_since: float | None = None
+        """Arrival of the image being decided (None: no decision under way)."""
+        self.last_stall_stop_s: float | None = None
+        self.decide_errors = 0
+        self.exit_sent = False
+        self.last_reset_log_s: float | None = None
+        self.last_stop: tuple[str | None, str | None] | None = None
+        """(reason, reject cause) of the last twist if it was a stop (its log line once, not each period)."""
         self.node = Ros2Node(session, make_format(args.ros2_format, domain_id=args.domain_id), NODE_NAME,
                              namespace=args.namespace)
         self.cmd_vel = self.node.publisher(qualify(args.namespace, args.cmd_vel_topic), TWIST, qos="default")
@@ -75,30 +96,68 @@ class DriveNode:
                                               qos="sensor_data", max_bytes=self.controller.config.max_image_bytes,
                                               on_oversize=self.on_oversize_image)
         self.reset_sub = session.declare_subscriber(self.keys.reset, lambda _sample: self.reset())
-        self.exit_sent = False
-        self.last_reset_log_s: float | None = None
-        self.last_stop: tuple[str | None, str | None] | None = None
-        """(reason, reject cause) of the last twist if it was a stop (its log line once, not each period)."""
+        self.decider = threading.Thread(target=self._decide_images, name="drive-decide", daemon=True)
+        self.decider.start()
 
-    def on_image(self, payload: bytes) -> None:
-        received = time.monotonic()
-        with self.lock:  # an image that waited for it after the exit stop decides nothing (the controller's rule)
-            decision = self.controller.on_image(payload, received)
-            if decision is not None:
-                self._send(decision)
+    def on_image(self, payload: bytes | int) -> None:
+        """Zenoh's thread: the image (its size when oversize) waits for the decider, in place of any older one."""
+        with self.pending_ready:
+            self.pending = (payload, time.monotonic())
+            self.pending_ready.notify()
 
     def on_oversize_image(self, size: int) -> None:
-        received = time.monotonic()
-        with self.lock:
-            decision = self.controller.on_oversize_image(size, received)
-            if decision is not None:
-                self._send(decision)
+        self.on_image(size)
+
+    def _decide_images(self) -> None:
+        while True:
+            with self.pending_ready:
+                while self.pending is None and not self.closing:
+                    self.pending_ready.wait()
+                if self.closing:
+                    return
+                (payload, received), self.pending = self.pending, None
+            self.deciding_since = received
+            try:
+                with self.lock:  # an image that waited for it after the exit stop decides nothing (the controller's rule)
+                    decision = (self.controller.on_oversize_image(payload, received) if isinstance(payload, int)
+                                else self.controller.on_image(payload, received))
+                    if decision is not None:
+                        self._send(decision)
+            except Exception:  # noqa: BLE001 -- the next image is decided all the same; the watchdog stops meanwhile
+                self.decide_errors += 1
+                if self.decide_errors == 1:
+                    log.exception("deciding on an image failed (later failures are counted, not logged)")
+            finally:
+                self.deciding_since = None
 
     def tick(self) -> None:
-        with self.lock:
+        if not self.lock.acquire(timeout=WATCHDOG_TICK_S):  # a decision under way
+            self._stall_stop()
+            return
+        try:
             decision = self.controller.on_tick()
             if decision is not None:
                 self._send(decision)
+        finally:
+            self.lock.release()
+
+    def _stall_stop(self) -> None:
+        """The watchdog while the policy is deciding: a zero twist, once per control period, when
+        the image it decides on is older than the watchdog allows (the controller then refuses the
+        command it comes back with)."""
+        since, now = self.deciding_since, time.monotonic()
+        c = self.controller
+        if since is None or now - since < c.config.watchdog_s:
+            return
+        if self.last_stall_stop_s is not None and now - self.last_stall_stop_s < c.period_s:
+            return
+        self.last_stall_stop_s = now
+        with self.send_lock:
+            if self.exit_sent:
+                return
+            self.cmd_vel.put(encode_twist(0.0, 0.0))
+        self._report(Decision(0.0, 0.0, None, "watchdog",
+                              error=f"the policy has been deciding on one image for {now - since:.1f} s"))
 
     def reset(self) -> None:
         with self.lock:
@@ -110,14 +169,32 @@ class DriveNode:
         log.info("reset: a new episode, no previous command")
 
     def stop_at_exit(self) -> None:
-        """The last word: a zero twist, sent once, before the session closes."""
-        with self.lock:
-            if not self.exit_sent:
-                self.exit_sent = True
-                self._send(self.controller.exit_stop())
+        """The last word: a zero twist, sent once, before the session closes; without the
+        controller when a decision holds it for longer than the watchdog (a stalled policy)."""
+        if not self.lock.acquire(timeout=self.controller.config.watchdog_s):
+            with self.send_lock:
+                if not self.exit_sent:
+                    self.exit_sent = True
+                    self.cmd_vel.put(encode_twist(0.0, 0.0))
+                    self._report(Decision(0.0, 0.0, None, "exit", error="the policy is still deciding"))
+            return
+        try:
+            with self.send_lock:
+                if not self.exit_sent:
+                    self._send(self.controller.exit_stop())
+                    self.exit_sent = True
+        finally:
+            self.lock.release()
 
     def _send(self, decision: Decision) -> None:
-        self.cmd_vel.put(encode_twist(decision.linear_mps, decision.angular_rps))
+        with self.send_lock:
+            if self.exit_sent:
+                return
+            self.cmd_vel.put(encode_twist(decision.linear_mps, decision.angular_rps))
+        self._report(decision)
+
+    def _report(self, decision: Decision) -> None:
+        """The log line, diagnostics and recording of a twist sent."""
         c = self.controller
         if self.args.max_decisions is not None and c.decisions >= self.args.max_decisions:
             self.done.set()
@@ -140,6 +217,10 @@ class DriveNode:
 
     def close(self) -> None:
         self.stop_at_exit()
+        with self.pending_ready:
+            self.closing = True
+            self.pending_ready.notify()
+        self.decider.join(timeout=1.0)  # a stalled policy's thread is a daemon: it does not hold the exit
         for handle in (self.reset_sub, self.diagnostics):  # the node closes its own topics
             handle.undeclare()
         self.node.close()

@@ -254,5 +254,49 @@ def test_a_collision_distance_beyond_the_cameras_range_is_refused(policy, start_
         with pytest.raises(DriveConfigError, match="camera range"):
             DriveController(policy, DriveConfig(collision_distance_m=distance))
     drive = DriveController(policy, DriveConfig(collision_distance_m=float(start_image[start_image > 0].min()) - 0.05))
-    decision = drive.on_image(image(start_image), 0.0)
+    decision = drive.on_image(image(start_image))  # arrived now, on the controller's clock
     assert decision is not None and not decision.is_stop  # a distance within range: it drives
+
+
+def test_a_command_decided_after_the_watchdog_period_is_a_stop(policy, start_image):
+    # A policy that stalled (a GPU, a loaded CPU) came back with a command from an image older than
+    # the watchdog allows; it was driven, after the watchdog had stopped the robot for that very image.
+    class Stalling:
+        def __init__(self, clock: Clock, stall_s: float) -> None:
+            self.clock, self.stall_s = clock, stall_s
+
+        def __getattr__(self, name):
+            return getattr(policy, name)
+
+        def decide(self, depth_m):
+            self.clock.t += self.stall_s
+            return policy.decide(depth_m)
+
+    clock = Clock()
+    policy.reset()
+    stalling = Stalling(clock, 0.1)
+    drive = DriveController(stalling, DriveConfig(watchdog_s=0.5), clock=clock)
+    assert drive.on_image(image(start_image), clock.t).command is not None  # 0.1 s: in time
+    stalling.stall_s = 0.6
+    clock.t += 0.5  # the next control period
+    stop = drive.on_image(image(start_image), clock.t)
+    assert stop is not None and stop.is_stop and stop.stop_reason == "watchdog" and "0.60 s" in stop.error
+    assert not drive.moving and drive.rejects == {}
+    # in lock step the simulator waits for the command: no time passed for it
+    clock = Clock()
+    stalling.clock = clock
+    lockstep = DriveController(stalling, DriveConfig(watchdog_s=0.5, lockstep=True), clock=clock)
+    assert lockstep.on_image(image(start_image), clock.t).command is not None
+
+
+def test_millimetres_in_a_float_image_stop_the_robot_and_say_why(policy, start_image):
+    # The policy's camera refuses a float image of millimetres (cogexplore._policy_io); the stop
+    # said only "bad_depth", and the log never told the operator to divide by 1000.
+    drive, clock = controller(policy)
+    assert drive.on_image(image(start_image), clock.t).command is not None  # moving
+    millimetres = np.where(start_image > 0, start_image * 1000, 0).astype(np.float32)
+    decision = drive.on_image(image(millimetres), clock.t + 0.6)
+    assert decision.is_stop and decision.reject_cause == BAD_DEPTH and drive.rejects == {BAD_DEPTH: 1}
+    assert "millimetres in a float image" in decision.error
+    garbage = drive.on_image(b"\x00\x01\x00\x00junk", clock.t + 1.2)
+    assert garbage.reject_cause == "garbage" and "not a CDR" in garbage.error

@@ -1,0 +1,159 @@
+"""The drive node's shell (services.drive.service.DriveNode) in this process, on a loopback router, with
+the shipped model: how it copes with a flood of images and with a policy that stalls."""
+
+from __future__ import annotations
+
+import argparse
+import threading
+import time
+
+import pytest
+from service_processes import client
+
+from cogexplore.policy import load_policy
+from services.bus.ros2 import Ros2Node
+from services.drive.options import add_drive_arguments
+from services.drive.service import DriveNode
+from shared.ros2.formats import make_format, qualify
+from shared.ros2.messages import IMAGE, TWIST, decode_twist, encode_depth_image
+from shared.sim.env import ExploreEnv
+
+
+@pytest.fixture(scope="module")
+def policy():
+    return load_policy("pretrained", device="cpu")
+
+
+@pytest.fixture(scope="module")
+def start_image(policy):
+    env = ExploreEnv(world="paper-indoor", speed_table="test", start_index=0, sensor=policy.sensor)
+    depth, _ = env.reset(seed=0)
+    env.close()
+    return depth
+
+
+class Slow:
+    """The shipped policy, whose every decision takes ``delay_s`` (a loaded CPU, a GPU stall)."""
+
+    def __init__(self, policy, delay_s: float) -> None:
+        self.policy = policy
+        self.delay_s = delay_s
+        self.decided = 0
+
+    def __getattr__(self, name):
+        return getattr(self.policy, name)
+
+    def decide(self, depth_m):
+        time.sleep(self.delay_s)
+        self.decided += 1
+        return self.policy.decide(depth_m)
+
+
+def drive_args(endpoint: str, *extra: str) -> argparse.Namespace:
+    p = argparse.ArgumentParser()
+    add_drive_arguments(p)
+    return p.parse_args(["--connect", endpoint, "--robot", "bot", *extra])
+
+
+class Robot:
+    """This test as the robot: a depth image publisher and a cmd_vel listener."""
+
+    def __init__(self, session) -> None:
+        self.node = Ros2Node(session, make_format("rmw_zenoh"), "test_robot")
+        self.images = self.node.publisher(qualify("/", "camera/depth/image_raw"), IMAGE, qos="sensor_data")
+        self.twists: list[tuple[float, float, float]] = []
+        self.lock = threading.Lock()
+        self.node.subscriber(qualify("/", "cmd_vel"), TWIST, self._on_twist)
+
+    def _on_twist(self, payload: bytes) -> None:
+        with self.lock:
+            self.twists.append((time.monotonic(), *decode_twist(payload)))
+
+    def snapshot(self) -> list[tuple[float, float, float]]:
+        with self.lock:
+            return list(self.twists)
+
+
+@pytest.mark.timeout(120)
+def test_a_flood_of_images_never_queues_and_commands_come_from_the_newest(loopback_router, policy, start_image):
+    # Zenoh hands samples to a Python callback through an unbounded queue: a node slower than its
+    # camera decided on ever older images (9 s old after 500 of them), and measured its latency from
+    # the moment each left the queue, so the diagnostics said nothing of it.
+    slow = Slow(policy, 0.05)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
+        robot = Robot(robot_session)
+        node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "30"), slow)
+        try:
+            deadline = time.monotonic() + 30
+            while not robot.snapshot():  # the routes take a moment across the router
+                assert time.monotonic() < deadline, "no twist"
+                robot.images.put(good)
+                time.sleep(0.1)
+            time.sleep(0.5)
+            before = slow.decided
+            for _ in range(200):  # 200 images in about 0.2 s, each a 50 ms decision in lock step
+                robot.images.put(good)
+                time.sleep(0.001)
+            flood_end = time.monotonic()
+            time.sleep(2.0)
+            decided = slow.decided - before
+            assert decided < 60, f"{decided} of 200 flooded images were decided one after the other"
+            last = robot.snapshot()[-1][0]
+            assert last - flood_end < 1.0, f"the last command came {last - flood_end:.1f} s after the last image"
+        finally:
+            node.close()
+            robot.node.close()
+
+
+@pytest.mark.timeout(120)
+def test_a_stalled_policy_holds_neither_the_watchdog_nor_the_exit_stop(loopback_router, policy, start_image):
+    # The watchdog and the exit stop waited for the lock the decision held: a policy that stalled
+    # for 3 s kept the robot on its last command for 3 s, then drove the 3 s old image's command,
+    # and SIGTERM during a stall sent its stop only when the policy came back.
+    slow = Slow(policy, 0.0)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
+        robot = Robot(robot_session)
+        node = DriveNode(drive_session, drive_args(loopback_router, "--watchdog", "0.5"), slow)
+        ticking = threading.Event()
+
+        def watchdog() -> None:  # run_drive_command's loop
+            while not ticking.is_set():
+                node.tick()
+                ticking.wait(0.02)
+
+        ticker = threading.Thread(target=watchdog, daemon=True)
+        ticker.start()
+        try:
+            deadline = time.monotonic() + 30
+            while not any(linear > 0 for _, linear, _ in robot.snapshot()):
+                assert time.monotonic() < deadline, "no move"
+                robot.images.put(good)
+                time.sleep(0.1)
+            slow.delay_s = 3.0
+            time.sleep(0.6)  # the next image is due
+            sent = time.monotonic()
+            robot.images.put(good)
+            time.sleep(3.5)
+            after = [(t - sent, linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
+            assert after and after[0][0] < 0.5 + 1.0, f"first twist {after[:1]} after the stalled image"
+            assert all((linear, angular) == (0.0, 0.0) for _, linear, angular in after), after
+            # and at exit, while the policy stalls again
+            slow.delay_s = 5.0
+            time.sleep(0.6)
+            robot.images.put(good)
+            time.sleep(0.3)
+            closing = time.monotonic()
+            ticking.set()
+            ticker.join()
+            node.close()
+            assert time.monotonic() - closing < 2.5, "close waited for the stalled policy"
+            time.sleep(0.3)
+            after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > closing]
+            assert after and after[-1] == (0.0, 0.0), after
+        finally:
+            if not ticking.is_set():
+                ticking.set()
+                node.close()
+            robot.node.close()
