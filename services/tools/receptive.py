@@ -67,7 +67,8 @@ def upsample_pool3(pool3: torch.Tensor | np.ndarray) -> np.ndarray:
     if x.ndim != 4:
         raise ReceptiveFieldError(f"pool3 must be (B, C, h, w), got shape {tuple(x.shape)}")
     summed = x.detach().to(torch.float32).sum(dim=1, keepdim=True)  # (B, 1, h, w)
-    weight = torch.from_numpy(bilinear_kernel(KERNEL_SIZE))[None, None]
+    # on the map's device: a network on the GPU (report's --device auto) gives its pool3 there
+    weight = torch.from_numpy(bilinear_kernel(KERNEL_SIZE)).to(summed.device)[None, None]
     out = F.conv_transpose2d(summed, weight, stride=UPSAMPLE_STRIDE, padding=UPSAMPLE_PADDING,
                              output_padding=UPSAMPLE_OUTPUT_PADDING)
     return out[:, 0].cpu().numpy()

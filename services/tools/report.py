@@ -371,8 +371,10 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     world_obj = load_world(world_name)
     starts = list(range(len(world_obj.starts)))
     results_dir = out / "results"
-    # Ours first, then the evaluator service's (stats/eval/), then anything the user put in the run.
-    search = [results_dir, run / "stats" / "eval", run / "stats", run, run / "results"]
+    # Ours first (this --out's, then the run's own report's), then the evaluator service's
+    # (stats/eval/), then anything the user put in the run.
+    search = list(dict.fromkeys([results_dir, run / "report" / "results", run / "stats" / "eval", run / "stats",
+                                 run, run / "results"]))
     result_files: set[str] = set()
     for protocol in conditions:
         saved: dict[str, Path] = {}

@@ -143,6 +143,21 @@ def test_receptive_field_of_real_qnetwork() -> None:
         np.testing.assert_allclose(rmap, upsample_pool3(net.features(x))[0], rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_receptive_field_of_a_network_on_the_gpu() -> None:
+    # The kernel stayed on the CPU while pool3 was on the GPU: conv_transpose2d refused the mix, and
+    # cogexplore report (--device auto) ended in a traceback after every evaluation had run.
+    from shared.learning.model import QNetwork
+
+    torch.manual_seed(0)
+    net = QNetwork(ModelConfig(), SensorConfig())
+    depth = np.full((120, 160), 3.0, dtype=np.float32)
+    rmap, mask, q, action = receptive_field(net.to("cuda"), depth)
+    expected = receptive_field(net.to("cpu"), depth)
+    np.testing.assert_allclose(rmap, expected[0], rtol=1e-4, atol=1e-4)
+    assert (mask == expected[1]).mean() > 0.99 and action == expected[3]
+
+
 def test_receptive_field_of_the_shipped_image_size_leaves_the_unpooled_margin_out() -> None:
     """40 x 30 (the shipped recipe's image): pool3 is 3 x 5 and covers rows 0-23; rows 24-29, which
     no pooling block reaches, are in the map at its least value and never in the top 10 %."""

@@ -553,6 +553,36 @@ def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
     assert "| reactive |" in text and (run / "report" / "heatmaps.png").is_file()
 
 
+def test_a_report_elsewhere_reuses_the_runs_own_report_results(tmp_path: Path) -> None:
+    # With --out, the run's report/results/ (which the docs say is reused) was not searched: every
+    # model was evaluated again, minutes of the full protocol for numbers already in the run.
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.toml").write_text(to_toml(small_config()))
+    kw = dict(episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False, protocols=("paper",))
+    first = build_report(run, **kw)
+    again = build_report(run, out_dir=tmp_path / "elsewhere", **kw)
+    assert again.results == first.results == {"paper": {"reactive": run / "report" / "results" / "reactive-paper.json"}}
+    assert "paper reused: [reactive-paper.json](../run/report/results/reactive-paper.json)" in again.markdown.read_text()
+    assert not (tmp_path / "elsewhere" / "results").exists()
+
+
+def test_a_line_break_in_a_run_name_does_not_end_its_heading(tmp_path: Path) -> None:
+    # The heading's code span broke at the line break: report.md's next line was the raw HTML
+    # "<img src=x onerror=alert(1)>`", run by a Markdown viewer that shows HTML.
+    run = tmp_path / "x\n<img src=x onerror=alert(1)>"
+    run.mkdir()
+    (run / "config.toml").write_text(to_toml(small_config()))
+    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
+                          protocols=("paper",))
+    text = report.markdown.read_text()
+    assert text.startswith("# Report: run `x <img src=x onerror=alert(1)>`\n")
+    assert not [line for line in text.splitlines() if line.startswith("<")]
+    page = PageParts()
+    page.feed(report.html.read_text())
+    assert page.headings[0] == "Report: run x <img src=x onerror=alert(1)>" and page.images[0][0] == "heatmaps"
+
+
 def test_a_garbled_learner_log_is_a_note_not_a_crash(tmp_path: Path) -> None:
     run = tmp_path / "garbled"
     (run / "stats").mkdir(parents=True)
