@@ -144,10 +144,11 @@ class DriveNode:
     def _stall_stop(self) -> None:
         """The watchdog while the policy is deciding: a zero twist, once per control period, when
         the image it decides on is older than the watchdog allows (the controller then refuses the
-        command it comes back with)."""
+        command it comes back with); not in lock step, where the robot waits for the command."""
         since, now = self.deciding_since, time.monotonic()
         c = self.controller
-        if since is None or now - since < c.config.watchdog_s:
+        # in lock step the simulator waits for the command: a stop meanwhile would be taken for it
+        if since is None or now - since < c.config.watchdog_s or c.config.lockstep:
             return
         if self.last_stall_stop_s is not None and now - self.last_stall_stop_s < c.period_s:
             return

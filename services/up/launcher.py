@@ -524,14 +524,14 @@ class Launcher:
         stop = threading.Event()
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
               file=sys.stderr)
+
         def on_stop_signal(signum: int, _frame: object) -> None:
             if not stop.is_set():
                 stop.set()
                 return
             # asked again while the learner writes its final checkpoint (up to a minute): now, without it
-            name = signal.Signals(signum).name
-            print(f"run {self.run!r}: {name} again: killing its services now (the last checkpoint saved stays)",
-                  file=sys.stderr)
+            print(f"run {self.run!r}: {_signal_name(signum)} again: killing its services now (the last checkpoint "
+                  "saved stays)", file=sys.stderr)
             for c in self.children:
                 if c.process.poll() is None:
                     c.process.kill()

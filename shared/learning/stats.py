@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import io
 import logging
+import math
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from numbers import Real
@@ -179,9 +180,10 @@ def summarize_learner_log(path: Path) -> TrainingSummary | None:
 
     def number(row: dict[str, str | None], column: str, kind: type) -> Any:
         try:
-            return kind(row.get(column) or "")
+            value = kind(row.get(column) or "")
         except ValueError:
             return None
+        return value if math.isfinite(value) else None  # a damaged cell: "nan" read as a time or a rate
 
     last: dict[str, str | None] | None = None
     learner_s = session_s = 0.0

@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 from shared.ros2.messages import IMAGE, TYPESTORE, encode_depth_image
 
-from cogexplore.policy import load_policy
 from services.drive.controller import (
     BAD_DEPTH,
     NO_VALID_DEPTH,
@@ -18,22 +17,6 @@ from services.drive.controller import (
     DriveController,
 )
 from shared.config import SPEED_TABLES
-from shared.sim.env import ExploreEnv
-
-
-@pytest.fixture(scope="module")
-def policy():
-    return load_policy("pretrained", device="cpu")
-
-
-@pytest.fixture(scope="module")
-def start_image(policy):
-    """The network's own camera image from paper-indoor's first start (nearest obstacle > 0.55 m)."""
-    env = ExploreEnv(world="paper-indoor", speed_table="test", start_index=0, sensor=policy.sensor)
-    depth, info = env.reset(seed=0)
-    env.close()
-    assert info["min_depth_m"] > 0.6
-    return depth
 
 
 class Clock:

@@ -10,26 +10,11 @@ import time
 import pytest
 from service_processes import client
 
-from cogexplore.policy import load_policy
 from services.bus.ros2 import Ros2Node
 from services.drive.options import add_drive_arguments
 from services.drive.service import DriveNode
 from shared.ros2.formats import make_format, qualify
 from shared.ros2.messages import IMAGE, TWIST, decode_twist, encode_depth_image
-from shared.sim.env import ExploreEnv
-
-
-@pytest.fixture(scope="module")
-def policy():
-    return load_policy("pretrained", device="cpu")
-
-
-@pytest.fixture(scope="module")
-def start_image(policy):
-    env = ExploreEnv(world="paper-indoor", speed_table="test", start_index=0, sensor=policy.sensor)
-    depth, _ = env.reset(seed=0)
-    env.close()
-    return depth
 
 
 class Slow:
@@ -156,4 +141,42 @@ def test_a_stalled_policy_holds_neither_the_watchdog_nor_the_exit_stop(loopback_
             if not ticking.is_set():
                 ticking.set()
                 node.close()
+            robot.node.close()
+
+
+@pytest.mark.timeout(120)
+def test_in_lock_step_a_slow_decision_is_waited_for_not_stopped(loopback_router, policy, start_image):
+    # The simulator waits for each command in lock step: a stall stop sent while the policy decided
+    # (a slow first forward pass on a loaded machine) was taken for that period's command.
+    slow = Slow(policy, 0.0)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
+        robot = Robot(robot_session)
+        node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "0.3"), slow)
+        ticking = threading.Event()
+
+        def watchdog() -> None:
+            while not ticking.is_set():
+                node.tick()
+                ticking.wait(0.02)
+
+        ticker = threading.Thread(target=watchdog, daemon=True)
+        ticker.start()
+        try:
+            deadline = time.monotonic() + 30
+            while not robot.snapshot():
+                assert time.monotonic() < deadline, "no twist"
+                robot.images.put(good)
+                time.sleep(0.1)
+            time.sleep(0.2)
+            slow.delay_s = 1.0
+            sent = time.monotonic()
+            robot.images.put(good)
+            time.sleep(1.5)
+            after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
+            assert after and after[0] != (0.0, 0.0), f"the period's first twist {after[:1]} was a stop"
+        finally:
+            ticking.set()
+            ticker.join()
+            node.close()
             robot.node.close()

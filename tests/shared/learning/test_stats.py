@@ -68,6 +68,10 @@ def test_a_learner_log_sums_its_sessions_and_skips_what_does_not_parse(tmp_path:
     assert (old.updates, old.transitions, old.learner_s, old.lr_first, old.updates_per_s) == (50, None, None, None, None)
     (tmp_path / "empty.csv").write_text("update,loss\n")
     assert summarize_learner_log(tmp_path / "empty.csv") is None
+    # a damaged cell reads as none: the report printed "learning rate nan" and "nan min"
+    (tmp_path / "nan.csv").write_text("time_s,update,lr\n10.0,50,0.001\nnan,60,inf\n")
+    damaged = summarize_learner_log(tmp_path / "nan.csv")
+    assert (damaged.updates, damaged.learner_s, damaged.lr_first, damaged.lr_last) == (60, 10.0, 0.001, 0.001)
 
 
 def test_a_power_loss_tail_or_foreign_bytes_are_skipped_by_every_reader_and_resume_rewinds_past_them(
