@@ -59,6 +59,29 @@ class Robot:
             return list(self.twists)
 
 
+def start_watchdog(node: DriveNode) -> tuple[threading.Event, threading.Thread]:
+    """run_drive_command's loop: the node's watchdog every 20 ms until the event is set."""
+    ticking = threading.Event()
+
+    def watchdog() -> None:
+        while not ticking.is_set():
+            node.tick()
+            ticking.wait(0.02)
+
+    ticker = threading.Thread(target=watchdog, daemon=True)
+    ticker.start()
+    return ticking, ticker
+
+
+def wait_for_twist(robot: Robot, image: bytes, moving: bool = False) -> None:
+    """Send ``image`` until a twist (a moving one) comes back: the routes take a moment across the router."""
+    deadline = time.monotonic() + 30
+    while not any(linear > 0 or not moving for _, linear, _ in robot.snapshot()):
+        assert time.monotonic() < deadline, "no move" if moving else "no twist"
+        robot.images.put(image)
+        time.sleep(0.1)
+
+
 @pytest.mark.timeout(120)
 def test_a_flood_of_images_never_queues_and_commands_come_from_the_newest(loopback_router, policy, start_image):
     # Zenoh hands samples to a Python callback through an unbounded queue: a node slower than its
@@ -70,11 +93,7 @@ def test_a_flood_of_images_never_queues_and_commands_come_from_the_newest(loopba
         robot = Robot(robot_session)
         node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "30"), slow)
         try:
-            deadline = time.monotonic() + 30
-            while not robot.snapshot():  # the routes take a moment across the router
-                assert time.monotonic() < deadline, "no twist"
-                robot.images.put(good)
-                time.sleep(0.1)
+            wait_for_twist(robot, good)
             time.sleep(0.5)
             before = slow.decided
             for _ in range(200):  # 200 images in about 0.2 s, each a 50 ms decision in lock step
@@ -101,21 +120,9 @@ def test_a_stalled_policy_holds_neither_the_watchdog_nor_the_exit_stop(loopback_
     with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
         robot = Robot(robot_session)
         node = DriveNode(drive_session, drive_args(loopback_router, "--watchdog", "0.5"), slow)
-        ticking = threading.Event()
-
-        def watchdog() -> None:  # run_drive_command's loop
-            while not ticking.is_set():
-                node.tick()
-                ticking.wait(0.02)
-
-        ticker = threading.Thread(target=watchdog, daemon=True)
-        ticker.start()
+        ticking, ticker = start_watchdog(node)
         try:
-            deadline = time.monotonic() + 30
-            while not any(linear > 0 for _, linear, _ in robot.snapshot()):
-                assert time.monotonic() < deadline, "no move"
-                robot.images.put(good)
-                time.sleep(0.1)
+            wait_for_twist(robot, good, moving=True)
             slow.delay_s = 3.0
             time.sleep(0.6)  # the next image is due
             sent = time.monotonic()
@@ -153,21 +160,9 @@ def test_in_lock_step_a_slow_decision_is_waited_for_not_stopped(loopback_router,
     with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
         robot = Robot(robot_session)
         node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "0.3"), slow)
-        ticking = threading.Event()
-
-        def watchdog() -> None:
-            while not ticking.is_set():
-                node.tick()
-                ticking.wait(0.02)
-
-        ticker = threading.Thread(target=watchdog, daemon=True)
-        ticker.start()
+        ticking, ticker = start_watchdog(node)
         try:
-            deadline = time.monotonic() + 30
-            while not robot.snapshot():
-                assert time.monotonic() < deadline, "no twist"
-                robot.images.put(good)
-                time.sleep(0.1)
+            wait_for_twist(robot, good)
             time.sleep(0.2)
             slow.delay_s = 1.0
             sent = time.monotonic()
