@@ -159,15 +159,14 @@ def test_in_lock_step_a_slow_decision_is_waited_for_not_stopped(loopback_router,
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
     with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
         robot = Robot(robot_session)
-        node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "0.3"), slow)
+        node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "0.6"), slow)
         ticking, ticker = start_watchdog(node)
         try:
             wait_for_twist(robot, good)
-            time.sleep(0.2)
-            slow.delay_s = 1.0
+            slow.delay_s = 1.5  # at once: no image for the watchdog period would be a stop of its own
             sent = time.monotonic()
             robot.images.put(good)
-            time.sleep(1.5)
+            time.sleep(2.0)
             after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
             assert after and after[0] != (0.0, 0.0), f"the period's first twist {after[:1]} was a stop"
         finally:
