@@ -153,12 +153,8 @@ class DriveNode:
         if self.last_stall_stop_s is not None and now - self.last_stall_stop_s < c.period_s:
             return
         self.last_stall_stop_s = now
-        with self.send_lock:
-            if self.exit_sent:
-                return
-            self.cmd_vel.put(encode_twist(0.0, 0.0))
-        self._report(Decision(0.0, 0.0, None, "watchdog",
-                              error=f"the policy has been deciding on one image for {now - since:.1f} s"))
+        self._send(Decision(0.0, 0.0, None, "watchdog",
+                            error=f"the policy has been deciding on one image for {now - since:.1f} s"))
 
     def reset(self) -> None:
         with self.lock:
@@ -173,11 +169,9 @@ class DriveNode:
         """The last word: a zero twist, sent once, before the session closes; without the
         controller when a decision holds it for longer than the watchdog (a stalled policy)."""
         if not self.lock.acquire(timeout=self.controller.config.watchdog_s):
-            with self.send_lock:
-                if not self.exit_sent:
-                    self.exit_sent = True
-                    self.cmd_vel.put(encode_twist(0.0, 0.0))
-                    self._report(Decision(0.0, 0.0, None, "exit", error="the policy is still deciding"))
+            with self.send_lock:  # nothing after it
+                self._send(Decision(0.0, 0.0, None, "exit", error="the policy is still deciding"))
+                self.exit_sent = True
             return
         try:
             with self.send_lock:

@@ -21,7 +21,7 @@ from pathlib import Path
 from urllib.parse import quote, unquote
 
 from shared.errors import CogexploreError
-from shared.evaluation.results import markdown_cell
+from shared.evaluation.results import markdown_cell, one_line
 
 # A page with every image inlined stays below this (base64 adds a third); else images are linked.
 EMBED_LIMIT_BYTES = 5_000_000
@@ -92,7 +92,7 @@ def code_span(value: object) -> str:
     """``value`` as a code span, fenced by more backticks than any run of them it holds. A line break
     becomes a blank, as a code span shows it: in a heading or an item it ended the line, and the rest
     of the name, outside the span, was raw HTML in the Markdown file (a folder named ``x\\n<img ...>``)."""
-    s = " ".join(str(value).splitlines())
+    s = one_line(value)
     fence = "`" * (max((len(run) for run in re.findall("`+", s)), default=0) + 1)
     pad = " " if s.startswith("`") or s.endswith("`") else ""
     return f"{fence}{pad}{s}{pad}{fence}"
@@ -106,11 +106,11 @@ def link_target(path: str) -> str:
 
 def _markdown_block(block: Block) -> str:
     if isinstance(block, Heading):  # a heading and an item are a line each: a line break would end them
-        return "#" * block.level + " " + " ".join(block.text.splitlines())
+        return "#" * block.level + " " + one_line(block.text)
     if isinstance(block, Paragraph):
         return block.text
     if isinstance(block, Bullets):
-        return "\n".join("- " + " ".join(item.splitlines()) for item in block.items)
+        return "\n".join("- " + one_line(item) for item in block.items)
     rule = "|" + "".join("---:|" if r else "---|" for r in block.right)
     return "\n".join([_markdown_row(block.header), rule, *(_markdown_row(r) for r in block.rows)])
 

@@ -146,22 +146,20 @@ def run_evaluate(args: argparse.Namespace) -> int:
     model, ensemble = None, args.ensemble
     worlds = _worlds_of(args)
     several = len(worlds) > 1
-    if args.json_out:  # refused now, not once the whole run is done and its results cannot be written
-        folder = next((p for p in (_json_path(args.json_out, w or "", several) for w in worlds) if p.is_dir()), None)
-        if folder is not None:
-            raise EvaluateError(f"--json: {folder} is a folder; give the results file's name")
+    if args.json_out:  # refused now, not once the runs are done and their results cannot be written
+        written: dict[Path, str] = {}
+        for world in worlds:
+            path = _json_path(args.json_out, world or "", several)
+            if path.is_dir():
+                raise EvaluateError(f"--json: {path} is a folder; give the results file's name")
+            other = written.setdefault(path, world)  # 'w/a.xml' and 'w-a.xml' slug alike
+            if other != world:
+                raise EvaluateError(f"--json: worlds {other!r} and {world!r} would both write {path}")
     if several:  # a world that does not load is refused before hours go into the ones before it
         from shared.sim.world import load_world
 
         for world in worlds:
             load_world(world)
-        if args.json_out:  # 'w/a.xml' and 'w-a.xml' slug alike: one world's results would overwrite the other's
-            written: dict[Path, str] = {}
-            for world in worlds:
-                path = _json_path(args.json_out, world, True)
-                other = written.setdefault(path, world)
-                if other != world:
-                    raise EvaluateError(f"--json: worlds {other!r} and {world!r} would both write {path}")
     for world in worlds:
         setup, results, recorder, probe = _evaluate_one(args, world, model, ensemble, protocol)
         json_path = _json_path(args.json_out, setup.world, several) if args.json_out else None

@@ -367,11 +367,17 @@ def escape_text(value: object) -> str:
     return _MARKDOWN_SPECIAL.sub(r"\\\1", str(value))
 
 
+def one_line(text: object) -> str:
+    """``text`` with its line breaks read as blanks: a Markdown heading, list item, table row or code
+    span is one line, and a break would end it, leaving the rest outside it."""
+    return " ".join(str(text).splitlines())
+
+
 def markdown_cell(text: str) -> str:
     """``text`` as a Markdown pipe table's cell: its ``|`` escaped, as GFM reads it (in code spans
     too), so a model named ``a|b`` stays one cell, and a line break read as a space (a row is one
     line: the rest of the name would start a paragraph below the table)."""
-    return " ".join(str(text).replace("|", "\\|").splitlines())
+    return one_line(str(text).replace("|", "\\|"))
 
 
 def table_markdown(models: Mapping[str, EvalResults | Mapping[str, Any] | Sequence[EpisodeResult]],
