@@ -8,7 +8,9 @@ Three figures for one realistic TransitionBatch (default 16 steps of 160x120 dep
   the default), or as two sessions on threads of this process (``processes=False``, where
   the GIL is shared). The publisher puts with CongestionControl.BLOCK as the actors do; the
   subscriber decodes and validates every batch as the learner does. Every batch sent must
-  arrive (``lost`` is reported).
+  arrive (``lost`` is reported), unless Zenoh closed a link meanwhile (``links_closed``): it
+  does so when a BLOCK message waits past its ``wait_before_close`` (5 s), i.e. when the
+  subscriber or the router stalled that long (``max_gap_s``, ``max_put_s`` show it).
 - ``bytes_per_transition``: wire bytes of one batch / its transitions.
 """
 
@@ -25,6 +27,7 @@ import numpy as np
 
 from services.bench import print_json
 from services.bus.session import (
+    LinkWatch,
     ZenohSettings,
     declare_reliable_publisher,
     free_tcp_port,
@@ -92,7 +95,7 @@ def _subscriber(endpoint: str, seconds: float, ready: Any, control: Any, results
     """Count and validate every batch; report when told how many were sent (after the
     ``seconds`` the publisher measures)."""
     lock = threading.Lock()
-    stats = {"received": 0, "bytes": 0, "first": 0.0, "last": 0.0}
+    stats = {"received": 0, "bytes": 0, "first": 0.0, "last": 0.0, "max_gap": 0.0}
     rejects = RejectCounter("transition batch")
 
     def on_batch(batch: Any, _key: str) -> None:
@@ -100,6 +103,8 @@ def _subscriber(endpoint: str, seconds: float, ready: Any, control: Any, results
         with lock:
             if stats["received"] == 0:
                 stats["first"] = now
+            else:
+                stats["max_gap"] = max(stats["max_gap"], now - stats["last"])
             stats["received"] += 1
             stats["last"] = now
 
@@ -115,8 +120,8 @@ def _subscriber(endpoint: str, seconds: float, ready: Any, control: Any, results
                     break
             time.sleep(0.01)
         with lock:
-            results.put({"role": "subscriber", "received": stats["received"],
-                         "rejected": rejects.total, "seconds": stats["last"] - stats["first"]})
+            results.put({"role": "subscriber", "received": stats["received"], "rejected": rejects.total,
+                         "seconds": stats["last"] - stats["first"], "max_gap_s": stats["max_gap"]})
 
 
 def _publisher(endpoint: str, steps: int, height: int, width: int, seconds: float, results: Any,
@@ -130,12 +135,15 @@ def _publisher(endpoint: str, steps: int, height: int, width: int, seconds: floa
         while not publisher.matching_status.matching and time.monotonic() < deadline:
             time.sleep(0.01)  # publishing before the route exists would measure nothing
         sent = 0
-        start = time.perf_counter()
-        while time.perf_counter() - start < seconds:
+        max_put_s = 0.0
+        start = before = time.perf_counter()
+        while before - start < seconds:
             publisher.put(payload)
             sent += 1
-        elapsed = time.perf_counter() - start
-        results.put({"role": "publisher", "sent": sent, "seconds": elapsed, "bytes": len(payload)})
+            after = time.perf_counter()
+            max_put_s, before = max(max_put_s, after - before), after
+        results.put({"role": "publisher", "sent": sent, "seconds": before - start, "bytes": len(payload),
+                     "max_put_s": max_put_s})
         # open until the subscriber has counted: a session closed with samples still queued drops them
         # (a fixed 0.2 s lost one on a loaded machine)
         drained.get(timeout=60)
@@ -143,7 +151,8 @@ def _publisher(endpoint: str, steps: int, height: int, width: int, seconds: floa
 
 def _loopback(steps: int, height: int, width: int, seconds: float, processes: bool) -> dict[str, Any]:
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    with open_router([endpoint]):
+    with open_router([endpoint]) as router:
+        links = LinkWatch(router, routine=True)
         if processes:
             ctx = multiprocessing.get_context("spawn")
             ready, control, results, drained = ctx.Queue(), ctx.Queue(), ctx.Queue(), ctx.Queue()
@@ -165,6 +174,7 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
                 raise TransportBenchError(f"the subscriber ended before the publisher: {first}")
             control.put(first["sent"])
             sub = _report(results, 60, "subscriber")
+            links_closed = links.closed  # before the publisher may close: the links lost while measuring
         finally:
             drained.put(True)  # the publisher may close (also when the subscriber failed)
             for worker in workers:
@@ -177,6 +187,7 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
         "receive_transitions_per_s": (received * steps / sub["seconds"]) if sub["seconds"] > 0 else None,
         "batches_sent": sent, "batches_received": received, "lost": sent - received,
         "rejected": sub["rejected"], "seconds": first["seconds"],
+        "links_closed": links_closed, "max_put_s": first["max_put_s"], "max_gap_s": sub["max_gap_s"],
     }
 
 

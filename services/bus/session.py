@@ -258,17 +258,56 @@ class StoppedWaiting(TransportError, StopRequested):
     """A stop (SIGTERM, Ctrl-C) came while a service waited for its router: it ends, as asked."""
 
 
+class LinkWatch:
+    """Counts the transports (links to other Zenoh nodes) of a session that open and close, and says
+    so in the log.
+
+    Zenoh closes a transport on which a BLOCK message could not be queued for ``wait_before_close``
+    (5 s by default): a receiver stalled that long (a process stopped, or starved of CPU) loses
+    what was in flight to it, and a client reconnects to its router within seconds. Without this
+    watch such a loss is silent. The listener lives as long as the session (it is declared in the
+    background); a session's own close is not reported.
+    """
+
+    def __init__(self, session: zenoh.Session, *, routine: bool = False) -> None:
+        """``routine``: links come and go as a matter of course (a router's clients), logged as info;
+        otherwise a lost link to a router is a warning."""
+        self.opened = self.closed = 0
+        self._routine = routine
+        self._lock = threading.Lock()
+        session.info.declare_transport_events_listener(self._on_event)
+
+    def _on_event(self, event: zenoh.TransportEvent) -> None:
+        remote = f"Zenoh {event.transport.whatami} {event.transport.zid}".lower()
+        closed = event.kind == zenoh.SampleKind.DELETE
+        with self._lock:
+            if closed:
+                self.closed += 1
+            else:
+                self.opened += 1
+        if self._routine or event.transport.whatami != zenoh.WhatAmI.ROUTER:  # peers come and go
+            log.info("%s %s", remote, "left" if closed else "joined")
+        elif closed:
+            log.warning("lost the link to %s (it stopped, the network dropped, or a receiver stalled past "
+                        "Zenoh's wait_before_close): messages in flight on it are lost", remote)
+        else:
+            log.info("linked to %s", remote)
+
+
 def open_service_session(settings: ZenohSettings, stop: threading.Event | None = None) -> zenoh.Session:
     """A service's session: :func:`open_session`, retrying ``settings.router_wait_s`` while no router
     answers (``--router-wait``); StoppedWaiting as soon as ``stop`` is set meanwhile (a service
-    asked to stop waited out the whole wait, then failed)."""
+    asked to stop waited out the whole wait, then failed). Its links lost and made again are logged
+    (:class:`LinkWatch`)."""
     try:
-        return open_session(settings, wait_s=settings.router_wait_s,
-                            give_up=None if stop is None else lambda: "stopped" if stop.is_set() else None)
+        session = open_session(settings, wait_s=settings.router_wait_s,
+                               give_up=None if stop is None else lambda: "stopped" if stop.is_set() else None)
     except TransportError:
         if stop is not None and stop.is_set():
             raise StoppedWaiting(f"stopped while waiting for the router ({settings.describe()})") from None
         raise
+    LinkWatch(session)
+    return session
 
 
 # ---------------------------------------------------------------------------------------------
@@ -497,6 +536,7 @@ def run_router(listen: Sequence[str] = DEFAULT_ROUTER_LISTEN, *, config_file: st
             previous[signum] = signal.signal(signum, lambda *_: stop.set())
     try:
         with open_router(listen, config_file=config_file) as session:
+            LinkWatch(session, routine=True)
             log.info("Zenoh router %s listening on %s", session.zid(), ", ".join(listen))
             if on_ready is not None:
                 on_ready(session)

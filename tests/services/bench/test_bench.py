@@ -65,8 +65,13 @@ def test_bench_transport_json() -> None:
     assert out["codec"]["transitions_per_s"] > 0 and out["codec"]["batches"] > 0
     loop = out["loopback"]
     assert loop["transitions_per_s"] > 0 and loop["batches_sent"] > 0
-    assert loop["lost"] == 0 and loop["rejected"] == 0  # reliable puts: everything sent arrives
-    assert loop["batches_received"] == loop["batches_sent"]
+    # reliable puts: everything sent arrives, unless Zenoh closed a link on a stall of 5 s (a loaded
+    # machine's; the receiver's link test shows that loss), which the bench then reports
+    if loop["links_closed"] == 0:
+        assert loop["lost"] == 0 and loop["rejected"] == 0, loop
+        assert loop["batches_received"] == loop["batches_sent"]
+    else:
+        assert max(loop["max_gap_s"], loop["max_put_s"]) > 1, loop
 
 
 @pytest.mark.timeout(300)

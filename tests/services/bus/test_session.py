@@ -19,6 +19,7 @@ import zenoh
 from services.bench import transport as bench
 from services.bus import DEFAULT_CONNECT
 from services.bus.session import (
+    LinkWatch,
     LivelinessWatch,
     TransportConfigError,
     TransportError,
@@ -27,6 +28,7 @@ from services.bus.session import (
     declare_reliable_publisher,
     free_tcp_port,
     open_router,
+    open_service_session,
     open_session,
     port_taken,
     put_reliable,
@@ -356,6 +358,43 @@ def test_liveliness_history_reports_tokens_declared_before_the_watch(router: str
             assert watch.wait(lambda keys: not keys, 5.0)
 
 
+def test_a_receiver_stalled_past_wait_before_close_loses_its_link_says_so_and_comes_back(tmp_path: Path,
+                                                                                          caplog) -> None:
+    # Zenoh closes a link on which a BLOCK message waited past wait_before_close (5 s by default,
+    # 0.3 s here): what was in flight is lost. The stalled service's session says so, and reconnects.
+    config = tmp_path / "router.json5"
+    config.write_text(json.dumps({"transport": {"link": {"tx": {"queue": {"congestion_control": {
+        "block": {"wait_before_close": 300_000}}}}}}}))
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    settings = ZenohSettings(mode="client", connect=(endpoint,))
+    received: list[int] = []
+
+    def stall_on_the_first(sample: zenoh.Sample) -> None:
+        received.append(len(sample.payload))
+        if len(received) == 1:
+            time.sleep(1.5)  # holds Zenoh's receiving thread: the router's queue to this session fills
+
+    caplog.set_level("INFO", logger="services.bus.session")
+    with open_router([endpoint], config_file=str(config)) as router:
+        links = LinkWatch(router, routine=True)
+        with open_service_session(settings) as receiver, open_session(settings) as sender:
+            receiver.declare_subscriber(KEYS.weights, stall_on_the_first)
+            publisher = declare_reliable_publisher(sender, KEYS.weights)
+            assert wait_until(lambda: publisher.matching_status.matching, 30.0)
+            sent, started = 0, time.monotonic()
+            # until the buffers between them are full (tens of MB on loopback) and the router gives up
+            while links.closed == 0 and time.monotonic() - started < 1.2:
+                publisher.put(b"x" * 200_000)
+                sent += 1
+            assert wait_until(lambda: "linked to zenoh router" in caplog.text, 30.0), caplog.text
+            assert [r.levelname for r in caplog.records if "lost the link to zenoh router" in r.message] == ["WARNING"]
+            assert links.closed >= 1 and len(received) < sent  # the router's side: that client left
+            assert wait_until(lambda: publisher.matching_status.matching, 30.0)
+            before = len(received)
+            publisher.put(b"back")
+            assert wait_until(lambda: len(received) == before + 1 and received[-1] == 4, 10.0)
+
+
 # --- the router process ---------------------------------------------------------------------
 
 def test_router_help_exits_cleanly(capsys: pytest.CaptureFixture[str]) -> None:
@@ -403,6 +442,7 @@ def test_transport_benchmark_runs_and_loses_nothing() -> None:
     assert result["codec"]["transitions_per_s"] > 0
     loop = result["loopback"]
     assert loop["batches_sent"] > 0 and loop["lost"] == 0 and loop["rejected"] == 0
+    assert loop["links_closed"] == 0 and 0 <= loop["max_gap_s"] < 5 and 0 < loop["max_put_s"] < 5
     assert loop["transitions_per_s"] > 0
 
 
