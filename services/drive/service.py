@@ -211,8 +211,11 @@ class DriveNode:
             self.recorder.log_decision(message, c.last_depth_m if decision.command is not None else None)
 
     def close(self) -> None:
+        """Stop the robot (once), end the decider and close the node's topics; a second call does nothing."""
         self.stop_at_exit()
         with self.pending_ready:
+            if self.closing:
+                return
             self.closing = True
             self.pending_ready.notify()
         self.decider.join(timeout=1.0)  # a stalled policy's thread is a daemon: it does not hold the exit

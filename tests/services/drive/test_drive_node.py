@@ -174,3 +174,24 @@ def test_in_lock_step_a_slow_decision_is_waited_for_not_stopped(loopback_router,
             ticker.join()
             node.close()
             robot.node.close()
+
+
+@pytest.mark.timeout(60)
+def test_a_node_closed_twice_stops_the_robot_once_and_the_second_close_does_nothing(loopback_router, policy,
+                                                                                     start_image):
+    # The second close undeclared topics already undeclared: an error on the way out of a caller's
+    # cleanup (a `with` and a `finally` both closing) that hid the first one's.
+    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
+        robot = Robot(robot_session)
+        node = DriveNode(drive_session, drive_args(loopback_router), policy)
+        try:
+            wait_for_twist(robot, encode_depth_image(start_image, encoding="32FC1", stamp_ns=1))
+            node.close()
+            time.sleep(0.3)
+            stops = robot.snapshot()
+            assert stops[-1][1:] == (0.0, 0.0)
+            node.close()
+            time.sleep(0.3)
+            assert robot.snapshot() == stops
+        finally:
+            robot.node.close()
