@@ -53,6 +53,7 @@ os.environ.setdefault("RERUN_ANALYTICS", "0")  # offline machines: never phone h
 
 from services.process import stop_signals_handled
 from shared.config import (
+    MAX_SEED,
     ConfigError,
     RunConfig,
     is_finite_number,
@@ -658,8 +659,8 @@ def options_from_args(args: argparse.Namespace) -> Options:
     for name in ("actors", "sl_frames", "sl_epochs", "episodes_per_start", "max_steps"):
         if getattr(args, name) < 1:
             raise ExperimentError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
-    if args.seed < 0:
-        raise ExperimentError(f"--seed must be >= 0, got {args.seed}")
+    if not 0 <= args.seed <= MAX_SEED:  # the pretrain stage's bound, known before any stage runs
+        raise ExperimentError(f"--seed must be in [0, {MAX_SEED}] (2**53 - 1), got {args.seed}")
     if args.rl_updates is not None and args.rl_updates < 1:
         raise ExperimentError(f"--rl-updates must be >= 1, got {args.rl_updates}")
     if args.minutes_per_stage is not None and not args.minutes_per_stage > 0:
