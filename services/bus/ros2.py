@@ -20,6 +20,7 @@ import logging
 import os
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from typing import Self
 
@@ -126,7 +127,16 @@ class Ros2Publisher(_Entity):
 
 
 class Ros2Subscriber(_Entity):
-    """Hands each CDR payload of one topic to a callback, on a Zenoh thread."""
+    """Hands the CDR payloads of one topic to a callback, on a thread of its own, the newest
+    ``depth`` of them at most.
+
+    Zenoh hands a Python callback every sample, in order, through a queue of its own that, once
+    full, blocks the session's receiving thread: a callback slower than its topic (a flood of
+    commands from anyone on the router) acted on ever older samples and held up every other key of
+    the session. Here, as rmw_zenoh does for keep_last, the QoS depth bounds the samples waiting for
+    the callback: a new one pushes out the oldest, which is dropped and counted (``dropped``); for a
+    robot's commands and images the newest is what matters.
+    """
 
     kind = "subscriber"
 
@@ -145,33 +155,74 @@ class Ros2Subscriber(_Entity):
         """The liveliness token announcing this subscription (None when the format has none)."""
         self._callback = callback
         self._received = 0
+        self._dropped = 0
         self._callback_errors = 0
+        # keep_all is bounded too (by its depth): an unbounded queue is what a flood grows
+        self.depth = max(1, qos.depth)
+        """At most this many samples wait for the callback."""
+        self._waiting: deque[zenoh.ZBytes] = deque(maxlen=self.depth)
+        self._waiting_ready = threading.Condition(self._lock)
         self._handle = session.declare_subscriber(self.key, self._on_sample)
         self._announce(session)
+        threading.Thread(target=self._deliver, name=f"ros2 {topic}", daemon=True).start()
 
     def _on_sample(self, sample: zenoh.Sample) -> None:
+        """Zenoh's thread: the sample waits for the callback, pushing out the oldest when ``depth``
+        wait already (never copied here)."""
         with self._lock:
-            self._received += 1
-        try:
-            size = len(sample.payload)
-            if self.max_bytes is not None and size > self.max_bytes:
-                if self._on_oversize is not None:
-                    self._on_oversize(size)
+            if self._closed:
                 return
-            self._callback(sample.payload.to_bytes())
-        except Exception:
-            # Never into Zenoh's thread: the subscription would go on silently anyway.
+            self._received += 1
+            full = len(self._waiting) == self.depth
+            self._dropped += full
+            first_drop = full and self._dropped == 1
+            self._waiting.append(sample.payload)
+            self._waiting_ready.notify()
+        if first_drop:
+            log.warning("%s: samples come faster than its callback takes them; beyond the %d newest they are "
+                        "dropped (counted in dropped, not logged)", self.topic, self.depth)
+
+    def _deliver(self) -> None:
+        while True:
             with self._lock:
-                self._callback_errors += 1
-                first = self._callback_errors == 1
-            if first:
-                log.exception("callback for %s failed (later failures are counted, not logged)", self.topic)
+                while not self._waiting and not self._closed:
+                    self._waiting_ready.wait()
+                if self._closed:
+                    return
+                payload = self._waiting.popleft()
+            try:
+                size = len(payload)
+                if self.max_bytes is not None and size > self.max_bytes:
+                    if self._on_oversize is not None:
+                        self._on_oversize(size)
+                    continue
+                self._callback(payload.to_bytes())
+            except Exception:
+                # The next sample is delivered all the same: log the first failure, count them all.
+                with self._lock:
+                    self._callback_errors += 1
+                    first = self._callback_errors == 1
+                if first:
+                    log.exception("callback for %s failed (later failures are counted, not logged)", self.topic)
+
+    def close(self) -> None:
+        """Undeclare the subscription and end its delivery thread (a callback under way finishes)."""
+        super().close()
+        with self._lock:
+            self._waiting.clear()
+            self._waiting_ready.notify()
 
     @property
     def received(self) -> int:
         """Samples received so far."""
         with self._lock:
             return self._received
+
+    @property
+    def dropped(self) -> int:
+        """Samples pushed out by newer ones before the callback took them."""
+        with self._lock:
+            return self._dropped
 
     @property
     def callback_errors(self) -> int:
@@ -234,10 +285,11 @@ class Ros2Node:
     def subscriber(self, topic: str, msgtype: str, callback: Callable[[bytes], None], *,
                    qos: str | QosProfile = "default", max_bytes: int | None = None,
                    on_oversize: Callable[[int], None] | None = None) -> Ros2Subscriber:
-        """Call ``callback(payload)`` on a Zenoh thread for each sample of ``topic``; an exception
-        it raises is logged once and counted (``callback_errors``), never propagated. A payload
-        over ``max_bytes`` is not copied out of Zenoh (a 400 MB one would double the memory it
-        takes): ``on_oversize(its size)`` is called in place of ``callback``."""
+        """Call ``callback(payload)`` on the subscriber's own thread for each sample of ``topic``
+        (at most the QoS depth of them wait while it runs: a newer one drops the oldest, counted in
+        ``dropped``); an exception it raises is logged once and counted (``callback_errors``), never
+        propagated. A payload over ``max_bytes`` is not copied out of Zenoh (a 400 MB one would
+        double the memory it takes): ``on_oversize(its size)`` is called in place of ``callback``."""
         self._check_open()
         subscriber = Ros2Subscriber(self._session, self.format, self.info, _next_entity_id(),
                                     qualify(self.namespace, topic), msgtype, callback, qos_profile(qos),

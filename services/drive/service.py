@@ -7,8 +7,8 @@ per decision on ``cogexplore/@robot/<robot>/diagnostics``, resets the policy on
 process is about to exit, before its session closes.
 
 Images are decided on a thread of their own, the newest first: one waits while the policy decides,
-and a newer one replaces it (Zenoh queues a Python callback's samples without bound, so a node
-slower than its camera decided on ever older images). A policy that stalls holds neither the
+and a newer one replaces it (a subscriber's callback that decided in place took its images in
+order, so a node slower than its camera decided on ever older images). A policy that stalls holds neither the
 watchdog nor the exit stop: they stop the robot without it.
 """
 

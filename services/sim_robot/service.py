@@ -12,6 +12,10 @@ Two clocks:
   commands come; a zero twist drives nothing and publishes the image again (how a drive node
   that started first, and is stopped by its watchdog, gets its first image).
 
+Either way only the newest command waits to be taken: one that a newer replaces first is counted
+as a ``superseded`` reject (a flood of commands from anyone on the router neither grows a queue nor
+drives stale commands ahead of the newest).
+
 A collision (the task's rule: the body touches, or the nearest depth falls below the collision
 distance) ends the episode: the robot holds still and says so until a put on
 ``cogexplore/@robot/<robot>/reset`` puts it back at its start pose.
@@ -26,7 +30,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import logging
-import queue
 import threading
 import time
 
@@ -91,7 +94,9 @@ class SimRobot:
         self.image_pub = self.node.publisher(qualify(ns, args.image_topic), IMAGE, qos="sensor_data")
         self.odom_pub = self.node.publisher(qualify(ns, args.odom_topic), ODOMETRY, qos="default")
         self.status_pub = session.declare_publisher(self.keys.status)
-        self.commands: queue.Queue[tuple[float, float, float]] = queue.Queue(maxsize=1000)
+        self.command: tuple[float, float, float] | None = None
+        """The newest cmd_vel not yet taken (linear, angular, arrival): only the newest counts."""
+        self.command_ready = threading.Condition()
         self.cmd_sub = self.node.subscriber(qualify(ns, args.cmd_vel_topic), TWIST, self.on_twist, qos="default")
         self.reset_requested = threading.Event()
         self.reset_sub = session.declare_subscriber(self.keys.reset, lambda _s: self.reset_requested.set())
@@ -110,10 +115,22 @@ class SimRobot:
         except Ros2MessageError as exc:
             self.rejects.reject(exc)
             return
-        try:
-            self.commands.put_nowait((linear, angular, time.monotonic()))
-        except queue.Full:
-            self.rejects.reject(Ros2MessageError("overflow", "the command queue is full"))
+        with self.command_ready:
+            superseded = self.command is not None
+            self.command = (linear, angular, time.monotonic())
+            self.command_ready.notify()
+        if superseded:
+            self.rejects.reject(Ros2MessageError("superseded", "a newer cmd_vel came before it was taken "
+                                                               "(only the newest is driven)"))
+
+    def take_command(self, timeout_s: float) -> tuple[float, float, float] | None:
+        """The newest command not yet taken, waiting up to ``timeout_s`` for one (None: none came)."""
+        with self.command_ready:
+            if self.command_ready.wait_for(lambda: self.command is not None, timeout_s):
+                command, self.command = self.command, None
+                self.commands_taken += 1
+                return command
+        return None
 
     # -- the episode ----------------------------------------------------------------------
     def reset(self) -> None:
@@ -148,7 +165,16 @@ class SimRobot:
         self.status_pub.put(SimRobotStatus(
             robot=self.args.robot, world=self.env.world.name, episode=self.episode, step=self.step, x=x, y=y,
             yaw=yaw, linear_mps=linear, angular_rps=angular, collided=self.collision_cause is not None,
-            collision_cause=self.collision_cause, commands=self.commands_taken, rejects=self.rejects.counts).encode())
+            collision_cause=self.collision_cause, commands=self.commands_taken,
+            rejects=self.command_rejects()).encode())
+
+    def command_rejects(self) -> dict[str, int]:
+        """cmd_vel messages refused so far by cause; those the subscription dropped for a newer one
+        before they were even read are superseded too."""
+        counts = self.rejects.counts
+        if dropped := self.cmd_sub.dropped:
+            counts["superseded"] = counts.get("superseded", 0) + dropped
+        return counts
 
     def run(self, stop: threading.Event) -> None:
         self.reset()
@@ -161,22 +187,16 @@ class SimRobot:
                 self.reset_requested.clear()
                 self.reset()
             if self.args.lockstep:
-                try:
-                    linear, angular, _t = self.commands.get(timeout=0.05)
-                except queue.Empty:
+                command = self.take_command(0.05)
+                if command is None:
                     continue
-                self.commands_taken += 1
+                linear, angular, _t = command
                 if (linear == 0.0 and angular == 0.0) and self.collision_cause is None:
                     self.publish()  # a stop: no time passes, the image again
                 else:  # a collided robot's stops (all a driver sends it) count, so --max-periods ends the run
                     self.drive(linear, angular)
                 continue
-            while True:  # real time: the newest command wins
-                try:
-                    latest = self.commands.get_nowait()
-                    self.commands_taken += 1
-                except queue.Empty:
-                    break
+            latest = self.take_command(0.0) or latest  # real time: the newest command is held
             wait = next_tick - time.monotonic()
             if wait > 0:
                 stop.wait(wait)

@@ -84,7 +84,7 @@ def wait_for_twist(robot: Robot, image: bytes, moving: bool = False) -> None:
 
 @pytest.mark.timeout(120)
 def test_a_flood_of_images_never_queues_and_commands_come_from_the_newest(loopback_router, policy, start_image):
-    # Zenoh hands samples to a Python callback through an unbounded queue: a node slower than its
+    # Zenoh hands samples to a Python callback in order, through a queue: a node slower than its
     # camera decided on ever older images (9 s old after 500 of them), and measured its latency from
     # the moment each left the queue, so the diagnostics said nothing of it.
     slow = Slow(policy, 0.05)
