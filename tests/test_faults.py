@@ -147,6 +147,7 @@ def test_outsiders_get_no_session(system: System, tmp_path: Path):
     wrong = json.loads(system.files.config("actor").read_text())
     wrong["transport"]["auth"]["usrpwd"]["password"] = "guess"
     (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+    (tmp_path / "wrong.json5").chmod(0o600)  # a password file others may read is refused before it is tried
     with pytest.raises(TransportError):
         open_session(ZenohSettings(connect=(system.endpoint,), config_file=str(tmp_path / "wrong.json5")))
 

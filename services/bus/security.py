@@ -14,8 +14,12 @@
                               with --tls: the run's own CA and the certificates it signed (the
                               router's for --host names, each role's with the role as common name)
 
-Every file is readable by its owner only (0600). The access control list starts from
-``default_permission: "deny"`` and allows each role exactly its part of the run's key space
+Every file is readable by its owner only (0600), and a service refuses a secret (every file but the
+certificates, ``*.pem``) that group or others may read or write, as ssh refuses such a key: one copied
+with a umask of 022 would give the run's passwords to every user of the machine.
+
+The access control list starts from ``default_permission: "deny"`` and allows each role exactly
+its part of the run's key space
 (``cogexplore/<run>/...``): only the learner puts weights and flow control, answers the weights
 and configuration queries and declares the learner's liveliness token; actors only put transitions
 and episode stats and declare their own liveliness; the evaluator only reads weights (and flow control, the learner's pulse) and writes
@@ -46,6 +50,7 @@ import ipaddress
 import json
 import os
 import secrets
+import stat
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -58,19 +63,34 @@ from shared.wire.keys import ROOT, validate_name
 DEFAULT_HOSTS: tuple[str, ...] = ("localhost", "127.0.0.1", "::1")
 """Names the router's TLS certificate is valid for, besides any --host."""
 CERT_DAYS = 365
-PATH_KEYS: tuple[str, ...] = (
+SECRET_PATH_KEYS: tuple[str, ...] = (
     "transport/auth/usrpwd/dictionary_file",
-    "transport/link/tls/root_ca_certificate",
-    "transport/link/tls/listen_certificate",
     "transport/link/tls/listen_private_key",
-    "transport/link/tls/connect_certificate",
     "transport/link/tls/connect_private_key",
 )
+"""Config entries that name secret files (the router's passwords, private keys): :func:`check_private`."""
+PATH_KEYS: tuple[str, ...] = (
+    *SECRET_PATH_KEYS,
+    "transport/link/tls/root_ca_certificate",
+    "transport/link/tls/listen_certificate",
+    "transport/link/tls/connect_certificate",
+)
 """Config entries that name files (a relative one is taken relative to its config file)."""
+PASSWORD_KEY = "transport/auth/usrpwd/password"
+"""The config entry that makes a config file a secret itself."""
 
 
 class SecurityError(CogexploreError):
-    """Security files that are missing, incomplete or of another run."""
+    """Security files that are missing, incomplete, of another run or open to other users."""
+
+
+def check_private(path: str | Path) -> None:
+    """Raise SecurityError when group or others may read or write the secret file ``path`` (a
+    password, a private key): what init and export write is 0600."""
+    mode = stat.S_IMODE(os.stat(path).st_mode)
+    if mode & 0o077:
+        raise SecurityError(f"{path} holds secrets but other users may read or write it (mode {mode:04o}): "
+                            f"run `chmod 600 {path}`")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -178,6 +198,8 @@ class SecureFiles:
     def _credentials(self, fix: str = "") -> dict[str, Any]:
         """The credentials file's content; SecurityError naming ``secure init`` (with ``fix``) when
         it is missing or unreadable."""
+        if self.credentials.is_file():
+            check_private(self.credentials)  # not in the try below: a SecurityError is a ValueError
         try:
             content = json.loads(self.credentials.read_text())
             if not isinstance(content, dict):
@@ -380,9 +402,18 @@ def export_role(root: str | Path, role: str, out: str | Path) -> list[Path]:
     missing = [n for n in names if not (files.root / n).is_file()]
     if missing:
         raise SecurityError(f"{files.root} lacks {', '.join(missing)}: run `cogexplore secure init {files.root}`")
+    for n in names:
+        if not n.endswith(".pem"):  # a certificate is public, the rest secret
+            check_private(files.root / n)
     target = Path(out)
     target.mkdir(parents=True, exist_ok=True)
-    os.chmod(target, 0o700)
+    if stat.S_IMODE(target.stat().st_mode) & 0o077:
+        # a folder of its own is closed to others; one that holds more (`--out .`, `--out /tmp` as root)
+        # is not the export's to chmod
+        if any(p.name not in names for p in target.iterdir()):
+            raise SecurityError(f"{target} is a folder other users may open, with other files in it: export to "
+                                "a new folder (it is made readable by its owner only)")
+        os.chmod(target, 0o700)
     written = []
     for n in names:
         _write_private(target / n, (files.root / n).read_bytes())

@@ -46,7 +46,14 @@ from services.bus import (
     ENV_ROUTER_WAIT,
     MODES,
 )
-from services.bus.security import PATH_KEYS, SecureFiles
+from services.bus.security import (
+    PASSWORD_KEY,
+    PATH_KEYS,
+    SECRET_PATH_KEYS,
+    SecureFiles,
+    SecurityError,
+    check_private,
+)
 from services.runs import run_paths
 from shared.config import parse_number
 from shared.errors import CogexploreError, StopRequested
@@ -132,6 +139,10 @@ class ZenohSettings:
                 self.router_wait_s, f"the router wait (--router-wait, {ENV_ROUTER_WAIT})", unit="of seconds"))
         except CogexploreError as exc:
             raise TransportConfigError(str(exc)) from None
+        if self.config_file is not None:
+            # now, in the thread that builds the settings: a missing, invalid or exposed file was a
+            # traceback in the first background thread to open a session (an actor's run-config check)
+            self._base_config()
 
     @classmethod
     def from_env(cls, environ: Mapping[str, str] | None = None, *, overrides: Mapping[str, object] | None = None,
@@ -187,15 +198,23 @@ class ZenohSettings:
             config = zenoh.Config.from_file(str(path))
         except Exception as exc:  # zenoh raises its own ZError for parse errors
             raise TransportConfigError(f"Zenoh config file {path} is invalid: {exc}") from None
-        # Files it names relative to itself (services.bus.security writes them so, for a folder that
-        # can be copied to another machine as it is); Zenoh would read them relative to the cwd.
+        # Secrets (a password, the router's passwords, a private key) other users may read are refused, as
+        # ssh refuses such a key; certificates are public.
+        if isinstance(_json_value(config, PASSWORD_KEY), str):
+            _check_secret(path)
         for key in PATH_KEYS:
             value = _json_value(config, key)
-            if isinstance(value, str) and value and not Path(value).is_absolute():
-                named = path.parent / value
+            if not (isinstance(value, str) and value):
+                continue
+            named = path.parent / value  # an absolute value stays as it is
+            # Files it names relative to itself (services.bus.security writes them so, for a folder that
+            # can be copied to another machine as it is); Zenoh would read them relative to the cwd.
+            if not Path(value).is_absolute():
                 if not named.is_file():
                     raise TransportConfigError(f"Zenoh config file {path}: {key} names {named}, which does not exist")
                 config.insert_json5(key, json.dumps(str(named.resolve())))
+            if key in SECRET_PATH_KEYS and named.is_file():
+                _check_secret(named)
         return config
 
     def to_config(self) -> zenoh.Config:
@@ -223,6 +242,13 @@ class ZenohSettings:
         if self.config_file:
             parts.append(f"config={self.config_file}")
         return " ".join(parts)
+
+
+def _check_secret(path: Path) -> None:
+    try:
+        check_private(path)
+    except SecurityError as exc:  # one kind of error for a bad config file, which callers catch
+        raise TransportConfigError(str(exc)) from None
 
 
 def _json_value(config: zenoh.Config, key: str) -> object:

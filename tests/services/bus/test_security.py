@@ -17,6 +17,7 @@ from services.bus.options import add_secure_init_arguments
 from services.bus.security import SecureFiles, SecurityError, export_role, init_secure, run_secure_init
 from services.bus.session import (
     LivelinessWatch,
+    TransportConfigError,
     TransportError,
     ZenohSettings,
     declare_alive,
@@ -68,6 +69,12 @@ def bus(tmp_path: Path):
     b.close()
 
 
+def write_secret(path: Path, config: dict) -> None:
+    """A client config with a password, private as a service requires."""
+    path.write_text(json.dumps(config))
+    path.chmod(0o600)
+
+
 def settle(predicate=lambda: False, timeout_s: float = 1.5) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline and not predicate():
@@ -105,7 +112,7 @@ def test_no_credentials_or_a_wrong_password_get_no_session(bus: Bus, tmp_path: P
         bus.open()  # no credentials
     wrong = json.loads(bus.files.config("actor").read_text())
     wrong["transport"]["auth"]["usrpwd"]["password"] = "guess"
-    (tmp_path / "wrong.json5").write_text(json.dumps(wrong))
+    write_secret(tmp_path / "wrong.json5", wrong)
     with pytest.raises(TransportError):
         bus.open(config=tmp_path / "wrong.json5")
 
@@ -183,7 +190,7 @@ def test_tls_with_client_certificates(tmp_path: Path):
         for key in ("connect_certificate", "connect_private_key"):
             no_cert["transport"]["link"]["tls"].pop(key)
         no_cert["transport"]["link"]["tls"]["root_ca_certificate"] = str(bus.files.root / "ca.pem")
-        (tmp_path / "no-cert.json5").write_text(json.dumps(no_cert))
+        write_secret(tmp_path / "no-cert.json5", no_cert)
         with pytest.raises(TransportError):
             bus.open(config=tmp_path / "no-cert.json5")  # the right password is not enough without a certificate
         # the actor's password with the evaluator's certificate: a session, but not the actor's part
@@ -192,7 +199,7 @@ def test_tls_with_client_certificates(tmp_path: Path):
             {"root_ca_certificate": str(bus.files.root / "ca.pem"),
              "connect_certificate": str(bus.files.root / "evaluator.pem"),
              "connect_private_key": str(bus.files.root / "evaluator.key")})
-        (tmp_path / "mixed.json5").write_text(json.dumps(mixed))
+        write_secret(tmp_path / "mixed.json5", mixed)
         impostor = bus.open(config=tmp_path / "mixed.json5")
         impostor.put(KEYS.transitions("a2"), b"impostor")
         settle(timeout_s=1.0)
@@ -321,3 +328,62 @@ def test_a_file_or_link_left_where_a_secret_is_written_is_replaced_not_written_t
     assert outside.read_text() == "", "the passwords went where the link pointed"
     for path in files.root.iterdir():
         assert stat.S_IMODE(path.lstat().st_mode) == 0o600 and not path.is_symlink(), path.name
+
+
+def test_a_secret_other_users_may_read_is_refused_in_one_line_and_a_certificate_is_not(tmp_path: Path, capsys):
+    # Like ssh with a private key: a secret copied with a umask of 022 (or chmod 644) gives the run's
+    # passwords to every user of the machine; a service used it all the same.
+    from services.cli import main
+
+    files = init_secure(tmp_path / "secure", RUN, tls=True)
+    bundle = tmp_path / "bundle"
+    export_role(files.root, "actor", bundle)
+    actor = ZenohSettings(config_file=str(bundle / "actor.json5"))
+    router = ZenohSettings(mode="router", config_file=str(files.router_config))
+    for public in (bundle / "ca.pem", bundle / "actor.pem", files.root / "router.pem", files.root / "ca.pem"):
+        public.chmod(0o644)  # certificates are public: what init and export write, as they are, passes
+    files.check(RUN, tls=True)
+    actor.to_config()
+    router.to_config()
+    export_role(files.root, "actor", bundle)
+    uses = {files.credentials: lambda: files.check(RUN), bundle / "actor.json5": actor.to_config,
+            bundle / "actor.key": actor.to_config, files.root / "users.txt": router.to_config,
+            files.root / "router.key": router.to_config, files.root / "actor.key": lambda: export_role(
+                files.root, "actor", tmp_path / "again")}
+    for secret, use in uses.items():
+        for mode in (0o644, 0o640, 0o602):  # others or the group may read it, or others may write it
+            secret.chmod(mode)
+            with pytest.raises((SecurityError, TransportConfigError)) as refused:
+                use()
+            assert str(refused.value).startswith(f"{secret} holds secrets"), mode
+            assert str(refused.value).endswith(f"run `chmod 600 {secret}`"), mode
+        secret.chmod(0o600)
+    assert not (tmp_path / "again").exists(), "a refused export writes nothing"
+    (bundle / "actor.key").chmod(0o644)
+    with pytest.raises(TransportConfigError, match="actor.key holds secrets"):
+        # where the settings are made: it was a traceback in an actor's first thread to open a session
+        ZenohSettings(config_file=str(bundle / "actor.json5"))
+    (files.root / "actor.json5").chmod(0o644)
+    code = main(["secure", "export", str(files.root), "--role", "actor", "--out", str(tmp_path / "again")])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and f"chmod 600 {files.root / 'actor.json5'}" in err
+
+
+def test_export_closes_a_folder_of_its_own_and_refuses_one_that_holds_other_files(tmp_path: Path):
+    files = init_secure(tmp_path / "secure", RUN)
+    bundle = tmp_path / "bundle"
+    bundle.mkdir(mode=0o755)
+    export_role(files.root, "actor", bundle)
+    assert stat.S_IMODE(bundle.stat().st_mode) == 0o700, "the bundle's names are others' to list"
+    bundle.chmod(0o755)
+    export_role(files.root, "actor", bundle)  # again, over its own files
+    assert stat.S_IMODE(bundle.stat().st_mode) == 0o700
+    # `--out .` or `--out /tmp` as root: chmod 700 on the user's folder, or the machine's
+    shared = tmp_path / "shared"
+    shared.mkdir(mode=0o1777)
+    shared.chmod(0o1777)
+    (shared / "someone-elses").write_text("x")
+    with pytest.raises(SecurityError, match="other files in it: export to a new folder"):
+        export_role(files.root, "actor", shared)
+    assert stat.S_IMODE(shared.stat().st_mode) == 0o1777 and sorted(p.name for p in shared.iterdir()) == [
+        "someone-elses"]

@@ -166,6 +166,7 @@ def test_a_service_finds_its_runs_credentials_unless_told_others(tmp_path: Path,
     assert zenoh_settings(parser.parse_args(argv), "evaluator").config_file == str(files.config("evaluator"))
     assert zenoh_settings(parser.parse_args(argv)).config_file is None  # no role, no search
     other = tmp_path / "other.json5"
+    other.write_text("{}")  # a file that is not there is refused where the settings are made
     assert zenoh_settings(parser.parse_args([*argv, "--zenoh-config", str(other)]), "actor").config_file == str(other)
     monkeypatch.setenv("COGEXPLORE_ZENOH_CONFIG", str(other))
     assert zenoh_settings(parser.parse_args(argv), "actor").config_file == str(other)
