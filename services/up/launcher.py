@@ -81,6 +81,22 @@ class Child:
     logfile: Path
     log_start: int = 0
     """Where this process's output begins in ``logfile`` (a resumed run's logs are appended to)."""
+    sent: signal.Signals | None = None
+    """The last signal the launcher sent it to stop it: SIGTERM, then SIGKILL where it did not stop in time."""
+    kill_asked: bool = False
+    """Killed at a second stop signal: the user asked for it, up said so."""
+    said: bool = False
+    """Its exit was said while the run went on."""
+
+    def send(self, signum: signal.Signals) -> None:
+        """Send it ``signum`` to stop it, and remember it (how it ended is judged by what it was sent)."""
+        self.sent = signum
+        self.process.send_signal(signum)
+
+    def ended_while_starting(self) -> bool:
+        """Ended by up's SIGTERM before its own handler was in place (a service stops cleanly on it
+        once it is): stopped while it was still starting, nothing of its work lost."""
+        return self.sent == signal.SIGTERM and self.process.returncode == -signal.SIGTERM
 
     def exited(self) -> str | None:
         """None while the process runs; else its exit code and the last line it logged."""
@@ -415,14 +431,14 @@ class Launcher:
         """SIGTERM the given roles, wait, then SIGKILL whatever is left."""
         targets = [c for c in self.children if c.role in roles and c.process.poll() is None]
         for c in targets:
-            c.process.send_signal(signal.SIGTERM)
+            c.send(signal.SIGTERM)
         deadline = time.monotonic() + timeout_s
         for c in targets:
             try:
                 c.process.wait(max(0.1, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 log.warning("%s did not stop in %.0f s: killing it", c.name, timeout_s)
-                c.process.kill()
+                c.send(signal.SIGKILL)
                 c.process.wait()
 
     # -- the run ---------------------------------------------------------------------------
@@ -447,7 +463,6 @@ class Launcher:
             bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True, disable=a.quiet,
                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} upd [{elapsed}{postfix}]")
             reason = "done"
-            gone: set[str] = set()  # actors and the evaluator that exited, said once each
             try:
                 while True:
                     if stop.is_set():
@@ -473,8 +488,8 @@ class Launcher:
                         reason = f"failed: {last.name}"  # the learner would wait for transitions forever
                         break
                     for c in self.children:
-                        if c.role in ("actor", "evaluator") and c.name not in gone and (why := c.exited()):
-                            gone.add(c.name)
+                        if c.role in ("actor", "evaluator") and not c.said and (why := c.exited()):
+                            c.said = True
                             # the evaluator's figures are a curve: the final evaluation is up's own
                             goes_on = ("without its curve" if c.role == "evaluator" else
                                        f"with {len(self._alive('actor'))} actor(s) of this machine")
@@ -534,7 +549,8 @@ class Launcher:
                   "saved stays)", file=sys.stderr)
             for c in self.children:
                 if c.process.poll() is None:
-                    c.process.kill()
+                    c.kill_asked = True
+                    c.send(signal.SIGKILL)
 
         with stop_signals_handled(on_stop_signal):
             try:
@@ -550,6 +566,12 @@ class Launcher:
                 self.stop(("actor", "evaluator"))
                 self.stop(("router",))
         print(f"run {self.run!r} ended: {reason}", file=sys.stderr)
+        return self.finish(reason)
+
+    def finish(self, reason: str) -> int:
+        """What follows the services' stop: how they ended said where it went wrong, the final evaluation
+        and report, and up's exit status (``reason``: :meth:`monitor`'s)."""
+        a = self.args
         # A learner stopped here (Ctrl-C, --minutes, its actors gone) writes its final checkpoint on its
         # way out: a non-zero exit then means that checkpoint is missing or torn, whatever the reason.
         final_failed = self._final_checkpoint_failed(reason)
@@ -558,9 +580,10 @@ class Launcher:
             child = next((c for c in self.children if c.name == who), None)
             why = child.exited() if child is not None else None
             print(why or f"see {self.paths.logs / (who + '.log')}", file=sys.stderr)
-            return 1
+            return 1  # the others' exits at the stop would only echo this failure (a router gone takes them all)
+        stop_failed = self._stop_failed()
         if a.no_report:
-            return 1 if final_failed else 0
+            return 1 if final_failed or stop_failed else 0
         if not checkpoint_updates(self.paths):  # none, or the learner's at update 0 (stopped in its warm-up)
             print(f"run {self.run!r} has no trained checkpoint yet: no final evaluation or report", file=sys.stderr)
             return 130 if reason == "interrupted" else 1
@@ -568,15 +591,38 @@ class Launcher:
             print(f"run {self.run!r}: the final evaluation and report are of its last checkpoint that was saved",
                   file=sys.stderr)
         code = self.final_report()
-        return code or (1 if final_failed else 0)
+        return code or (1 if final_failed or stop_failed else 0)
 
     def _final_checkpoint_failed(self, reason: str) -> bool:
         """Whether the learner, stopped by up, exited other than cleanly (said in one line)."""
         learner = next((c for c in self.children if c.role == "learner"), None)
         if learner is None or reason == "failed: learner" or learner.process.returncode == 0:
             return False  # a learner that failed on its own is reported as the run's failure
+        if learner.ended_while_starting():
+            return False  # no update yet: a checkpoint to write, none to lose
         print(f"run {self.run!r}: its final checkpoint failed: {learner.exited()}", file=sys.stderr)
         return True
+
+    def _stop_failed(self) -> bool:
+        """Whether an actor or the evaluator failed at the run's stop; each that did not end as asked is
+        said in one line. A crash on its way out (a non-zero exit, a signal up did not send) fails the run:
+        the evaluator's last evaluation, an actor's statistics or recording may be missing or torn. Up's own
+        SIGKILL after the grace period does not: the learner, stopped first, has its final checkpoint, and
+        what a hung service loses (its episode or evaluation in progress) a clean stop drops as well."""
+        failed = False
+        for c in self.children:
+            code = c.process.returncode
+            if c.role not in ("actor", "evaluator") or c.said or not code or c.kill_asked:
+                continue  # running on (not stopped), fine, said while the run went on, or killed as the user asked
+            if c.ended_while_starting():
+                continue
+            if c.sent == signal.SIGKILL and code == -signal.SIGKILL:
+                print(f"run {self.run!r}: at its stop {c.exited()}; up killed it, it did not stop in time "
+                      "(the run does not fail for it)", file=sys.stderr)
+                continue
+            print(f"run {self.run!r}: at its stop {c.exited()}", file=sys.stderr)
+            failed = True
+        return failed
 
     def final_model(self) -> Path:
         """What the final evaluation and report play: the mean of the run's last ``--final-average``

@@ -139,3 +139,58 @@ def test_a_process_that_cannot_be_started_leaves_no_log_file_open(tmp_path: Path
         assert launcher.paths.logs / "router.log" not in opened and failed.traceback
     finally:
         launcher.close()
+
+
+# How each stand-in service meets up's SIGTERM: it says "ready" once its handler is in place.
+_AT_SIGTERM = {
+    "clean": "signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))",
+    "starting": "",  # no handler yet (still importing): SIGTERM ends it
+    "traceback": "signal.signal(signal.SIGTERM, lambda *_: exec('raise RuntimeError(\"no room for its last row\")'))",
+    "exit 3": "signal.signal(signal.SIGTERM, lambda *_: sys.exit(3))",
+    "hung": "signal.signal(signal.SIGTERM, signal.SIG_IGN)",
+}
+
+
+@pytest.mark.parametrize("evaluator, code", [("traceback", 1), ("hung", 0), ("exit 3", 1)])
+def test_an_actor_or_evaluator_that_fails_at_the_stop_is_said_and_a_crash_fails_the_run(
+        tmp_path: Path, capsys, evaluator: str, code: int) -> None:
+    # up stopped them and exited 0 whatever they exited with: only the learner's exit was looked at
+    import argparse
+
+    from services.up.launcher import Child, Launcher
+    from services.up.options import add_up_arguments
+
+    parser = argparse.ArgumentParser()
+    add_up_arguments(parser)
+    launcher = Launcher(parser.parse_args(["--run", RUN, "--runs-dir", str(tmp_path), "--quiet", "--no-report"]))
+    try:
+        for role, name, how in (("learner", "learner", "starting"), ("actor", "actor-0", "clean"),
+                                ("actor", "actor-1", "starting"),
+                                ("actor", "actor-2", "hung"), ("evaluator", "evaluator", evaluator)):
+            log = tmp_path / f"{name}.log"
+            with open(log, "wb") as out:
+                script = "; ".join(filter(None, ("import signal, sys, time", _AT_SIGTERM[how],
+                                                 "print('ready')", "time.sleep(30)")))
+                launcher.children.append(Child(role, name, subprocess.Popen(
+                    [sys.executable, "-u", "-c", script], stdout=out, stderr=subprocess.STDOUT), log))
+        deadline = time.monotonic() + 10
+        while not all("ready" in c.logfile.read_text() for c in launcher.children) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        launcher.stop(("learner",), timeout_s=1.0)  # a Ctrl-C at once: no update yet, no checkpoint lost
+        launcher.stop(("actor", "evaluator"), timeout_s=1.0)
+        assert launcher.finish("time") == code
+    finally:
+        for c in launcher.children:
+            c.process.kill()
+            c.process.wait()
+        launcher.close()
+    err = capsys.readouterr().err
+    assert "final checkpoint failed" not in err
+    said = [line for line in err.splitlines() if "at its stop" in line]
+    killed = f"run {RUN!r}: at its stop its actor-2 was ended by SIGKILL: ready (see {tmp_path / 'actor-2.log'}); " \
+             "up killed it, it did not stop in time (the run does not fail for it)"
+    if evaluator == "hung":
+        assert said == [killed, killed.replace("actor-2", "evaluator")]
+        return
+    status = "exited (1): RuntimeError: no room for its last row" if evaluator == "traceback" else "exited (3): ready"
+    assert said == [killed, f"run {RUN!r}: at its stop its evaluator {status} (see {tmp_path / 'evaluator.log'})"]
