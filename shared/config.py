@@ -717,6 +717,10 @@ class ExploreConfig:
         _check(is_count(self.eps_decay_steps), s,
                "eps_decay_steps", self.eps_decay_steps, "an integer in [0, 2**63)")
         _check(isinstance(self.per_actor, bool), s, "per_actor", self.per_actor, "true or false")
+        # An epsilon that rises as training goes on is almost surely the two swapped; the schedule is
+        # not run with per_actor, nor with no decay (eps_end from the first step).
+        _check(self.per_actor or self.eps_decay_steps == 0 or self.eps_end <= self.eps_start, s, "eps_end",
+               self.eps_end, f"at most eps_start ({self.eps_start:g}): epsilon falls from eps_start to eps_end")
         _check(is_finite_number(self.apex_alpha) and self.apex_alpha >= 0, s, "apex_alpha", self.apex_alpha,
                "a number >= 0")
 

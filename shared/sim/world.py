@@ -26,7 +26,8 @@ import numpy as np
 from shared.config import PROCEDURAL_PREFIX, ROBOT_FIELDS, SPEED_TABLES, EnvConfig, SensorConfig, is_procedural_seed
 from shared.errors import CogexploreError
 from shared.sim import maps
-from shared.sim.robot import FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, Robot, build_model
+from shared.sim.robot import (FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, ROBOT_HEIGHT_M, Robot,
+                              build_model)
 from shared.sim.sensor import DepthCamera
 
 # 2 m: taller than any ray of the 0.35 m high camera climbs within its 4 m range, so every
@@ -678,8 +679,8 @@ def load_world_file(path: str | Path, name: str | None = None) -> World:
 
     Refused, besides what MuJoCo refuses: moving bodies, physics options that would reach the robot
     (:func:`_check_options`), geoms the robot or its camera would treat unlike an obstacle
-    (:func:`_check_geoms`), a non-finite start, a start whose heading is vertical, a 'floor' that is
-    no floor and text that is not UTF-8."""
+    (:func:`_check_geoms`), a non-finite start, a start whose heading is vertical, a start off the floor
+    or outside the walls that enclose the other starts, a 'floor' that is no floor and text that is not UTF-8."""
     try:
         return _load_world_file(Path(path), f"MJCF file '{path}'", name or str(path))
     except UnicodeDecodeError as exc:  # MuJoCo reads any bytes; its names and MJCF text come back as str
@@ -729,6 +730,10 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
             if math.hypot(xmat[0], xmat[3]) < _MIN_HEADING_XY:  # the heading would be rounding noise
                 raise WorldError(f"{label}: start site '{site}' has its x axis (the start's heading) pointing "
                                  "straight up or down; turn it about z only (euler=\"0 0 <degrees>\")")
+            z = float(data.site_xpos[i][2])
+            if not -FLOOR_TOLERANCE_M <= z <= MAX_START_HEIGHT_M:  # the robot starts on the floor whatever z says
+                raise WorldError(f"{label}: start site '{site}' is at z = {z:g}, off the floor the robot starts on: "
+                                 f"put it at z = 0 (at most {MAX_START_HEIGHT_M:g} m, the robot's top)")
             starts.append(start)
     if not starts:
         raise WorldError(f"{label} has no start sites: add sites named start_<something> "
@@ -754,11 +759,35 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
                                 rgba=[0.35, 0.35, 0.38, 1.0])
     world = World(name=name, mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file")
     validate_starts(world)
+    _check_starts_walled_in(world)
     return world
 
 
 _MIN_HEADING_XY = 1e-6
 """Least horizontal part of a start site's x axis from which its heading is read."""
+MAX_START_HEIGHT_M = ROBOT_HEIGHT_M + 0.01
+"""Highest z of a start site: the top of the robot standing on the floor (a site at its centre or
+top still marks where it stands; one above it is a misplaced site)."""
+
+
+def _check_starts_walled_in(world: World) -> None:
+    """WorldError naming the starts outside the walls that enclose the world's other starts: from
+    those the robot can drive off the map, from the others it cannot (the map spans the obstacles
+    and the starts, so a start beyond the walls stretches it to the start). A world whose starts
+    all reach the map's edge is an open floor, and none of its starts is refused."""
+    try:
+        grid = maps.occupancy_grid(world)
+    except maps.MapError:  # a world too wide for a map: the env names that itself when it needs one
+        return
+    labels, _ = maps.free_components(grid, EnvConfig().robot_radius_m)
+    edge = {int(v) for side in (labels[0], labels[-1], labels[:, 0], labels[:, -1]) for v in side} - {-1}
+    ix, iy = grid.world_to_cell([s.x for s in world.starts], [s.y for s in world.starts])
+    inside = grid.contains(ix, iy)  # a start on the map's own border may round onto the cell past it
+    reach_edge = [not inside[k] or int(labels[iy[k], ix[k]]) in edge for k in range(len(world.starts))]
+    if any(reach_edge) and not all(reach_edge):
+        outside = [f"'{s.name}' at ({s.x:g}, {s.y:g})" for s, out in zip(world.starts, reach_edge) if out]
+        raise WorldError(f"{world.label}: start site(s) {_listed(outside)} outside the walls that enclose its "
+                         "other starts (the robot could drive off the map from there): move them inside")
 
 
 # The <option> flags that would change whether the robot collides or moves (contacts, constraints,

@@ -154,3 +154,20 @@ def test_a_device_is_a_cuda_index_or_a_name(device: str) -> None:
     with pytest.raises(ConfigError, match=r"^\[train\] device = .* is invalid: 'auto', 'cpu', 'cuda' or 'cuda:<n>'"):
         RunConfig().with_overrides({"train.device": device})
     assert RunConfig().with_overrides({"train.device": "cuda:1"}).train.device == "cuda:1"
+
+
+def test_an_epsilon_that_would_rise_during_training_is_refused() -> None:
+    # eps_start 0.05 under the default eps_end 0.1 (a fine-tuning --set without eps_end) rose to 0.1
+    with pytest.raises(ConfigError, match=r"^\[explore\] eps_end = 0.1 is invalid: at most eps_start \(0.05\)"):
+        RunConfig().with_overrides({"explore.eps_start": 0.05})
+    cfg = RunConfig().with_overrides({"explore.eps_start": 0.05, "explore.eps_end": 0.05})
+    assert (cfg.explore.eps_start, cfg.explore.eps_end) == (0.05, 0.05)  # a constant epsilon is one
+    # where the schedule is not run, eps_start is not read: no error for it
+    for unused in ({"explore.per_actor": True}, {"explore.eps_decay_steps": 0}):
+        assert RunConfig().with_overrides({"explore.eps_start": 0.05, **unused}).explore.eps_end == 0.1
+
+
+def test_a_sensor_blind_nearer_than_the_collision_distance_is_a_real_kinects_and_accepted() -> None:
+    # A Kinect reads nothing nearer than about 0.5-0.8 m: with min_range_m past the collision distance
+    # the depth rule cannot fire, and a contact alone ends the episode (as on the real robot).
+    assert RunConfig().with_overrides({"sensor.min_range_m": 0.8}).sensor.min_range_m == 0.8

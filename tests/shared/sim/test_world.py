@@ -480,3 +480,53 @@ def test_a_start_site_whose_heading_points_up_or_down_is_refused(tmp_path, orien
     assert "start site 'start_tilted'" in str(err.value) and "straight up or down" in str(err.value)
     path = _write(tmp_path, "leaning.xml", '<site name="start_a" pos="0 -2 0" euler="0 60 90"/>')
     assert load_world(str(path)).starts[0].yaw == pytest.approx(math.pi / 2, abs=1e-6)  # a tilt keeps its heading
+
+
+@pytest.mark.parametrize("z", ["5", "-3", "0.5"])
+def test_a_start_site_off_the_floor_is_refused(tmp_path, z):
+    # only its x and y were read: a site 5 m up (a typo, a site meant for a camera) started the robot below it
+    path = _write(tmp_path, "high.xml", f'<site name="start_a" pos="0 -2 0" euler="0 0 90"/>'
+                                        f'<site name="start_up" pos="0 0 {z}"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    msg = str(err.value)
+    assert str(path) in msg and f"start site 'start_up' is at z = {z}, off the floor" in msg and "\n" not in msg
+    path = _write(tmp_path, "centred.xml", '<site name="start_a" pos="0 -2 0.15" euler="0 0 90"/>')
+    assert load_world(str(path)).starts[0].y == pytest.approx(-2.0)  # at the robot's centre it marks where it stands
+
+
+@pytest.mark.parametrize("pos", ["6 0 0", "20 20 0", "0 -3.5 0"])
+def test_a_start_site_outside_the_walls_is_refused(tmp_path, pos):
+    # the world's extent was stretched to take it in: the robot started on the open floor beyond the walls
+    path = _write(tmp_path, "outside.xml", f'<site name="start_a" pos="0 -2 0" euler="0 0 90"/>'
+                                           f'<site name="start_out" pos="{pos}" euler="0 0 -90"/>')
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    msg = str(err.value)
+    assert str(path) in msg and "start site(s) 'start_out' at (" in msg and "start_a" not in msg
+    assert "outside the walls that enclose its other starts" in msg and "\n" not in msg
+
+
+def test_an_open_floor_takes_starts_anywhere_around_its_obstacles(tmp_path):
+    # no walls enclose any start: every start reaches the map's edge, none lies outside the others' walls
+    path = tmp_path / "open.xml"
+    path.write_text('<mujoco><worldbody><geom type="cylinder" pos="0 0 1" size="0.3 1"/>'
+                    '<site name="start_a" pos="3 0 0" euler="0 0 90"/><site name="start_b" pos="-1 -5 0"/>'
+                    '</worldbody></mujoco>')
+    world = load_world(str(path))
+    assert [s.name for s in world.starts] == ["start_a", "start_b"]
+    assert world.extent == pytest.approx((-1.0, -5.0, 3.0, 0.3))
+
+
+def test_a_start_in_the_notch_of_an_l_shaped_room_is_outside_its_walls(tmp_path):
+    # within the walls' bounding box, yet on the open floor beyond them
+    walls = "".join(f'<geom type="box" pos="{x} {y} 1" size="{hx} {hy} 1"/>' for x, y, hx, hy in (
+        (0, -3, 3.05, 0.05), (-3, 0, 0.05, 3.05), (3, -1.5, 0.05, 1.55), (1.5, 0, 1.55, 0.05), (0, 1.5, 0.05, 1.55),
+        (-1.5, 3, 1.55, 0.05)))
+    path = tmp_path / "l-room.xml"
+    path.write_text(f'<mujoco><worldbody>{walls}<site name="start_in" pos="-1.5 -1.5 0"/>'
+                    '<site name="start_notch" pos="2 2 0" euler="0 0 90"/></worldbody></mujoco>')
+    with pytest.raises(WorldError, match=r"start site\(s\) 'start_notch' at \(2, 2\) outside the walls"):
+        load_world(str(path))
+    path.write_text(path.read_text().replace('pos="2 2 0"', 'pos="-1.5 1.5 0"'))  # the room's other arm
+    assert len(load_world(str(path)).starts) == 2
