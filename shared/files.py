@@ -17,13 +17,24 @@ TMP_MARK = ".tmp-"
 stale temporaries looks for."""
 
 
-def read_regular_file(path: str | Path) -> bytes:
+MAX_READ_BYTES = 256 * 2**20
+"""The largest user's file :func:`read_regular_file` reads by default: far more than a config, a
+card or a pointer holds, room for an evaluation's results with every trajectory or a long loss
+log, and less than a checkpoint or a video handed in by mistake."""
+
+
+def read_regular_file(path: str | Path, max_bytes: int = MAX_READ_BYTES) -> bytes:
     """The bytes of ``path``, a user's file: OSError for anything but a regular file (a folder, a
-    FIFO, whose read would wait for a writer that never comes, ``/dev/zero``, which never ends)."""
+    FIFO, whose read would wait for a writer that never comes, ``/dev/zero``, which never ends) and
+    for one over ``max_bytes``."""
     # non-blocking open: a FIFO with no writer opens at once, to be refused, instead of hanging here
     with open(path, "rb", opener=lambda name, flags: os.open(name, flags | os.O_NONBLOCK)) as fh:
-        if not stat.S_ISREG(os.fstat(fh.fileno()).st_mode):
+        info = os.fstat(fh.fileno())
+        if not stat.S_ISREG(info.st_mode):
             raise OSError(errno.EINVAL, "not a regular file")
+        if info.st_size > max_bytes:  # refused before it fills the memory, not after as invalid text
+            raise OSError(errno.EFBIG, f"too large: {info.st_size:,} bytes, over the limit of {max_bytes:,} "
+                                       "(a checkpoint or other big file where a text file was meant?)")
         return fh.read()
 
 

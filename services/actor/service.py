@@ -275,6 +275,14 @@ class LiveEpisodes:
                                  "path_length_m": info["path_length_m"]}, final_pose=info["pose"])
 
 
+def process_seed(run_seed: int, actor_index: int, actor_id: str, actor_epoch: int) -> int:
+    """The seed of an actor process's episodes (starts, exploration noise, the expert's draws): the
+    run's ``train.seed``, the actor's index and id, and the process's epoch, so that a restarted actor
+    (same id, same index) plays new episodes, not its predecessor's again into the same replay."""
+    key = f"{run_seed}/{actor_index}/{actor_id}/{actor_epoch}".encode()
+    return int.from_bytes(hashlib.sha256(key).digest()[:8], "big")
+
+
 def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading.Event, *,
               actor_index: int = 0, num_actors: int = 1, share_worlds: bool = True, batch_steps: int = 16,
               max_steps: int | None = None, seed: int | None = None, rerun_url: str | None = None,
@@ -284,11 +292,13 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
     ``share_worlds``: build only this actor's 1/``num_actors`` of the extra worlds (its index is its
     own: a hashed index may be another actor's too, and the worlds of an index no one has would
     never be played). ``rerun_url``: stream every ``rerun_every_episodes``-th episode live to that Rerun viewer.
-    ``tensorboard``: a folder for its episodes as TensorBoard events."""
+    ``tensorboard``: a folder for its episodes as TensorBoard events. ``seed``: of its episodes, fixed
+    (the same episodes every time); by default :func:`process_seed`, new for each process."""
     keys = RunKeys(run)
     device = resolve_device(cfg.train.device if cfg.train.device != "auto" else "cpu")
     torch.set_num_threads(1)  # several actors share the machine's cores with the learner
-    seed = cfg.train.seed * 1000 + actor_index + 1 if seed is None else seed
+    actor_epoch = new_epoch()  # this process: the learner's allowance for it starts from nothing
+    seed = process_seed(cfg.train.seed, actor_index, actor_id, actor_epoch) if seed is None else seed
     env = ExploreEnv(cfg.env, cfg.sensor)
     if share_worlds:
         env.share_extra_worlds(actor_index % num_actors, num_actors)  # a world costs ~0.2 s of CPU to build
@@ -299,7 +309,6 @@ def run_actor(cfg: RunConfig, run: str, actor_id: str, settings, stop: threading
                                  guide=guide, step_scale=num_actors)
     rejects = RejectCounter("weights or flow message", log)
     follower = WeightFollower(architecture_fingerprint(net), rejects, shapes=named_shapes(net))
-    actor_epoch = new_epoch()  # this process: the learner's allowance for it starts from nothing
     gate = FlowGate(actor_id, actor_epoch=actor_epoch)  # a bad flow message is counted once, by the follower
     counters = {"env_steps": 0, "episodes": 0, "batches": 0, "paused_s": 0.0, "throttled_s": 0.0,
                 "weights_loaded": 0}
@@ -399,10 +408,9 @@ def run_actor_command(args: argparse.Namespace) -> int:
     stop = stop_event_on_signals()
     if check is not None:
         check.start(settings, stop)  # a preset the run's data cannot use stops the actor
-    seed = cfg.train.seed * 1000 + (index if args.actor_index is not None else digest % 100_000) + 1
     counters = run_actor(cfg, args.run, actor_id, settings, stop, actor_index=index,
                          num_actors=args.num_actors, share_worlds=args.actor_index is not None, batch_steps=args.batch_steps, max_steps=args.max_steps,
-                         seed=seed, rerun_url=args.rerun_connect, rerun_every_episodes=args.rerun_every_episodes,
+                         rerun_url=args.rerun_connect, rerun_every_episodes=args.rerun_every_episodes,
                          rerun_image_every=args.rerun_image_every,
                          tensorboard=paths.tensorboard_folder(actor_id) if args.tensorboard else None)
     log.info("actor %s done: %s", actor_id, json.dumps(counters))  # one JSON line: scripts read it

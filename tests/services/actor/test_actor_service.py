@@ -31,10 +31,11 @@ def router() -> str:
 
 
 def play(router: str, run: str, max_steps: int, *, received: int = 0, overrides: dict | None = None,
-         batch_steps: int = 16) -> tuple[dict, list[TransitionBatch], list[EpisodeStats]]:
+         batch_steps: int = 16, seed: int | None = 3) -> tuple[dict, list[TransitionBatch], list[EpisodeStats]]:
     """run_actor for ``max_steps`` env steps, this test being its learner: alive, with all the credit
     it wants and ``received`` transitions of the run so far; returns its counters, the batches and
-    the episode stats it published (once they have all arrived)."""
+    the episode stats it published (once they have all arrived). ``seed``: the actor's (None: its own
+    process's, as the actor command leaves it)."""
     cfg = load_preset("smoke").with_overrides(overrides or {})
     settings = ZenohSettings(connect=(router,))
     keys = RunKeys(run)
@@ -57,7 +58,7 @@ def play(router: str, run: str, max_steps: int, *, received: int = 0, overrides:
         speaker = threading.Thread(target=speak_as_the_learner, daemon=True)
         speaker.start()
         try:
-            counters = run_actor(cfg, run, "a-1", settings, threading.Event(), max_steps=max_steps, seed=3,
+            counters = run_actor(cfg, run, "a-1", settings, threading.Event(), max_steps=max_steps, seed=seed,
                                  batch_steps=batch_steps)
             deadline = time.monotonic() + 20
             while (sum(b.steps for b in batches) < counters["env_steps"]
@@ -83,6 +84,19 @@ def test_epsilon_goes_on_from_the_runs_env_steps_not_from_this_process_start(rou
     # a fresh run (the learner has nothing yet) starts at eps_start, as before
     _, _, fresh = play(router, "eps-fresh", 60, received=0, overrides=overrides)
     assert fresh and fresh[0].epsilon > 0.99, [e.epsilon for e in fresh]
+
+
+def test_a_restarted_actor_plays_new_episodes_and_a_fixed_seed_the_same_ones(router: str) -> None:
+    """Two processes of one actor id (a restart by compose or up) start from other poses with other
+    noise: the replay gets no duplicate episodes. A seed given repeats its episodes exactly."""
+    def first_steps(run: str, seed: int | None) -> tuple[int, list, list]:
+        _, batches, _ = play(router, run, 16, seed=seed)
+        first = min(batches, key=lambda b: (b.episode, b.first_step))
+        return first.start_index, first.pose.tolist(), first.action.tolist()
+
+    first, restarted = first_steps("restart-1", None), first_steps("restart-2", None)
+    assert first != restarted, first
+    assert first_steps("fixed-1", 3) == first_steps("fixed-2", 3)
 
 
 def test_every_step_reaches_the_learner_including_the_last_partial_batch(router: str) -> None:
