@@ -137,16 +137,17 @@ class LearnerCore:
     # -- data in ---------------------------------------------------------------------------
     def add_transition(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
                        next_obs: np.ndarray | None, terminated: bool, truncated: bool,
-                       expert_action: int | None = None, safe_commands: int = 0) -> None:
+                       expert_action: int | None = None, safe_commands: int = 0, step: int | None = None) -> None:
         """Store one transition (ReplayError for a reward this task does not pay: one finite but huge
         reward, stored, would make every TD target it reaches huge). ``expert_action``: the expert's
         command in ``obs`` (``explore.expert_label_prob``), None: no label; ``safe_commands``: its
-        safe-set bitmask there (``explore.safe_label_prob``), 0: no mark."""
+        safe-set bitmask there (``explore.safe_label_prob``), 0: no mark; ``step``: its index in the
+        episode, which links it only to the stream's transition of the step before (None: any)."""
         if not self.cfg.env.pays(reward):
             raise ReplayError(f"reward {reward!r} is not one this task pays "
                               f"(it pays {self.cfg.env.describe_rewards()})")
         self.replay.add(stream_id, obs, action, reward, next_obs, terminated, truncated, expert_action=expert_action,
-                        safe_commands=safe_commands)
+                        safe_commands=safe_commands, step=step)
         self.received += 1
 
     def ingest(self, batch: TransitionBatch) -> int:
@@ -158,6 +159,7 @@ class LearnerCore:
         batch.require_frame_shape(self.cfg.sensor.height, self.cfg.sensor.width)
         env = self.cfg.env
         batch.require_physical(env, max_depth_mm=self._max_depth_mm)
+        # one chain per episode of an actor process; its steps tell the replay where a lost batch broke it
         stream = (batch.actor_id, batch.actor_epoch, batch.episode)
         last = batch.steps - 1
         labels = batch.expert_labels()
@@ -166,7 +168,7 @@ class LearnerCore:
             self.add_transition(stream, batch.depth_mm[i], int(batch.action[i]), float(batch.reward[i]),
                                 batch.next_depth(i), batch.terminated and i == last,
                                 batch.truncated and i == last, None if labels[i] < 0 else int(labels[i]),
-                                int(marks[i]))
+                                int(marks[i]), batch.first_step + i)
         record = self._record(batch.actor_id, batch.actor_epoch)
         record.received += batch.steps
         record.version = int(batch.policy_version[-1])  # its newest: a restarted learner's weights are lower

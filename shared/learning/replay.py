@@ -8,7 +8,9 @@ episode without a next frame, a truncation keeps one (it bootstraps). See ``byte
 Transitions arrive as streams: ``add(stream_id, ...)`` takes an id per actor/episode source, so
 interleaved streams from several actors keep their own episode chains. A stream's next
 transition reuses the previous next_obs frame when its obs is that same image (checked, so a lost
-transition never links the wrong frames). The per-stream chain (``next`` links) is what n-step
+transition never links the wrong frames) and, where the caller numbers its steps (``step``), when
+it is the step right after (a repeated image, an all-zero one beyond the sensor's range, could
+otherwise join two transitions across a lost one). The per-stream chain (``next`` links) is what n-step
 returns are computed from at sampling time, for any n. It also gives each transition its
 previous command (the action of its predecessor in the chain, -1 at an episode's start or after
 a broken link), and the ``MAX_ACTION_HISTORY`` commands before that (its predecessor's history,
@@ -180,7 +182,8 @@ class ReplayMemory:
         self._frames_written = 0
         self._transitions_added = 0
         self._num_valid = 0
-        self._streams: dict[Hashable, tuple[int, int]] = {}  # id -> (last tid, its next frame id)
+        # id -> (last tid, its next frame id, the step that continues it; -1: not numbered)
+        self._streams: dict[Hashable, tuple[int, int, int]] = {}
         self._rng = np.random.default_rng(seed)
         self._tree = SumTree(n) if cfg.prioritized else None
         self._max_priority = 1.0
@@ -245,14 +248,16 @@ class ReplayMemory:
     # ------------------------------------------------------------------ adding
     def add(self, stream_id: Hashable, obs: np.ndarray | None, action: int, reward: float,
             next_obs: np.ndarray | None, terminated: bool, truncated: bool = False, *,
-            expert_action: int | None = None, safe_commands: int = 0) -> int:
+            expert_action: int | None = None, safe_commands: int = 0, step: int | None = None) -> int:
         """Store one transition of stream ``stream_id``; returns its transition id.
 
         ``obs``/``next_obs`` are (H, W) float metres or uint16 millimetres. ``obs=None`` means
         "the previous next_obs of this stream" (compact streams). A collision (``terminated``)
         has no next frame: pass ``next_obs=None`` (a given one is ignored). A truncated
         transition needs its next_obs; after either, the stream's episode ends. ``expert_action``:
-        the expert's command in ``obs`` (a label for the large-margin loss), None: none.
+        the expert's command in ``obs`` (a label for the large-margin loss), None: none. ``step``:
+        the transition's index in its episode; given, it continues the stream's chain only from the
+        transition of ``step - 1`` (None: from the stream's last, its image permitting).
         """
         if not (isinstance(action, (int, np.integer)) and 0 <= int(action) < NUM_ACTIONS):
             raise ReplayError(f"action must be an integer in [0, {NUM_ACTIONS}), got {action!r}")
@@ -261,6 +266,8 @@ class ReplayMemory:
             raise ReplayError(f"expert_action must be None or an integer in [0, {NUM_ACTIONS}), got {expert_action!r}")
         if not (isinstance(safe_commands, (int, np.integer)) and 0 <= int(safe_commands) <= ALL_COMMANDS_MASK):
             raise ReplayError(f"safe_commands must be a bitmask in [0, {ALL_COMMANDS_MASK}], got {safe_commands!r}")
+        if step is not None and not (isinstance(step, (int, np.integer)) and step >= 0):
+            raise ReplayError(f"step must be None or an integer >= 0, got {step!r}")
         if not np.isfinite(reward):
             raise ReplayError(f"reward must be finite, got {reward!r}")
         if terminated and truncated:
@@ -270,19 +277,21 @@ class ReplayMemory:
         next_mm = None if terminated else self._check_frame(next_obs, "next_obs")
         writes = 0 if next_mm is None else 1
         state = self._streams.get(stream_id)
+        if state is not None and step is not None and state[2] != step:
+            state = None  # not the step after the stream's last: something between them was lost
         obs_fid = -1
         prev_tid = -1
         # reuse the stream's last frame only if it outlives this transition's own frame write
         if obs is None:
             if state is None or not self._frame_present(state[1], writes):
                 raise ReplayError(f"stream {stream_id!r}: obs=None needs an open episode whose last "
-                                  "frame is still stored")
-            prev_tid, obs_fid = state
+                                  "frame is still stored (and, with a step, ends at the one before)")
+            prev_tid, obs_fid = state[:2]
         else:
             obs_mm = self._check_frame(obs, "obs")
             if state is not None and self._frame_present(state[1], writes) and np.array_equal(
                     self._frames[state[1] % self.frame_capacity], obs_mm):
-                prev_tid, obs_fid = state
+                prev_tid, obs_fid = state[:2]
 
         tid = self._transitions_added
         slot = tid % self.capacity
@@ -322,7 +331,8 @@ class ReplayMemory:
         self._transitions_added += 1
         self._streams.pop(stream_id, None)
         if not (terminated or truncated):
-            self._streams[stream_id] = (tid, next_fid)  # last: the dict runs from the longest silent
+            # last: the dict runs from the longest silent
+            self._streams[stream_id] = (tid, next_fid, -1 if step is None else int(step) + 1)
             while len(self._streams) > MAX_OPEN_STREAMS:
                 del self._streams[next(iter(self._streams))]  # an episode silent that long: its chain ends
         return tid
@@ -522,7 +532,7 @@ class ReplayMemory:
             "frame_shape": list(self.frame_shape), "prioritized": self.cfg.prioritized,
             "frames_written": self._frames_written, "transitions_added": self._transitions_added,
             "num_valid": self._num_valid, "max_priority": self._max_priority,
-            "streams": [[_stream_key(k), int(v[0]), int(v[1])] for k, v in self._streams.items()],
+            "streams": [[_stream_key(k), *map(int, v)] for k, v in self._streams.items()],
             "rng": self._rng.bit_generator.state,
         }
         return arrays, meta
@@ -571,7 +581,9 @@ class ReplayMemory:
         self._transitions_added = int(meta["transitions_added"])
         self._num_valid = int(meta["num_valid"])
         self._max_priority = float(meta["max_priority"])
-        self._streams = {_stream_from_key(k): (int(t), int(f)) for k, t, f in meta["streams"]}
+        # saved before steps were kept: a numbered stream's next transition starts a new chain
+        self._streams = {_stream_from_key(k): (int(t), int(f), int(s[0]) if s else -1)
+                         for k, t, f, *s in meta["streams"]}
         self._rng.bit_generator.state = meta["rng"]
 
 

@@ -113,6 +113,26 @@ def test_a_restarted_actor_process_starts_a_fresh_count():
     assert core.received_by_actor == {"a": 1} and core.actor_epochs() == {"a": 2} and core.received == 4
 
 
+def test_ingest_links_a_batch_to_its_episode_only_as_the_direct_continuation():
+    def steps(first_step: int, actions: list[int], episode: int = 0) -> TransitionBatch:
+        # every image all zeros: open space beyond the sensor's range, the same at every step
+        n = len(actions)
+        return TransitionBatch.from_steps(actor_id="a", episode=episode, first_step=first_step, start_index=0,
+                                          depth=[_frame(0.0)] * n, next_depth=_frame(0.0), action=actions,
+                                          reward=[1.0] * n, policy_version=[0] * n, pose=[(0, 0, 0)] * n,
+                                          actor_epoch=7)
+
+    core = LearnerCore(load_preset("smoke"), device="cpu")
+    replay = core.replay
+    core.ingest(steps(0, [1, 2]))
+    core.ingest(steps(2, [3, 4]))  # the batch after: one chain, its first obs the frame already stored
+    core.ingest(steps(6, [0, 1]))  # steps 4-5 lost in transit: a new chain, though the images match
+    core.ingest(steps(0, [2], episode=1))  # the next episode starts its own
+    assert replay._frames_written == 3 + 2 + 3 + 2  # the linked batch alone reuses a frame
+    batch = replay._gather(np.arange(7), 3, np.ones(7, np.float32))
+    np.testing.assert_array_equal(batch.n_steps, [3, 3, 2, 1, 2, 1, 1])
+    np.testing.assert_array_equal(batch.previous_action[:, 0], [-1, 1, 2, 3, -1, 0, -1])
+
 @pytest.mark.parametrize("pipeline", [False, True])
 def test_transitions_with_a_non_finite_loss_leave_replay_and_the_learner_goes_on(pipeline: bool):
     cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 8, "dqn.batch_size": 8, "dqn.n_step": 1,

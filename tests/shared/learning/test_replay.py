@@ -128,6 +128,24 @@ def test_mismatched_obs_breaks_the_chain_instead_of_linking_wrong_frames():
         mem.add("new", None, 0, 1.0, frame(1), False)
 
 
+def test_numbered_steps_link_only_the_step_after_even_where_the_images_match():
+    mem = ReplayMemory(ReplayConfig(capacity=100), SHAPE)
+    zeros = frame(0)  # an all-zero image: open space beyond the sensor's range, seen again and again
+    mem.add("s", frame(5), 1, 1.0, zeros, False, step=0)
+    mem.add("s", zeros, 2, 1.0, zeros, False, step=1)  # the step after: it links, its obs frame shared
+    assert mem._frames_written == 3 and mem._prev_tid[1] == 0
+    mem.add("s", zeros, 3, 1.0, frame(9), False, step=3)  # step 2 was lost: a new chain, its own frame
+    assert mem._frames_written == 5 and mem._prev_tid[2] == -1 and mem._next_tid[1] == -1
+    assert mem._previous_action[2, 0] == -1
+    b = mem._gather(np.array([0, 1]), 3, np.ones(2, np.float32))
+    np.testing.assert_array_equal(b.n_steps, [2, 1])
+    with pytest.raises(ReplayError, match="open episode"):
+        mem.add("s", None, 0, 1.0, frame(9), False, step=5)  # obs=None cannot skip step 4 either
+    mem.add("s", None, 4, 1.0, frame(9), False, step=4)
+    assert mem._prev_tid[3] == 2 and mem._previous_action[3, 0] == 3
+    with pytest.raises(ReplayError, match="step"):
+        mem.add("s", zeros, 0, 1.0, zeros, False, step=-1)
+
 def test_bad_transitions_and_requests_are_rejected():
     mem = ReplayMemory(ReplayConfig(capacity=10), SHAPE)
     with pytest.raises(ReplayError, match="empty"):
@@ -235,6 +253,19 @@ def test_state_dict_round_trip_restores_contents_streams_and_rng():
     n = other._frames_written
     other.add(("actor", 1), frame(53), 0, 1.0, frame(54), False)
     assert other._frames_written == n + 1
+    # a numbered stream keeps its next step: restored, a gap still breaks its chain, the step after links
+    mem.add("n", frame(1), 0, 1.0, frame(2), False, step=6)
+    arrays, meta = mem.state_dict()
+    for step, linked in ((8, False), (7, True)):
+        other.load_state_dict(arrays, meta)
+        n = other._frames_written
+        other.add("n", frame(2), 0, 1.0, frame(3), False, step=step)
+        assert other._frames_written == n + 2 - linked
+    # saved before steps were kept: the step it continues from is unknown, so a numbered one starts anew
+    other.load_state_dict(arrays, {**meta, "streams": [row[:3] for row in meta["streams"]]})
+    n = other._frames_written
+    other.add("n", frame(2), 0, 1.0, frame(3), False, step=7)
+    assert other._frames_written == n + 2
     with pytest.raises(ReplayError, match="does not fit"):
         ReplayMemory(ReplayConfig(capacity=32, prioritized=True), SHAPE).load_state_dict(arrays, meta)
 
