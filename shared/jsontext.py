@@ -10,7 +10,11 @@ from pathlib import Path
 from typing import Any
 
 from shared.errors import CogexploreError
-from shared.files import read_regular_file
+from shared.files import MAX_READ_BYTES, read_regular_file
+
+SMALL_JSON_BYTES = 4 * 2**20
+"""The limit for a small JSON file (a model card, an experiment's state, a dataset's manifest): far
+more than one holds, so that a big file handed in by mistake is refused before it is parsed."""
 
 
 def _refuse_constant(name: str) -> Any:
@@ -40,11 +44,12 @@ def parse_json(data: str | bytes, what: str, error: type[CogexploreError] = Coge
 
 
 def read_json_file(path: Path | str, what: str, error: type[CogexploreError] = CogexploreError, *,
-                   allow_nan: bool = True) -> Any:
-    """The JSON document in ``path`` (see :func:`parse_json`); ``error`` when it cannot be read."""
+                   allow_nan: bool = True, max_bytes: int = MAX_READ_BYTES) -> Any:
+    """The JSON document in ``path`` (see :func:`parse_json`); ``error`` when it cannot be read or is
+    over ``max_bytes``."""
     path = Path(path)
     try:
-        data = read_regular_file(path)
+        data = read_regular_file(path, max_bytes)
     except OSError as exc:
         raise error(f"{what} {path} cannot be read: {exc.strerror or exc}") from None
     return parse_json(data, f"{what} {path}", error, allow_nan=allow_nan)

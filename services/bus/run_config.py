@@ -20,7 +20,7 @@ from services.bus.session import TransportError, ZenohSettings, open_service_ses
 from services.runs import RunPaths, resolve_config
 from shared.config import ConfigError, ConfigMismatchError, RunConfig, require_same_run
 from shared.wire.keys import RunKeys
-from shared.wire.messages import MessageError, RunConfigMessage
+from shared.wire.messages import OVERSIZE, MessageError, RejectCounter, RunConfigMessage
 
 log = logging.getLogger("cogexplore.config")
 
@@ -29,37 +29,47 @@ RETRY_S = 0.5
 PROGRESS_EVERY_S = 10.0
 
 
-def ask_run_config(session: zenoh.Session, keys: RunKeys,
-                   timeout_s: float = QUERY_TIMEOUT_S) -> RunConfigMessage | None:
+def config_rejects() -> RejectCounter:
+    """A counter for the skipped answers on the config key: one for all the asks of a wait, so that
+    answers from anyone, every retry, log one line per cause."""
+    return RejectCounter("config answer", log)
+
+
+def ask_run_config(session: zenoh.Session, keys: RunKeys, timeout_s: float = QUERY_TIMEOUT_S,
+                   rejects: RejectCounter | None = None) -> RunConfigMessage | None:
     """The learner's answer on ``keys.config``, or None when no learner answers.
 
     Every reply is read, not the first: without the access control anyone may answer too. A reply
     this build cannot read is skipped while another can be read (one only: another build of
     cogexplore, a ConfigError); readable replies that differ are refused (a ConfigError naming
-    both learners), never one of them taken on trust."""
+    both learners), never one of them taken on trust. Skipped replies are counted in ``rejects``
+    (a new counter when None)."""
+    rejects = rejects if rejects is not None else config_rejects()
     first: RunConfigMessage | None = None
     other: RunConfigMessage | None = None  # a readable answer that differs from the first
-    unreadable: MessageError | None = None  # the first answer this build cannot read
+    unreadable: list[MessageError] = []  # the answers this build cannot read
+
+    def oversize(size: int) -> None:
+        rejects.reject(MessageError(OVERSIZE, f"a {size}-byte answer, more than a configuration takes"), keys.config)
+
     for payload in query_replies(session, keys.config, RunConfigMessage.MAX_BYTES, timeout_s=timeout_s,
-                                 oversize=lambda size: log.warning("a %d-byte answer on %s: skipped", size,
-                                                                   keys.config)):
+                                 oversize=oversize):
         try:
             message = RunConfigMessage.decode(payload)
         except MessageError as exc:
-            unreadable = exc if unreadable is None else unreadable
+            unreadable.append(exc)
             continue
         if first is None:
             first = message
         elif other is None and message.run_config != first.run_config:
             other = message
     if first is None:
-        if unreadable is not None:  # only the learner may answer here with security on: another build of cogexplore
+        if unreadable:  # only the learner may answer here with security on: another build of cogexplore
             raise ConfigError(f"no answer on {keys.config} for run {keys.run!r} is a configuration this build can "
-                              f"read ({unreadable}): run the same cogexplore version on both sides")
+                              f"read ({unreadable[0]}): run the same cogexplore version on both sides")
         return None
-    if unreadable is not None:
-        log.warning("answer(s) on %s this build cannot read, beside a readable one: skipped (%s)", keys.config,
-                    unreadable)
+    for exc in unreadable:  # beside a readable one: from someone else
+        rejects.reject(exc, keys.config)
     if other is not None:
         raise ConfigError(f"run {keys.run!r} has several answers on {keys.config} that differ (learners "
                           f"{first.learner_id!r} and {other.learner_id!r}): only the run's learner should answer "
@@ -72,10 +82,11 @@ def fetch_run_config(settings: ZenohSettings, keys: RunKeys, wait_s: float) -> R
     started = time.monotonic()
     log.info("asking the learner of run %r for the run's configuration (%s; waiting up to %.0f s)",
              keys.run, keys.config, wait_s)
+    rejects = config_rejects()
     with open_service_session(settings) as session:
         said = started
         while True:
-            message = ask_run_config(session, keys)
+            message = ask_run_config(session, keys, rejects=rejects)
             if message is not None:
                 return message
             now = time.monotonic()
@@ -125,9 +136,10 @@ class RunConfigCheck:
             stop.set()
 
     def _check(self, session: zenoh.Session, stop: threading.Event) -> None:
+        rejects = config_rejects()
         while not (stop.is_set() or self._finishing.is_set()):
             try:
-                message = ask_run_config(session, self.keys)
+                message = ask_run_config(session, self.keys, rejects=rejects)
             except ConfigError as exc:
                 self.error = ConfigMismatchError(str(exc))
                 return

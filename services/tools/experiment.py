@@ -71,7 +71,7 @@ from shared.evaluation import (
     ProtocolConfig,
 )
 from shared.files import atomic_write_text, save_png
-from shared.jsontext import read_json_file
+from shared.jsontext import SMALL_JSON_BYTES, read_json_file
 
 log = logging.getLogger("cogexplore.experiment")
 
@@ -195,7 +195,7 @@ class ExperimentState:
                                      "options": options.fixed(), "stages": {}}
         if path.is_file():
             try:
-                old = read_json_file(path, "state file", ExperimentError)
+                old = read_json_file(path, "state file", ExperimentError, max_bytes=SMALL_JSON_BYTES)
             except ExperimentError as exc:
                 raise ExperimentError(f"{exc}: move it away to start afresh") from None
             if not (isinstance(old, dict) and old.get("format") == STATE_FORMAT and old.get("version") == STATE_VERSION

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from shared.config import ConfigError, parse_world_list
-from shared.jsontext import read_json_file
+from shared.jsontext import SMALL_JSON_BYTES, read_json_file
 
 
 def run_summary(args: argparse.Namespace) -> int:
@@ -49,7 +49,8 @@ def run_export(args: argparse.Namespace) -> int:
         loaded = ensemble_members(loaded, [m.strip() for m in args.members.split(",")])
     card = {}
     if args.card:
-        card = read_json_file(args.card, "--card", ConfigError, allow_nan=False)  # the file's metadata is JSON
+        card = read_json_file(args.card, "--card", ConfigError, allow_nan=False,  # the file's metadata is JSON
+                              max_bytes=SMALL_JSON_BYTES)
         if not isinstance(card, dict):
             raise ConfigError(f"--card {args.card} must hold a JSON object")
     report: dict[str, Any] = {}

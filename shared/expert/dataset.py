@@ -33,7 +33,7 @@ from shared.config import ACTION_NAMES, NUM_ACTIONS, EnvConfig, SensorConfig, is
 from shared.errors import CogexploreError
 from shared.expert.expert import CommandExpert, ExpertConfig, SupervisedError
 from shared.files import TMP_MARK, atomic_write_text, fsync_dir, write_atomically
-from shared.jsontext import read_json_file
+from shared.jsontext import SMALL_JSON_BYTES, read_json_file
 from shared.rollout import Rollout, Step
 
 DATA_FORMAT = "cogexplore-sl-data"
@@ -133,7 +133,8 @@ class SupervisedDataset:
         path = root / MANIFEST
         if not path.is_file():
             raise SupervisedError(f"{root} is not a complete dataset: {MANIFEST} is missing")
-        manifest = read_json_file(path, "dataset manifest", SupervisedError)
+        manifest = read_json_file(path, "dataset manifest", SupervisedError,
+                                  max_bytes=SMALL_JSON_BYTES)
         if not isinstance(manifest, dict) or manifest.get("format") != DATA_FORMAT or manifest.get("version") != VERSION:
             raise SupervisedError(f"{path}: not a {DATA_FORMAT} v{VERSION} manifest")
         _check_manifest(manifest, path)

@@ -42,6 +42,32 @@ def _write(path: Path, data: str | bytes) -> Path:
     return path
 
 
+def _sparse(path: Path, size: int) -> Path:
+    """A file of ``size`` zero bytes that takes no disk."""
+    with open(path, "wb") as fh:
+        fh.truncate(size)
+    return path
+
+
+def test_a_small_json_file_over_its_limit_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    # Every JSON file was read up to 256 MiB, a dataset's manifest too: a big file given by mistake
+    # was read and parsed whole.
+    from shared.expert.dataset import SupervisedDataset, SupervisedError
+    from shared.jsontext import SMALL_JSON_BYTES
+
+    card = _write(tmp_path / "card.json", '{"n": 123}')
+    assert read_json_file(card, "card", max_bytes=10) == {"n": 123}
+    with pytest.raises(CogexploreError, match=r"^card .*card.json cannot be read: too large: 10 bytes, over the "
+                                              r"limit of 9 \("):
+        read_json_file(card, "card", max_bytes=9)
+    root = tmp_path / "data"
+    root.mkdir()
+    _sparse(root / "manifest.json", SMALL_JSON_BYTES + 1)
+    with pytest.raises(SupervisedError) as caught:
+        SupervisedDataset.open(root)
+    assert f"too large: {SMALL_JSON_BYTES + 1:,} bytes" in str(caught.value) and "\n" not in str(caught.value)
+
+
 @pytest.mark.parametrize("data", [b"\xff\xfe", DEEP, HUGE_INT, "[]", '{"schema": 1}'])
 def test_a_stray_json_file_is_not_results_and_report_looks_past_it(data: str | bytes, tmp_path: Path) -> None:
     from services.tools.report import find_results

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from services.actor.options import add_actor_arguments
-from services.bus.run_config import RunConfigCheck, fetch_run_config, join_run_config
+from services.bus.run_config import RunConfigCheck, ask_run_config, config_rejects, fetch_run_config, join_run_config
 from services.bus.session import (
     TransportError,
     ZenohSettings,
@@ -142,7 +142,6 @@ def test_finishing_a_check_that_waits_for_its_router_ends_the_wait() -> None:
 def test_an_answer_beside_the_learners_neither_stops_a_process_nor_is_taken_on_trust(router: str) -> None:
     # The first reply was taken: garbage from anyone stopped every new actor ("a configuration this
     # build cannot read"), and a readable config from anyone was taken when it came first.
-    from services.bus.run_config import ask_run_config
     from shared.config import ConfigError
 
     settings = ZenohSettings(connect=(router,))
@@ -161,6 +160,34 @@ def test_an_answer_beside_the_learners_neither_stops_a_process_nor_is_taken_on_t
         wait_for_answers(actor, len(queryables))
         with pytest.raises(ConfigError, match="several answers on cogexplore/cfg/config that differ"):
             ask_run_config(actor, KEYS)
+        for queryable in queryables:
+            queryable.undeclare()
+
+
+def test_answers_from_anyone_log_one_line_per_cause_however_often_they_come(router: str, caplog) -> None:
+    # Each oversized answer logged a warning, every retry of the wait (and an unreadable one beside the
+    # learner's, every ask): anyone on the router could flood the service's log.
+    settings = ZenohSettings(connect=(router,))
+    real = RunConfigMessage(learner_id="learner", config=load_preset("smoke")).encode()
+    with open_session(settings) as outsider, open_session(settings) as actor, \
+            caplog.at_level(logging.WARNING, logger="cogexplore.config"):
+        queryables = [serve_latest(outsider, KEYS.config, lambda: bytes(RunConfigMessage.MAX_BYTES + 1))
+                      for _ in range(3)]
+        wait_for_answers(actor, len(queryables))
+        with pytest.raises(TransportError, match="no learner of run 'cfg' answered"):
+            fetch_run_config(settings, KEYS, wait_s=1.5)  # several retries, each with three oversized answers
+        assert [r.getMessage() for r in caplog.records] == [
+            "rejected config answer from cogexplore/cfg/config: oversize: a 65537-byte answer, more than a "
+            "configuration takes (later 'oversize' rejects are counted, not logged)"]
+        caplog.clear()
+        queryables += [serve_latest(outsider, KEYS.config, lambda: real)]
+        queryables += [serve_latest(outsider, KEYS.config, lambda: b"\x00garbage") for _ in range(2)]
+        wait_for_answers(actor, len(queryables))
+        rejects = config_rejects()
+        for _ in range(3):
+            assert ask_run_config(actor, KEYS, rejects=rejects).run_config == load_preset("smoke")
+        assert rejects.counts == {"oversize": 9, "garbage": 6}
+        assert len(caplog.records) == 2  # the first of each cause
         for queryable in queryables:
             queryable.undeclare()
 

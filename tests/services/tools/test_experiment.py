@@ -129,6 +129,22 @@ def test_tiny_experiment_runs_end_to_end_and_resumes(tmp_path):
     assert main([*TINY, "--out", str(out), "--checkpoints", "10,20,40"]) == 2  # 10 is behind the run
 
 
+def test_a_state_file_too_large_to_be_one_is_refused_unread(tmp_path):
+    # A state file was read and parsed up to 256 MiB (a results file or a log moved there by mistake).
+    from services.tools.experiment import ExperimentState
+    from shared.jsontext import SMALL_JSON_BYTES
+
+    parser = argparse.ArgumentParser()
+    add_experiment_arguments(parser)
+    options = options_from_args(parser.parse_args([*TINY, "--out", str(tmp_path), "--checkpoints", "20"]))
+    path = tmp_path / "state.json"
+    with open(path, "wb") as fh:
+        fh.truncate(SMALL_JSON_BYTES + 1)
+    with pytest.raises(ExperimentError, match=rf"^state file .*state.json cannot be read: too large: "
+                                              rf"{SMALL_JSON_BYTES + 1:,} bytes, .*: move it away to start afresh$"):
+        ExperimentState(path, options)
+
+
 def test_the_protocol_is_fixed_with_the_experiment(tmp_path):
     from services.tools.experiment import ExperimentState
 

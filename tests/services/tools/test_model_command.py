@@ -29,6 +29,21 @@ def test_an_export_over_one_of_its_sources_is_refused_and_the_checkpoint_kept(tm
     assert main(["model", "export", str(run), "--out", str(tmp_path / "w.safetensors")]) == 0
 
 
+def test_a_card_too_large_to_be_one_is_refused_in_one_line(tmp_path: Path, capsys) -> None:
+    # --card read and parsed up to 256 MiB into the exported file's metadata
+    from shared.jsontext import SMALL_JSON_BYTES
+
+    run = make_run(tmp_path / "run", (100,))
+    card = tmp_path / "card.json"
+    with open(card, "wb") as fh:
+        fh.truncate(SMALL_JSON_BYTES + 1)
+    out = tmp_path / "w.safetensors"
+    assert main(["model", "export", str(run), "--out", str(out), "--card", str(card)]) == 2
+    err = capsys.readouterr().err
+    assert f"--card {card} cannot be read: too large: {SMALL_JSON_BYTES + 1:,} bytes" in err, err
+    assert err.count("\n") == 1 and not out.exists()
+
+
 def test_an_export_to_a_folder_is_one_line_before_any_window_is_played(tmp_path: Path, capsys, monkeypatch) -> None:
     # `--out .` was a ValueError traceback; an existing folder failed only after every window was played
     run = make_run(tmp_path / "run", (100,))
