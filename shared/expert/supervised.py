@@ -140,7 +140,7 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
     """Train a SupervisedNet on the dataset's train split; returns it (eval mode) and its model
     card (data size, label distribution, test accuracy, per-class accuracy, confusion matrix, and
     ``majority_accuracy``: the test accuracy of always answering the training split's most common
-    label, ``majority_command``)."""
+    label, ``majority_command``). SupervisedError at the first batch whose loss is not finite."""
     from tqdm import tqdm
 
     s = settings or TrainSettings()
@@ -181,7 +181,11 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
-                loss_sum += float(loss.detach()) * len(idx)
+                batch_loss = float(loss.detach())
+                if not math.isfinite(batch_loss):  # every later step is NaN: stop before the model is written
+                    raise SupervisedError(f"the training loss is {batch_loss} at epoch {epoch + 1}, batch {b + 1}: "
+                                          f"training diverged at lr {s.lr}; try a lower --lr")
+                loss_sum += batch_loss * len(idx)
                 correct += int((logits.detach().argmax(1) == y).sum())
                 seen += len(idx)
                 bar.update(1)

@@ -97,6 +97,8 @@ FORMAT = "cogexplore-checkpoint"
 WEIGHTS_FORMAT = "cogexplore-weights"
 VERSION = 1
 LATEST = "latest"
+LATEST_MAX_BYTES = 4096
+"""The most ``latest`` may hold: a checkpoint's file name, never more than a line."""
 _META_KEY = "cogexplore"
 _NAME_RE = re.compile(r"^ckpt-(\d{9})\.safetensors$")
 _REPLAY_RE = re.compile(r"^ckpt-(\d{9})\.replay-[0-9a-f]{12}\.safetensors$")
@@ -369,8 +371,8 @@ class CheckpointManager:
         pointer = self.directory / LATEST
         if not pointer.exists():
             return None
-        try:  # a FIFO would wait for ever, /dev/zero would fill the memory
-            name = read_regular_file(pointer).decode().strip()
+        try:  # a FIFO would wait for ever, /dev/zero or a big file would fill the memory
+            name = read_regular_file(pointer, LATEST_MAX_BYTES).decode().strip()
         except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, bytes that are no name
             raise CheckpointError(f"{pointer} cannot be read: {exc}") from None
         if not _NAME_RE.match(name):

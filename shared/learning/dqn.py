@@ -56,6 +56,7 @@ from shared.learning.model import (
     InferenceRunner,
     QNetwork,
     architecture_fingerprint,
+    check_weights_fit,
     conv_autocast_dtype,
     forward_flops,
     load_tensors,
@@ -517,7 +518,8 @@ class DQNAgent:
         return tensors, meta
 
     def load_state_tensors(self, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
-        """Inverse of ``state_tensors``; refuses state of another architecture or optimiser."""
+        """Inverse of ``state_tensors``; refuses state of another architecture or optimiser, or a tensor
+        that does not fit, before anything of the agent changes."""
         if meta.get("fingerprint") != self.fingerprint:
             raise DQNError(f"state is for architecture {meta.get('fingerprint')}, this agent is "
                            f"{self.fingerprint}")
@@ -525,31 +527,68 @@ class DQNAgent:
         if opt_meta["type"] != type(self.optimizer).__name__:
             raise DQNError(f"state has a {opt_meta['type']} optimiser, this agent uses "
                            f"{type(self.optimizer).__name__}")
-        load_tensors(self.online, {k[7:]: v for k, v in tensors.items() if k.startswith("online.")})
-        load_tensors(self.target, {k[7:]: v for k, v in tensors.items() if k.startswith("target.")})
-        self.target_version += 1
-        state: dict[int, dict[str, Any]] = {}
-        for key, val in tensors.items():
-            if key.startswith("optim."):
-                _, idx, name = key.split(".", 2)
-                state.setdefault(int(idx), {})[name] = val
-        for idx, vals in opt_meta["scalars"].items():
-            state.setdefault(int(idx), {}).update(vals)
-        # our parameters' layout (channels-last) for the momentum buffers, before the optimiser
-        # copies them: keeps the resumed update bit-identical to the uninterrupted one
-        params = [p for g in self.optimizer.param_groups for p in g["params"]]
-        for idx, vals in state.items():
-            for name, val in vals.items():
-                if isinstance(val, torch.Tensor) and val.shape == params[idx].shape:
-                    vals[name] = val.to(self.device).contiguous(
-                        memory_format=_memory_format(params[idx]))
+        online = {k[7:]: v for k, v in tensors.items() if k.startswith("online.")}
+        target = {k[7:]: v for k, v in tensors.items() if k.startswith("target.")}
+        check_weights_fit(self.online, online)
+        check_weights_fit(self.target, target)
+        state = self._optimizer_state(tensors, opt_meta)
+        update_count, policy_version = int(meta["update_count"]), int(meta["policy_version"])
+        rngs = {"rng.torch": torch.get_rng_state()}
+        if self.device.type == "cuda":
+            rngs["rng.cuda"] = torch.cuda.get_rng_state(self.device)
+        for name, now in rngs.items():
+            if name in tensors:
+                _check_fits(name, tensors[name], now.shape, now.dtype)
+        # all checked: from here on nothing refuses, so a misfit never leaves the agent half loaded
         self.optimizer.load_state_dict({"state": state, "param_groups": opt_meta["param_groups"]})
-        self.update_count = int(meta["update_count"])
-        self.policy_version = int(meta["policy_version"])
+        load_tensors(self.online, online)
+        load_tensors(self.target, target)
+        self.target_version += 1
+        self.update_count = update_count
+        self.policy_version = policy_version
         if "rng.torch" in tensors:
             torch.set_rng_state(tensors["rng.torch"])
         if "rng.cuda" in tensors and self.device.type == "cuda":
             torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+
+    def _optimizer_state(self, tensors: dict[str, torch.Tensor], opt_meta: dict[str, Any]) -> dict[int, dict[str, Any]]:
+        """The optimiser state that ``state_tensors`` saved, for ``optimizer.load_state_dict``: each
+        tensor checked against its parameter (its shape and dtype; ``step`` a float32 scalar), since
+        torch casts any dtype silently (a complex one loses its imaginary part) and a fused step on a
+        moment of another shape corrupts the process's memory."""
+        params = [p for g in self.optimizer.param_groups for p in g["params"]]
+        saved_groups = opt_meta["param_groups"]
+        saved_sizes = [len(g["params"]) for g in saved_groups]
+        own_sizes = [len(g["params"]) for g in self.optimizer.param_groups]
+        if saved_sizes != own_sizes:
+            raise DQNError(f"state's optimiser groups hold {saved_sizes} parameters, this agent's {own_sizes}")
+        param_of = dict(zip((i for g in saved_groups for i in g["params"]), params))  # as load_state_dict maps them
+        state: dict[int, dict[str, Any]] = {}
+        for key, val in tensors.items():
+            if not key.startswith("optim."):
+                continue
+            idx, _, name = key[6:].partition(".")
+            param = param_of.get(int(idx)) if idx.isascii() and idx.isdigit() else None
+            if param is None or not name:
+                raise DQNError(f"{key}: optimiser state of no parameter of this agent")
+            if name == "step":
+                _check_fits(key, val, (), torch.float32)
+            else:
+                _check_fits(key, val, param.shape, param.dtype)
+                # our parameters' layout (channels-last) for the moments, before the optimiser copies
+                # them: keeps the resumed update bit-identical to the uninterrupted one
+                val = val.to(self.device).contiguous(memory_format=_memory_format(param))
+            state.setdefault(int(idx), {})[name] = val
+        for idx, vals in opt_meta["scalars"].items():
+            state.setdefault(int(idx), {}).update(vals)
+        return state
+
+
+def _check_fits(name: str, t: torch.Tensor, shape: tuple[int, ...] | torch.Size, dtype: torch.dtype) -> None:
+    """DQNError unless the saved tensor ``name`` has exactly this shape and dtype."""
+    if tuple(t.shape) != tuple(shape) or t.dtype != dtype:
+        raise DQNError(f"{name}: {t.dtype} of shape {tuple(t.shape)}, this agent wants {dtype} of shape "
+                       f"{tuple(shape)} (a damaged or hand-made checkpoint?)")
 
 
 def _memory_format(t: torch.Tensor) -> torch.memory_format:

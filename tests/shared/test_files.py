@@ -13,7 +13,7 @@ from shared.config import ConfigError, load_preset
 from shared.errors import CogexploreError
 from shared.files import MAX_READ_BYTES, read_regular_file
 from shared.jsontext import read_json_file
-from shared.learning.checkpoints import LATEST, CheckpointError, CheckpointManager
+from shared.learning.checkpoints import LATEST, LATEST_MAX_BYTES, CheckpointError, CheckpointManager
 
 
 def sparse(path: Path, size: int) -> Path:
@@ -40,17 +40,18 @@ def checkpoint_pointer(path: Path) -> None:
     CheckpointManager(path.parent).latest()
 
 
-@pytest.mark.parametrize("name, read, error", [
-    ("run.toml", load_preset, ConfigError),
-    ("card.json", lambda p: read_json_file(p, "--card", ConfigError), ConfigError),
-    ("loss.jsonl", load_loss_log, FigureError),
-    (LATEST, checkpoint_pointer, CheckpointError),
+@pytest.mark.parametrize("name, read, error, limit", [
+    ("run.toml", load_preset, ConfigError, MAX_READ_BYTES),
+    ("card.json", lambda p: read_json_file(p, "--card", ConfigError), ConfigError, MAX_READ_BYTES),
+    ("loss.jsonl", load_loss_log, FigureError, MAX_READ_BYTES),
+    (LATEST, checkpoint_pointer, CheckpointError, LATEST_MAX_BYTES),  # a pointer is a file name
 ])
 def test_each_reader_of_a_users_file_says_in_one_line_that_it_is_too_large(tmp_path: Path, name, read,
-                                                                             error: type[CogexploreError]) -> None:
+                                                                             error: type[CogexploreError],
+                                                                             limit: int) -> None:
     path = sparse(tmp_path / name, 3 * 2**30)
     with pytest.raises(error) as caught:
         read(path)
     message = str(caught.value)
     assert "\n" not in message and str(path) in message, message
-    assert f"{3 * 2**30:,} bytes" in message and f"limit of {MAX_READ_BYTES:,}" in message, message
+    assert f"{3 * 2**30:,} bytes" in message and f"limit of {limit:,}" in message, message

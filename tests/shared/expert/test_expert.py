@@ -641,3 +641,32 @@ def test_pretrain_refuses_a_model_path_that_is_a_folder_before_collecting(folder
     assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "60", "--epochs", "1",
                  "--out", "sl.safetensors"]) == 2
     assert f"{folder} is a folder" in capsys.readouterr().err and [p.name for p in tmp_path.iterdir()] == [folder]
+
+
+def test_a_diverging_training_stops_at_the_first_non_finite_loss_and_writes_no_model(tmp_path, monkeypatch):
+    """No setting reaches a non-finite loss for real (Adam's steps are bounded by lr and the input is clamped
+    to [0, 1]: lr 1 with balanced classes peaks near 1e8), so one training forward is patched to return NaN
+    logits: pretrain stops at that batch, names it, and writes neither the model nor its card."""
+    from shared.expert.supervised import pretrain
+    from shared.learning.model import SupervisedNet
+
+    dataset = _tiny_dataset(tmp_path / "data")  # what pretrain's request below reuses
+    steps_per_epoch = math.ceil(len(dataset.split()[0]) / 4)
+    forward, calls = SupervisedNet.forward, []
+
+    def diverging(net, x):
+        logits = forward(net, x)
+        if net.training:
+            calls.append(x.shape[0])
+            if len(calls) == steps_per_epoch + 2:  # epoch 2, batch 2
+                return logits * float("nan")
+        return logits
+
+    monkeypatch.setattr(SupervisedNet, "forward", diverging)
+    out = tmp_path / "sl.safetensors"
+    with pytest.raises(SupervisedError, match=r"loss is nan at epoch 2, batch 2: .* at lr 0.5; try a lower --lr$"):
+        pretrain(out, worlds=["box-room"], frames=24, sensor_cfg=SMALL_SENSOR, env_cfg=TEST_ENV,
+                 data_dir=tmp_path / "data", drive_cfg=DriveConfig(episode_steps=6), test_fraction=0.3,
+                 settings=TrainSettings(epochs=3, batch_size=4, lr=0.5, device="cpu"), progress=False)
+    assert len(calls) == steps_per_epoch + 2  # not one step after
+    assert not out.exists() and not card_path(out).exists()

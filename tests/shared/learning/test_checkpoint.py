@@ -136,6 +136,23 @@ def test_a_damaged_latest_pointer_falls_back_to_the_newest_checkpoint_that_loads
     assert cm.load_latest().path == newest and load_model(cm.directory).path == newest
 
 
+def test_a_huge_latest_pointer_is_refused_unread(tmp_path):
+    """``latest`` holds one file name: 8 MiB there (a checkpoint copied over it, a runaway writer) is
+    refused by its size, in one short line, not read into memory and quoted whole in the error."""
+    agent, _ = setup(DQNConfig())
+    cm = CheckpointManager(tmp_path / "checkpoints")
+    agent.update_count = 1
+    good = cm.save(agent)
+    with open(cm.directory / "latest", "r+b") as pointer:
+        pointer.truncate(8 << 20)  # the good name, then zeros (a sparse file)
+    with pytest.raises(CheckpointError) as refused:
+        cm.latest()
+    message = str(refused.value)
+    assert "cannot be read" in message and "too large: 8,388,608 bytes, over the limit of 4,096" in message
+    assert len(message) < 300 and "\n" not in message
+    assert cm.load_latest().path == good and "too large" in cm.skipped[0]
+
+
 def test_non_finite_weights_are_never_loaded_nor_written(tmp_path):
     """A checkpoint whose weights hold a NaN (its digest recomputed: the bytes are the writer's) is skipped
     by a resume and refused by load_model; an export never writes one, float16's overflow included."""
@@ -277,6 +294,37 @@ def test_checkpoint_of_another_architecture_or_optimiser_is_refused(tmp_path):
     mem = ReplayMemory(ReplayConfig(capacity=64), (30, 40))
     with pytest.raises(CheckpointError, match="without its replay"):
         ck.restore(agent, mem)
+
+
+@pytest.mark.parametrize("optimizer", ["adam", "sgd"])
+def test_optimiser_state_of_another_dtype_or_shape_is_refused_before_the_agent_changes(tmp_path, optimizer):
+    """Moments that are float16, integers, complex or of another shape, a step that is no scalar, a
+    moment of no parameter (a damaged or hand-made file, its digest recomputed): torch would cast them
+    silently, or corrupt the memory in its fused step. Refused, naming the tensor, the agent as it was."""
+    from shared.learning.checkpoints import load_tensors_file, save_tensors_file
+
+    agent, mem = setup(DQNConfig(optimizer=optimizer, lr=1e-3))
+    fill(mem)
+    step(agent, mem)
+    good = save_checkpoint(tmp_path / "good.safetensors", agent)
+    tensors, meta = load_tensors_file(good, "cogexplore-checkpoint")
+    meta = {k: v for k, v in meta.items() if k != "digest"}
+    moment = "optim.0.exp_avg" if optimizer == "adam" else "optim.0.momentum_buffer"
+    forgeries = [(moment, tensors[moment].to(dtype)) for dtype in (torch.float16, torch.int64, torch.complex64)]
+    forgeries += [(moment, tensors[moment][:3].clone()), (moment.replace(".0.", ".99."), tensors[moment].clone())]
+    if optimizer == "adam":
+        forgeries.append(("optim.0.step", torch.ones(2)))
+    fresh, _ = setup(DQNConfig(optimizer=optimizer, lr=1e-3), seed=1)
+    before, before_meta = fresh.state_tensors()
+    for name, forged in forgeries:
+        save_tensors_file(tmp_path / "forged.safetensors", {**tensors, name: forged}, meta)
+        with pytest.raises(CheckpointError, match=re.escape(name)):
+            load_checkpoint(tmp_path / "forged.safetensors").restore(fresh)
+        after, after_meta = fresh.state_tensors()
+        assert after_meta == before_meta and after.keys() == before.keys()
+        assert all(torch.equal(after[k], v) for k, v in before.items()) and fresh.target_version == 0
+    load_checkpoint(good).restore(fresh)
+    assert fresh.update_count == 1 and torch.equal(fresh.state_tensors()[0][moment], tensors[moment])
 
 
 def test_weights_only_export_round_trip(tmp_path):
