@@ -24,9 +24,11 @@ Each evaluation (cheap by default: 1 episode per start, 200 steps; ``--full``: 1
 - writes a Rerun recording to ``runs/<run>/recordings/eval-<version:06d>.rrd`` (every
   ``--image-every``-th depth image, every step's pose, Q-values and command);
 - where those names hold another evaluation of the version (another protocol, or other weights
-  after a learner restart), names both ``eval-<version:06d>-<8 hex digits of the evaluation's
-  digest>`` instead (``EvaluatorService.files_stem``), so that each row of ``eval.jsonl`` keeps its own
-  files (the row names both: ``recording``, ``results``);
+  after a learner restart) or one under way (another evaluator's: the results file is created empty
+  when an evaluation begins, claiming its name), names both ``eval-<version:06d>-<8 hex digits of the
+  evaluation's digest>`` instead, and ``...-<digest>-<evaluator id>`` where another evaluator plays
+  the same evaluation at that moment (``EvaluatorService.files_stem``), so that each row of
+  ``eval.jsonl`` keeps its own files (the row names both: ``recording``, ``results``);
 - with ``--rerun-connect URL`` (default: env ``COGEXPLORE_RERUN_URL``), also streams that
   recording live to the Rerun viewer there. The viewer is checked before each evaluation: one
   that does not answer is warned about once and skipped (the ``.rrd`` files go on), one that
@@ -186,18 +188,34 @@ class EvaluatorService:
     # -- one evaluation -------------------------------------------------------------------------
 
     def files_stem(self, version: int, digest: str) -> str:
-        """The name of an evaluation's results and recording: the version's plain one unless a file
-        of that name holds another evaluation (or one that does not say), then with its digest."""
-        plain = result_stem(version)
-        results = self.root / "stats" / "eval" / f"{plain}.json"
+        """The name of an evaluation's results and recording: the version's plain one, else (another
+        evaluation holds it, or one that does not say, or one under way: :meth:`_claim`) with the
+        digest, else (another evaluator plays this same evaluation now) with this evaluator's id too."""
+        for stem in (result_stem(version), result_stem(version, digest)):
+            if self._claim(stem, digest):
+                return stem
+        return f"{result_stem(version, digest)}-{self.evaluator_id}"  # ids are unique among live evaluators
+
+    def _claim(self, stem: str, digest: str) -> bool:
+        """Whether ``stem`` names this evaluation's files: its results hold this evaluation (played
+        again), or neither file exists and this evaluator creates the results file first, empty until
+        its results replace it. Claimed as the evaluation begins, not when its results are saved
+        minutes later: two evaluators of one version took one name, and the last to finish replaced
+        the other's files under the other's row."""
+        results = self.root / "stats" / "eval" / f"{stem}.json"
         if results.exists():
             try:
-                mine = load_results(results).meta.get(EVALUATION_META) == digest
-            except ResultsError:  # damaged: not known to be this evaluation's
-                mine = False
-        else:  # a recording without results (its evaluator killed in between) is someone's too
-            mine = not recording_path(self.root / "recordings", version).exists()
-        return plain if mine else result_stem(version, digest)
+                return load_results(results).meta.get(EVALUATION_META) == digest
+            except ResultsError:  # damaged, or another's claim: not known to be this evaluation's
+                return False
+        if (self.root / "recordings" / f"{stem}.rrd").exists():
+            return False  # a recording without results (its evaluator killed in between) is someone's too
+        results.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.close(os.open(results, os.O_CREAT | os.O_EXCL | os.O_WRONLY))
+        except FileExistsError:  # another evaluator claimed it since
+            return False
+        return True
 
     def evaluate(self, message: WeightsMessage, stop: threading.Event | None = None,
                  session: Any = None, repeat: bool = True) -> dict[str, Any] | None:
@@ -228,13 +246,21 @@ class EvaluatorService:
                 "fingerprint": self.fingerprint, "weights_sha256": weights_digest,
                 "evaluator_id": self.evaluator_id, EVALUATION_META: digest}
         live = self.viewer.url if self.viewer is not None and self.viewer.up() else None
-        results = evaluate_recorded(self.policy, world=self.world, sensor_cfg=self.cfg.sensor, env_cfg=self.cfg.env,
-                                    episodes_per_start=self.episodes_per_start, max_steps=self.max_steps,
-                                    seed=self.seed, rrd=rrd, image_every=self.image_every, policy_version=version,
-                                    recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
-                                    stop=stop, rerun_connect=live, protocol=self.protocol)
-        duration = time.monotonic() - started
-        results_path = save_results(results, stats / "eval" / f"{stem}.json")
+        results_file = stats / "eval" / f"{stem}.json"
+        try:
+            results = evaluate_recorded(self.policy, world=self.world, sensor_cfg=self.cfg.sensor,
+                                        env_cfg=self.cfg.env, episodes_per_start=self.episodes_per_start,
+                                        max_steps=self.max_steps, seed=self.seed, rrd=rrd,
+                                        image_every=self.image_every, policy_version=version,
+                                        recording_name=f"eval {self.run_name} v{version}", progress=False, meta=meta,
+                                        stop=stop, rerun_connect=live, protocol=self.protocol)
+            duration = time.monotonic() - started
+            results_path = save_results(results, results_file)
+        except BaseException:  # cancelled or failed: the name it claimed is free again
+            with contextlib.suppress(OSError):
+                if results_file.stat().st_size == 0:
+                    results_file.unlink()
+            raise
         summary = results.summary
         row = {"time_unix": time.time(), "evaluator_id": self.evaluator_id, **evaluated_as,
                "duration_s": round(duration, 3), "summary": summary["overall"], "per_start": summary["per_start"],

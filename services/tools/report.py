@@ -12,8 +12,9 @@ inlined while they stay small) and linked from ``report.md`` (the same sections,
   (``--protocol``, default the robust one first, then the paper's: ``shared.evaluation.PROTOCOLS``),
   with collisions by cause and capped episodes per model and protocol. Results JSON already in the
   run (``report/results/``, the evaluator service's ``stats/eval/``, ``stats/``, the run folder) is
-  reused when its weights and protocol match; everything else is evaluated (the full protocol, 10
-  episodes per start, by default) and saved to ``report/results/`` for next time;
+  reused when its weights, protocol and world (by content: an MJCF file edited since is played again)
+  match; everything else is evaluated (the full protocol, 10 episodes per start, by default) and
+  saved to ``report/results/`` for next time;
 - trajectory heatmaps per model and side by side (Fig. 6), under the first protocol;
 - the loss curve over learner updates (Fig. 5) from ``stats/learner.csv``, and the evaluator
   service's mean steps per policy version from ``stats/eval.jsonl``, when they exist, ending in
@@ -62,7 +63,7 @@ from shared.evaluation import (
     protocol_named,
 )
 from shared.evaluation.eval_log import EVAL_LOG, load_eval_log, row_protocol
-from shared.evaluation.protocol import evaluate_policy
+from shared.evaluation.protocol import WORLD_META, evaluate_policy, world_sha256
 from shared.evaluation.results import (
     EvalResults,
     ResultsError,
@@ -120,35 +121,52 @@ class Report:
     eval_curve: list[EvalPoint] = field(default_factory=list)
 
 
-def _matches(meta: Mapping[str, Any], want: Mapping[str, Any]) -> bool:
-    return all(meta.get(k) == want[k] for k in want)
+ResultsCache = dict[tuple[Path, int, int], "EvalResults | None"]
+"""Results files read so far, by (path, size, mtime): a file written since is read anew."""
 
 
-def find_results(search_dirs: Sequence[Path], want: Mapping[str, Any]) -> tuple[EvalResults, Path] | None:
+def _load_cached(path: Path, cache: ResultsCache) -> EvalResults | None:
+    """``path``'s results, or None when it holds none (configs, other JSON: not ours to judge)."""
+    try:
+        stat = path.stat()
+    except OSError:
+        return None
+    key = (path, stat.st_size, stat.st_mtime_ns)
+    if key not in cache:
+        try:
+            cache[key] = load_results(path)
+        except ResultsError:
+            cache[key] = None
+    return cache[key]
+
+
+def find_results(search_dirs: Sequence[Path], want: Mapping[str, Any], optional: Sequence[str] = (),
+                 cache: ResultsCache | None = None) -> tuple[EvalResults, Path] | None:
     """The first stored results JSON in ``search_dirs`` whose meta matches ``want`` (every key
-    equal, after a JSON round trip so tuples compare as lists)."""
+    equal, after a JSON round trip so tuples compare as lists; a key in ``optional`` may also be
+    missing, from a file written before results recorded it). ``cache`` keeps the files read
+    across calls (a report looks for every model under every protocol in the same folders)."""
     want = json.loads(json.dumps(dict(want)))
+    cache = {} if cache is None else cache
     for d in search_dirs:
         if not d.is_dir():
             continue
         for path in sorted(d.glob("*.json")):
-            try:
-                results = load_results(path)
-            except ResultsError:
-                continue  # not a results file (configs, other JSON): not ours to judge
-            if _matches(results.meta, want):
+            results = _load_cached(path, cache)
+            if results is not None and all(results.meta.get(k) == v or (k in optional and k not in results.meta)
+                                           for k, v in want.items()):
                 return results, path
     return None
 
 
-def _protocol_meta(setup: EvalSetup, world: str, episodes_per_start: int, max_steps: int, seed: int,
-                   starts: list[int], protocol: ProtocolConfig) -> dict[str, Any]:
+def _protocol_meta(setup: EvalSetup, world: str, world_digest: str, episodes_per_start: int, max_steps: int,
+                   seed: int, starts: list[int], protocol: ProtocolConfig) -> dict[str, Any]:
     from dataclasses import asdict
 
     from shared.evaluation.protocol import protocol_env_config
 
     env = protocol_env_config(setup.env_cfg, world, max_steps)
-    want = {"policy": setup.policy, "world": world, "speed_table": "test", "starts": starts,
+    want = {"policy": setup.policy, "world": world, WORLD_META: world_digest, "speed_table": "test", "starts": starts,
             "episodes_per_start": episodes_per_start, "max_steps": max_steps, "seed": seed,
             "protocol": protocol.to_dict(), "sensor": asdict(protocol.sensor(setup.sensor_cfg)),
             "env": {k: v for k, v in asdict(env).items() if k != "start_index"}}
@@ -376,11 +394,17 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     search = list(dict.fromkeys([results_dir, run / "report" / "results", run / "stats" / "eval", run / "stats",
                                  run, run / "results"]))
     result_files: set[str] = set()
+    # A built-in or procedural world is fixed by its name: results from before they recorded the world's
+    # content stand for it. A file's content is not (the user edits it): those stand for nothing.
+    undigested = () if world_obj.kind == "file" else (WORLD_META,)
+    world_digest = world_sha256(world_obj)
+    read: ResultsCache = {}
     for protocol in conditions:
         saved: dict[str, Path] = {}
         for m in models:
-            want = _protocol_meta(m.setup, world_name, episodes_per_start, max_steps, seed, starts, protocol)
-            found = find_results(search, want)
+            want = _protocol_meta(m.setup, world_name, world_digest, episodes_per_start, max_steps, seed, starts,
+                                  protocol)
+            found = find_results(search, want, optional=undigested, cache=read)
             if found is not None:
                 m.results[protocol.name], m.reused_from[protocol.name] = found
                 if found[1].parent == results_dir:  # not to be overwritten by another model's results

@@ -3,7 +3,8 @@
 From every start pose of a world, N episodes at the TEST speed table, each stopped at a collision
 or after at most 200 moving steps, under the conditions of a :class:`ProtocolConfig` (exact or
 jittered starts, the sensor's noise: ``shared.evaluation.PROTOCOLS``), which the results record
-(``meta.protocol``); :mod:`shared.evaluation.results` holds what comes out. The
+(``meta.protocol``), and the world's content (``meta.world_sha256``: :func:`world_sha256`);
+:mod:`shared.evaluation.results` holds what comes out. The
 episodes run through the one rollout loop (``shared.rollout``) with two observers of their own,
 the trajectory and the coverage (``shared.sim.maps.CoverageTracker``), and, optionally, a
 recorder (``services.viz.rerun.EvalRecorder``, or anything with its ``begin_episode`` /
@@ -13,6 +14,8 @@ recorder (``services.viz.rerun.EvalRecorder``, or anything with its ``begin_epis
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import json
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict
@@ -32,7 +35,10 @@ from shared.evaluation import (
 )
 from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError
 from shared.rollout import Episode, Rollout, Step
-from shared.sim.world import load_world
+from shared.sim.world import World, load_world
+
+WORLD_META = "world_sha256"
+"""The results meta field holding :func:`world_sha256` of the world the episodes were played in."""
 
 PolicyFn = Callable[[np.ndarray], tuple[int, Sequence[float] | np.ndarray | None]]
 """``policy_fn(depth_m) -> (action, q_values or None)``; with ``reset()`` when it keeps memory."""
@@ -40,6 +46,13 @@ PolicyFn = Callable[[np.ndarray], tuple[int, Sequence[float] | np.ndarray | None
 
 class EvaluationCancelled(RuntimeError):
     """The ``stop`` event was set while an evaluation ran."""
+
+
+def world_sha256(world: World) -> str:
+    """The SHA-256 (hex) of what a world is played as: its MJCF scene, starts and extent. Its name is
+    not enough to stand for it: an MJCF file edited since is another world under the same path."""
+    content = {"mjcf": world.mjcf, "starts": [asdict(s) for s in world.starts], "extent": list(world.extent)}
+    return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
 
 def episode_seed(seed: int, start_index: int, episode: int) -> int:
@@ -222,7 +235,8 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
                     episodes.append(result)
                     bar.update(1)
                     bar.set_postfix(mean_steps=f"{np.mean([e.steps for e in episodes]):.1f}")
-        run_meta = {"world": env.world.name, "speed_table": env.env_config.speed_table,
+        run_meta = {"world": env.world.name, WORLD_META: world_sha256(env.world),
+                    "speed_table": env.env_config.speed_table,
                     "starts": start_list, "episodes_per_start": episodes_per_start,
                     "max_steps": max_steps, "seed": seed, "protocol": protocol.to_dict()}
         run_meta.update(meta or {})

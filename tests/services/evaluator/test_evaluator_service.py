@@ -346,3 +346,52 @@ def test_each_evaluation_of_one_version_keeps_its_own_files(tmp_path: Path) -> N
         assert saved.protocol.to_dict() == row["protocol_config"]
         assert saved.summary["overall"]["mean_steps"] == pytest.approx(row["summary"]["mean_steps"])
         verify_rrd(Path(row["recording"]))
+
+
+def test_evaluators_of_one_version_at_one_moment_keep_their_own_files(tmp_path: Path) -> None:
+    # Each evaluator chose its files' name when it began and wrote them minutes later: two of one
+    # version at one moment (the service and `cogexplore evaluator --once`) took the plain name, and
+    # the last to finish replaced the other's results and recording under the other's row.
+    from shared.evaluation.protocol import EvaluationCancelled
+
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    settings = ZenohSettings(connect=("tcp/127.0.0.1:9",))  # evaluate() itself needs no router
+    runs = [("ev-a", PROTOCOLS["robust"]), ("ev-b", PROTOCOLS["paper"]), ("ev-c", PROTOCOLS["robust"])]
+    all_begun = threading.Barrier(len(runs))
+    rows: dict[str, dict] = {}
+    waited: set[str] = set()
+
+    def evaluator(evaluator_id: str, protocol) -> EvaluatorService:
+        return EvaluatorService(cfg, "same", tmp_path, settings, evaluator_id, episodes_per_start=1, max_steps=3,
+                                image_every=3, protocol=protocol)
+
+    def evaluate(evaluator_id: str, protocol) -> None:
+        service = evaluator(evaluator_id, protocol)
+        greedy = service.policy
+
+        def held(depth):  # the first step waits until every evaluation has begun
+            if evaluator_id not in waited:
+                waited.add(evaluator_id)
+                all_begun.wait(30)
+            return greedy(depth)
+
+        service.policy = held
+        rows[evaluator_id] = service.evaluate(to_message(small_net(), 12), repeat=True)
+
+    threads = [threading.Thread(target=evaluate, args=run) for run in runs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(120)
+    assert len({rows[i]["results"] for i, _ in runs}) == len({rows[i]["recording"] for i, _ in runs}) == 3
+    assert "eval-000012.json" in {Path(rows[i]["results"]).name for i, _ in runs}  # one keeps the plain name
+    for evaluator_id, _ in runs:
+        saved = load_results(rows[evaluator_id]["results"])
+        assert saved.meta["evaluator_id"] == evaluator_id and saved.meta["recording"] == rows[evaluator_id]["recording"]
+        assert Path(rows[evaluator_id]["recording"]).stem == Path(rows[evaluator_id]["results"]).stem
+    stop = threading.Event()
+    stop.set()
+    with pytest.raises(EvaluationCancelled):  # the name a cancelled evaluation claimed is free again
+        evaluator("ev-d", PROTOCOLS["robust"].overridden(start_jitter_m=0.04)).evaluate(to_message(small_net(), 12),
+                                                                                       stop)
+    assert all(f.stat().st_size > 0 for f in (tmp_path / "stats" / "eval").iterdir())

@@ -688,3 +688,72 @@ def test_user_probe_images(tmp_path: Path) -> None:
     txt.write_text("1 2 3")
     with pytest.raises(ProbeError, match="unknown probe format"):
         load_probe_image(txt, sensor)
+
+
+_USER_ROOM = """<mujoco><worldbody>
+<geom type="box" pos="0 3 1" size="3 0.1 1"/><geom type="box" pos="0 -3 1" size="3 0.1 1"/>
+<geom type="box" pos="3 0 1" size="0.1 3 1"/><geom type="box" pos="-3 0 1" size="0.1 3 1"/>
+<geom type="cylinder" pos="{pillar_x} 0.5 1" size="0.3 1"/><site name="start_a" pos="-2 0 0"/>
+</worldbody></mujoco>"""
+
+
+def _drop_world_digest(path: Path) -> None:
+    """``path`` as results were written before they recorded the world's content."""
+    doc = json.loads(path.read_text())
+    del doc["meta"]["world_sha256"]
+    path.write_text(json.dumps(doc))
+
+
+def test_results_stand_for_a_world_file_only_as_it_was_played(tmp_path: Path) -> None:
+    # Matched by the world's name, the results of an MJCF file stood for it after the user edited it.
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.toml").write_text(to_toml(small_config()))
+    world = tmp_path / "my_world.xml"
+    world.write_text(_USER_ROOM.format(pillar_x=2.0))
+    kw = dict(world=str(world), episodes_per_start=1, max_steps=40, baselines=("reactive",), progress=False,
+              protocols=("paper",))
+    saved = build_report(run, **kw).results["paper"]["reactive"]
+    played = load_results(saved).meta["world_sha256"]
+
+    def reused() -> bool:
+        return "paper reused" in build_report(run, **kw).markdown.read_text()
+
+    assert reused()  # the same file: its results stand
+    world.write_text(_USER_ROOM.format(pillar_x=0.0))  # the pillar moved into the robot's way
+    assert not reused() and load_results(saved).meta["world_sha256"] != played
+    _drop_world_digest(saved)  # a file's results from before: they cannot say which content they played
+    assert not reused()
+
+
+def test_a_built_in_worlds_results_from_before_the_world_digest_are_reused(tmp_path: Path) -> None:
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.toml").write_text(to_toml(small_config()))
+    kw = dict(episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False, protocols=("paper",))
+    _drop_world_digest(build_report(run, **kw).results["paper"]["reactive"])
+    assert "paper reused" in build_report(run, **kw).markdown.read_text()  # box-room: fixed by its name
+
+
+def test_find_results_reads_each_file_once_per_cache(tmp_path: Path) -> None:
+    # A report looks for every model under every protocol: each lookup read and checked every results
+    # JSON in the run again. With a cache a file is read once, and again only once it is written anew.
+    import os
+
+    from services.tools.report import find_results
+    from shared.evaluation.results import EpisodeResult, EvalResults, save_results
+
+    def save(model: str) -> Path:
+        episode = EpisodeResult(0, 0, 3, False, True, None, 0.5, 0.6, 1.0, 0.1)
+        return save_results(EvalResults((episode,), {"model": model, "protocol": PROTOCOLS["paper"].to_dict()}),
+                            tmp_path / "m.json")
+
+    stat = save("a").stat()
+    cache: dict = {}
+    assert find_results([tmp_path], {"model": "a"}, cache=cache)[0].meta["model"] == "a"
+    save("b")  # the same size: only its time tells it is another file now
+    os.utime(tmp_path / "m.json", ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert find_results([tmp_path], {"model": "a"}, cache=cache) is not None  # not read again
+    os.utime(tmp_path / "m.json", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+    assert find_results([tmp_path], {"model": "a"}, cache=cache) is None
+    assert find_results([tmp_path], {"model": "b"}, cache=cache)[1] == tmp_path / "m.json"
