@@ -108,6 +108,11 @@ class CheckpointError(CogexploreError):
     """A checkpoint or weights file is missing, partial, corrupt or does not fit."""
 
 
+class WrongFileFormat(CheckpointError):
+    """A readable safetensors file that is not of the format asked for (another cogexplore format,
+    no cogexplore metadata, or metadata that is no table): not a damaged file of that format."""
+
+
 def _digest(arrays: Mapping[str, Any]) -> str:
     h = hashlib.sha256()
     for name in sorted(arrays):
@@ -153,12 +158,12 @@ def _read_meta(path: Path, fmt: str) -> dict[str, Any]:
         raise CheckpointError(f"{path} is not a readable safetensors file (partial or corrupt?): "
                               f"{exc}") from None
     if raw is None:
-        raise CheckpointError(f"{path} has no cogexplore metadata: not a {fmt} file")
-    meta = parse_json(raw, f"{path}: its metadata", CheckpointError)
+        raise WrongFileFormat(f"{path} has no cogexplore metadata: not a {fmt} file")
+    meta = parse_json(raw, f"{path}: its metadata", WrongFileFormat)
     if not isinstance(meta, dict):
-        raise CheckpointError(f"{path}: its metadata is not a table")
+        raise WrongFileFormat(f"{path}: its metadata is not a table")
     if meta.get("format") != fmt:
-        raise CheckpointError(f"{path} is a {meta.get('format')!r} file, expected {fmt!r}")
+        raise WrongFileFormat(f"{path} is a {meta.get('format')!r} file, expected {fmt!r}")
     if meta.get("version") != VERSION:
         raise CheckpointError(f"{path} has format version {meta.get('version')}, this code reads {VERSION}")
     return meta
@@ -611,7 +616,8 @@ def load_supervised(path: str | Path, device: str | torch.device = "cpu") -> tup
     path = Path(path)
     try:
         tensors, meta = load_tensors_file(path, MODEL_FORMAT)
-    except CheckpointError as exc:
+    except WrongFileFormat as exc:
+        # only here: a missing, damaged or diverged supervised model says so by itself
         raise CheckpointError(f"not a supervised model (write one with `cogexplore pretrain`): {exc}") from None
 
     def build() -> SupervisedNet:

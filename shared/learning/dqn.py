@@ -50,7 +50,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from shared.config import DQNConfig, ModelConfig, SensorConfig, mask_commands, mirror_action
+from shared.config import DQNConfig, ModelConfig, SensorConfig, is_finite_number, mask_commands, mirror_action
 from shared.errors import CogexploreError
 from shared.learning.model import (
     InferenceRunner,
@@ -518,8 +518,8 @@ class DQNAgent:
         return tensors, meta
 
     def load_state_tensors(self, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
-        """Inverse of ``state_tensors``; refuses state of another architecture or optimiser, or a tensor
-        that does not fit, before anything of the agent changes."""
+        """Inverse of ``state_tensors``; refuses state of another architecture or optimiser, or a tensor or
+        optimiser hyper-parameter that does not fit, before anything of the agent changes."""
         if meta.get("fingerprint") != self.fingerprint:
             raise DQNError(f"state is for architecture {meta.get('fingerprint')}, this agent is "
                            f"{self.fingerprint}")
@@ -532,6 +532,7 @@ class DQNAgent:
         check_weights_fit(self.online, online)
         check_weights_fit(self.target, target)
         state = self._optimizer_state(tensors, opt_meta)
+        self._check_param_groups(opt_meta["param_groups"])
         update_count, policy_version = int(meta["update_count"]), int(meta["policy_version"])
         rngs = {"rng.torch": torch.get_rng_state()}
         if self.device.type == "cuda":
@@ -550,6 +551,25 @@ class DQNAgent:
             torch.set_rng_state(tensors["rng.torch"])
         if "rng.cuda" in tensors and self.device.type == "cuda":
             torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+
+    def _check_param_groups(self, saved_groups: list[dict[str, Any]]) -> None:
+        """DQNError unless each saved optimiser group holds this agent's group's hyper-parameters, each
+        a sane value: ``load_state_dict`` takes them unchecked, and an lr that is a string, NaN or
+        negative, or betas that are no pair, failed only in the first step or trained on nonsense.
+        Their values are the checkpoint's to keep (a resumed run goes on at its saved lr), so numbers
+        are checked for range only; flags and names must be this agent's own."""
+        for i, (saved, own) in enumerate(zip(saved_groups, self.optimizer.param_groups)):
+            where = f"state's optimiser group {i} ({own.get('name')})"
+            keys, own_keys = set(saved) - {"params"}, set(own) - {"params"}
+            if keys != own_keys:
+                key = sorted(map(str, keys ^ own_keys))[0]
+                raise DQNError(f"{where}: {'no' if key in own_keys else 'an unknown'} hyper-parameter {key!r} "
+                               "(a damaged or hand-made checkpoint?)")
+            for key in sorted(own_keys):
+                wanted = _hyperparameter_misfit(key, saved[key], own[key])
+                if wanted is not None:
+                    raise DQNError(f"{where}: {key} is {saved[key]!r}, not {wanted} (a damaged or hand-made "
+                                   "checkpoint?)")
 
     def _optimizer_state(self, tensors: dict[str, torch.Tensor], opt_meta: dict[str, Any]) -> dict[int, dict[str, Any]]:
         """The optimiser state that ``state_tensors`` saved, for ``optimizer.load_state_dict``: each
@@ -589,6 +609,21 @@ def _check_fits(name: str, t: torch.Tensor, shape: tuple[int, ...] | torch.Size,
     if tuple(t.shape) != tuple(shape) or t.dtype != dtype:
         raise DQNError(f"{name}: {t.dtype} of shape {tuple(t.shape)}, this agent wants {dtype} of shape "
                        f"{tuple(shape)} (a damaged or hand-made checkpoint?)")
+
+
+def _hyperparameter_misfit(key: str, value: Any, own: Any) -> str | None:
+    """What optimiser hyper-parameter ``key`` should be where ``value`` is not that, else None; the
+    agent's own value ``own`` tells its kind. The bounds are torch's own (and momentum's the config's)."""
+    if isinstance(own, (tuple, list)):  # Adam's betas
+        fits = (isinstance(value, (tuple, list)) and len(value) == len(own)
+                and all(is_finite_number(b) and 0 <= b < 1 for b in value))
+        return None if fits else f"{len(own)} numbers in [0, 1)"
+    if is_finite_number(own):  # lr, eps, weight_decay, momentum, dampening
+        if key == "momentum":
+            return None if is_finite_number(value) and 0 <= value < 1 else "a number in [0, 1)"
+        return None if is_finite_number(value) and value >= 0 else "a finite number >= 0"
+    # flags (amsgrad, nesterov, fused, ...) and the group's name: how this agent computes, not hyper-parameters
+    return None if type(value) is type(own) and value == own else f"{own!r} as this agent's"
 
 
 def _memory_format(t: torch.Tensor) -> torch.memory_format:

@@ -327,6 +327,43 @@ def test_optimiser_state_of_another_dtype_or_shape_is_refused_before_the_agent_c
     assert fresh.update_count == 1 and torch.equal(fresh.state_tensors()[0][moment], tensors[moment])
 
 
+@pytest.mark.parametrize("optimizer", ["adam", "sgd"])
+def test_optimiser_hyperparameters_that_are_no_sane_value_are_refused_before_the_agent_changes(tmp_path, optimizer):
+    """An lr that is a string, negative or NaN, betas that are no pair, a missing or unknown key, a flag
+    not this agent's (a damaged or hand-made file): torch took them, and failed at the first update or
+    trained on nonsense. Refused naming the group and key, the agent as it was; a sane checkpoint's
+    own lr stays what a resumed run trains at."""
+    from shared.learning.checkpoints import load_tensors_file, save_tensors_file
+
+    agent, mem = setup(DQNConfig(optimizer=optimizer, lr=5e-4))
+    fill(mem)
+    step(agent, mem)
+    good = save_checkpoint(tmp_path / "good.safetensors", agent)
+    tensors, meta = load_tensors_file(good, "cogexplore-checkpoint")
+    meta = {k: v for k, v in meta.items() if k != "digest"}
+    forgeries = [(0, "lr", "0.001"), (1, "lr", -1e-3), (0, "lr", float("nan")), (0, "weight_decay", float("inf")),
+                 (1, "maximize", True), (0, "name", "conv"), (0, "lr", None), (1, "fused", 1)]
+    forgeries += ([(0, "betas", [0.9]), (1, "betas", [0.9, 1.5]), (0, "eps", -1e-8), (0, "amsgrad", True)]
+                  if optimizer == "adam" else [(0, "momentum", 1.5), (1, "betas", [0.9, 0.999])])
+    fresh, _ = setup(DQNConfig(optimizer=optimizer, lr=1e-3), seed=1)
+    before, before_meta = fresh.state_tensors()
+    for group, key, value in forgeries:
+        forged = json.loads(json.dumps(meta))
+        groups = forged["agent"]["optimizer"]["param_groups"]
+        if value is None:
+            del groups[group][key]
+        else:
+            groups[group][key] = value
+        save_tensors_file(tmp_path / "forged.safetensors", tensors, forged)
+        with pytest.raises(CheckpointError, match=rf"optimiser group {group} \((fc|conv)\).*'?{key}"):
+            load_checkpoint(tmp_path / "forged.safetensors").restore(fresh)
+        after, after_meta = fresh.state_tensors()
+        assert after_meta == before_meta and all(torch.equal(after[k], v) for k, v in before.items()), key
+    load_checkpoint(good).restore(fresh)
+    assert fresh.lr == pytest.approx(5e-4)  # the checkpoint's, not the config's: the run goes on as it was
+    step(fresh, mem)
+
+
 def test_weights_only_export_round_trip(tmp_path):
     agent, mem = setup(DQNConfig(lr=1e-3))
     fill(mem)
@@ -679,6 +716,36 @@ def test_weights_in_float8_load_and_a_nan_among_them_is_refused_not_a_traceback(
         return {**t, "fc3.bias": bias.to(torch.float8_e4m3fn)}
     with pytest.raises(CheckpointError, match="fc3.bias holds NaN"):
         load_exported_weights(_forge_export(tmp_path, "nan8.safetensors", nan_in_float8))
+
+
+def test_only_a_file_of_another_kind_is_called_not_a_supervised_model(tmp_path):
+    """``load_supervised`` called every refusal "not a supervised model (write one with `cogexplore
+    pretrain`)", a supervised model with NaN weights or a corrupt one too: that prefix now stands only
+    before a file of another format, and the others say what is wrong with the file they name."""
+    from shared.learning.checkpoints import load_supervised, load_tensors_file, save_supervised, save_tensors_file
+    from shared.learning.model import SupervisedNet
+
+    good = save_supervised(tmp_path / "sl.safetensors", SupervisedNet(TINY))
+    tensors, meta = load_tensors_file(good, "cogexplore-supervised")
+    meta = {k: v for k, v in meta.items() if k != "digest"}
+    nan = tmp_path / "nan.safetensors"
+    save_tensors_file(nan, {**tensors, "fc.bias": torch.full_like(tensors["fc.bias"], float("nan"))}, meta)
+    newer = tmp_path / "newer.safetensors"
+    save_tensors_file(newer, tensors, {**meta, "version": 99})
+    corrupt = tmp_path / "corrupt.safetensors"
+    data = bytearray(good.read_bytes())
+    data[-10] ^= 0xFF
+    corrupt.write_bytes(bytes(data))
+    refusals = {nan: "fc.bias holds NaN", newer: "format version 99", corrupt: "is corrupt",
+                tmp_path / "none.safetensors": "does not exist"}
+    for path, reason in refusals.items():
+        with pytest.raises(CheckpointError) as refused:
+            load_supervised(path)
+        assert str(refused.value).startswith(f"{path}") and reason in str(refused.value)
+    agent, _ = setup(DQNConfig())
+    with pytest.raises(CheckpointError, match=r"^not a supervised model .*'cogexplore-checkpoint' file"):
+        load_supervised(save_checkpoint(tmp_path / "ckpt.safetensors", agent))
+    assert load_supervised(good)[1]["sensor"]["width"] == 40
 
 
 def test_a_forged_config_claiming_networks_far_larger_than_the_file_is_refused_before_any_memory(tmp_path):
