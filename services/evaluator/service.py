@@ -87,7 +87,7 @@ from shared.evaluation import (
 )
 from shared.evaluation.eval_log import EVAL_LOG, evaluation_digest, evaluation_key, load_eval_log
 from shared.evaluation.policies import GreedyPolicy
-from shared.evaluation.protocol import EvaluationCancelled
+from shared.evaluation.protocol import WORLD_META, EvaluationCancelled, file_world_sha256
 from shared.evaluation.results import EvalResults, ResultsError, load_results, save_results
 from shared.files import append_line
 from shared.learning.checkpoints import weights_sha256
@@ -231,6 +231,9 @@ class EvaluatorService:
                         "protocol": self.protocol.name, "protocol_config": self.protocol.to_dict(),
                         "episodes_per_start": self.episodes_per_start,
                         "max_steps": self.max_steps, "seed": self.seed}  # its row's, and its key
+        world_digest = file_world_sha256(self.world)  # read now: the file may have been edited since start-up
+        if world_digest is not None:
+            evaluated_as[WORLD_META] = world_digest
         key = evaluation_key(evaluated_as)
         if not repeat and key in self.evaluated:
             log.info("policy version %d: these weights were evaluated already (%s), not again", version, EVAL_LOG)

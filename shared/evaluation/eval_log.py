@@ -17,6 +17,7 @@ from typing import Any
 from shared.config import ConfigError, is_finite_number, is_whole
 from shared.errors import CogexploreError
 from shared.evaluation import ProtocolConfig
+from shared.evaluation.protocol import WORLD_META
 from shared.jsontext import parse_json
 
 EVAL_LOG = "eval.jsonl"
@@ -26,7 +27,10 @@ EVALUATION_KEY_FIELDS: tuple[str, ...] = ("policy_version", "weights_sha256", "w
                                           "protocol_config", "episodes_per_start", "max_steps", "seed")
 """What makes two rows the same evaluation: the same weights at the same version, played under the
 same protocol, episodes and seed (the protocol's draws come from the seed, so it repeats exactly).
-``protocol_config`` is the protocol's every field: its name alone is ``custom`` for any overridden set."""
+``protocol_config`` is the protocol's every field: its name alone is ``custom`` for any overridden set.
+A row of an MJCF file world holds its content's digest too (:data:`WORLD_META`, from
+``shared.evaluation.protocol.file_world_sha256``), and its key ends with it: a file edited since is
+another world under the same name."""
 
 log = logging.getLogger("cogexplore.eval_log")
 
@@ -78,11 +82,13 @@ def load_eval_log(path: Path) -> list[dict[str, Any]]:
 
 
 def evaluation_key(row: dict[str, Any]) -> tuple[Any, ...] | None:
-    """The row's :data:`EVALUATION_KEY_FIELDS`, or None for a row that does not name its weights
-    (written before the evaluator recorded their digest): such a row never stands for another."""
+    """The row's :data:`EVALUATION_KEY_FIELDS` (and its world's digest, where it has one), or None for a
+    row that does not name its weights (written before the evaluator recorded their digest): such a row
+    never stands for another."""
+    # only where recorded: a built-in world's key, and so its files' names, are what they were before it
+    fields = EVALUATION_KEY_FIELDS + ((WORLD_META,) if row.get(WORLD_META) is not None else ())
     # an object as canonical text: hashable, and equal whatever order its fields were written in
-    key = tuple(json.dumps(v, sort_keys=True) if isinstance(v, Mapping) else v
-                for v in (row.get(k) for k in EVALUATION_KEY_FIELDS))
+    key = tuple(json.dumps(v, sort_keys=True) if isinstance(v, Mapping) else v for v in (row.get(k) for k in fields))
     if not isinstance(row.get("weights_sha256"), str) or not all(v is None or isinstance(v, (str, int)) for v in key):
         return None
     return key

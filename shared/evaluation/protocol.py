@@ -55,6 +55,13 @@ def world_sha256(world: World) -> str:
     return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
 
+def file_world_sha256(world: str) -> str | None:
+    """:func:`world_sha256` of the world ``world`` names when it is an MJCF file, else None: a built-in
+    or procedural world is fixed by its name, so keys written before the digest still stand for it."""
+    loaded = load_world(world)
+    return world_sha256(loaded) if loaded.kind == "file" else None
+
+
 def episode_seed(seed: int, start_index: int, episode: int) -> int:
     """The reset seed of one episode: a function of (seed, start, episode) only, so any
     subset of the protocol reproduces the same episodes (and, under a jittered protocol, the

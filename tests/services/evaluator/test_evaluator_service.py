@@ -280,6 +280,33 @@ def test_a_restarted_evaluator_skips_the_weights_its_run_evaluated_unless_asked_
                             max_steps=3, record=False, seed=7).evaluate(to_message(net, 5), repeat=False)
 
 
+def test_a_restarted_evaluator_evaluates_again_on_a_world_file_edited_since(tmp_path: Path) -> None:
+    # Keyed by the file's path alone, the evaluations of the old file stood for the edited one: skipped.
+    from tests.shared.evaluation.test_eval_log import write_room
+
+    world = write_room(tmp_path / "room.xml")
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+
+    def evaluate(learner_epoch: int) -> dict | None:
+        service = EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", episodes_per_start=1,
+                                   max_steps=3, record=False, world=str(world))
+        return service.evaluate(to_message(net, 5, learner_epoch=learner_epoch), repeat=False)
+
+    net = small_net()
+    first = evaluate(0)
+    assert first is not None and Path(first["results"]).name == "eval-000005.json"
+    assert evaluate(1) is None  # the same file: evaluated already
+    write_room(world, pillar_x=-0.6)
+    again = evaluate(2)
+    assert again is not None and again["world_sha256"] != first["world_sha256"]
+    assert Path(again["results"]).name.startswith("eval-000005-")  # the old file's results keep their name
+    assert evaluate(3) is None
+    # a built-in world's row records no digest: its key, and its files' names, are as before
+    builtin = EvaluatorService(cfg, "svc", tmp_path / "builtin", ZenohSettings(), "ev-1", episodes_per_start=1,
+                               max_steps=3, record=False).evaluate(to_message(net, 5))
+    assert "world_sha256" not in builtin
+
+
 def test_two_overridden_protocols_are_two_evaluations_not_one(tmp_path: Path) -> None:
     # Every overridden set is named "custom": keyed by the name, an evaluator restarted with another
     # --start-jitter-m skipped the weights as evaluated already, and its run had no row of its protocol.
