@@ -222,7 +222,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 mean_q=mean_q, updates_per_s=stats.updates_per_s, transitions=core.received,
                 transitions_per_s=stats.transitions_per_s, replay_size=len(core.replay),
                 rejected=rejects.total, actors_alive=live, mean_weight_lag=stats.extra["mean_weight_lag"],
-                label_agreement=agreement, safe_agreement=safe_agreement, lr=core.agent.lr if core.updates else None)
+                label_agreement=agreement, safe_agreement=safe_agreement, lr=core.agent.lr if core.updates else None,
+                session=epoch)
             stats_log.write(row)
             board.write_row(row)
             last_stats = now

@@ -19,8 +19,9 @@ episodes are drawn from ``seed`` (default :data:`SELECTION_SEED`), the test's fr
 :data:`TEST_SEED` (``cogexplore evaluate`` and ``report``), so a window is never chosen on jittered
 starts and sensor noise that its reported figures are then measured on.
 
-Scores are cached in a JSON-lines file keyed by the window's weights digest and the protocol,
-so an interrupted selection, or one rerun with more checkpoints, only plays new windows.
+Scores are cached in a JSON-lines file keyed by the window's weights digest and the protocol (with
+the content of any gate or validation world that is an MJCF file), so an interrupted selection, or
+one rerun with more checkpoints, only plays new windows.
 :func:`windows`, :func:`choose` and :func:`window_rows_markdown` are pure; :func:`select` plays
 the protocol.
 """
@@ -157,23 +158,21 @@ def window_rows_markdown(scores: Sequence[WindowScore], chosen: WindowScore | No
 def wall_minutes(learner_csv: str | Path) -> tuple[np.ndarray, np.ndarray] | None:
     """(updates, minutes of training) from a run's ``stats/learner.csv``, across resumes (each
     restarts its clock: the time before it is carried over); None without a usable file."""
-    from shared.learning.stats import read_csv_records
+    from shared.learning.stats import LearnerClock, read_csv_records
 
-    updates, minutes, offset, last = [], [], 0.0, 0.0
+    updates, minutes, clock = [], [], LearnerClock()
     try:
         for row in read_csv_records(learner_csv):
             try:
-                u, t = int(row["update"]), float(row["time_s"])
+                u = int(row["update"])
             except (KeyError, TypeError, ValueError):
                 continue
-            if not (math.isfinite(t) and t >= 0):  # a damaged cell: a NaN or infinite clock broke the figure's axis
+            seconds = clock.at(row)
+            if seconds is None:  # a damaged clock: a NaN or infinite time broke the figure's axis
                 continue
-            if t < last:  # a resumed run's clock starts again
-                offset += last
-            last = t
             if not updates or u > updates[-1]:
                 updates.append(u)
-                minutes.append((offset + t) / 60.0)
+                minutes.append(seconds / 60.0)
     except OSError:
         return None
     if len(updates) < 2 or minutes[-1] <= minutes[0]:  # a clock that never moved maps no update to a minute
@@ -265,10 +264,16 @@ class SelectOptions:
 
 
 def _protocol_key(o: SelectOptions) -> dict[str, Any]:
-    return {"gate_world": o.gate_world, "gate_min": o.gate_min, "gate_start_min": o.gate_start_min,
-            "validation_worlds": list(o.validation_worlds),
-            "episodes_per_start": o.episodes_per_start, "max_steps": o.max_steps,
-            "protocol": o.protocol.to_dict(), "seed": o.seed}
+    """What a cached score was scored under; with the content digest of each MJCF file world, whose
+    name does not fix it (none for built-in and procedural worlds: their keys stay as they were)."""
+    from shared.evaluation.protocol import WORLD_META, file_world_sha256
+
+    key = {"gate_world": o.gate_world, "gate_min": o.gate_min, "gate_start_min": o.gate_start_min,
+           "validation_worlds": list(o.validation_worlds),
+           "episodes_per_start": o.episodes_per_start, "max_steps": o.max_steps,
+           "protocol": o.protocol.to_dict(), "seed": o.seed}
+    files = {w: digest for w in (o.gate_world, *o.validation_worlds) if (digest := file_world_sha256(w)) is not None}
+    return {**key, WORLD_META: files} if files else key
 
 
 def _load_cache(path: Path, key: dict[str, Any]) -> dict[str, WindowScore]:

@@ -40,6 +40,7 @@ from shared.learning.stats import (
 from shared.rollout import Episode, Rollout, Step
 from shared.sim.env import ExploreEnv
 from shared.wire.keys import validate_name
+from shared.wire.messages import new_epoch
 
 log = logging.getLogger("cogexplore.train")
 
@@ -54,6 +55,7 @@ class _Training:
         self.cfg, self.core, self.checkpoints, self.guide = cfg, core, checkpoints, guide
         self.learner_log, self.episode_log, self.bar, self.board = learner_log, episode_log, bar, board
         self.started = time.monotonic()
+        self.session = new_epoch()  # learner.csv's mark of this session: a resume's time_s starts again
         self.update_rate = RateMeter()
         self.config_dict = cfg.to_dict()
         self.episodes = 0
@@ -88,7 +90,7 @@ class _Training:
             updates_per_s=self.update_rate.rate(), transitions=core.received, transitions_per_s=None,
             replay_size=len(core.replay), rejected=0, actors_alive=1, mean_weight_lag=0.0,
             label_agreement=core.recent_label_agreement(every), safe_agreement=core.recent_safe_agreement(every),
-            lr=core.agent.lr)
+            lr=core.agent.lr, session=self.session)
         self.learner_log.write(row)
         self.board.write_row(row)
         self.logged_update = core.updates

@@ -3,7 +3,8 @@
 Each file has one record type, whose fields are its columns in order; the learner service and
 the single-process trainer both fill a :class:`LearnerRow` by name and write it with
 :class:`CsvLog`, so a new column is one new field and cannot misalign either writer. A field's
-``fmt`` (a format spec) says how its cell is written; None is an empty cell.
+``fmt`` (a format spec) says how its cell is written; None is an empty cell. A new column goes
+last: an older log's header is a prefix of the new one, and :class:`CsvLog` widens it on resume.
 
 :class:`TensorBoardLog` writes the same rows (and any mapping of numbers, such as an evaluation's
 summary) as TensorBoard scalars, tagged ``<file stem>/<column>`` (``learner/loss``,
@@ -27,8 +28,9 @@ from shared.files import atomic_write_text, ends_torn
 log = logging.getLogger("cogexplore.stats")
 
 
-def _cell(fmt: str | None = None, column: str | None = None) -> Any:
-    return field(metadata={"fmt": fmt, "column": column})
+def _cell(fmt: str | None = None, column: str | None = None, plotted: bool = True) -> Any:
+    """A column; ``plotted`` False for one that is no quantity (an identifier): TensorBoard leaves it out."""
+    return field(metadata={"fmt": fmt, "column": column, "plotted": plotted})
 
 
 class _Row:
@@ -39,6 +41,11 @@ class _Row:
     @classmethod
     def columns(cls) -> tuple[str, ...]:
         return tuple(f.metadata.get("column") or f.name for f in fields(cls))  # type: ignore[arg-type]
+
+    @classmethod
+    def unplotted(cls) -> frozenset[str]:
+        """The columns TensorBoard leaves out."""
+        return frozenset(c for c, f in zip(cls.columns(), fields(cls)) if not f.metadata["plotted"])  # type: ignore[arg-type]
 
     def values(self) -> dict[str, Any]:
         """The row by column name."""
@@ -90,7 +97,11 @@ class LearnerRow(_Row):
     safe_agreement: float | None = _cell(".3f")
     """Share of the samples the map expert marked with the commands that keep a way out
     (explore.safe_label_prob) whose greedy command is one of them, over the recent updates; None
-    without marks. Last: a log begun before it was kept reads its rows as before."""
+    without marks."""
+    session: int = _cell(plotted=False)
+    """The writing process's epoch (``shared.wire.messages.new_epoch``): one value per session of a
+    resumed run, which :class:`LearnerClock` tells apart by it (``time_s`` restarts, but a short
+    session's clock need not go back). Empty in the rows of a log from before this column."""
 
 
 @dataclass(frozen=True)
@@ -136,7 +147,7 @@ class TrainingSummary:
     transitions: int | None
     """Transitions received by then (None: no such column)."""
     learner_s: float | None
-    """The learner's seconds, summed over its sessions (``time_s`` restarts at a resume; None: no such column)."""
+    """The learner's seconds, summed over its sessions (:class:`LearnerClock`; None: no such column)."""
     lr_first: float | None
     """The learning rate of the first row that logs one, and of the last (None: never logged)."""
     lr_last: float | None
@@ -174,6 +185,37 @@ def read_csv_records(path: str | Path) -> Iterator[dict[str, str | None]]:
             yield {column: row[i] if i < len(row) else None for i, column in enumerate(header)}
 
 
+class LearnerClock:
+    """The learner's seconds summed over a run's sessions, row by row of its ``learner.csv`` (each
+    session's ``time_s`` starts again). A session begins where the ``session`` cell changes; in rows
+    without one (a log from before that column) where ``time_s`` goes back, which merges a session
+    whose rows cover less time than the next one takes to write its first row into that one."""
+
+    def __init__(self) -> None:
+        self._ended_s = 0.0  # the sessions before this one
+        self._session = ""  # this session's mark ("": none)
+        self._session_s = 0.0  # this session's time_s at its last row
+
+    def at(self, row: Mapping[str, str | None]) -> float | None:
+        """The learner's seconds at ``row`` (a :func:`read_csv_records` record); None for a row with
+        no clock to trust: torn (cells missing), or a ``time_s`` that is no finite number >= 0."""
+        if None in row.values():
+            return None
+        try:
+            t = float(row.get("time_s") or "")
+        except ValueError:
+            return None
+        if not (math.isfinite(t) and t >= 0):  # a damaged cell
+            return None
+        session = row.get("session") or ""
+        if self._session.startswith(session):  # its mark, or cut short: a killed writer's torn last row
+            session = self._session
+        if session != self._session or (not session and t < self._session_s):
+            self._ended_s += self._session_s
+        self._session, self._session_s = session, t
+        return self._ended_s + t
+
+
 def summarize_learner_log(path: Path) -> TrainingSummary | None:
     """The training a learner log records; None where it has no readable row. Rows that do not
     parse (a torn last line, a column an older run lacks) are skipped, not fatal."""
@@ -186,19 +228,15 @@ def summarize_learner_log(path: Path) -> TrainingSummary | None:
         return value if math.isfinite(value) else None  # a damaged cell: "nan" read as a time or a rate
 
     last: dict[str, str | None] | None = None
-    learner_s = session_s = 0.0
+    clock = LearnerClock()
+    learner_s: float | None = None
     lr_first = lr_last = None
-    timed = False
     for row in read_csv_records(path):
         if None in row.values() or number(row, "update", int) is None:  # torn: cells missing
             continue
         last = row
-        t = number(row, "time_s", float)
-        if t is not None:
-            timed = True
-            if t < session_s:  # a new session: the learner's clock restarted
-                learner_s += session_s
-            session_s = t
+        t = clock.at(row)
+        learner_s = learner_s if t is None else t
         lr = number(row, "lr", float)
         if lr is not None:
             lr_first = lr if lr_first is None else lr_first
@@ -206,7 +244,7 @@ def summarize_learner_log(path: Path) -> TrainingSummary | None:
     if last is None:
         return None
     return TrainingSummary(updates=number(last, "update", int), transitions=number(last, "transitions", int),
-                           learner_s=learner_s + session_s if timed else None, lr_first=lr_first, lr_last=lr_last)
+                           learner_s=learner_s, lr_first=lr_first, lr_last=lr_last)
 
 
 RowT = TypeVar("RowT", bound=_Row)
@@ -240,29 +278,47 @@ def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
     return len(rows) - len(keep)
 
 
-def _has_header(path: Path, row_type: type[_Row]) -> bool:
-    """Whether the first row of ``path`` is a header of ``row_type``'s (any version: it names the step column)."""
+def _header(path: Path, row_type: type[_Row]) -> list[str] | None:
+    """The first row of ``path`` where it is a header of ``row_type``'s (any version: it names the step column)."""
     first = next((r for r in read_csv(path) if r), None)
-    return first is not None and row_type.STEP in first
+    return first if first is not None and row_type.STEP in first else None
+
+
+def _widen(path: Path, row_type: type[_Row], header: list[str]) -> None:
+    """Rewrite ``path``, a log of an older ``row_type`` (its ``header`` a prefix of the columns), with
+    today's header, its rows' missing cells empty: under the old header, readers dropped the new
+    cells of the rows a resumed run appends. A row short of the old header (torn) stays short, so
+    readers still skip it."""
+    columns = row_type.columns()
+    rows = [list(columns)] + [r + [""] * (len(columns) - len(r)) if len(r) >= len(header) else r
+                              for r in list(read_csv(path))[1:]]
+    text = io.StringIO(newline="")
+    csv.writer(text).writerows(rows)
+    atomic_write_text(path, text.getvalue())
 
 
 class CsvLog(Generic[RowT]):
     """Appends rows of one record type to ``<stats dir>/<its FILE>``, the header first when the file
-    is new; every row is flushed, so a crash loses at most the row being written."""
+    is new (an older version's header is widened first: :func:`_widen`); every row is flushed, so a
+    crash loses at most the row being written."""
 
     def __init__(self, stats_dir: Path, row_type: type[RowT]):
         self.row_type = row_type
         self.path = Path(stats_dir) / row_type.FILE
         existed = self.path.exists()
+        header = _header(self.path, row_type) if existed else None
         # a power loss just after a log's start can leave it empty or NULs: it needs its header again
-        new = not existed or not _has_header(self.path, row_type)
+        new = header is None
+        columns = row_type.columns()
+        if header is not None and len(header) < len(columns) and tuple(header) == columns[:len(header)]:
+            _widen(self.path, row_type, header)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "a", newline="")
         if existed and ends_torn(self.path):
             self._file.write("\r\n")  # a killed writer's torn last line: the next row starts its own
         self._writer = csv.writer(self._file)
         if new:
-            self._writer.writerow(row_type.columns())
+            self._writer.writerow(columns)
             self._file.flush()
 
     def write(self, row: RowT) -> None:
@@ -327,7 +383,8 @@ class TensorBoardLog:
         return self._writer is not None
 
     def write_row(self, row: _Row) -> None:
-        values = row.values()
+        unplotted = row.unplotted()
+        values = {column: value for column, value in row.values().items() if column not in unplotted}
         step = int(values.pop(row.STEP))
         group = Path(row.FILE).stem
         if self._last_step.get(group) != step:

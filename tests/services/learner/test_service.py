@@ -47,7 +47,7 @@ def _row(update: int) -> LearnerRow:
     return LearnerRow(time_s=update / 10, update=update, policy_version=update, loss=0.1, mean_q=1.0,
                       updates_per_s=10.0, transitions=update + 50, transitions_per_s=10.0, replay_size=update,
                       rejected=0, actors_alive=1, mean_weight_lag=0.0, label_agreement=None, lr=1e-3,
-                      safe_agreement=None)
+                      safe_agreement=None, session=1)
 
 
 def test_a_learner_restarted_without_a_checkpoint_does_not_log_its_updates_going_back(tmp_path: Path):
@@ -66,9 +66,11 @@ def test_a_learner_restarted_without_a_checkpoint_does_not_log_its_updates_going
         finally:
             timer.cancel()
     assert result["updates"] == 0  # no checkpoint: it started over
-    updates = [int(r["update"]) for r in read_csv_records(paths.stats / LearnerRow.FILE)]
+    rows = list(read_csv_records(paths.stats / LearnerRow.FILE))
     # the rows after update 0 went: their updates come again (they were logged as 0, 100, 200, 300, 0, ...)
-    assert updates and set(updates) == {0}
+    assert len(rows) > 1 and {int(r["update"]) for r in rows} == {0}
+    # each session's rows carry its own mark (the summary tells the sessions apart by it)
+    assert rows[0]["session"] == "1" and len({r["session"] for r in rows[1:]}) == 1 and int(rows[1]["session"]) > 1
 
 
 def _run_with_transitions(paths: RunPaths, cfg, count: int = 200) -> None:

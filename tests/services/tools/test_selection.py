@@ -111,6 +111,10 @@ def test_wall_minutes_carry_the_clock_across_a_resume(tmp_path: Path) -> None:
     assert wall_minutes(tmp_path / "missing.csv") is None
     (tmp_path / "short.csv").write_text("time_s,update\n1,1\n")
     assert wall_minutes(tmp_path / "short.csv") is None
+    # sessions told apart by their mark: the third's first row came later than the second's last,
+    # so its clock did not go back and the second session's time was lost
+    csv.write_text("time_s,update,session\n9.082,25,1\n0.051,30,2\n0.094,40,3\n")
+    assert wall_minutes(csv)[1].tolist() == pytest.approx([9.082 / 60, 9.133 / 60, 9.227 / 60])
 
 def make_run(root: Path, updates: tuple[int, ...]) -> Path:
     """A run folder with one checkpoint per update count, each a different random network."""
@@ -178,6 +182,31 @@ def test_select_scores_every_window_exports_the_choice_and_reuses_its_cache(tmp_
     lines.clear()
     select(dataclasses.replace(opts, protocol=PROTOCOLS["paper"], test_worlds=()), echo=lines.append)
     assert lines[0].startswith("protocol paper") and not any(line.endswith("(cached)") for line in lines)
+
+
+def test_scores_on_a_world_file_are_not_reused_once_the_file_is_edited(tmp_path: Path) -> None:
+    # Keyed by the file's path alone, a gate or validation world edited since kept the old file's scores.
+    from services.tools.selection import _protocol_key
+    from tests.shared.evaluation.test_eval_log import write_room
+
+    gate, validation = write_room(tmp_path / "gate.xml"), write_room(tmp_path / "validation.xml")
+    opts = SelectOptions(run=make_run(tmp_path / "run", (100,)), out=tmp_path / "best.safetensors", window=1,
+                         gate_world=str(gate), gate_min=0.0, validation_worlds=(str(validation), "corridor"),
+                         max_steps=4)
+    lines: list[str] = []
+
+    def cached() -> bool:
+        lines.clear()
+        select(opts, echo=lines.append)
+        return lines[-1].endswith("(cached)")
+
+    assert not cached() and cached()  # the same files: their scores stand
+    for world in (gate, validation):
+        write_room(world, pillar_x=-0.6)
+        assert not cached() and cached()
+    # built-in and procedural worlds are fixed by their names: their key is the one cached before
+    assert "world_sha256" not in _protocol_key(dataclasses.replace(opts, gate_world="box-room",
+                                                                   validation_worlds=("procedural:3",)))
 
 
 def test_a_window_with_a_checkpoint_that_cannot_be_read_is_skipped_and_said(tmp_path: Path) -> None:

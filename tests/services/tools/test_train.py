@@ -204,3 +204,19 @@ def test_the_last_update_s_checkpoint_is_written_once(tmp_path: Path, checkpoint
     assert saved == [5, 10, 13, 13]
     assert [p.name for p in CheckpointManager(paths.checkpoints).checkpoints()] == [
         f"ckpt-{u:09d}.safetensors" for u in (5, 10, 13)]  # keep_checkpoints: the newest 3
+
+
+def test_a_resumed_trainer_marks_each_session_and_the_summary_adds_their_times(tmp_path: Path):
+    # A reviewer's three sessions (to updates 25, 30 and 40): the second's one row (0.051 s) came
+    # before the third's (0.094 s), the clock did not go back, and the second session's time was lost.
+    from shared.learning.stats import read_csv_records, summarize_learner_log
+
+    paths = RunPaths(tmp_path / "r")
+    for updates in (10, 12, 16):
+        cfg = load_preset("smoke").with_overrides({"train.total_updates": updates, "train.log_every": 5,
+                                                   "train.checkpoint_every": 10, "train.warmup_transitions": 8})
+        train_single_process(cfg, paths, progress=False, tensorboard=False)
+    rows = list(read_csv_records(paths.stats / LearnerRow.FILE))
+    session_s = {r["session"]: float(r["time_s"]) for r in rows}  # each session's time at its last row
+    assert [int(r["update"]) for r in rows] == [5, 10, 12, 15, 16] and len(session_s) == 3
+    assert summarize_learner_log(paths.stats / LearnerRow.FILE).learner_s == pytest.approx(sum(session_s.values()))

@@ -15,6 +15,7 @@ from shared.learning.stats import (
     LearnerRow,
     TensorBoardLog,
     read_csv,
+    read_csv_records,
     rewind,
     scalars,
     summarize_learner_log,
@@ -24,7 +25,7 @@ from shared.learning.stats import (
 def row(**changes) -> LearnerRow:
     values = dict(time_s=1.23456, update=50, policy_version=50, loss=0.5, mean_q=None, updates_per_s=2.0,
                   transitions=700, transitions_per_s=None, replay_size=700, rejected=0, actors_alive=1,
-                  mean_weight_lag=0.0, label_agreement=0.875, lr=5e-4, safe_agreement=0.75)
+                  mean_weight_lag=0.0, label_agreement=0.875, lr=5e-4, safe_agreement=0.75, session=7)
     values.update(changes)
     return LearnerRow(**values)
 
@@ -32,7 +33,7 @@ def row(**changes) -> LearnerRow:
 def test_columns_are_the_fields_in_order_and_return_keeps_its_name():
     assert LearnerRow.columns() == ("time_s", "update", "policy_version", "loss", "mean_q", "updates_per_s",
                                     "transitions", "transitions_per_s", "replay_size", "rejected", "actors_alive",
-                                    "mean_weight_lag", "label_agreement", "lr", "safe_agreement")
+                                    "mean_weight_lag", "label_agreement", "lr", "safe_agreement", "session")
     assert EpisodeRow.columns()[5] == "return" and "episode_return" not in EpisodeRow.columns()
 
 
@@ -56,7 +57,7 @@ def test_a_learner_log_sums_its_sessions_and_skips_what_does_not_parse(tmp_path:
         log.write(row(time_s=0.5, update=0, lr=None))
         log.write(row(time_s=60.0, update=100, transitions=400, lr=5e-4))
     with CsvLog(tmp_path, LearnerRow) as log:  # resumed: the clock restarts, 40 s more to update 180
-        log.write(row(time_s=40.0, update=180, transitions=720, lr=2e-4))
+        log.write(row(time_s=40.0, update=180, transitions=720, lr=2e-4, session=8))
     with open(tmp_path / "learner.csv", "a") as fh:
         fh.write("41.0,19")  # a torn last line of a killed learner
     t = summarize_learner_log(tmp_path / "learner.csv")
@@ -72,6 +73,46 @@ def test_a_learner_log_sums_its_sessions_and_skips_what_does_not_parse(tmp_path:
     (tmp_path / "nan.csv").write_text("time_s,update,lr\n10.0,50,0.001\nnan,60,inf\n")
     damaged = summarize_learner_log(tmp_path / "nan.csv")
     assert (damaged.updates, damaged.learner_s, damaged.lr_first, damaged.lr_last) == (60, 10.0, 0.001, 0.001)
+
+
+def test_a_learner_log_tells_its_sessions_apart_by_their_mark_not_only_by_the_clock_going_back(tmp_path: Path):
+    # A reviewer's three sessions of the trainer to updates 25, 30 and 40: the second's one row
+    # (0.051 s) came before the third's (0.094 s), so the clock did not go back between them and
+    # the second session's time was lost (9.176 s).
+    path = tmp_path / "learner.csv"
+    for session, (time_s, update) in enumerate([(9.082, 25), (0.051, 30), (0.094, 40)]):
+        with CsvLog(tmp_path, LearnerRow) as log:
+            log.write(row(time_s=time_s, update=update, session=session + 1))
+    assert summarize_learner_log(path).learner_s == pytest.approx(9.227)
+    # a session logs many rows; rows without a mark (a log from before it) go by the clock going back;
+    # a killed writer's torn last row, its mark cut short or gone, is its session's, not a new one
+    path.write_text("time_s,update,session\n5,10,\n2,20,\n3,30,\n0.5,40,91\n1.0,50,91\n1.5,55,9\n"
+                    "0.75,60,10\n0.8,61,\n0.25,70,11\n")
+    assert summarize_learner_log(path).learner_s == pytest.approx(5 + 3 + 1.5 + 0.8 + 0.25)
+
+
+def test_an_older_log_resumed_takes_the_new_header_and_its_rows_still_read(tmp_path: Path):
+    # Its header named no session: a resumed learner's marks were cells past it, dropped by every
+    # reader, and its sessions were told apart by the clock alone (9.176 s here, not 9.227).
+    path = tmp_path / "learner.csv"
+    old = LearnerRow.columns()[:-2]  # before safe_agreement and session
+    path.write_text(",".join(old) + "\n" + ",".join(row(time_s=1.0, update=20).cells()[:-2]) + "\n"
+                    # appended under the old header by a writer that had safe_agreement: a cell past it
+                    + ",".join(row(time_s=9.082, update=25).cells()[:-1]) + "\n9.5,2")
+    for session, (time_s, update) in enumerate([(0.051, 30), (0.094, 40)]):
+        with CsvLog(tmp_path, LearnerRow) as log:
+            log.write(row(time_s=time_s, update=update, safe_agreement=None, session=session + 1))
+    rows = list(read_csv(path))
+    assert rows[0] == list(LearnerRow.columns()) and all(len(r) == len(rows[0]) for r in rows if r != ["9.5", "2"])
+    assert rows[1][-2:] == ["", ""] and rows[2][-2:] == ["0.750", ""] and ["9.5", "2"] in rows  # torn: still short
+    records = list(read_csv_records(path))
+    assert [(r["update"], r["session"]) for r in records if None not in r.values()] == [
+        ("20", ""), ("25", ""), ("30", "1"), ("40", "2")]
+    t = summarize_learner_log(path)
+    assert (t.updates, t.learner_s, t.lr_first) == (40, pytest.approx(9.227), 5e-4)
+    before = path.read_bytes()
+    CsvLog(tmp_path, LearnerRow).close()  # a log of today's columns is left as it is
+    assert path.read_bytes() == before
 
 
 def test_a_power_loss_tail_or_foreign_bytes_are_skipped_by_every_reader_and_resume_rewinds_past_them(
