@@ -21,8 +21,9 @@ def add_actor_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--actor-id", default=None, help="unique id (default: actor-<hostname>-<pid>)")
     parser.add_argument("--actor-index", type=int, default=None,
                         help="index i of this actor among --num-actors: its epsilon in a per-actor (Ape-X) "
-                             "schedule, its seed, and which of the extra worlds it builds; default: a hash of the "
-                             "actor id modulo --num-actors, so replicas that cannot be numbered (compose's "
+                             "schedule, part of its seed (with its id and process), and which of the extra worlds "
+                             "it builds; default: a hash of the actor id modulo --num-actors, so replicas that "
+                             "cannot be numbered (compose's "
                              "--scale) may share an index (their seeds still differ), and each then builds every "
                              "extra world (a shared index would leave another's worlds unplayed)")
     # A string default goes through the type: a bad env value is an option error, not a traceback.

@@ -296,35 +296,51 @@ def test_checkpoint_of_another_architecture_or_optimiser_is_refused(tmp_path):
         ck.restore(agent, mem)
 
 
+class ForgedCheckpoints:
+    """An agent's checkpoint after one update (``good``, its ``tensors`` and ``meta`` without the
+    digest, which a forged file gets anew), and a fresh agent whose state no refusal may change."""
+
+    def __init__(self, tmp_path, optimizer: str, lr: float) -> None:
+        from shared.learning.checkpoints import load_tensors_file
+
+        agent, self.mem = setup(DQNConfig(optimizer=optimizer, lr=lr))
+        fill(self.mem)
+        step(agent, self.mem)
+        self.tmp_path = tmp_path
+        self.good = save_checkpoint(tmp_path / "good.safetensors", agent)
+        self.tensors, meta = load_tensors_file(self.good, "cogexplore-checkpoint")
+        self.meta = {k: v for k, v in meta.items() if k != "digest"}
+        self.fresh, _ = setup(DQNConfig(optimizer=optimizer, lr=1e-3), seed=1)
+        self.before, self.before_meta = self.fresh.state_tensors()
+
+    def refused(self, tensors, meta, match: str) -> None:
+        """``tensors`` and ``meta`` saved as a checkpoint are refused (``match``), the fresh agent unchanged."""
+        from shared.learning.checkpoints import save_tensors_file
+
+        save_tensors_file(self.tmp_path / "forged.safetensors", tensors, meta)
+        with pytest.raises(CheckpointError, match=match):
+            load_checkpoint(self.tmp_path / "forged.safetensors").restore(self.fresh)
+        after, after_meta = self.fresh.state_tensors()
+        assert after_meta == self.before_meta and after.keys() == self.before.keys(), match
+        assert all(torch.equal(after[k], v) for k, v in self.before.items()) and self.fresh.target_version == 0
+
+
 @pytest.mark.parametrize("optimizer", ["adam", "sgd"])
 def test_optimiser_state_of_another_dtype_or_shape_is_refused_before_the_agent_changes(tmp_path, optimizer):
     """Moments that are float16, integers, complex or of another shape, a step that is no scalar, a
     moment of no parameter (a damaged or hand-made file, its digest recomputed): torch would cast them
     silently, or corrupt the memory in its fused step. Refused, naming the tensor, the agent as it was."""
-    from shared.learning.checkpoints import load_tensors_file, save_tensors_file
-
-    agent, mem = setup(DQNConfig(optimizer=optimizer, lr=1e-3))
-    fill(mem)
-    step(agent, mem)
-    good = save_checkpoint(tmp_path / "good.safetensors", agent)
-    tensors, meta = load_tensors_file(good, "cogexplore-checkpoint")
-    meta = {k: v for k, v in meta.items() if k != "digest"}
+    f = ForgedCheckpoints(tmp_path, optimizer, 1e-3)
+    tensors = f.tensors
     moment = "optim.0.exp_avg" if optimizer == "adam" else "optim.0.momentum_buffer"
     forgeries = [(moment, tensors[moment].to(dtype)) for dtype in (torch.float16, torch.int64, torch.complex64)]
     forgeries += [(moment, tensors[moment][:3].clone()), (moment.replace(".0.", ".99."), tensors[moment].clone())]
     if optimizer == "adam":
         forgeries.append(("optim.0.step", torch.ones(2)))
-    fresh, _ = setup(DQNConfig(optimizer=optimizer, lr=1e-3), seed=1)
-    before, before_meta = fresh.state_tensors()
     for name, forged in forgeries:
-        save_tensors_file(tmp_path / "forged.safetensors", {**tensors, name: forged}, meta)
-        with pytest.raises(CheckpointError, match=re.escape(name)):
-            load_checkpoint(tmp_path / "forged.safetensors").restore(fresh)
-        after, after_meta = fresh.state_tensors()
-        assert after_meta == before_meta and after.keys() == before.keys()
-        assert all(torch.equal(after[k], v) for k, v in before.items()) and fresh.target_version == 0
-    load_checkpoint(good).restore(fresh)
-    assert fresh.update_count == 1 and torch.equal(fresh.state_tensors()[0][moment], tensors[moment])
+        f.refused({**tensors, name: forged}, f.meta, re.escape(name))
+    load_checkpoint(f.good).restore(f.fresh)
+    assert f.fresh.update_count == 1 and torch.equal(f.fresh.state_tensors()[0][moment], tensors[moment])
 
 
 @pytest.mark.parametrize("optimizer", ["adam", "sgd"])
@@ -333,35 +349,22 @@ def test_optimiser_hyperparameters_that_are_no_sane_value_are_refused_before_the
     not this agent's (a damaged or hand-made file): torch took them, and failed at the first update or
     trained on nonsense. Refused naming the group and key, the agent as it was; a sane checkpoint's
     own lr stays what a resumed run trains at."""
-    from shared.learning.checkpoints import load_tensors_file, save_tensors_file
-
-    agent, mem = setup(DQNConfig(optimizer=optimizer, lr=5e-4))
-    fill(mem)
-    step(agent, mem)
-    good = save_checkpoint(tmp_path / "good.safetensors", agent)
-    tensors, meta = load_tensors_file(good, "cogexplore-checkpoint")
-    meta = {k: v for k, v in meta.items() if k != "digest"}
+    f = ForgedCheckpoints(tmp_path, optimizer, 5e-4)
     forgeries = [(0, "lr", "0.001"), (1, "lr", -1e-3), (0, "lr", float("nan")), (0, "weight_decay", float("inf")),
                  (1, "maximize", True), (0, "name", "conv"), (0, "lr", None), (1, "fused", 1)]
     forgeries += ([(0, "betas", [0.9]), (1, "betas", [0.9, 1.5]), (0, "eps", -1e-8), (0, "amsgrad", True)]
                   if optimizer == "adam" else [(0, "momentum", 1.5), (1, "betas", [0.9, 0.999])])
-    fresh, _ = setup(DQNConfig(optimizer=optimizer, lr=1e-3), seed=1)
-    before, before_meta = fresh.state_tensors()
     for group, key, value in forgeries:
-        forged = json.loads(json.dumps(meta))
+        forged = json.loads(json.dumps(f.meta))
         groups = forged["agent"]["optimizer"]["param_groups"]
         if value is None:
             del groups[group][key]
         else:
             groups[group][key] = value
-        save_tensors_file(tmp_path / "forged.safetensors", tensors, forged)
-        with pytest.raises(CheckpointError, match=rf"optimiser group {group} \((fc|conv)\).*'?{key}"):
-            load_checkpoint(tmp_path / "forged.safetensors").restore(fresh)
-        after, after_meta = fresh.state_tensors()
-        assert after_meta == before_meta and all(torch.equal(after[k], v) for k, v in before.items()), key
-    load_checkpoint(good).restore(fresh)
-    assert fresh.lr == pytest.approx(5e-4)  # the checkpoint's, not the config's: the run goes on as it was
-    step(fresh, mem)
+        f.refused(f.tensors, forged, rf"optimiser group {group} \((fc|conv)\).*'?{key}")
+    load_checkpoint(f.good).restore(f.fresh)
+    assert f.fresh.lr == pytest.approx(5e-4)  # the checkpoint's, not the config's: the run goes on as it was
+    step(f.fresh, f.mem)
 
 
 def test_weights_only_export_round_trip(tmp_path):
