@@ -196,19 +196,23 @@ class EvaluatorService:
                 return stem
         return f"{result_stem(version, digest)}-{self.evaluator_id}"  # ids are unique among live evaluators
 
+    def _files(self, stem: str) -> tuple[Path, Path]:
+        """The results file and the recording an evaluation named ``stem`` writes."""
+        return self.root / "stats" / "eval" / f"{stem}.json", self.root / "recordings" / f"{stem}.rrd"
+
     def _claim(self, stem: str, digest: str) -> bool:
         """Whether ``stem`` names this evaluation's files: its results hold this evaluation (played
         again), or neither file exists and this evaluator creates the results file first, empty until
         its results replace it. Claimed as the evaluation begins, not when its results are saved
         minutes later: two evaluators of one version took one name, and the last to finish replaced
         the other's files under the other's row."""
-        results = self.root / "stats" / "eval" / f"{stem}.json"
+        results, recording = self._files(stem)
         if results.exists():
             try:
                 return load_results(results).meta.get(EVALUATION_META) == digest
             except ResultsError:  # damaged, or another's claim: not known to be this evaluation's
                 return False
-        if (self.root / "recordings" / f"{stem}.rrd").exists():
+        if recording.exists():
             return False  # a recording without results (its evaluator killed in between) is someone's too
         results.parent.mkdir(parents=True, exist_ok=True)
         try:
@@ -240,8 +244,8 @@ class EvaluatorService:
             return None
         stats = self.root / "stats"
         digest = evaluation_digest(key)
-        stem = self.files_stem(version, digest)
-        rrd = self.root / "recordings" / f"{stem}.rrd" if self.record else None
+        results_file, recording = self._files(self.files_stem(version, digest))
+        rrd = recording if self.record else None
         log.info("evaluating policy version %d on %s (%s protocol, %d episode(s) per start, %d steps)", version,
                  self.world, self.protocol.name, self.episodes_per_start, self.max_steps)
         started = time.monotonic()
@@ -249,7 +253,6 @@ class EvaluatorService:
                 "fingerprint": self.fingerprint, "weights_sha256": weights_digest,
                 "evaluator_id": self.evaluator_id, EVALUATION_META: digest}
         live = self.viewer.url if self.viewer is not None and self.viewer.up() else None
-        results_file = stats / "eval" / f"{stem}.json"
         try:
             results = evaluate_recorded(self.policy, world=self.world, sensor_cfg=self.cfg.sensor,
                                         env_cfg=self.cfg.env, episodes_per_start=self.episodes_per_start,

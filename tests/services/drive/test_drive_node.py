@@ -4,6 +4,7 @@ the shipped model: how it copes with a flood of images and with a policy that st
 from __future__ import annotations
 
 import argparse
+import contextlib
 import threading
 import time
 
@@ -59,18 +60,36 @@ class Robot:
             return list(self.twists)
 
 
-def start_watchdog(node: DriveNode) -> tuple[threading.Event, threading.Thread]:
-    """run_drive_command's loop: the node's watchdog every 20 ms until the event is set."""
-    ticking = threading.Event()
+@contextlib.contextmanager
+def driving(router: str, policy, *options: str, watchdog: bool = False):
+    """This test as the robot and a drive node with ``options``, on ``router``; with ``watchdog``,
+    run_drive_command's loop too (the node's watchdog every 20 ms). Yields (robot, node, a function
+    that stops that loop); all is stopped and closed on the way out (a node's close is idempotent)."""
+    with client(router) as robot_session, client(router) as drive_session:
+        robot = Robot(robot_session)
+        node = DriveNode(drive_session, drive_args(router, *options), policy)
+        ticking = threading.Event()
 
-    def watchdog() -> None:
-        while not ticking.is_set():
-            node.tick()
-            ticking.wait(0.02)
+        def watch() -> None:
+            while not ticking.is_set():
+                node.tick()
+                ticking.wait(0.02)
 
-    ticker = threading.Thread(target=watchdog, daemon=True)
-    ticker.start()
-    return ticking, ticker
+        ticker = threading.Thread(target=watch, daemon=True)
+        if watchdog:
+            ticker.start()
+
+        def stop_watchdog() -> None:
+            ticking.set()
+            if ticker.is_alive():
+                ticker.join()
+
+        try:
+            yield robot, node, stop_watchdog
+        finally:
+            stop_watchdog()
+            node.close()
+            robot.node.close()
 
 
 def wait_for_twist(robot: Robot, image: bytes, moving: bool = False) -> None:
@@ -89,25 +108,19 @@ def test_a_flood_of_images_never_queues_and_commands_come_from_the_newest(loopba
     # the moment each left the queue, so the diagnostics said nothing of it.
     slow = Slow(policy, 0.05)
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
-    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
-        robot = Robot(robot_session)
-        node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "30"), slow)
-        try:
-            wait_for_twist(robot, good)
-            time.sleep(0.5)
-            before = slow.decided
-            for _ in range(200):  # 200 images in about 0.2 s, each a 50 ms decision in lock step
-                robot.images.put(good)
-                time.sleep(0.001)
-            flood_end = time.monotonic()
-            time.sleep(2.0)
-            decided = slow.decided - before
-            assert decided < 60, f"{decided} of 200 flooded images were decided one after the other"
-            last = robot.snapshot()[-1][0]
-            assert last - flood_end < 1.0, f"the last command came {last - flood_end:.1f} s after the last image"
-        finally:
-            node.close()
-            robot.node.close()
+    with driving(loopback_router, slow, "--lockstep", "--watchdog", "30") as (robot, _node, _stop):
+        wait_for_twist(robot, good)
+        time.sleep(0.5)
+        before = slow.decided
+        for _ in range(200):  # 200 images in about 0.2 s, each a 50 ms decision in lock step
+            robot.images.put(good)
+            time.sleep(0.001)
+        flood_end = time.monotonic()
+        time.sleep(2.0)
+        decided = slow.decided - before
+        assert decided < 60, f"{decided} of 200 flooded images were decided one after the other"
+        last = robot.snapshot()[-1][0]
+        assert last - flood_end < 1.0, f"the last command came {last - flood_end:.1f} s after the last image"
 
 
 @pytest.mark.timeout(120)
@@ -117,38 +130,28 @@ def test_a_stalled_policy_holds_neither_the_watchdog_nor_the_exit_stop(loopback_
     # and SIGTERM during a stall sent its stop only when the policy came back.
     slow = Slow(policy, 0.0)
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
-    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
-        robot = Robot(robot_session)
-        node = DriveNode(drive_session, drive_args(loopback_router, "--watchdog", "0.5"), slow)
-        ticking, ticker = start_watchdog(node)
-        try:
-            wait_for_twist(robot, good, moving=True)
-            slow.delay_s = 3.0
-            time.sleep(0.6)  # the next image is due
-            sent = time.monotonic()
-            robot.images.put(good)
-            time.sleep(3.5)
-            after = [(t - sent, linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
-            assert after and after[0][0] < 0.5 + 1.0, f"first twist {after[:1]} after the stalled image"
-            assert all((linear, angular) == (0.0, 0.0) for _, linear, angular in after), after
-            # and at exit, while the policy stalls again
-            slow.delay_s = 5.0
-            time.sleep(0.6)
-            robot.images.put(good)
-            time.sleep(0.3)
-            closing = time.monotonic()
-            ticking.set()
-            ticker.join()
-            node.close()
-            assert time.monotonic() - closing < 2.5, "close waited for the stalled policy"
-            time.sleep(0.3)
-            after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > closing]
-            assert after and after[-1] == (0.0, 0.0), after
-        finally:
-            if not ticking.is_set():
-                ticking.set()
-                node.close()
-            robot.node.close()
+    with driving(loopback_router, slow, "--watchdog", "0.5", watchdog=True) as (robot, node, stop_watchdog):
+        wait_for_twist(robot, good, moving=True)
+        slow.delay_s = 3.0
+        time.sleep(0.6)  # the next image is due
+        sent = time.monotonic()
+        robot.images.put(good)
+        time.sleep(3.5)
+        after = [(t - sent, linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
+        assert after and after[0][0] < 0.5 + 1.0, f"first twist {after[:1]} after the stalled image"
+        assert all((linear, angular) == (0.0, 0.0) for _, linear, angular in after), after
+        # and at exit, while the policy stalls again
+        slow.delay_s = 5.0
+        time.sleep(0.6)
+        robot.images.put(good)
+        time.sleep(0.3)
+        closing = time.monotonic()
+        stop_watchdog()
+        node.close()
+        assert time.monotonic() - closing < 2.5, "close waited for the stalled policy"
+        time.sleep(0.3)
+        after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > closing]
+        assert after and after[-1] == (0.0, 0.0), after
 
 
 @pytest.mark.timeout(120)
@@ -157,23 +160,14 @@ def test_in_lock_step_a_slow_decision_is_waited_for_not_stopped(loopback_router,
     # (a slow first forward pass on a loaded machine) was taken for that period's command.
     slow = Slow(policy, 0.0)
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
-    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
-        robot = Robot(robot_session)
-        node = DriveNode(drive_session, drive_args(loopback_router, "--lockstep", "--watchdog", "0.6"), slow)
-        ticking, ticker = start_watchdog(node)
-        try:
-            wait_for_twist(robot, good)
-            slow.delay_s = 1.5  # at once: no image for the watchdog period would be a stop of its own
-            sent = time.monotonic()
-            robot.images.put(good)
-            time.sleep(2.0)
-            after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
-            assert after and after[0] != (0.0, 0.0), f"the period's first twist {after[:1]} was a stop"
-        finally:
-            ticking.set()
-            ticker.join()
-            node.close()
-            robot.node.close()
+    with driving(loopback_router, slow, "--lockstep", "--watchdog", "0.6", watchdog=True) as (robot, _node, _stop):
+        wait_for_twist(robot, good)
+        slow.delay_s = 1.5  # at once: no image for the watchdog period would be a stop of its own
+        sent = time.monotonic()
+        robot.images.put(good)
+        time.sleep(2.0)
+        after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
+        assert after and after[0] != (0.0, 0.0), f"the period's first twist {after[:1]} was a stop"
 
 
 @pytest.mark.timeout(60)
@@ -181,17 +175,12 @@ def test_a_node_closed_twice_stops_the_robot_once_and_the_second_close_does_noth
                                                                                      start_image):
     # The second close undeclared topics already undeclared: an error on the way out of a caller's
     # cleanup (a `with` and a `finally` both closing) that hid the first one's.
-    with client(loopback_router) as robot_session, client(loopback_router) as drive_session:
-        robot = Robot(robot_session)
-        node = DriveNode(drive_session, drive_args(loopback_router), policy)
-        try:
-            wait_for_twist(robot, encode_depth_image(start_image, encoding="32FC1", stamp_ns=1))
-            node.close()
-            time.sleep(0.3)
-            stops = robot.snapshot()
-            assert stops[-1][1:] == (0.0, 0.0)
-            node.close()
-            time.sleep(0.3)
-            assert robot.snapshot() == stops
-        finally:
-            robot.node.close()
+    with driving(loopback_router, policy) as (robot, node, _stop):
+        wait_for_twist(robot, encode_depth_image(start_image, encoding="32FC1", stamp_ns=1))
+        node.close()
+        time.sleep(0.3)
+        stops = robot.snapshot()
+        assert stops[-1][1:] == (0.0, 0.0)
+        node.close()
+        time.sleep(0.3)
+        assert robot.snapshot() == stops

@@ -44,6 +44,17 @@ def small_config():
     return load_preset("paper").with_overrides(SMALL)
 
 
+QUICK = dict(episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False, protocols=("paper",))
+"""A report of the reactive baseline alone, one 3-step episode per start, under the paper protocol."""
+
+
+def bare_run(path: Path) -> Path:
+    """A run folder at ``path`` with its config and nothing else (no checkpoint, no logs)."""
+    path.mkdir(parents=True)
+    (path / "config.toml").write_text(to_toml(small_config()))
+    return path
+
+
 def make_run(root: Path, policy_version: int = 1000) -> Path:
     """A run folder with one checkpoint of a fresh network, as the learner writes it."""
     from shared.learning.checkpoints import CheckpointManager
@@ -541,11 +552,8 @@ def test_an_eval_log_row_the_evaluator_could_not_have_written_is_skipped(tmp_pat
 
 
 def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
-    run = tmp_path / "fresh"
-    run.mkdir()
-    (run / "config.toml").write_text(to_toml(small_config()))
-    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
-                          protocols=("paper",))
+    run = bare_run(tmp_path / "fresh")
+    report = build_report(run, **QUICK)
     text = report.markdown.read_text()
     assert list(report.results) == ["paper"] and "## Table III, paper protocol" in text and "robust" not in text
     assert "no checkpoint yet" in text and "learner.csv does not exist" in text
@@ -556,12 +564,9 @@ def test_report_without_checkpoint_or_loss_log_says_so(tmp_path: Path) -> None:
 def test_a_report_elsewhere_reuses_the_runs_own_report_results(tmp_path: Path) -> None:
     # With --out, the run's report/results/ (which the docs say is reused) was not searched: every
     # model was evaluated again, minutes of the full protocol for numbers already in the run.
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.toml").write_text(to_toml(small_config()))
-    kw = dict(episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False, protocols=("paper",))
-    first = build_report(run, **kw)
-    again = build_report(run, out_dir=tmp_path / "elsewhere", **kw)
+    run = bare_run(tmp_path / "run")
+    first = build_report(run, **QUICK)
+    again = build_report(run, out_dir=tmp_path / "elsewhere", **QUICK)
     assert again.results == first.results == {"paper": {"reactive": run / "report" / "results" / "reactive-paper.json"}}
     assert "paper reused: [reactive-paper.json](../run/report/results/reactive-paper.json)" in again.markdown.read_text()
     assert not (tmp_path / "elsewhere" / "results").exists()
@@ -570,11 +575,8 @@ def test_a_report_elsewhere_reuses_the_runs_own_report_results(tmp_path: Path) -
 def test_a_line_break_in_a_run_name_does_not_end_its_heading(tmp_path: Path) -> None:
     # The heading's code span broke at the line break: report.md's next line was the raw HTML
     # "<img src=x onerror=alert(1)>`", run by a Markdown viewer that shows HTML.
-    run = tmp_path / "x\n<img src=x onerror=alert(1)>"
-    run.mkdir()
-    (run / "config.toml").write_text(to_toml(small_config()))
-    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
-                          protocols=("paper",))
+    run = bare_run(tmp_path / "x\n<img src=x onerror=alert(1)>")
+    report = build_report(run, **QUICK)
     text = report.markdown.read_text()
     assert text.startswith("# Report: run `x <img src=x onerror=alert(1)>`\n")
     assert not [line for line in text.splitlines() if line.startswith("<")]
@@ -584,12 +586,10 @@ def test_a_line_break_in_a_run_name_does_not_end_its_heading(tmp_path: Path) -> 
 
 
 def test_a_garbled_learner_log_is_a_note_not_a_crash(tmp_path: Path) -> None:
-    run = tmp_path / "garbled"
-    (run / "stats").mkdir(parents=True)
-    (run / "config.toml").write_text(to_toml(small_config()))
+    run = bare_run(tmp_path / "garbled")
+    (run / "stats").mkdir()
     (run / "stats" / "learner.csv").write_bytes(b"update,loss\n1,\x00\xff\xfe2\n")  # not text
-    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
-                          protocols=("paper",))
+    report = build_report(run, **QUICK)
     text = report.markdown.read_text()
     # What parses is read (update 1); the loss that does not is a note, not a crash.
     assert "Training: 1 updates" in text
@@ -598,8 +598,7 @@ def test_a_garbled_learner_log_is_a_note_not_a_crash(tmp_path: Path) -> None:
     # A power loss's tail of NUL bytes (one csv field past the module's limit) after good rows: the
     # rows before it still make the training line and the curve (before, csv.Error ended the report).
     (run / "stats" / "learner.csv").write_bytes(b"update,loss\n1,2.0\n2,1.5\n" + b"\0" * 200_000)
-    report = build_report(run, episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False,
-                          protocols=("paper",))
+    report = build_report(run, **QUICK)
     text = report.markdown.read_text()
     assert "Training: 2 updates" in text and "The loss curve could not be drawn" not in text
     assert (run / "report" / "loss.png").read_bytes()[:8] == PNG_MAGIC
@@ -690,13 +689,6 @@ def test_user_probe_images(tmp_path: Path) -> None:
         load_probe_image(txt, sensor)
 
 
-_USER_ROOM = """<mujoco><worldbody>
-<geom type="box" pos="0 3 1" size="3 0.1 1"/><geom type="box" pos="0 -3 1" size="3 0.1 1"/>
-<geom type="box" pos="3 0 1" size="0.1 3 1"/><geom type="box" pos="-3 0 1" size="0.1 3 1"/>
-<geom type="cylinder" pos="{pillar_x} 0.5 1" size="0.3 1"/><site name="start_a" pos="-2 0 0"/>
-</worldbody></mujoco>"""
-
-
 def _drop_world_digest(path: Path) -> None:
     """``path`` as results were written before they recorded the world's content."""
     doc = json.loads(path.read_text())
@@ -706,11 +698,10 @@ def _drop_world_digest(path: Path) -> None:
 
 def test_results_stand_for_a_world_file_only_as_it_was_played(tmp_path: Path) -> None:
     # Matched by the world's name, the results of an MJCF file stood for it after the user edited it.
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.toml").write_text(to_toml(small_config()))
-    world = tmp_path / "my_world.xml"
-    world.write_text(_USER_ROOM.format(pillar_x=2.0))
+    run = bare_run(tmp_path / "run")
+    from tests.shared.evaluation.test_eval_log import write_room
+
+    world = write_room(tmp_path / "my_world.xml")
     kw = dict(world=str(world), episodes_per_start=1, max_steps=40, baselines=("reactive",), progress=False,
               protocols=("paper",))
     saved = build_report(run, **kw).results["paper"]["reactive"]
@@ -720,19 +711,16 @@ def test_results_stand_for_a_world_file_only_as_it_was_played(tmp_path: Path) ->
         return "paper reused" in build_report(run, **kw).markdown.read_text()
 
     assert reused()  # the same file: its results stand
-    world.write_text(_USER_ROOM.format(pillar_x=0.0))  # the pillar moved into the robot's way
+    write_room(world, pillar_x=0.0)  # the pillar moved into the robot's way
     assert not reused() and load_results(saved).meta["world_sha256"] != played
     _drop_world_digest(saved)  # a file's results from before: they cannot say which content they played
     assert not reused()
 
 
 def test_a_built_in_worlds_results_from_before_the_world_digest_are_reused(tmp_path: Path) -> None:
-    run = tmp_path / "run"
-    run.mkdir()
-    (run / "config.toml").write_text(to_toml(small_config()))
-    kw = dict(episodes_per_start=1, max_steps=3, baselines=("reactive",), progress=False, protocols=("paper",))
-    _drop_world_digest(build_report(run, **kw).results["paper"]["reactive"])
-    assert "paper reused" in build_report(run, **kw).markdown.read_text()  # box-room: fixed by its name
+    run = bare_run(tmp_path / "run")
+    _drop_world_digest(build_report(run, **QUICK).results["paper"]["reactive"])
+    assert "paper reused" in build_report(run, **QUICK).markdown.read_text()  # box-room: fixed by its name
 
 
 def test_find_results_reads_each_file_once_per_cache(tmp_path: Path) -> None:
