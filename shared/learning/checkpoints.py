@@ -561,9 +561,11 @@ def init_agent_weights(agent: DQNAgent, source: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"train.init_from = {str(source)!r}: no such file")
     try:
         net, meta = load_exported_weights(path)
-    except CheckpointError as exc:
+    except WrongFileFormat as exc:
         raise CheckpointError(f"train.init_from: {exc} (a training checkpoint becomes a weights file with "
                               "`cogexplore model export CKPT --out FILE`)") from None
+    except CheckpointError as exc:  # a weights file, damaged or diverged: the hint would mislead
+        raise CheckpointError(f"train.init_from: {exc}") from None
     if isinstance(net, QEnsemble):
         log.info("train.init_from = %s: an ensemble of %d networks; starting from its first", source,
                  len(net.members))
@@ -783,8 +785,11 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
     else:
         try:
             ckpt = load_checkpoint(path)
-        except CheckpointError as exc:
+        except WrongFileFormat as exc:
             errors.append(str(exc))
+        except CheckpointError:
+            # A checkpoint, damaged or diverged: said as one, not as "neither" kind of file.
+            raise
     if ckpt is not None:
         meta = ckpt.agent_meta
         run_config = _stored_run_config(ckpt.path, ckpt.config or None)
@@ -805,7 +810,7 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
                            weights_sha256(net), run_config)
     try:
         net, meta = load_exported_weights(path, dev)
-    except CheckpointError as exc:
+    except WrongFileFormat as exc:
         errors.append(str(exc))
         raise CheckpointError(f"{path} is neither a checkpoint nor a weights export: " + " | ".join(errors)) from None
     policy_version = meta.get("policy_version", 0)

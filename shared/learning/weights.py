@@ -15,11 +15,10 @@ from shared.learning.model import (
 from shared.wire.messages import WeightsMessage
 
 
-def to_message(net: nn.Module, policy_version: int, half: bool = False, learner_epoch: int = 0) -> WeightsMessage:
-    """``net``'s state as a WeightsMessage of the learner started at ``learner_epoch`` (float16 on the
-    wire when ``half``)."""
-    dtype = np.float16 if half else np.float32
-    tensors = {name: t.float().numpy().astype(dtype, copy=False) for name, t in weights_to_tensors(net).items()}
+def to_message(net: nn.Module, policy_version: int, learner_epoch: int = 0) -> WeightsMessage:
+    """``net``'s state as a WeightsMessage of the learner started at ``learner_epoch`` (float32 on the
+    wire, as trained: float16 would overflow past 65504; the wire still reads float16 weights)."""
+    tensors = {name: t.float().numpy().astype(np.float32, copy=False) for name, t in weights_to_tensors(net).items()}
     return WeightsMessage(policy_version=policy_version, architecture_fingerprint=architecture_fingerprint(net),
                           tensors=tensors, learner_epoch=learner_epoch)
 

@@ -751,6 +751,31 @@ def test_only_a_file_of_another_kind_is_called_not_a_supervised_model(tmp_path):
     assert load_supervised(good)[1]["sensor"]["width"] == 40
 
 
+def test_only_a_file_of_another_kind_gets_the_other_kinds_refusals_and_hints(tmp_path):
+    """``load_model`` called a weights export with NaN weights "neither a checkpoint nor a weights
+    export" (beside "is a 'cogexplore-weights' file, expected 'cogexplore-checkpoint'"), and
+    ``train.init_from`` told to export a checkpoint that was a diverged weights file: each now says
+    only what is wrong with the file, and keeps the other kind's words for a file of another kind."""
+    from shared.learning.checkpoints import init_agent_weights, load_model, save_supervised
+    from shared.learning.model import SupervisedNet
+
+    def nan_bias(t):
+        return {**t, "fc1.bias": torch.full_like(t["fc1.bias"], float("nan"))}
+    nan = _forge_export(tmp_path, "nan.safetensors", nan_bias)
+    agent, _ = setup(DQNConfig())
+    for load, prefix in ((load_model, f"{nan}: "), (lambda p: init_agent_weights(agent, p), f"train.init_from: {nan}: ")):
+        with pytest.raises(CheckpointError) as refused:
+            load(nan)
+        assert str(refused.value) == prefix + "fc1.bias holds NaN or infinite values (diverged or damaged weights)"
+    ckpt = save_checkpoint(tmp_path / "ckpt.safetensors", agent)
+    with pytest.raises(CheckpointError, match=r"'cogexplore-checkpoint' file, expected 'cogexplore-weights' "
+                                              r"\(a training checkpoint becomes a weights file with"):
+        init_agent_weights(agent, ckpt)
+    with pytest.raises(CheckpointError, match=r"is neither a checkpoint nor a weights export: .*expected "
+                                              r"'cogexplore-checkpoint' \| .*expected 'cogexplore-weights'"):
+        load_model(save_supervised(tmp_path / "sl.safetensors", SupervisedNet(TINY)))
+
+
 def test_a_forged_config_claiming_networks_far_larger_than_the_file_is_refused_before_any_memory(tmp_path):
     """A few kB whose metadata claims 16 networks of 2 GiB each: refused from the file's tensors,
     before a byte of the 32 GiB is taken (the child may use 4 GiB)."""
