@@ -13,6 +13,9 @@ The safety rules, in the order they are checked:
    step, one per image): a command always comes from the image that just arrived, never a stale one.
    A policy that fails on it (a runtime error of torch or onnxruntime) stops the robot, as a refused
    image does.
+   With ``max_image_age_s`` set, an image whose header stamp lies further than that in the past
+   (delayed on the way: a Wi-Fi stall, a queue) or in the future (clocks out of step) by this
+   machine's clock is refused too: its arrival says nothing of when it was taken.
 4. No valid image for ``watchdog_s`` stops the robot, and the stop is repeated each control period
    until images return. A command decided ``watchdog_s`` or more after its image arrived (a policy
    that stalled) is a stop too, except in lock step, where the simulator waits for it.
@@ -47,6 +50,10 @@ BAD_DEPTH = "bad_depth"
 """Reject cause of an image the policy's camera refuses: negative depths, another aspect ratio."""
 POLICY_ERROR = "policy_error"
 """Reject cause of an image the policy failed on (the error is in the decision and the log)."""
+STALE_STAMP = "stale_stamp"
+"""Reject cause of an image stamped longer ago than ``max_image_age_s`` (or never stamped)."""
+FUTURE_STAMP = "future_stamp"
+"""Reject cause of an image stamped further than ``max_image_age_s`` in this machine's future."""
 
 
 class DriveConfigError(CogexploreError):
@@ -82,12 +89,18 @@ class DriveConfig:
     """One command per image, however fast images come (a simulator that waits for each command)."""
     max_image_bytes: int = MAX_IMAGE_BYTES
     """Payloads above this are refused before they are decoded."""
+    max_image_age_s: float | None = None
+    """Refuse an image whose header stamp is further than this from this machine's clock, past or
+    future (None, the default: stamps are not read, since a robot's clock may not be this machine's,
+    or may run on simulated time). Needs the clocks kept in step (chrony, NTP)."""
 
     def __post_init__(self) -> None:
         if self.speed_table not in SPEED_TABLES:
             raise DriveConfigError(f"speed table {self.speed_table!r}: choose {' or '.join(SPEED_TABLES)}")
-        for name in ("collision_distance_m", "watchdog_s"):
+        for name in ("collision_distance_m", "watchdog_s", "max_image_age_s"):
             value = getattr(self, name)
+            if name == "max_image_age_s" and value is None:
+                continue
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise DriveConfigError(f"{name} must be a positive number, got {value!r}")
         if self.control_period_s is not None and not (np.isfinite(self.control_period_s) and self.control_period_s > 0):
@@ -135,6 +148,8 @@ class DriveController:
     policy: DrivePolicy
     config: DriveConfig = field(default_factory=DriveConfig)
     clock: Any = time.monotonic
+    wall_clock_ns: Any = time.time_ns
+    """The clock image stamps are compared with (``max_image_age_s``)."""
 
     def __post_init__(self) -> None:
         max_range_m = float(self.policy.sensor.max_range_m)
@@ -229,6 +244,8 @@ class DriveController:
     # -- internals ------------------------------------------------------------------------
     def _read(self, payload: bytes | bytearray | memoryview) -> np.ndarray:
         image = decode_depth_image(bytes(payload), max_bytes=self.config.max_image_bytes)
+        if self.config.max_image_age_s is not None:
+            self._check_stamp(image.stamp_ns, self.config.max_image_age_s)
         sensor = self.policy.sensor
         if image.width < sensor.width or image.height < sensor.height:
             raise Ros2MessageError(TOO_SMALL, f"{image.width} x {image.height} image; the network sees "
@@ -240,6 +257,19 @@ class DriveController:
         self.policy.observation(np.where(too_near, np.float32(np.nan), depth) if too_near.any() else depth)
         self.last_depth_m = depth
         return depth
+
+    def _check_stamp(self, stamp_ns: int, max_age_s: float) -> None:
+        """Ros2MessageError unless the image was taken within ``max_age_s`` of now, by its stamp."""
+        if stamp_ns == 0:
+            raise Ros2MessageError(STALE_STAMP, "the image has no stamp (header.stamp 0): stamp the camera's "
+                                                "images, or drop --max-image-age")
+        age_s = (self.wall_clock_ns() - stamp_ns) / 1e9
+        if age_s > max_age_s:
+            raise Ros2MessageError(STALE_STAMP, f"the image was taken {age_s:.2f} s ago (at most {max_age_s:g} s)")
+        if age_s < -max_age_s:
+            raise Ros2MessageError(FUTURE_STAMP, f"the image is stamped {-age_s:.2f} s ahead of this machine's "
+                                                 "clock: keep the robot's clock and this one in step (NTP), or "
+                                                 "drop --max-image-age")
 
     def _reject(self, cause: str, now_s: float, error: str | None = None) -> Decision | None:
         self.rejects[cause] = self.rejects.get(cause, 0) + 1

@@ -19,6 +19,9 @@ def add_drive_arguments(p: argparse.ArgumentParser) -> None:
                    help="the commands' speeds: the paper's test table (the protocol's) or its train table (default test)")
     p.add_argument("--watchdog", type=positive_number_argument, default=0.5, metavar="SECONDS",
                    help="stop (zero twist) when no valid image has come for this long (default 0.5)")
+    p.add_argument("--max-image-age", type=positive_number_argument, default=None, metavar="SECONDS",
+                   help="stop on an image whose header stamp is further than this from this machine's clock, "
+                        "past or future (default: stamps unused; needs the robot's clock in step with this one)")
     p.add_argument("--collision-distance", type=positive_number_argument, default=None, metavar="METRES",
                    help="stop when the nearest valid depth is below this (default: the task's, 0.55)")
     p.add_argument("--control-period", type=positive_number_argument, default=None, metavar="SECONDS",

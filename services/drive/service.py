@@ -68,7 +68,8 @@ class DriveNode:
             speed_table=args.speed_table, watchdog_s=args.watchdog,
             collision_distance_m=(EnvConfig().collision_distance_m if args.collision_distance is None
                                   else args.collision_distance),
-            control_period_s=args.control_period, lockstep=args.lockstep))
+            control_period_s=args.control_period, lockstep=args.lockstep,
+            max_image_age_s=args.max_image_age))
         self.lock = threading.Lock()
         """Held around the controller, a decision included."""
         self.send_lock = threading.RLock()

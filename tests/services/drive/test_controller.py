@@ -9,8 +9,10 @@ from shared.ros2.messages import IMAGE, TYPESTORE, encode_depth_image
 
 from services.drive.controller import (
     BAD_DEPTH,
+    FUTURE_STAMP,
     NO_VALID_DEPTH,
     POLICY_ERROR,
+    STALE_STAMP,
     TOO_SMALL,
     DriveConfig,
     DriveConfigError,
@@ -224,7 +226,8 @@ def test_q_values_that_are_not_finite_stop_the_robot_as_a_policy_error(policy, s
 
 
 @pytest.mark.parametrize("field, value", [("speed_table", "fast"), ("watchdog_s", 0), ("watchdog_s", float("nan")),
-                                          ("collision_distance_m", -1), ("control_period_s", 0)])
+                                          ("collision_distance_m", -1), ("control_period_s", 0),
+                                          ("max_image_age_s", 0), ("max_image_age_s", float("inf"))])
 def test_bad_settings_are_refused(field, value):
     with pytest.raises(DriveConfigError, match=field.split("_")[0]):
         DriveConfig(**{field: value})
@@ -283,3 +286,31 @@ def test_millimetres_in_a_float_image_stop_the_robot_and_say_why(policy, start_i
     assert "millimetres in a float image" in decision.error
     garbage = drive.on_image(b"\x00\x01\x00\x00junk", clock.t + 1.2)
     assert garbage.reject_cause == "garbage" and "not a CDR" in garbage.error
+
+
+def test_with_a_max_image_age_an_image_stamped_too_long_ago_or_ahead_stops_the_robot(policy, start_image):
+    """Arrival times say nothing of an image held up on the way (a Wi-Fi stall, a queue): with
+    ``max_image_age_s`` its stamp is compared with this machine's clock, both ways, and an image
+    never stamped is refused too. Without it, stamps are not read (the default: clocks may differ)."""
+    now_ns = 1_800_000_000 * 10**9
+
+    def stamped(age_s: float) -> bytes:
+        return encode_depth_image(start_image, encoding="32FC1", stamp_ns=int(now_ns - age_s * 1e9))
+
+    drive, clock = controller(policy, max_image_age_s=0.3)
+    drive.wall_clock_ns = lambda: now_ns
+    fresh = drive.on_image(stamped(0.2), clock.t)
+    assert fresh is not None and fresh.command is not None
+    refusals = ((stamped(0.5), STALE_STAMP, "taken 0.50 s ago (at most 0.3 s)"),
+                (stamped(-2.0), FUTURE_STAMP, "2.00 s ahead of this machine's clock"),
+                (image(start_image), STALE_STAMP, "taken"),  # stamp 1 ns: 57 years ago
+                (encode_depth_image(start_image, encoding="32FC1", stamp_ns=0), STALE_STAMP, "has no stamp"))
+    for payload, cause, words in refusals:
+        clock.t += 1.0
+        decision = drive.on_image(payload, clock.t)
+        assert decision is not None and decision.stop_reason == "reject" and decision.reject_cause == cause
+        assert words in decision.error
+    assert drive.rejects == {STALE_STAMP: 3, FUTURE_STAMP: 1}
+    unchecked, clock = controller(policy)
+    assert unchecked.on_image(stamped(3600.0), clock.t).command is not None
+
