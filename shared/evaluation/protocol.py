@@ -49,9 +49,14 @@ class EvaluationCancelled(RuntimeError):
 
 
 def world_sha256(world: World) -> str:
-    """The SHA-256 (hex) of what a world is played as: its MJCF scene, starts and extent. Its name is
-    not enough to stand for it: an MJCF file edited since is another world under the same path."""
-    content = {"mjcf": world.mjcf, "starts": [asdict(s) for s in world.starts], "extent": list(world.extent)}
+    """The SHA-256 (hex) of what a world is played as: its MJCF scene, starts, extent and the content of
+    the files the scene names (meshes, height fields, skins, textures: ``World.asset_sha256``). Its name
+    is not enough to stand for it: an MJCF file, or a mesh beside it, edited since is another world
+    under the same path."""
+    content: dict[str, Any] = {"mjcf": world.mjcf, "starts": [asdict(s) for s in world.starts],
+                               "extent": list(world.extent)}
+    if world.asset_sha256:  # only then: a world naming no file keeps the digest it had before files counted
+        content["files"] = [list(f) for f in world.asset_sha256]
     return hashlib.sha256(json.dumps(content, sort_keys=True).encode()).hexdigest()
 
 

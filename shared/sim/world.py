@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,6 +71,9 @@ class World:
     """(xmin, ymin, xmax, ymax) of the area the robot can be in, in metres."""
     kind: str = "builtin"
     """'builtin', 'procedural' or 'file'."""
+    asset_sha256: tuple[tuple[str, str, str], ...] = ()
+    """(kind, file as the MJCF names it, SHA-256 hex of its content) of every file MuJoCo reads beside
+    the MJCF text (:func:`_asset_files`), sorted; empty for built-in and procedural worlds."""
 
     @property
     def size_m(self) -> tuple[float, float]:
@@ -706,6 +710,7 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
         model = spec.compile()
     except ValueError as exc:
         raise WorldError(f"{label}: MuJoCo cannot compile it: {exc}".rstrip()) from None
+    assets = _asset_digests(spec, label)  # now: the files MuJoCo has just read, not those of a later edit
     if model.njnt > 0:
         moving = sorted({model.body(int(model.jnt_bodyid[j])).name or f"body #{int(model.jnt_bodyid[j])}"
                          for j in range(model.njnt)})
@@ -757,10 +762,42 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
         spec.worldbody.add_geom(name=FLOOR_GEOM, type=mujoco.mjtGeom.mjGEOM_PLANE,
                                 pos=[(xmin + xmax) / 2, (ymin + ymax) / 2, 0.0], size=[0.0, 0.0, 0.25],
                                 rgba=[0.35, 0.35, 0.38, 1.0])
-    world = World(name=name, mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file")
+    world = World(name=name, mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file",
+                  asset_sha256=assets)
     validate_starts(world)
     _check_starts_walled_in(world)
     return world
+
+
+def _asset_files(spec: mujoco.MjSpec) -> list[tuple[str, str, Path]]:
+    """(kind, file as the MJCF names it, path) of every file MuJoCo reads at compile beside the MJCF
+    text (``<include>`` is inlined at parse): meshes, height fields and skins under the meshdir,
+    textures (one file or a cube's six) under the texturedir; a name taken whole when absolute and by its
+    last part under ``strippath``, as MuJoCo takes it. Directories relative to the model file must have
+    been resolved (``_load_world_file`` does)."""
+    named: list[tuple[str, str, str]] = [(kind, spec.meshdir, e.file) for kind, elements in
+                                         (("mesh", spec.meshes), ("hfield", spec.hfields), ("skin", spec.skins))
+                                         for e in elements]
+    named += [("texture", spec.texturedir, f) for t in spec.textures for f in (t.file, *t.cubefiles)]
+    files = []
+    for kind, folder, file in named:
+        if not file:  # an asset made from data in the MJCF, or a cube face left out
+            continue
+        stripped = file.replace("\\", "/").rsplit("/", 1)[-1] if spec.strippath else file
+        files.append((kind, file, Path(folder) / stripped))  # an absolute name replaces the folder
+    return files
+
+
+def _asset_digests(spec: mujoco.MjSpec, label: str) -> tuple[tuple[str, str, str], ...]:
+    """:attr:`World.asset_sha256` of a spec MuJoCo compiled (so every file it names exists)."""
+    digests = set()
+    for kind, file, path in _asset_files(spec):
+        try:
+            digests.add((kind, file, hashlib.sha256(path.read_bytes()).hexdigest()))
+        except OSError as exc:  # removed since the compile, or unreadable
+            raise WorldError(f"{label}: cannot read its {kind} file '{file}' ({path}): "
+                             f"{exc.strerror or exc}") from None
+    return tuple(sorted(digests))
 
 
 _MIN_HEADING_XY = 1e-6

@@ -3,6 +3,8 @@ JSON, checkpoints of every kind, the baselines and the recorded .rrd (real env, 
 
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import json
 import math
 import os
@@ -26,11 +28,13 @@ from shared.evaluation.policies import (
     ReactivePolicy,
     make_policy,
 )
-from shared.evaluation.protocol import EvaluationCancelled, evaluate_policy
+from shared.evaluation.protocol import EvaluationCancelled, evaluate_policy, file_world_sha256, world_sha256
 from shared.evaluation.results import SCHEMA_ID, validate_results_json
 from shared.learning.checkpoints import CheckpointError, load_model, weights_sha256
 from shared.sim.sensor import intrinsics
 from shared.sim.world import load_world
+from tests.shared.evaluation.test_eval_log import write_room
+from tests.shared.sim.test_world import write_asset_world, write_stl
 
 RERUN_CLI = Path(sys.executable).with_name("rerun")
 SMALL = {"sensor.width": 64, "sensor.height": 48, "model.fc1": 32, "model.fc2": 16, "env.world": "box-room"}
@@ -73,6 +77,40 @@ def entities(path: Path) -> dict[str, int]:
             name = chunk.entity_path.lstrip("/")
             counts[name] = counts.get(name, 0) + chunk.to_record_batch().num_rows
     return counts
+
+
+# -- the world's digest -------------------------------------------------------------------------
+
+
+def test_a_worlds_digest_is_what_it_had_before_files_counted_when_it_names_none(tmp_path: Path) -> None:
+    # eval.jsonl rows, model-select caches and report results keyed by these digests still stand
+    assert world_sha256(load_world("paper-indoor")) == \
+        "549d060f9f9624f70e20a61012a9aee90544cb542cc4238851cd06e16c6859b1"
+    room = load_world(str(write_room(tmp_path / "room.xml")))
+    before = {"mjcf": room.mjcf, "starts": [dataclasses.asdict(s) for s in room.starts], "extent": list(room.extent)}
+    assert room.asset_sha256 == () and world_sha256(room) == hashlib.sha256(
+        json.dumps(before, sort_keys=True).encode()).hexdigest()
+
+
+def test_a_world_files_digest_changes_with_the_mesh_it_names(tmp_path: Path) -> None:
+    # A replaced mesh beside an unchanged MJCF file was scored with the old mesh's results.
+    path = write_asset_world(tmp_path / "a")
+    first, played = file_world_sha256(str(path)), load_world(str(path))
+    write_stl(tmp_path / "a" / "meshes" / "obstacle.stl", 0.5)
+    edited = load_world(str(path))
+    assert edited.mjcf == played.mjcf and file_world_sha256(str(path)) == world_sha256(edited) != first
+    write_stl(tmp_path / "a" / "meshes" / "obstacle.stl", 0.3)
+    assert file_world_sha256(str(path)) == first
+
+
+def test_the_same_world_in_another_folder_differs_only_by_its_mjcf_text(tmp_path: Path) -> None:
+    # The files count by content under the name the MJCF gives them; the played MJCF text holds the
+    # absolute meshdir and texturedir (a scene compiled from text finds its files by them), so a copy
+    # elsewhere has another digest, and the same one once that text is the same.
+    a, b = (load_world(str(write_asset_world(tmp_path / d))) for d in ("a", "b"))
+    assert a.asset_sha256 == b.asset_sha256 and a.mjcf != b.mjcf
+    assert a.mjcf.replace(str(tmp_path / "a"), str(tmp_path / "b")) == b.mjcf
+    assert world_sha256(a) != world_sha256(b) == world_sha256(dataclasses.replace(a, name=b.name, mjcf=b.mjcf))
 
 
 # -- the protocol -----------------------------------------------------------------------------
@@ -280,8 +318,8 @@ def test_bad_checkpoints_are_named_in_the_error(tmp_path: Path) -> None:
         load_model(tmp_path / "empty")
     junk = tmp_path / "junk.safetensors"
     junk.write_bytes(b"not a safetensors file")
-    with pytest.raises(CheckpointError, match="neither a checkpoint nor a weights export"):
-        load_model(junk)
+    with pytest.raises(CheckpointError, match=r"junk.safetensors is not a readable safetensors file \(partial or corrupt"):
+        load_model(junk)  # said once, not once as "neither" kind of file and again for each kind
 
 
 # -- the command ----------------------------------------------------------------------------------

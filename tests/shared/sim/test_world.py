@@ -1,6 +1,9 @@
 """Worlds with real MuJoCo: built-ins, procedural generation, user MJCF files, start checks."""
 
+import hashlib
 import math
+import struct
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -530,3 +533,108 @@ def test_a_start_in_the_notch_of_an_l_shaped_room_is_outside_its_walls(tmp_path)
         load_world(str(path))
     path.write_text(path.read_text().replace('pos="2 2 0"', 'pos="-1.5 1.5 0"'))  # the room's other arm
     assert len(load_world(str(path)).starts) == 2
+
+
+# -- the files a world's MJCF names ------------------------------------------------------------
+
+
+def write_stl(path: Path, half: float) -> None:
+    """A binary STL: a 1 m high box of half-width ``half`` standing on z = 0."""
+    v = [(x, y, z) for x in (-half, half) for y in (-half, half) for z in (0.0, 1.0)]
+    faces = [(0, 1, 3), (0, 3, 2), (4, 6, 7), (4, 7, 5), (0, 4, 5), (0, 5, 1), (2, 3, 7), (2, 7, 6), (0, 2, 6),
+             (0, 6, 4), (1, 5, 7), (1, 7, 3)]
+    body = b"".join(struct.pack("<3f", 0, 0, 0) + b"".join(struct.pack("<3f", *v[i]) for i in f) + b"\0\0"
+                    for f in faces)
+    path.write_bytes(bytes(80) + struct.pack("<I", len(faces)) + body)
+
+
+def _write_png(path: Path, shade: int) -> None:
+    """A 2 x 2 grey PNG."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+    rows = b"".join(b"\0" + bytes([shade]) * 6 for _ in range(2))
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">2I5B", 2, 2, 8, 2, 0, 0, 0))
+                     + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+
+
+_ASSET_ROOM = """<mujoco><compiler meshdir="meshes" texturedir="textures"/>
+<asset><mesh name="obstacle" file="obstacle.stl"/><hfield name="terrain" file="terrain.bin" size="1 1 0.1 0.1"/>
+<texture name="paint" type="2d" file="paint.png"/>
+<texture name="sky" type="cube" fileright="face.png" fileleft="face.png" fileup="face.png" filedown="face.png"
+ filefront="face.png" fileback="back.png"/>
+<material name="painted" texture="paint"/></asset>
+<worldbody><geom name="floor" type="plane" size="0 0 1"/>
+<geom type="box" pos="0 3 1" size="3 0.1 1"/><geom type="box" pos="0 -3 1" size="3 0.1 1"/>
+<geom type="box" pos="3 0 1" size="0.1 3 1"/><geom type="box" pos="-3 0 1" size="0.1 3 1"/>
+<geom type="mesh" mesh="obstacle" pos="1.5 1.5 0" material="painted"/><body name="bone" pos="-1.5 1.5 3"/>
+<site name="start_a" pos="-1.5 -1.5 0"/><site name="start_b" pos="1.5 -1.5 0"/></worldbody>
+<deformable><skin name="cloth" file="cloth.skn"/></deformable></mujoco>"""
+"""A user's room with a mesh obstacle and one file of every other kind MuJoCo reads beside the MJCF."""
+
+
+def write_asset_world(folder: Path, mesh_half: float = 0.3) -> Path:
+    """``folder/room.xml`` (:data:`_ASSET_ROOM`) and its files: meshes/obstacle.stl (a box of half-width
+    ``mesh_half``), meshes/terrain.bin, meshes/cloth.skn, textures/paint.png, face.png and back.png."""
+    (folder / "meshes").mkdir(parents=True, exist_ok=True)
+    (folder / "textures").mkdir(exist_ok=True)
+    write_stl(folder / "meshes" / "obstacle.stl", mesh_half)
+    (folder / "meshes" / "terrain.bin").write_bytes(struct.pack("<2i4f", 2, 2, 0.0, 0.1, 0.2, 0.3))
+    skin = struct.pack("<4i9f3i", 3, 0, 1, 1, 0, 0, 0, 0.1, 0, 0, 0, 0.1, 0, 0, 1, 2)  # 3 vertices, 1 face
+    skin += b"bone".ljust(40, b"\0") + struct.pack("<7fi3i3f", 0, 0, 0, 1, 0, 0, 0, 3, 0, 1, 2, 1, 1, 1)
+    (folder / "meshes" / "cloth.skn").write_bytes(skin)
+    for name, shade in (("paint.png", 10), ("face.png", 20), ("back.png", 30)):
+        _write_png(folder / "textures" / name, shade)
+    (folder / "room.xml").write_text(_ASSET_ROOM)
+    return folder / "room.xml"
+
+
+def test_a_world_file_records_the_content_of_every_file_its_mjcf_names(tmp_path):
+    # An MJCF world's digest covered its text, not the mesh beside it: a replaced obstacle.stl was
+    # another world under the same text.
+    world = load_world(str(write_asset_world(tmp_path)))
+    named = {(kind, file) for kind, file, _ in world.asset_sha256}
+    assert named == {("mesh", "obstacle.stl"), ("hfield", "terrain.bin"), ("skin", "cloth.skn"),
+                     ("texture", "paint.png"), ("texture", "face.png"), ("texture", "back.png")}
+    before = world.asset_sha256
+    edits = {"meshes/obstacle.stl": lambda p: write_stl(p, 0.5),  # another box
+             "meshes/terrain.bin": lambda p: p.write_bytes(p.read_bytes()[:-4] + bytes(4)),  # another height
+             "meshes/cloth.skn": lambda p: p.write_bytes(p.read_bytes().replace(b"\x00\x00\x80?", b"\x00\x00\x00?")),
+             "textures/paint.png": lambda p: _write_png(p, 99), "textures/back.png": lambda p: _write_png(p, 99)}
+    for file, edit in edits.items():
+        path = tmp_path / file
+        content = path.read_bytes()
+        edit(path)
+        edited = load_world(str(tmp_path / "room.xml")).asset_sha256
+        assert {name for _, name, _ in set(edited) - set(before)} == {path.name}, file
+        path.write_bytes(content)
+    assert load_world(str(tmp_path / "room.xml")).asset_sha256 == before  # the content, not the file's time
+
+
+def test_asset_files_are_found_as_mujoco_finds_them(tmp_path):
+    # strippath drops a name's folders, an absolute name ignores the meshdir: the digest reads the
+    # file MuJoCo reads, or a mesh elsewhere would not count.
+    path = write_asset_world(tmp_path)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    write_stl(elsewhere / "obstacle.stl", 0.4)
+    base = load_world(str(path)).asset_sha256
+    for head, file in (('<compiler strippath="true" ', "some/folder/obstacle.stl"),
+                       ("<compiler ", str(elsewhere / "obstacle.stl"))):
+        path.write_text(_ASSET_ROOM.replace("<compiler ", head).replace('file="obstacle.stl"', f'file="{file}"'))
+        world = load_world(str(path))
+        mesh = next(digest for kind, _, digest in world.asset_sha256 if kind == "mesh")
+        target = tmp_path / "meshes" / "obstacle.stl" if "strippath" in head else elsewhere / "obstacle.stl"
+        assert mesh == hashlib.sha256(target.read_bytes()).hexdigest(), file
+    assert next(d for k, _, d in base if k == "mesh") != mesh  # the other box
+
+
+def test_a_file_the_mjcf_names_that_is_missing_is_refused_by_mujoco(tmp_path):
+    path = write_asset_world(tmp_path)
+    (tmp_path / "meshes" / "obstacle.stl").unlink()
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "cannot compile it" in str(err.value) and "obstacle.stl" in str(err.value)
+
+
+def test_built_in_and_procedural_worlds_name_no_files():
+    assert load_world("paper-indoor").asset_sha256 == () and load_world("procedural:3").asset_sha256 == ()
