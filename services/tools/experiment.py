@@ -241,6 +241,12 @@ class ExperimentState:
         partial[stage] = round(self.partial(stage) + seconds, 3)
         self.save()
 
+    def forget(self, stages: list[str]) -> None:
+        """Drop finished stages (to be run again)."""
+        for stage in stages:
+            self.data["stages"].pop(stage, None)
+        self.save()
+
     def save(self) -> None:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_text(self.path, json.dumps(self.data, indent=2) + "\n")
@@ -469,6 +475,25 @@ class Experiment:
                 results[label] = load_results(self.path(info["results"]))
         return results
 
+    def forget_evaluations_of_edited_worlds(self) -> None:
+        """Forget every finished evaluation on an MJCF file world that was played on other content than the
+        file's now (edited since, or results from before they recorded it): its score would share a table
+        with the edited file's under one name. A built-in or procedural world is fixed by its name."""
+        from shared.evaluation.protocol import WORLD_META, file_world_sha256
+        from shared.evaluation.results import load_results
+
+        for world in (self.o.world, *self.o.unseen_worlds):
+            now = file_world_sha256(world)
+            if now is None:
+                continue
+            stale = [name for name in (self.eval_stage(label, world) for label, _policy, _ckpt in self.models())
+                     if (info := self.state.done(name)) is not None
+                     and load_results(self.path(info["results"])).meta.get(WORLD_META) != now]
+            if stale:
+                self.echo(f"{len(stale)} evaluation(s) on {world} played the file as it was before an edit "
+                          "(or do not record its content): evaluated again")
+                self.state.forget(stale)
+
     def _heatmaps(self, world: str, results: dict[str, Any], name: str) -> Path:
         from services.viz.figures import save_heatmaps_side_by_side
         from shared.sim.maps import occupancy_grid
@@ -637,6 +662,7 @@ class Experiment:
         self._stage("rl", self._train_rl)
         for u in self.o.checkpoints:
             self._stage(f"drl-{u}", lambda u=u: self._train_drl(u))
+        self.forget_evaluations_of_edited_worlds()
         for world in (self.o.world, *self.o.unseen_worlds):
             for label, policy, checkpoint in self.models():
                 self._stage(self.eval_stage(label, world),

@@ -63,7 +63,7 @@ from shared.evaluation import (
     protocol_named,
 )
 from shared.evaluation.eval_log import EVAL_LOG, load_eval_log, row_protocol
-from shared.evaluation.protocol import WORLD_META, evaluate_policy, world_sha256
+from shared.evaluation.protocol import WORLD_META, evaluate_policy, file_world_sha256, world_sha256
 from shared.evaluation.results import (
     EvalResults,
     ResultsError,
@@ -266,6 +266,18 @@ def eval_curve_points(rows: Sequence[Mapping[str, Any]], final: EvalPoint | None
     return sorted(points, key=lambda p: p.policy_version), left_out
 
 
+def rows_of_worlds_now(rows: Sequence[Mapping[str, Any]], digest_now: Callable[[str], str | None]
+                       ) -> tuple[list[Mapping[str, Any]], int]:
+    """The ``eval.jsonl`` rows played on their world as it is now, and how many were not. A row of an
+    MJCF file world stands for it only when its :data:`WORLD_META` is ``digest_now(world)`` (a file edited
+    since is another world under the same name; a row without the digest cannot say which it played);
+    ``digest_now`` gives None for a built-in or procedural world, fixed by its name: all its rows stand.
+    A row that does not name its world stands too (it ran the run's own: :func:`eval_curve_points`)."""
+    kept = [r for r in rows if not isinstance(r.get("world"), str)
+            or (now := digest_now(r["world"])) is None or r.get(WORLD_META) == now]
+    return kept, len(rows) - len(kept)
+
+
 def save_eval_curve_png(points: Sequence[EvalPoint], out_path: Path, dpi: int = 110) -> Path:
     """Mean moving steps against policy version, the final evaluation marked."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -341,7 +353,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     from shared.config import load_preset
     from shared.evaluation.probes import ProbeError, load_probe_image, load_probes
     from shared.sim.maps import free_area_m2, occupancy_grid
-    from shared.sim.world import load_world
+    from shared.sim.world import WorldError, load_world
 
     run = Path(run_dir)
     if not run.is_dir():
@@ -454,6 +466,22 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     eval_png = None
     eval_log = run / "stats" / EVAL_LOG
     rows = load_eval_log(eval_log) if eval_log.is_file() else []
+    world_digests = {world_name: world_digest if world_obj.kind == "file" else None}
+
+    def digest_now(name: str) -> str | None:
+        if name not in world_digests:
+            try:
+                world_digests[name] = file_world_sha256(name)
+            except WorldError:  # a file gone or broken since: it holds none of the content its rows played
+                world_digests[name] = ""
+        return world_digests[name]
+
+    rows, edited = rows_of_worlds_now(rows, digest_now)
+    if edited:
+        note = (f"Evaluations during training: {edited} evaluation(s) played on an MJCF world file as it was "
+                f"before an edit (or before evaluations recorded its content) are not drawn ({eval_log}).")
+        log.warning("%s", note)
+        notes.append(note)
     if rows:  # the evaluator ran during training: its curve, ending in this report's evaluation of the run
         evaluator_protocol = EvalPoint.from_row(rows[-1]).protocol
         run_results = models[0].results.get(evaluator_protocol) if run_has_checkpoint else None  # the run's

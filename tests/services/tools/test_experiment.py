@@ -354,3 +354,52 @@ def test_runs_left_without_their_state_are_not_resumed_as_this_experiment_s(tmp_
     err = capsys.readouterr().err
     assert "holds the runs of an experiment without its state.json" in err and err.count("\n") == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["runs"]  # nothing written, nothing trained
+
+
+def test_an_evaluation_on_a_world_file_edited_since_is_played_again(tmp_path):
+    # Keyed by the world's name, a resumed experiment skipped the evaluations of the file before the
+    # user edited it: its tables mixed them with any evaluated after the edit, under one name.
+    from shared.config import load_preset
+    from shared.evaluation.protocol import file_world_sha256
+    from shared.learning.checkpoints import CheckpointManager, export_weights, save_supervised
+    from shared.learning.dqn import DQNAgent
+    from shared.learning.model import SupervisedNet
+    from tests.services.tools.test_report import _drop_world_digest
+    from tests.shared.evaluation.test_eval_log import write_room
+
+    # Trained as the training stages leave it: an SL model, the RL run and one DRL model.
+    out, cfg = tmp_path / "exp", load_preset("smoke")
+    sl = save_supervised(tmp_path / "sl.safetensors", SupervisedNet(cfg.sensor))
+    agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu", seed=0)
+    agent.update_count = agent.policy_version = 20
+    CheckpointManager(out / "runs" / "rl" / "checkpoints").save(agent, config=cfg.to_dict())
+    export_weights(out / "models" / "drl-20.safetensors", agent.online, 20, run_config=cfg)
+    world = write_room(tmp_path / "room.xml")
+    messages: list[str] = []
+
+    def experiment() -> Experiment:
+        parser = argparse.ArgumentParser()
+        add_experiment_arguments(parser)
+        args = parser.parse_args([*TINY, "--out", str(out), "--checkpoints", "20", "--sl-model", str(sl),
+                                  "--unseen-worlds", str(world)])
+        return Experiment(options_from_args(args), echo=messages.append)
+
+    first = experiment()
+    first.state.finish("rl", 1.0, run="runs/rl", updates=20, env_steps=100)
+    first.state.finish("drl-20", 1.0, file="models/drl-20.safetensors", updates=20)
+    first.run()
+    labels = ["SL", "RL", "DRL-20", "reactive", "random"]
+    assert first.ran == ["sl", *(f"eval-{m}" for m in labels), *(f"eval-{m}@{world}" for m in labels)]
+    unchanged = experiment()
+    unchanged.run()
+    assert unchanged.ran == []  # the same file: nothing again
+    # A built-in world's results from before they recorded the world's content stand for it.
+    _drop_world_digest(out / "eval" / "reactive.json")
+    write_room(world, pillar_x=-0.6)  # the pillar moved into the robot's way
+    again = experiment()
+    again.run()
+    assert again.ran == [f"eval-{m}@{world}" for m in labels]  # the file's, only
+    assert f"5 evaluation(s) on {world} played the file as it was before an edit" in "\n".join(messages)
+    for label in labels:
+        info = again.state.done(again.eval_stage(label, str(world)))
+        assert json.loads((out / info["results"]).read_text())["meta"]["world_sha256"] == file_world_sha256(str(world))

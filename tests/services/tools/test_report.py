@@ -21,11 +21,13 @@ from services.tools.report import (
     EvalPoint,
     build_report,
     eval_curve_points,
+    rows_of_worlds_now,
     save_eval_curve_png,
 )
 from shared.config import SensorConfig, load_preset, to_toml
 from shared.evaluation import PROTOCOLS
 from shared.evaluation.eval_log import load_eval_log
+from shared.evaluation.protocol import file_world_sha256
 from shared.evaluation.probes import (
     PROBE_DIR,
     PROBE_SCENES,
@@ -534,6 +536,43 @@ def test_eval_curve_keeps_two_custom_protocols_apart(tmp_path: Path) -> None:
     renamed = row(4000, "custom", 5.0, {**far.to_dict(), "name": "x"})
     points, _ = eval_curve_points([row(500, "custom", 7.0), unknown, renamed])
     assert [(p.policy_version, p.protocol_config) for p in points] == [(500, None), (3000, None), (4000, None)]
+
+
+def test_the_eval_curve_draws_a_world_file_only_as_it_is_now(tmp_path: Path, caplog) -> None:
+    # Keyed by the world's name, the curve drew the evaluator's rows of an MJCF file from before and
+    # after the user edited it as one line: scores of two worlds under one name.
+    from services.bus.session import ZenohSettings
+    from services.evaluator.service import EvaluatorService
+    from shared.learning.weights import to_message
+    from tests.services.evaluator.test_evaluator_service import OVERRIDES, small_net
+    from tests.shared.evaluation.test_eval_log import write_room
+
+    run = bare_run(tmp_path / "run")
+    world = write_room(tmp_path / "room.xml")
+    net = small_net()
+
+    def evaluate(version: int) -> None:
+        EvaluatorService(load_preset("paper").with_overrides(OVERRIDES), "run", run, ZenohSettings(), "ev-1",
+                         episodes_per_start=1, max_steps=3, record=False,
+                         world=str(world)).evaluate(to_message(net, version), repeat=False)
+
+    evaluate(0)
+    evaluate(10)
+    write_room(world, pillar_x=-0.6)  # the pillar moved into the robot's way
+    evaluate(20)
+    with caplog.at_level("WARNING", logger="cogexplore.report"):
+        report = build_report(run, **{**QUICK, "world": str(world)})
+    assert [p.policy_version for p in report.eval_curve] == [20]  # the file as it is now
+    said = "2 evaluation(s) played on an MJCF world file as it was before an edit"
+    assert said in caplog.text and said in report.markdown.read_text()
+    # A built-in world's row from before rows recorded a digest stands (fixed by its name), as does a row
+    # naming no world; a file's row without one cannot say which content it played.
+    rows = [{"world": "box-room"}, {"world": str(world)}, {}, {"world": str(world), "world_sha256": "0" * 64},
+            {"world": str(world), "world_sha256": file_world_sha256(str(world))}]
+    assert rows_of_worlds_now(rows, file_world_sha256) == ([rows[0], rows[2], rows[4]], 2)
+    # A file gone since holds none of the content its rows played: their curve is not drawn.
+    world.unlink()
+    assert build_report(run, **{**QUICK, "world": "box-room"}).eval_curve == []
 
 
 def test_an_eval_log_row_the_evaluator_could_not_have_written_is_skipped(tmp_path: Path, caplog) -> None:
