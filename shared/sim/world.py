@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import hashlib
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,17 @@ from shared.sim import maps
 from shared.sim.robot import (FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, ROBOT_HEIGHT_M, Robot,
                               build_model)
 from shared.sim.sensor import DepthCamera
+
+log = logging.getLogger(__name__)
+
+
+def _log_mujoco_warning(text: str) -> None:
+    # MuJoCo's own handler prints the warning and appends it to MUJOCO_LOG.TXT in whatever folder the
+    # process was started from (a user's home, a checkout): the process's log is where it belongs.
+    log.warning("MuJoCo: %s", text)
+
+
+mujoco.set_mju_user_warning(_log_mujoco_warning)
 
 # 2 m: taller than any ray of the 0.35 m high camera climbs within its 4 m range, so every
 # obstacle fills its image columns from the floor up (the depth camera's fast path relies on it).
@@ -755,7 +767,7 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
                 next(sg for sg in spec.geoms if sg.id == g).name = FLOOR_GEOM
                 floor_ids = [g]
                 break
-    _check_geoms(model, label, set(floor_ids))
+    _check_geoms(model, data, label, set(floor_ids))
     extent = _geom_extent(model, data, set(floor_ids), starts)
     if not floor_ids:
         xmin, ymin, xmax, ymax = extent
@@ -868,15 +880,18 @@ def _is_floor_plane(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> bool:
     return int(model.geom_type[g]) == int(mujoco.mjtGeom.mjGEOM_PLANE) and abs(_top_z(model, data, g)) <= FLOOR_TOLERANCE_M
 
 
-def _check_geoms(model: mujoco.MjModel, label: str, floor: set[int]) -> None:
+def _check_geoms(model: mujoco.MjModel, data: mujoco.MjData, label: str, floor: set[int]) -> None:
     """WorldError naming the geoms the robot and its depth camera would treat unlike the obstacles
-    the map marks: one fully transparent (ray casts pass through alpha 0), one in the robot's own
+    the map marks: one placed or sized by a NaN or an infinity (MuJoCo only warns of a NaN in the
+    MJCF, and such a geom is everywhere and nowhere to the map and the start checks), one fully transparent (ray casts pass through alpha 0), one in the robot's own
     geom group (which the GL camera hides), an obstacle whose contype and conaffinity never meet
     the robot's (it would drive through it), one with a contact margin (it would stop the robot
     short of its surface, where no contact is reported)."""
-    invisible, hidden, intangible, cushioned = [], [], [], []
+    invisible, hidden, intangible, cushioned, unplaced = [], [], [], [], []
     for g in range(model.ngeom):
         name = f"'{model.geom(g).name}'" if model.geom(g).name else f"#{g}"
+        if not all(np.isfinite(a).all() for a in (data.geom_xpos[g], data.geom_xmat[g], model.geom_size[g])):
+            unplaced.append(name)
         matid = int(model.geom_matid[g])
         if (model.mat_rgba[matid][3] if matid >= 0 else model.geom_rgba[g][3]) == 0:
             invisible.append(name)
@@ -888,6 +903,9 @@ def _check_geoms(model: mujoco.MjModel, label: str, floor: set[int]) -> None:
         if model.geom_margin[g] != 0:  # < 0: no contact until the robot is that deep inside
             cushioned.append(f"{name} ({model.geom_margin[g]:g} m)")
     problems = []
+    if unplaced:
+        problems.append(f"geom(s) {_listed(unplaced)} whose position, orientation or size is not finite (a NaN "
+                        "or inf in the MJCF, or in a body above them)")
     if invisible:
         problems.append(f"geom(s) {_listed(invisible)} fully transparent (rgba alpha 0): the depth camera "
                         "cannot see them; give them a visible colour")

@@ -378,6 +378,23 @@ def test_a_start_site_that_is_not_finite_is_refused(tmp_path):
     assert "start site 'start_nan'" in str(err.value) and "finite" in str(err.value)
 
 
+@pytest.mark.parametrize("obstacle", ['<geom name="crate" type="box" size="0.2 0.2 0.2" pos="nan 1 0.2"/>',
+                                      '<geom name="crate" type="box" size="0.2 inf 0.2" pos="1 1 0.2"/>',
+                                      '<body pos="1 nan 0"><geom name="crate" type="box" size="0.2 0.2 0.2"/></body>'])
+def test_an_obstacle_placed_or_sized_by_nan_or_inf_is_refused_and_mujocos_warning_is_logged(
+        tmp_path, monkeypatch, caplog, obstacle):
+    """Such a geom was blamed on a start ('inside or touching an obstacle geom #1', 9 cm deep, far from
+    it), and MuJoCo's NaN warning was printed and appended to MUJOCO_LOG.TXT in the folder the process
+    was started from: it goes to the log instead."""
+    path = _write(tmp_path, "nan.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', extra=obstacle)
+    monkeypatch.chdir(tmp_path)
+    with caplog.at_level("WARNING", logger="shared.sim.world"), pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "geom(s) 'crate' whose position, orientation or size is not finite" in str(err.value)
+    assert ("nan" not in obstacle) or any("MuJoCo: XML contains a 'NaN'" in r.message for r in caplog.records)
+    assert not (tmp_path / "MUJOCO_LOG.TXT").exists()
+
+
 def test_a_size_the_robot_cannot_live_with_does_not_reach_it(tmp_path):
     # Memory for the static scene, not for the robot's contacts: the robot gets MuJoCo's default.
     path = _write(tmp_path, "memory.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>',
