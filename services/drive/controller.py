@@ -18,7 +18,12 @@ The safety rules, in the order they are checked:
    machine's clock is refused too: its arrival says nothing of when it was taken.
 4. No valid image for ``watchdog_s`` stops the robot, and the stop is repeated each control period
    until images return. A command decided ``watchdog_s`` or more after its image arrived (a policy
-   that stalled) is a stop too, except in lock step, where the simulator waits for it.
+   that stalled, a large image slow to read) is a stop too, except in lock step, where the simulator
+   waits for it.
+
+An image is read (decoded and checked, :meth:`DriveController.read`: it changes nothing) apart from
+the decision on it (:meth:`DriveController.decide`), so that the shell's watchdog can stop the robot
+while a large image is read.
 
 A stop is sent at once when the robot was moving; while it stands, at most once per control period,
 so a flood of garbage cannot flood ``cmd_vel``. After the stop at exit nothing more is decided. The
@@ -131,6 +136,27 @@ class Decision:
         return self.command is None
 
 
+@dataclass(frozen=True)
+class Reading:
+    """An image read and checked by :meth:`DriveController.read`, ready for :meth:`DriveController.decide`."""
+
+    depth_m: np.ndarray
+    """The image in metres, as it came (for recordings)."""
+    observation: np.ndarray
+    """The policy's camera image of it (``DrivePolicy.observation``): what the policy decides on."""
+    nearest_m: float | None
+    """:func:`nearest_valid_depth` within the camera's range (None: no return at all)."""
+    stamp_ns: int
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """An image :meth:`DriveController.read` refused: the reject cause, and what was wrong."""
+
+    cause: str
+    error: str | None = None
+
+
 def nearest_valid_depth(depth_m: np.ndarray, max_range_m: float = np.inf) -> float | None:
     """The smallest depth above 0 and within ``max_range_m`` (None when the image has no such return);
     0.0 when a pixel is -Inf, a return too near to measure (REP 117)."""
@@ -173,19 +199,52 @@ class DriveController:
 
     # -- inputs ---------------------------------------------------------------------------
     def on_image(self, payload: bytes | bytearray | memoryview, received_s: float | None = None) -> Decision | None:
-        """One image message as it arrived; the decision to publish, if any."""
+        """One image message as it arrived; the decision to publish, if any (:meth:`read`, then
+        :meth:`decide`)."""
         if self.exited:
             return None
         received_s = self.clock() if received_s is None else received_s
+        return self.decide(self.read(payload), received_s)
+
+    def read(self, payload: bytes | bytearray | memoryview) -> Reading | Refusal:
+        """Decode and check one image message: the slow part of :meth:`on_image` (a large image takes
+        longer than the watchdog), which changes nothing, so the shell runs it outside its lock."""
         try:
-            depth = self._read(payload)
+            image = decode_depth_image(bytes(payload), max_bytes=self.config.max_image_bytes)
+            if self.config.max_image_age_s is not None:  # first, as ever (and again in decide, at decision time)
+                self._check_stamp(image.stamp_ns, self.config.max_image_age_s)
+            sensor = self.policy.sensor
+            if image.width < sensor.width or image.height < sensor.height:
+                raise Ros2MessageError(TOO_SMALL, f"{image.width} x {image.height} image; the network sees "
+                                                  f"{sensor.width} x {sensor.height}")
+            depth = image.depth_m
+            # the checks of the policy's camera, before any decision; -Inf is too near (REP 117), not
+            # a negative depth: the nearest-depth rule stops on it, the camera need not refuse it
+            too_near = np.isneginf(depth)
+            observation = self.policy.observation(np.where(too_near, np.float32(np.nan), depth)
+                                                  if too_near.any() else depth)
         except Ros2MessageError as exc:
-            return self._reject(exc.cause, received_s, str(exc))
+            return Refusal(exc.cause, str(exc))
         except CogexploreError as exc:  # the policy's camera refused it: negative depths, millimetres in metres
-            return self._reject(BAD_DEPTH, received_s, str(exc))
+            return Refusal(BAD_DEPTH, str(exc))
         # Beyond the camera's range is no return, as the network sees it (range-gated to 0): an image
         # that reads its maximum everywhere is as blind as one that reads NaN everywhere.
-        nearest = nearest_valid_depth(depth, float(self.policy.sensor.max_range_m))
+        return Reading(depth, observation, nearest_valid_depth(depth, float(self.policy.sensor.max_range_m)),
+                       image.stamp_ns)
+
+    def decide(self, reading: Reading | Refusal, received_s: float) -> Decision | None:
+        """The decision on an image :meth:`read` and its arrival (``received_s``, on ``clock``)."""
+        if self.exited:
+            return None
+        if isinstance(reading, Refusal):
+            return self._reject(reading.cause, received_s, reading.error)
+        if self.config.max_image_age_s is not None:
+            try:  # again, now: reading a large image takes a while, and the stamp ages meanwhile
+                self._check_stamp(reading.stamp_ns, self.config.max_image_age_s)
+            except Ros2MessageError as exc:
+                return self._reject(exc.cause, received_s, str(exc))
+        self.last_depth_m = reading.depth_m
+        nearest = reading.nearest_m
         if nearest is None:
             return self._reject(NO_VALID_DEPTH, received_s)
         self.last_image_s = received_s
@@ -196,7 +255,9 @@ class DriveController:
         if not due:
             return None
         try:
-            command, q_values = self.policy.decide(depth)
+            # its camera image, not the image again: the camera sees it unchanged, and resizing a
+            # large image once more would take as long as read's (under the shell's lock)
+            command, q_values = self.policy.decide(reading.observation)
             q_values = tuple(float(q) for q in np.asarray(q_values, dtype=np.float64).reshape(-1))
             if not all(np.isfinite(q_values)):  # its command is the argmax of nothing: no command at all
                 raise FloatingPointError(f"the network's Q-values are not finite: {q_values}")
@@ -205,11 +266,12 @@ class DriveController:
             return self._reject(POLICY_ERROR, received_s, f"{type(exc).__name__}: {exc}")
         now = self.clock()
         if not self.config.lockstep and now - received_s >= self.config.watchdog_s:
-            # The image went stale while the policy decided (a GPU stall, a loaded CPU): the shell's
-            # watchdog has stopped the robot meanwhile, and a command from that image would undo it.
+            # The image went stale while it was read or the policy decided (a large image, a GPU
+            # stall, a loaded CPU): the shell's watchdog has stopped the robot meanwhile, and a
+            # command from that image would undo it.
             decision = self._stop("watchdog", now, nearest, received_s)
             return None if decision is None else dataclasses.replace(
-                decision, error=f"the policy took {now - received_s:.2f} s on one image")
+                decision, error=f"the image was decided {now - received_s:.2f} s after it arrived")
         self.last_command_s = received_s
         self.moving = twist.linear_mps != 0 or twist.angular_rps != 0
         return self._decided(Decision(twist.linear_mps, twist.angular_rps, int(command), None, nearest,
@@ -242,22 +304,6 @@ class DriveController:
         self.policy.reset()
 
     # -- internals ------------------------------------------------------------------------
-    def _read(self, payload: bytes | bytearray | memoryview) -> np.ndarray:
-        image = decode_depth_image(bytes(payload), max_bytes=self.config.max_image_bytes)
-        if self.config.max_image_age_s is not None:
-            self._check_stamp(image.stamp_ns, self.config.max_image_age_s)
-        sensor = self.policy.sensor
-        if image.width < sensor.width or image.height < sensor.height:
-            raise Ros2MessageError(TOO_SMALL, f"{image.width} x {image.height} image; the network sees "
-                                              f"{sensor.width} x {sensor.height}")
-        depth = image.depth_m
-        # the checks of the policy's camera, before any decision; -Inf is too near (REP 117), not
-        # a negative depth: the nearest-depth rule stops on it, the camera need not refuse it
-        too_near = np.isneginf(depth)
-        self.policy.observation(np.where(too_near, np.float32(np.nan), depth) if too_near.any() else depth)
-        self.last_depth_m = depth
-        return depth
-
     def _check_stamp(self, stamp_ns: int, max_age_s: float) -> None:
         """Ros2MessageError unless the image was taken within ``max_age_s`` of now, by its stamp."""
         if stamp_ns == 0:

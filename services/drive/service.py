@@ -119,9 +119,12 @@ class DriveNode:
                 (payload, received), self.pending = self.pending, None
             self.deciding_since = received
             try:
+                # read outside the lock: it changes nothing, and a large image takes longer than the
+                # watchdog to read, which would hold the watchdog's stop
+                reading = payload if isinstance(payload, int) else self.controller.read(payload)
                 with self.lock:  # an image that waited for it after the exit stop decides nothing (the controller's rule)
-                    decision = (self.controller.on_oversize_image(payload, received) if isinstance(payload, int)
-                                else self.controller.on_image(payload, received))
+                    decision = (self.controller.on_oversize_image(reading, received) if isinstance(reading, int)
+                                else self.controller.decide(reading, received))
                     if decision is not None:
                         self._send(decision)
             except Exception:  # noqa: BLE001 -- the next image is decided all the same; the watchdog stops meanwhile

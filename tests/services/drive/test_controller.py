@@ -17,6 +17,8 @@ from services.drive.controller import (
     DriveConfig,
     DriveConfigError,
     DriveController,
+    Reading,
+    Refusal,
 )
 from shared.config import SPEED_TABLES
 
@@ -314,3 +316,23 @@ def test_with_a_max_image_age_an_image_stamped_too_long_ago_or_ahead_stops_the_r
     unchecked, clock = controller(policy)
     assert unchecked.on_image(stamped(3600.0), clock.t).command is not None
 
+
+
+def test_reading_an_image_changes_nothing_and_its_stamp_is_checked_again_when_it_is_decided(policy, start_image):
+    """The shell reads an image (slow for a large one) outside its lock, then decides on it: the
+    reading counts and decides nothing, and the stamp's age is measured again at the decision."""
+    now_ns = 1_800_000_000 * 10**9
+    drive, clock = controller(policy, max_image_age_s=0.3)
+    drive.wall_clock_ns = lambda: now_ns
+    fresh = encode_depth_image(start_image, encoding="32FC1", stamp_ns=now_ns - 200_000_000)
+    refused = drive.read(b"junk")
+    reading = drive.read(fresh)
+    assert isinstance(refused, Refusal) and refused.cause == "garbage"
+    assert isinstance(reading, Reading) and reading.nearest_m == pytest.approx(float(start_image[start_image > 0].min()))
+    assert drive.rejects == {} and drive.decisions == 0 and drive.last_image_s is None
+    assert drive.decide(refused, clock.t).reject_cause == "garbage"
+    drive.wall_clock_ns = lambda: now_ns + 200_000_000  # the reading took 0.2 s: the image is 0.4 s old
+    stale = drive.decide(reading, clock.t + 1.0)
+    assert stale.reject_cause == STALE_STAMP and "0.40 s ago" in stale.error and drive.last_image_s is None
+    drive.wall_clock_ns = lambda: now_ns
+    assert drive.decide(reading, clock.t + 2.0).command is not None  # in time, it drives

@@ -8,6 +8,7 @@ import contextlib
 import threading
 import time
 
+import numpy as np
 import pytest
 from service_processes import client
 
@@ -152,6 +153,28 @@ def test_a_stalled_policy_holds_neither_the_watchdog_nor_the_exit_stop(loopback_
         time.sleep(0.3)
         after = [(linear, angular) for t, linear, angular in robot.snapshot() if t > closing]
         assert after and after[-1] == (0.0, 0.0), after
+
+
+@pytest.mark.timeout(120)
+def test_a_huge_image_being_read_does_not_hold_the_watchdogs_stop(loopback_router, policy, start_image):
+    # A 4000 x 3000 32FC1 image (46 MB, under the 64 MB limit) was decoded and checked under the
+    # lock the watchdog takes: the watchdog's stop waited for it, and the stall stop counted from the
+    # huge image's arrival, so the robot drove on its last command 0.85 s after the last valid image
+    # with a 0.5 s watchdog.
+    huge = encode_depth_image(np.full((3000, 4000), 2.0, np.float32), encoding="32FC1", stamp_ns=1)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with driving(loopback_router, policy, "--watchdog", "0.5", watchdog=True) as (robot, _node, _stop):
+        wait_for_twist(robot, good, moving=True)
+        time.sleep(0.6)  # the next command is due
+        last_good = time.monotonic()
+        robot.images.put(good)
+        time.sleep(0.25)
+        robot.images.put(huge)  # then nothing
+        time.sleep(2.0)
+        after = [(t - last_good, linear, angular) for t, linear, angular in robot.snapshot() if t > last_good]
+        assert after and after[0][1] > 0, f"the last valid image did not move the robot: {after[:1]}"
+        stops = [t for t, linear, angular in after if (linear, angular) == (0.0, 0.0)]
+        assert stops and stops[0] < 0.5 + 0.2, f"the stop came {stops[:1]} s after the last valid image"
 
 
 @pytest.mark.timeout(120)
