@@ -3,14 +3,21 @@
 The compose file is validated against the Compose schema by Debian's ``docker-compose``
 (Compose v1 validates with no engine), read structurally with PyYAML, and every command a
 service runs is started with ``--help`` through this venv's ``cogexplore`` (or ``rerun``),
-with each option the command passes checked against that help text.
+with each option the command passes checked against that help text. Each ``cogexplore`` command
+is also parsed by the real CLI parser in its container's environment, with the defaults and with
+the settings a user gives compose, and compared option by option with what ``cogexplore up``
+(services.up.launcher) gives the same service: the local twin and the compose file cannot drift apart.
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
 import importlib.metadata
+import io
 import os
 import re
+import shlex
 import shutil
 import subprocess
 import sys
@@ -19,6 +26,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from services.bus import DEFAULT_ROUTER_WAIT_S
 from services.bus.session import ZenohSettings, parse_endpoints
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -67,22 +75,29 @@ LANDS_LATER: set[str] = set()
 _VAR = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::?-([^}]*))?\}")
 
 
-def interpolate(value: object) -> object:
-    """Compose's ``${NAME:-default}`` interpolation with no variables set (the defaults)."""
+def interpolate(value: object, variables: dict[str, str] | None = None) -> object:
+    """Compose's ``${NAME:-default}`` interpolation: ``variables`` as the user's shell or .env sets
+    them (an empty one counts as unset, as ``:-`` says), the defaults for the others."""
+    given = variables or {}
     if isinstance(value, str):
-        return _VAR.sub(lambda m: m.group(2) or "", value)
+        return _VAR.sub(lambda m: given.get(m.group(1)) or m.group(2) or "", value)
     if isinstance(value, list):
-        return [interpolate(v) for v in value]
+        return [interpolate(v, variables) for v in value]
     if isinstance(value, dict):
-        return {k: interpolate(v) for k, v in value.items()}
+        return {k: interpolate(v, variables) for k, v in value.items()}
     return value
+
+
+def compose_services(path: Path = COMPOSE_FILE, variables: dict[str, str] | None = None) -> dict[str, dict]:
+    """A compose file's services, merge keys resolved (safe_load does) and variables interpolated."""
+    doc = yaml.safe_load(path.read_text())
+    assert isinstance(doc, dict) and "services" in doc, f"{path.name} has no services"
+    return {name: interpolate(spec, variables) for name, spec in doc["services"].items()}
 
 
 @pytest.fixture(scope="module")
 def services() -> dict[str, dict]:
-    doc = yaml.safe_load(COMPOSE_FILE.read_text())  # safe_load resolves the `<<:` merge keys
-    assert isinstance(doc, dict) and "services" in doc, "docker-compose.yml has no services"
-    return {name: interpolate(spec) for name, spec in doc["services"].items()}
+    return compose_services()
 
 
 def service_env(spec: dict) -> dict[str, str]:
@@ -108,6 +123,26 @@ def run_help(argv: list[str], env_extra: dict[str, str] | None = None) -> str:
 
 def options_in(argv: list[str]) -> list[str]:
     return [a.split("=", 1)[0] for a in argv if a.startswith("-")]
+
+
+def parse_command(argv: list[str], env: dict[str, str], monkeypatch: pytest.MonkeyPatch) -> argparse.Namespace:
+    """``cogexplore ARGV`` through the real CLI parser, in a container's environment ``env``: the
+    parser reads its ``COGEXPLORE_*`` defaults when it is built and converts them when it parses, so a
+    stray value, a flag given a value or a variable the option's type refuses all fail here (``--help``
+    exits before any of those is looked at)."""
+    from services.cli import build_parser
+
+    assert argv[0] == "cogexplore", argv
+    for key in [k for k in os.environ if k.startswith("COGEXPLORE_")]:
+        monkeypatch.delenv(key)  # the shell running the tests is not the container
+    for key, value in env.items():
+        monkeypatch.setenv(key, value)
+    said = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(said):
+            return build_parser().parse_args(argv[1:])
+    except SystemExit as exc:
+        pytest.fail(f"`{' '.join(argv)}` with {env}: the CLI refuses it (exit {exc.code}): {said.getvalue()}")
 
 
 # -- schema ---------------------------------------------------------------------------------
@@ -299,6 +334,147 @@ def test_rerun_viewer_command_starts(services: dict[str, dict]) -> None:
     assert url == f"rerun+http://rerun:{command[command.index('--port') + 1]}/proxy"
 
 
+USER_SETTINGS = {
+    "COGEXPLORE_RUN": "exp1",
+    "COGEXPLORE_PRESET": "paper",
+    "COGEXPLORE_DEVICE": "auto",
+    "COGEXPLORE_EVAL_EVERY_UPDATES": "250",
+    "COGEXPLORE_NUM_ACTORS": "3",
+    "COGEXPLORE_RERUN_EVERY_EPISODES": "50",
+    "COGEXPLORE_ZENOH_ROUTER_WAIT_S": "45",
+}
+"""Settings a user gives compose (shell or .env; docs/distributed.md's table), none at its default."""
+
+
+@pytest.mark.parametrize("variables", [{}, USER_SETTINGS], ids=["defaults", "user-settings"])
+def test_service_commands_parse_and_take_the_user_s_settings(variables: dict[str, str],
+                                                            monkeypatch: pytest.MonkeyPatch) -> None:
+    """Each `cogexplore` command of the compose file, in its container's environment, through the
+    real parser: every argument is one the CLI takes, every variable converts, and each setting the
+    user gives compose reaches the option it stands for."""
+    services = compose_services(variables=variables)
+    run = variables.get("COGEXPLORE_RUN", "compose")
+    secure = parse_command(services["secure"]["command"], service_env(services["secure"]), monkeypatch)
+    assert secure._command == "secure init" and secure.run == run and secure.dir == "/secure"
+    parsed = {}
+    for name in PROJECT_SERVICES:
+        env = service_env(services[name])
+        args = parsed[name] = parse_command(services[name]["command"], env, monkeypatch)
+        assert args._command == name
+        assert (args.run, args.runs_dir) == (run, "/app/runs"), name
+        assert args.preset == variables.get("COGEXPLORE_PRESET"), name
+        assert args.device == variables.get("COGEXPLORE_DEVICE", "cpu"), name
+        assert args.tensorboard, name
+        wait = ZenohSettings.from_env(env).router_wait_s
+        assert wait == float(variables.get("COGEXPLORE_ZENOH_ROUTER_WAIT_S", DEFAULT_ROUTER_WAIT_S)), name
+    assert parsed["evaluator"].every_updates == int(variables.get("COGEXPLORE_EVAL_EVERY_UPDATES", 1000))
+    assert parsed["actor"].num_actors == int(variables.get("COGEXPLORE_NUM_ACTORS", 1))
+    assert parsed["actor"].rerun_every_episodes == int(variables.get("COGEXPLORE_RERUN_EVERY_EPISODES", 20))
+    for name in RERUN_ENV_READERS:
+        assert parsed[name].rerun_connect == "rerun+http://rerun:9876/proxy", name
+
+
+def test_a_command_the_cli_refuses_fails_the_parse(monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the `--help` check lets through (it exits before leftovers and env defaults are looked at)."""
+    for argv, env in ((["cogexplore", "learner", "--tensorboard", "yes"], {}),
+                      (["cogexplore", "actor"], {"COGEXPLORE_NUM_ACTORS": "four"})):
+        with pytest.raises(pytest.fail.Exception, match="the CLI refuses it"):
+            parse_command(argv, env, monkeypatch)
+
+
+SAME_BY_DESIGN = {
+    "runs_dir": "the container's mount of the host's runs folder (test_runs_directory_is_on_a_volume)",
+    "preset": "up names the config.toml it saved in the run; compose's learner reads that file itself (else the "
+              "default preset, which up saves too) and the actors and the evaluator ask the learner for it",
+    "connect": "the router's address from each side: up's loopback port, compose's router service "
+               "(test_project_services_connect_to_the_router_as_clients)",
+    "actor_id": "replicas cannot be named: the id defaults to the container's hostname + pid (test_actor_scales)",
+    "actor_index": "replicas cannot be numbered: the index defaults to a hash of the id (test_actor_scales)",
+}
+"""Options in which `up`'s services and compose's differ on purpose, and why."""
+ZENOH_OPTIONS = ("zenoh_mode", "zenoh_config", "listen", "router_wait")
+"""Compared as the session each ends up with: compose sets them by variable, up by option."""
+
+
+def test_up_starts_the_services_of_the_compose_file_with_the_same_options(
+        services: dict[str, dict], tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The local twin: every option `cogexplore up` gives a service (services.up.launcher.Launcher.service_argvs),
+    parsed by the real CLI, equals what compose's service parses to in its container, but for
+    SAME_BY_DESIGN; an option added to one side and not the other fails here."""
+    from services.bus import ENV_LISTEN, ENV_ROUTER_WAIT
+    from services.cli import build_parser
+    from services.up.launcher import Launcher
+
+    for key in [k for k in os.environ if k.startswith("COGEXPLORE_")]:
+        monkeypatch.delenv(key)
+    rerun_url = service_env(services["evaluator"])["COGEXPLORE_RERUN_URL"]
+    # up as compose runs by default: its run name, CPU, 2 actors (COGEXPLORE_NUM_ACTORS=2 --scale actor=2), a viewer
+    launcher = Launcher(build_parser().parse_args(["up", "--run", "compose", "--runs-dir", str(tmp_path), "--actors",
+                                                   "2", "--device", "cpu", "--rerun-connect", rerun_url]))
+    try:
+        started = launcher.service_argvs()
+        up_env = launcher.service_environment()
+    finally:
+        launcher.close()
+    compose = compose_services(variables={"COGEXPLORE_NUM_ACTORS": "2"})
+    assert [role for role, _, _ in started] == ["router", "learner", "actor", "actor", "evaluator"]
+    assert {role for role, _, _ in started} == {"router", *PROJECT_SERVICES}
+    for role, name, argv in started[1:]:
+        ours = vars(parse_command(["cogexplore", *argv], up_env, monkeypatch))
+        if role != "learner" and ours["device"] is None:
+            ours["device"] = "cpu"  # without --device an actor or the evaluator reads auto: the CPU (resolve_config)
+        env = service_env(compose[role])
+        theirs = vars(parse_command(compose[role]["command"], env, monkeypatch))
+        differ = {k: (ours.get(k), theirs.get(k)) for k in ours.keys() | theirs.keys()
+                  if ours.get(k) != theirs.get(k) and k not in SAME_BY_DESIGN and k not in ZENOH_OPTIONS}
+        assert not differ, f"{name}: (up, compose) differ in {differ}: make them alike, or say why in SAME_BY_DESIGN"
+        # the same session: a client with its role's credentials of the run's folder, no listener, the same wait
+        assert ours["zenoh_mode"] == env["COGEXPLORE_ZENOH_MODE"] == "client", name
+        assert Path(ours["zenoh_config"]).name == Path(theirs["zenoh_config"]).name == f"{role}.json5", name
+        assert ours["listen"] is theirs["listen"] is None and not up_env.get(ENV_LISTEN) and not env[ENV_LISTEN]
+        up_wait = ours["router_wait"] or float(up_env.get(ENV_ROUTER_WAIT) or DEFAULT_ROUTER_WAIT_S)
+        assert up_wait == float(theirs["router_wait"] or env[ENV_ROUTER_WAIT]), name
+    # what up adds to its services' environment, the containers have too (the compose file or the image)
+    image_env = {}
+    for word, rest in dockerfile_instructions():
+        if word == "ENV":
+            image_env.update(item.split("=", 1) for item in rest.split())
+    added = {k: v for k, v in up_env.items() if os.environ.get(k) != v}
+    for name in PROJECT_SERVICES:
+        container = {**image_env, **service_env(compose[name])}
+        missing = {k: v for k, v in added.items() if container.get(k) != v}
+        assert not missing, f"{name}: up's services get {missing}, the container not"
+
+
+FINAL_REPORT = re.compile(r"`(docker compose run [^`]*cogexplore up [^`]*)`")
+
+
+def test_the_readme_s_final_report_of_a_compose_run_is_up_s(services: dict[str, dict], tmp_path: Path,
+                                                            monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    """Compose has no final evaluation and report (up's --final-episodes, --final-average); the README
+    says how to make them once its learner has finished: `up --resume` in the learner's container. That
+    command parses there, and up takes a finished run folder as compose leaves it (secured by the
+    `secure` service: TLS, certificates for the router service)."""
+    from services.cli import main
+    from tests.services.up.test_resume import run_at
+
+    shown = FINAL_REPORT.findall((ROOT / "README.md").read_text())
+    assert len(shown) == 1, f"the README shows {len(shown)} `docker compose run ... cogexplore up ...` commands"
+    words = shlex.split(shown[0])
+    service = words.index("cogexplore") - 1
+    assert words[:3] == ["docker", "compose", "run"] and words[service] in PROJECT_SERVICES, words
+    args = parse_command(words[service + 1:], service_env(services[words[service]]), monkeypatch)
+    assert args._command == "up" and args.resume and args.runs_dir == "/app/runs"
+    assert args.run == service_env(services["learner"])["COGEXPLORE_RUN"], "the compose run's name"
+
+    run_at(tmp_path / "made", updates=20, total_updates=20)  # a learner that reached its total updates
+    (tmp_path / "made" / "again").rename(tmp_path / args.run)
+    secure = [str(tmp_path / args.run / "secure") if a == "/secure" else a for a in services["secure"]["command"]]
+    assert main(secure[1:]) == 0
+    assert main([*words[service + 2:], "--runs-dir", str(tmp_path), "--no-report", "--quiet"]) == 0
+    assert f"run {args.run!r} has finished training (20/20 updates)" in capsys.readouterr().err
+
+
 # -- Dockerfile and build context --------------------------------------------------------------
 
 def dockerfile_instructions() -> list[tuple[str, str]]:
@@ -413,3 +589,27 @@ def test_the_robot_compose_file_is_valid_and_its_commands_start(tmp_path: Path) 
         assert command[command.index("--connect") + 1] == "tcp/robot-router:7447"
         assert command[command.index("--ros2-format") + 1] == "rmw_zenoh"
     assert services["robot-router"]["image"] == yaml.safe_load(COMPOSE_FILE.read_text())["services"]["router"]["image"]
+
+
+ROBOT_SETTINGS = {"ROBOT_ROUTER": "tcp/192.168.1.42:7447", "ROS2_FORMAT": "ros2dds", "ROS_DOMAIN_ID": "7",
+                  "ROBOT_NAMESPACE": "/tb4", "DEPTH_TOPIC": "oakd/stereo/image_raw",
+                  "COGEXPLORE_CHECKPOINT": "pretrained:sl"}
+"""The robot example's settings (its header), none at its default."""
+
+
+@pytest.mark.parametrize("variables", [{}, ROBOT_SETTINGS], ids=["defaults", "user-settings"])
+def test_the_robot_compose_commands_parse_and_take_the_user_s_settings(variables: dict[str, str],
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    services = compose_services(ROBOT_COMPOSE_FILE, variables)
+    for name in ("drive", "sim-robot"):
+        env = service_env(services[name])
+        assert env["RERUN_ANALYTICS"] == "0", name
+        args = parse_command(services[name]["command"], env, monkeypatch)
+        assert args._command == name
+        assert args.ros2_format == variables.get("ROS2_FORMAT", "rmw_zenoh"), name
+        assert args.domain_id == int(variables.get("ROS_DOMAIN_ID", 0)), name
+        assert args.namespace == variables.get("ROBOT_NAMESPACE", "/"), name
+        assert args.image_topic == variables.get("DEPTH_TOPIC", "camera/depth/image_raw"), name
+    drive = parse_command(services["drive"]["command"], service_env(services["drive"]), monkeypatch)
+    assert drive.connect == [variables.get("ROBOT_ROUTER", "tcp/robot-router:7447")]
+    assert drive.checkpoint == variables.get("COGEXPLORE_CHECKPOINT", "pretrained")

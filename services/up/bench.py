@@ -15,7 +15,9 @@ every actor's transitions arrive, lets it settle for ``--warmup-s``, then measur
 With the default replay ratio 1 the learner's flow control holds the actors to the update
 rate, so the env rate measured is the learner's; ``--set train.replay_ratio=0.02`` lifts that
 limit to measure raw actor throughput. The run folder is a temporary directory removed at
-the end unless ``--runs-dir`` is given.
+the end unless ``--runs-dir`` is given (or a service failed). A service that crashes at the stop
+(the learner's final checkpoint, an actor's last statistics) is said in one line as ``up`` says
+it (``Launcher.failed_at_stop``), named in ``failed_at_stop`` and the bench exits 1.
 """
 
 from __future__ import annotations
@@ -208,13 +210,13 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
                     sub.undeclare()
     finally:
         try:
-            # The launcher's order: learner first (final weights, checkpoint), then the rest.
-            launcher.stop(("learner",), timeout_s=60.0)
-            launcher.stop(("actor",))
-            launcher.stop(("router",))
+            launcher.stop_services()  # the launcher's order: learner first (final checkpoint), then the rest
         finally:
             launcher.close()  # the run is let go however it ended (a traceback kept would hold it)
-        if temporary and succeeded:
+        # A service that crashed at the stop (the learner's final checkpoint, say) is said in one line, as
+        # up says it, and the figures say the run failed; a failure before it is the error raised.
+        failed_at_stop = launcher.failed_at_stop() if succeeded else []
+        if temporary and succeeded and not failed_at_stop:
             shutil.rmtree(root, ignore_errors=True)  # on failure the logs stay for the error message
 
     (t_first, s_first), (t_last, s_last) = first, last
@@ -232,7 +234,8 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     return {
         "preset": preset,
         "overrides": overrides,
-        "run_dir": None if temporary else str(launcher.paths.root),
+        "run_dir": None if temporary and not failed_at_stop else str(launcher.paths.root),
+        "failed_at_stop": failed_at_stop,
         "actors": actors,
         "world": cfg.env.world,
         "frame": f"{cfg.sensor.width}x{cfg.sensor.height}",
@@ -340,6 +343,8 @@ def _print_text(result: dict[str, Any]) -> None:
     print(f"  mean weight lag  {'n/a' if lag is None else f'{lag:8.1f}'} versions")
     print("  cpu %            " + "  ".join(f"{n} {p}" for n, p in result["cpu_percent"].items()))
     print(f"  load avg before  {result['load_avg_1m_before']:.2f} on {result['cpu_count']} cores")
+    if result["failed_at_stop"]:
+        print(f"  FAILED at stop   {', '.join(result['failed_at_stop'])} (logs in {result['run_dir']})")
 
 
 def _interrupt(_signum: int, _frame: object) -> None:
@@ -383,4 +388,4 @@ def run_command(args: argparse.Namespace) -> int:
         print(json.dumps(result, indent=2))
     else:
         _print_text(result)
-    return 0
+    return 1 if result["failed_at_stop"] else 0

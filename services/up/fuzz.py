@@ -23,7 +23,9 @@ when the allocators and queues have warmed (every kind of payload, and with ``--
 big ones, have passed), and after each of four more rounds: a leak grows every round, warming
 levels off. Fuzzing starts once every receiver has joined and each fuzzing publisher has seen its
 receivers' subscriptions, and ends once the learner's and the actor's live statistics have counted
-every payload sent to them, so a slow machine delays the counts instead of losing them. Prints JSON.
+every payload sent to them, so a slow machine delays the counts instead of losing them. Prints JSON;
+exits 1 when a service crashed while fuzzed (``crashes``) or at the stop (``failed_at_stop``: each said
+in one line as ``up`` says it, ``Launcher.failed_at_stop``).
 """
 
 from __future__ import annotations
@@ -327,15 +329,18 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
         alive = {c.name: c.process.poll() is None for c in launcher.children}
     finally:
         try:
-            launcher.stop(("learner",), timeout_s=60.0)
-            launcher.stop(("actor", "evaluator"))
-            launcher.stop(("router",))
+            launcher.stop_services()
         finally:
             launcher.close()  # the run is let go however it ended (a traceback kept would hold it)
+    for c in launcher.children:
+        c.said = not alive[c.name]  # a crash while fuzzing is said in "crashes"
+    # one that crashed at the stop (the learner's final checkpoint, the actor's last counts) is said as up says it
+    failed_at_stop = launcher.failed_at_stop()
     counted = {c.name: _final_counts(c.logfile) for c in launcher.children if c.role != "router"}
     result = {
         "payloads_sent": sum(sent.values()), "by_key": dict(sent), "by_kind": dict(sent_kinds),
         "crashes": [n for n, ok in alive.items() if not ok],
+        "failed_at_stop": failed_at_stop,
         "exit_codes": {c.name: c.process.returncode for c in launcher.children},
         "rejects": {
             "learner (transitions)": counted.get("learner", {}).get("rejects", {}),
@@ -353,7 +358,7 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
         "rss_mb": {**rss, "at_end": rss[f"after_round_{len(rounds)}"] if len(rounds) > 1 else rss["after_first_round"]},
         "seconds": round(time.monotonic() - started, 1), "logs": str(launcher.paths.logs),
     }
-    if temporary and not result["crashes"]:
+    if temporary and not result["crashes"] and not failed_at_stop:
         shutil.rmtree(root, ignore_errors=True)
     return result
 
@@ -382,4 +387,4 @@ def run_command(args: argparse.Namespace) -> int:
                  preset=args.preset, runs_dir=args.runs_dir,
                  echo=lambda msg: print(msg, file=sys.stderr, flush=True))
     print(json.dumps(result, indent=2, default=float))
-    return 0 if not result["crashes"] else 1
+    return 0 if not result["crashes"] and not result["failed_at_stop"] else 1

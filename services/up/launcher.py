@@ -384,12 +384,7 @@ class Launcher:
 
     def _spawn(self, role: str, name: str, argv: list[str]) -> Child:
         logfile = self.paths.logs / f"{name}.log"
-        env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
-        # Only the router listens: a shell's COGEXPLORE_ZENOH_LISTEN (a compose setting) would have every
-        # service bind that one endpoint, and all but the first fail.
-        env.pop(ENV_LISTEN, None)
-        if self.args.rerun_connect:
-            env["COGEXPLORE_RERUN_URL"] = self.args.rerun_connect  # evaluator and actors stream there
+        env = self.service_environment()
         with open(logfile, "ab") as handle:  # the child has its own copy: ours goes, the start failed or not
             log_start = handle.seek(0, os.SEEK_END)
             process = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=handle,
@@ -399,30 +394,49 @@ class Launcher:
         self.children.append(child)
         return child
 
+    def service_environment(self) -> dict[str, str]:
+        """The environment every service starts with: this one's, offline (no Rerun analytics), unbuffered.
+        docker-compose.yml and the Dockerfile set the same (tests/test_compose.py)."""
+        env = dict(os.environ, RERUN_ANALYTICS="0", PYTHONUNBUFFERED="1")
+        # Only the router listens: a shell's COGEXPLORE_ZENOH_LISTEN (a compose setting) would have every
+        # service bind that one endpoint, and all but the first fail.
+        env.pop(ENV_LISTEN, None)
+        if self.args.rerun_connect:
+            env["COGEXPLORE_RERUN_URL"] = self.args.rerun_connect  # evaluator and actors stream there
+        return env
+
     def _common(self, role: str) -> list[str]:
         return ["--run", self.run, "--runs-dir", str(self.args.runs_dir), "--connect", self.endpoint,
                 "--zenoh-mode", "client", "--zenoh-config", str(self.secure.config(role)),
                 "--tensorboard" if self.args.tensorboard else "--no-tensorboard"]
 
     def start(self) -> None:
-        a = self.args
         for endpoint in self.listen:  # else the progress session would wait on whatever holds it
             if (taken := port_taken(endpoint)) is not None:
                 raise TransportError(f"the router cannot listen on {endpoint}: {taken}. Another router or "
                                      "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
-        self._spawn("router", "router", ["router", "--listen", ",".join(self.listen),
-                                         "--config", str(self.secure.router_config)])
+        for role, name, argv in self.service_argvs():
+            self._spawn(role, name, argv)
+
+    def service_argvs(self) -> list[tuple[str, str, list[str]]]:
+        """(role, name, ``cogexplore`` arguments) of each service :meth:`start` starts, in order: the
+        services of docker-compose.yml, which tests/test_compose.py holds to the same options."""
+        a = self.args
+        services = [("router", "router", ["router", "--listen", ",".join(self.listen),
+                                          "--config", str(self.secure.router_config)])]
         config = ["--preset", str(self.paths.config)]
         learner_argv = ["learner", *self._common("learner"), *config]
         if a.device:
             learner_argv += ["--device", a.device]
-        self._spawn("learner", "learner", learner_argv)
+        services.append(("learner", "learner", learner_argv))
         for i in range(a.actors):
-            self._spawn("actor", f"actor-{i}", ["actor", *self._common("actor"), *config, "--actor-id", f"actor-{i}",
-                                                "--actor-index", str(i), "--num-actors", str(a.actors)])
+            services.append(("actor", f"actor-{i}", ["actor", *self._common("actor"), *config, "--actor-id",
+                                                     f"actor-{i}", "--actor-index", str(i), "--num-actors",
+                                                     str(a.actors)]))
         if not a.no_evaluator:
-            self._spawn("evaluator", "evaluator", ["evaluator", *self._common("evaluator"), *config,
-                                                   "--every-updates", str(a.eval_every)])
+            services.append(("evaluator", "evaluator", ["evaluator", *self._common("evaluator"), *config,
+                                                        "--every-updates", str(a.eval_every)]))
+        return services
 
     def _alive(self, role: str) -> list[Child]:
         return [c for c in self.children if c.role == role and c.process.poll() is None]
@@ -440,6 +454,24 @@ class Launcher:
                 log.warning("%s did not stop in %.0f s: killing it", c.name, timeout_s)
                 c.send(signal.SIGKILL)
                 c.process.wait()
+
+    def stop_services(self) -> None:
+        """Stop the run's services in order: the learner first (it writes its final checkpoint, up to a
+        minute), then the producers and the evaluator, the router last. How they ended:
+        :meth:`failed_at_stop`."""
+        self.stop(("learner",), timeout_s=60.0)
+        self.stop(("actor", "evaluator"))
+        self.stop(("router",))
+
+    def failed_at_stop(self) -> list[str]:
+        """The services that failed at a stop asked by their starter (:meth:`stop_services`), each said
+        in one line: the learner whose final checkpoint is missing or torn, an actor or the evaluator
+        that crashed on its way out (up's own judgement, :meth:`finish`). For the tools that start and stop
+        a run's services themselves (``bench system``, ``bench fuzz``); a service whose exit they said
+        already (``Child.said``) is left out."""
+        # stopped on the tool's own clock, as up's --minutes stops it
+        learner = [c.name for c in self.children if c.role == "learner"] if self._final_checkpoint_failed("time") else []
+        return learner + self._stop_failed()
 
     # -- the run ---------------------------------------------------------------------------
 
@@ -562,9 +594,7 @@ class Launcher:
                 if stop.is_set():
                     print(f"run {self.run!r}: stopping: its learner writes its final checkpoint (Ctrl-C again "
                           "to stop at once without it)", file=sys.stderr)
-                self.stop(("learner",), timeout_s=60.0)
-                self.stop(("actor", "evaluator"))
-                self.stop(("router",))
+                self.stop_services()
         print(f"run {self.run!r} ended: {reason}", file=sys.stderr)
         return self.finish(reason)
 
@@ -596,20 +626,20 @@ class Launcher:
     def _final_checkpoint_failed(self, reason: str) -> bool:
         """Whether the learner, stopped by up, exited other than cleanly (said in one line)."""
         learner = next((c for c in self.children if c.role == "learner"), None)
-        if learner is None or reason == "failed: learner" or learner.process.returncode == 0:
+        if learner is None or reason == "failed: learner" or learner.said or learner.process.returncode == 0:
             return False  # a learner that failed on its own is reported as the run's failure
         if learner.ended_while_starting():
             return False  # no update yet: a checkpoint to write, none to lose
         print(f"run {self.run!r}: its final checkpoint failed: {learner.exited()}", file=sys.stderr)
         return True
 
-    def _stop_failed(self) -> bool:
-        """Whether an actor or the evaluator failed at the run's stop; each that did not end as asked is
+    def _stop_failed(self) -> list[str]:
+        """The actors and the evaluator that failed at the run's stop; each that did not end as asked is
         said in one line. A crash on its way out (a non-zero exit, a signal up did not send) fails the run:
         the evaluator's last evaluation, an actor's statistics or recording may be missing or torn. Up's own
         SIGKILL after the grace period does not: the learner, stopped first, has its final checkpoint, and
         what a hung service loses (its episode or evaluation in progress) a clean stop drops as well."""
-        failed = False
+        failed: list[str] = []
         for c in self.children:
             code = c.process.returncode
             if c.role not in ("actor", "evaluator") or c.said or not code or c.kill_asked:
@@ -621,7 +651,7 @@ class Launcher:
                       "(the run does not fail for it)", file=sys.stderr)
                 continue
             print(f"run {self.run!r}: at its stop {c.exited()}", file=sys.stderr)
-            failed = True
+            failed.append(c.name)
         return failed
 
     def final_model(self) -> Path:

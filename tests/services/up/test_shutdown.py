@@ -4,6 +4,7 @@ a learner whose final checkpoint fails at the stop is said and exits non-zero, a
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -114,6 +115,47 @@ def test_bench_fuzz_lets_the_run_go_when_it_fails(tmp_path: Path) -> None:
         fuzz.run(10, preset=str(paths.config), runs_dir=runs)
     _free_to_start(runs, bench._RUN_PREFIX)
     assert failed.traceback
+
+
+def _bench_whose_final_checkpoint_fails(argv: list[str], runs: Path) -> tuple[int, dict, str]:
+    """``cogexplore bench ARGV --runs-dir RUNS`` whose learner's final checkpoint fails (a folder where its
+    pointer goes, made once the learner is in its loop); (exit status, its JSON, its stderr)."""
+    proc = subprocess.Popen([sys.executable, "-m", "services.cli", "bench", *argv, "--runs-dir", str(runs)],
+                            cwd=REPO, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    csv: list[Path] = []
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and proc.poll() is None:
+            csv = [c for c in runs.glob(f"*/stats/{LearnerRow.FILE}") if len(c.read_text().splitlines()) >= 2]
+            if csv:
+                (csv[0].parents[1] / "checkpoints" / "latest").mkdir(parents=True)
+                break
+            time.sleep(0.2)
+        assert csv, "the learner never reported"
+        out, err = proc.communicate(timeout=180)
+    finally:
+        proc.kill()
+    return proc.returncode, json.loads(out[out.index("{"):]), err
+
+
+@pytest.mark.timeout(300)
+def test_bench_system_says_a_final_checkpoint_that_fails_and_exits_non_zero(tmp_path: Path) -> None:
+    # bench system printed its figures and exited 0 over a learner that had exited 2 at its last write
+    code, result, err = _bench_whose_final_checkpoint_fails(
+        ["system", "--preset", "smoke", "--seconds", "1", "--warmup-s", "0", "--json"], tmp_path)
+    said = [line for line in err.splitlines() if "final checkpoint failed" in line]
+    assert code == 1 and result["failed_at_stop"] == ["learner"], err[-2000:]
+    assert len(said) == 1 and "its learner exited (2): " in said[0] and "Is a directory" in said[0], err[-2000:]
+    assert result["run_dir"] and Path(result["run_dir"], "logs", "learner.log").exists()  # the log it names stays
+
+
+@pytest.mark.timeout(300)
+def test_bench_fuzz_says_a_final_checkpoint_that_fails_and_exits_non_zero(tmp_path: Path) -> None:
+    # bench fuzz counted only the crashes before the stop: the learner's exit 2 at its last write passed
+    code, result, err = _bench_whose_final_checkpoint_fails(["fuzz", "--payloads", "100"], tmp_path)
+    said = [line for line in err.splitlines() if "final checkpoint failed" in line]
+    assert code == 1 and result["crashes"] == [] and result["failed_at_stop"] == ["learner"], err[-2000:]
+    assert len(said) == 1 and "its learner exited (2): " in said[0] and "Is a directory" in said[0], err[-2000:]
 
 
 def test_a_process_that_cannot_be_started_leaves_no_log_file_open(tmp_path: Path) -> None:
