@@ -95,14 +95,15 @@ def _received(stats: Any, actor: str) -> float:
 
 
 def _launcher_args(actors: int, preset: str, overrides: list[str], runs_dir: Path,
-                   device: str | None) -> argparse.Namespace:
-    """The launcher's own options, parsed by its own parser (so new options get defaults)."""
+                   device: str | None, prefix: str = _RUN_PREFIX) -> argparse.Namespace:
+    """The launcher's own options, parsed by its own parser (so new options get defaults), for a run
+    named ``<prefix>-<time>-<pid>``."""
     from services.up.options import add_up_arguments
 
     parser = argparse.ArgumentParser(add_help=False)
     add_up_arguments(parser)
     # A fresh run name each time: the learner would resume from an earlier run's checkpoint.
-    run = f"{_RUN_PREFIX}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
+    run = f"{prefix}-{time.strftime('%Y%m%d-%H%M%S')}-{os.getpid()}"
     argv = ["--actors", str(actors), "--preset", preset, "--run", run, "--runs-dir", str(runs_dir),
             "--no-evaluator", "--no-report", "--quiet"]
     for override in (*_BENCH_OVERRIDES, *overrides):

@@ -225,7 +225,8 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
     echo = echo or (lambda _msg: None)
     temporary = runs_dir is None
     root = Path(tempfile.mkdtemp(prefix="cogexplore-fuzz-")) if temporary else Path(runs_dir)
-    args = _launcher_args(1, preset, ["train.total_updates=1000000", "train.checkpoint_every=1000000"], root, None)
+    args = _launcher_args(1, preset, ["train.total_updates=1000000", "train.checkpoint_every=1000000"], root, None,
+                           prefix="bench-fuzz")
     args.no_evaluator = False
     args.eval_every = 1_000_000
     launcher = Launcher(args)

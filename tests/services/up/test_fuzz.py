@@ -14,6 +14,7 @@ def test_ten_thousand_payloads_crash_nothing_and_every_one_is_counted(tmp_path) 
     result = fuzz.run(10_000, max_bytes=16 * 1024, big_bytes=16_000_000, runs_dir=tmp_path)
     assert result["by_kind"].pop("big") == 30 and result["payloads_sent"] == 10_030 and set(result["by_kind"]) == set(fuzz.PAYLOAD_KINDS)
     assert result["crashes"] == [] and all(code == 0 for code in result["exit_codes"].values()), result
+    assert result["failed_at_stop"] == [] and "/bench-fuzz-" in result["logs"]  # not bench-system's name
     totals = {k: sum(v.values()) if isinstance(v, dict) else v for k, v in result["rejects"].items()}
     assert totals == result["expected_rejects"], {k: result[k] for k in ("rejects", "drain_s", "reported_live", "logs")}
     # the learner and the actor also count them in the statistics they publish as the run goes on
