@@ -111,11 +111,11 @@ class _Scene:
     data: mujoco.MjData
     robot: Robot
     camera: DepthCamera
-    clearance_cap_m: float
-    """The largest clearance the env compares a cell's with (the robot's radius, a random start's
-    clearance): the clearance map is exact below it, which bounds its cost in a vast world."""
-    _clear: tuple[Any, np.ndarray] | None = None
-    _clearance: tuple[Any, np.ndarray] | None = None
+    robot_radius_m: float
+    """A jittered start's centre must be this far from obstacles on the map."""
+    start_clearance_m: float
+    """A random start's cell must be this far from obstacles (``random_start_clearance_m``)."""
+    _free: tuple[Any, np.ndarray, np.ndarray] | None = None
     _canvas: Any = None
     _coverage: Any = None
     _map_expert: Any = None
@@ -136,31 +136,34 @@ class _Scene:
         model = build_model(world.mjcf, cfg, sensor)
         data = mujoco.MjData(model)
         return cls(world, model, data, Robot(model, data), DepthCamera(model, sensor),
-                   max(cfg.robot_radius_m, cfg.random_start_clearance_m))
+                   cfg.robot_radius_m, cfg.random_start_clearance_m)
 
-    def clearance(self) -> tuple[Any, np.ndarray]:
-        """The occupancy grid and each cell's distance (m) to the nearest obstacle cell (exact below
-        ``clearance_cap_m``, at least it beyond)."""
-        if self._clearance is None:
+    def free_space(self) -> tuple[Any, np.ndarray, np.ndarray]:
+        """The occupancy grid, the (ny, nx) bool map of the cells at least ``robot_radius_m`` from
+        every obstacle cell and the row-major flat indices (int32) of the cells at least
+        ``start_clearance_m`` from one, built once per world.
+
+        Only these two thresholds of the clearance map are ever read, so the float64 map itself is
+        not kept: with it (and the cells as int64 (iy, ix) pairs) a procedural world held ~0.7 MB,
+        and an actor keeps a hundred worlds."""
+        if self._free is None:
             from shared.sim.maps import clearance_map, occupancy_grid
 
             grid = occupancy_grid(self.world, MAP_RESOLUTION_M)
-            self._clearance = grid, clearance_map(grid.occupied, grid.resolution_m, self.clearance_cap_m)
-        return self._clearance
-
-    def clear_cells(self, clearance_m: float) -> tuple[Any, np.ndarray]:
-        """The occupancy grid and the (iy, ix) cells at least ``clearance_m`` from obstacles."""
-        if self._clear is None:
-            grid, clearance = self.clearance()
-            self._clear = grid, np.argwhere(clearance >= clearance_m)
-        return self._clear
+            # Exact below the larger threshold, which bounds its cost in a vast world.
+            cap = max(self.robot_radius_m, self.start_clearance_m)
+            clearance = clearance_map(grid.occupied, grid.resolution_m, cap)
+            # A grid holds at most 25M cells (maps.empty_grid), so int32 indexes any of them.
+            self._free = (grid, clearance >= self.robot_radius_m,
+                          np.flatnonzero(clearance >= self.start_clearance_m).astype(np.int32))
+        return self._free
 
     def coverage(self) -> Any:
-        """The world's ``shared.sim.maps.CoverageTracker`` (the novelty reward's), on the clearance grid."""
+        """The world's ``shared.sim.maps.CoverageTracker`` (the novelty reward's), on the map grid."""
         if self._coverage is None:
-            from shared.sim.maps import CoverageTracker
+            from shared.sim.maps import CoverageTracker, occupancy_grid
 
-            self._coverage = CoverageTracker(self.clearance()[0], self.camera.cfg)
+            self._coverage = CoverageTracker(occupancy_grid(self.world, MAP_RESOLUTION_M), self.camera.cfg)
         return self._coverage
 
     def canvas(self) -> Any:
@@ -478,12 +481,12 @@ class ExploreEnv(gym.Env):
         """Move the robot to a random pose ``random_start_clearance_m`` from every obstacle whose
         first image (kept in ``self._depth``) is above the collision threshold with a 10 cm
         margin; None when no such pose turns up (the caller then places the robot)."""
-        grid, clear_cells = self._scene.clear_cells(self.env_config.random_start_clearance_m)
+        grid, _, clear_cells = self._scene.free_space()
         if len(clear_cells) == 0:
             return None
         half = grid.resolution_m / 2
         for _ in range(tries):
-            iy, ix = clear_cells[self.np_random.integers(len(clear_cells))]
+            iy, ix = divmod(int(clear_cells[self.np_random.integers(len(clear_cells))]), grid.shape[1])
             cx, cy = grid.cell_to_world(ix, iy)
             pose = (float(cx + self.np_random.uniform(-half, half)), float(cy + self.np_random.uniform(-half, half)),
                     float(self.np_random.uniform(-math.pi, math.pi)))
@@ -514,14 +517,14 @@ class ExploreEnv(gym.Env):
         nearer than the collision distance plus a margin; its first image is left in
         ``self._depth``. None after ``tries`` draws (one, of the exact pose, without a jitter)."""
         cfg = self.env_config
-        grid, clearance = self._scene.clearance()
+        grid, fits, _ = self._scene.free_space()
         half_yaw = math.radians(jitter_deg)
         for _ in range(tries if jitter_m > 0 or jitter_deg > 0 else 1):
             dx, dy = self.np_random.uniform(-jitter_m, jitter_m, 2)
             pose = (float(base[0] + dx), float(base[1] + dy),
                     float(base[2] + self.np_random.uniform(-half_yaw, half_yaw)))
             ix, iy = grid.world_to_cell(pose[0], pose[1])
-            if not grid.contains(ix, iy) or clearance[iy, ix] < cfg.robot_radius_m:
+            if not grid.contains(ix, iy) or not fits[iy, ix]:
                 continue
             self.robot.set_pose(*pose)
             if self.robot.touching_obstacle():

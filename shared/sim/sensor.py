@@ -117,15 +117,18 @@ class DepthCamera:
         self.body_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_BODY, ROBOT_BODY)
         self.camera_id = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_CAMERA, CAMERA_NAME)
         self._floor_geom = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, FLOOR_GEOM)
-        self._dirs_body, self._axial = ray_directions_body(cfg)
-        n = cfg.height * cfg.width
-        self._vec = np.empty((n, 3), dtype=np.float64)
-        self._dist = np.empty(n, dtype=np.float64)
-        self._geomid = np.empty(n, dtype=np.int32)
         self._renderer: mujoco.Renderer | None = None
         self.mode = "gl" if cfg.backend == "gl" else (
             "columns" if allow_columns and _columns_exact(model, cfg, self.body_id) else "pixels")
-        if self.mode == "columns":
+        # Each mode keeps only its own buffers: an env keeps a camera for every world it has played
+        # (a hundred on an actor), and the per-pixel ones are (H*W, 3) float64.
+        if self.mode == "pixels":
+            self._dirs_body, self._axial = ray_directions_body(cfg)
+            n = cfg.height * cfg.width
+            self._vec = np.empty((n, 3), dtype=np.float64)
+            self._dist = np.empty(n, dtype=np.float64)
+            self._geomid = np.empty(n, dtype=np.int32)
+        elif self.mode == "columns":
             fx, _, cx, _ = intrinsics(cfg)
             left = (cx - (np.arange(cfg.width) + 0.5)) / fx
             self._col_dirs_body = np.stack([np.ones_like(left), left, np.zeros_like(left)], axis=1)

@@ -217,3 +217,17 @@ def test_the_gl_backend_renders_an_image_wider_than_mujocos_default_buffer():
     if "error" in out and "framebuffer" not in out["error"]:
         pytest.skip(f"no EGL context here: {out['error']}")
     assert out.get("centre") == pytest.approx(1.0, abs=GL_TOLERANCE_M), out
+
+
+def test_a_camera_keeps_only_its_own_modes_buffers():
+    # An env keeps a camera for every world it has played (an actor 100): a column camera held the
+    # per-pixel ray buffers too, (H*W, 3) float64 it never used.
+    model, data, _, sensor = _room(wall_x=2.0)
+    held = {}
+    for allow_columns in (True, False):
+        camera = DepthCamera(model, sensor, allow_columns=allow_columns)
+        held[camera.mode] = sum(v.nbytes for v in vars(camera).values() if isinstance(v, np.ndarray))
+        assert camera.capture(data)[sensor.height // 2, sensor.width // 2] == pytest.approx(1.95, abs=0.01)
+    pixels = sensor.height * sensor.width
+    assert held["columns"] < pixels * 8  # a few float64s per column and image row, none per pixel
+    assert held["pixels"] >= pixels * 3 * 8
