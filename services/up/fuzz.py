@@ -47,6 +47,8 @@ import numpy as np
 
 from shared.errors import CogexploreError
 
+RUN_PREFIX = "bench-fuzz"
+"""The start of a fuzzed run's folder name (``<prefix>-<time>-<pid>``)."""
 PAYLOAD_KINDS: tuple[str, ...] = ("random", "empty", "truncated", "flipped", "schema", "type", "missing_field",
                                   "unknown_field", "field_type", "dtype", "shape", "nan", "padding", "physical")
 _DONE = re.compile(r"(?:done|rejected weights): (\{.*\})\)?\s*$")
@@ -226,7 +228,7 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
     temporary = runs_dir is None
     root = Path(tempfile.mkdtemp(prefix="cogexplore-fuzz-")) if temporary else Path(runs_dir)
     args = _launcher_args(1, preset, ["train.total_updates=1000000", "train.checkpoint_every=1000000"], root, None,
-                           prefix="bench-fuzz")
+                           prefix=RUN_PREFIX)
     args.no_evaluator = False
     args.eval_every = 1_000_000
     launcher = Launcher(args)

@@ -113,7 +113,7 @@ def test_bench_fuzz_lets_the_run_go_when_it_fails(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
     with pytest.raises(fuzz.FuzzError, match="the run did not start") as failed:
         fuzz.run(10, preset=str(paths.config), runs_dir=runs)
-    _free_to_start(runs, bench._RUN_PREFIX)
+    _free_to_start(runs, fuzz.RUN_PREFIX)
     assert failed.traceback
 
 
