@@ -102,10 +102,9 @@ class DriveConfig:
     def __post_init__(self) -> None:
         if self.speed_table not in SPEED_TABLES:
             raise DriveConfigError(f"speed table {self.speed_table!r}: choose {' or '.join(SPEED_TABLES)}")
-        for name in ("collision_distance_m", "watchdog_s", "max_image_age_s"):
+        optional = ("max_image_age_s",) if self.max_image_age_s is not None else ()
+        for name in ("collision_distance_m", "watchdog_s", *optional):
             value = getattr(self, name)
-            if name == "max_image_age_s" and value is None:
-                continue
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise DriveConfigError(f"{name} must be a positive number, got {value!r}")
         if self.control_period_s is not None and not (np.isfinite(self.control_period_s) and self.control_period_s > 0):

@@ -785,11 +785,8 @@ def load_model(source: str | Path, device: str | torch.device = "cpu") -> Loaded
     else:
         try:
             ckpt = load_checkpoint(path)
-        except WrongFileFormat as exc:
+        except WrongFileFormat as exc:  # a weights export, maybe; a damaged checkpoint is said as one
             errors.append(str(exc))
-        except CheckpointError:
-            # A checkpoint, damaged or diverged: said as one, not as "neither" kind of file.
-            raise
     if ckpt is not None:
         meta = ckpt.agent_meta
         run_config = _stored_run_config(ckpt.path, ckpt.config or None)

@@ -883,10 +883,11 @@ def _is_floor_plane(model: mujoco.MjModel, data: mujoco.MjData, g: int) -> bool:
 def _check_geoms(model: mujoco.MjModel, data: mujoco.MjData, label: str, floor: set[int]) -> None:
     """WorldError naming the geoms the robot and its depth camera would treat unlike the obstacles
     the map marks: one placed or sized by a NaN or an infinity (MuJoCo only warns of a NaN in the
-    MJCF, and such a geom is everywhere and nowhere to the map and the start checks), one fully transparent (ray casts pass through alpha 0), one in the robot's own
-    geom group (which the GL camera hides), an obstacle whose contype and conaffinity never meet
-    the robot's (it would drive through it), one with a contact margin (it would stop the robot
-    short of its surface, where no contact is reported)."""
+    MJCF, and such a geom is everywhere and nowhere to the map and the start checks), one fully
+    transparent (ray casts pass through alpha 0), one in the robot's own geom group (which the GL
+    camera hides), an obstacle whose contype and conaffinity never meet the robot's (it would drive
+    through it), one with a contact margin (it would stop the robot short of its surface, where no
+    contact is reported)."""
     invisible, hidden, intangible, cushioned, unplaced = [], [], [], [], []
     for g in range(model.ngeom):
         name = f"'{model.geom(g).name}'" if model.geom(g).name else f"#{g}"

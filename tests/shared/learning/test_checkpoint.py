@@ -763,7 +763,8 @@ def test_only_a_file_of_another_kind_gets_the_other_kinds_refusals_and_hints(tmp
         return {**t, "fc1.bias": torch.full_like(t["fc1.bias"], float("nan"))}
     nan = _forge_export(tmp_path, "nan.safetensors", nan_bias)
     agent, _ = setup(DQNConfig())
-    for load, prefix in ((load_model, f"{nan}: "), (lambda p: init_agent_weights(agent, p), f"train.init_from: {nan}: ")):
+    for load, prefix in ((load_model, f"{nan}: "),
+                         (lambda p: init_agent_weights(agent, p), f"train.init_from: {nan}: ")):
         with pytest.raises(CheckpointError) as refused:
             load(nan)
         assert str(refused.value) == prefix + "fc1.bias holds NaN or infinite values (diverged or damaged weights)"
