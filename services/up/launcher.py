@@ -470,7 +470,7 @@ class Launcher:
         a run's services themselves (``bench system``, ``bench fuzz``); a service whose exit they said
         already (``Child.said``) is left out."""
         # stopped on the tool's own clock, as up's --minutes stops it
-        learner = [c.name for c in self.children if c.role == "learner"] if self._final_checkpoint_failed("time") else []
+        learner = [c.name for c in self.children if c.role == "learner"] if self._final_checkpoint_failed() else []
         return learner + self._stop_failed()
 
     # -- the run ---------------------------------------------------------------------------
@@ -511,6 +511,7 @@ class Launcher:
                             print(f"run {self.run!r}: its learner stopped at update {reached} of {cfg_updates}",
                                   file=sys.stderr)
                             reason = "failed: learner"
+                        learner.said = reason != "done"  # the run's failure names it (finish)
                         break
                     if not self._alive("router"):
                         reason = "failed: router"
@@ -604,7 +605,7 @@ class Launcher:
         a = self.args
         # A learner stopped here (Ctrl-C, --minutes, its actors gone) writes its final checkpoint on its
         # way out: a non-zero exit then means that checkpoint is missing or torn, whatever the reason.
-        final_failed = self._final_checkpoint_failed(reason)
+        final_failed = self._final_checkpoint_failed()
         if reason.startswith("failed"):
             who = reason.split(": ", 1)[1]
             child = next((c for c in self.children if c.name == who), None)
@@ -623,11 +624,11 @@ class Launcher:
         code = self.final_report()
         return code or (1 if final_failed or stop_failed else 0)
 
-    def _final_checkpoint_failed(self, reason: str) -> bool:
+    def _final_checkpoint_failed(self) -> bool:
         """Whether the learner, stopped by up, exited other than cleanly (said in one line)."""
         learner = next((c for c in self.children if c.role == "learner"), None)
-        if learner is None or reason == "failed: learner" or learner.said or learner.process.returncode == 0:
-            return False  # a learner that failed on its own is reported as the run's failure
+        if learner is None or learner.said or learner.process.returncode == 0:
+            return False  # a learner that failed on its own is said as the run's failure
         if learner.ended_while_starting():
             return False  # no update yet: a checkpoint to write, none to lose
         print(f"run {self.run!r}: its final checkpoint failed: {learner.exited()}", file=sys.stderr)
