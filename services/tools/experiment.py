@@ -479,7 +479,7 @@ class Experiment:
         """Forget every finished evaluation on an MJCF file world that was played on other content than the
         file's now (edited since, or results from before they recorded it): its score would share a table
         with the edited file's under one name. A built-in or procedural world is fixed by its name."""
-        from shared.evaluation.protocol import WORLD_META, file_world_sha256
+        from shared.evaluation.protocol import file_world_sha256, played_as_now
         from shared.evaluation.results import load_results
 
         for world in (self.o.world, *self.o.unseen_worlds):
@@ -488,7 +488,7 @@ class Experiment:
                 continue
             stale = [name for name in (self.eval_stage(label, world) for label, _policy, _ckpt in self.models())
                      if (info := self.state.done(name)) is not None
-                     and load_results(self.path(info["results"])).meta.get(WORLD_META) != now]
+                     and not played_as_now(load_results(self.path(info["results"])).meta, now)]
             if stale:
                 self.echo(f"{len(stale)} evaluation(s) on {world} played the file as it was before an edit "
                           "(or do not record its content): evaluated again")

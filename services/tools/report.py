@@ -63,7 +63,7 @@ from shared.evaluation import (
     protocol_named,
 )
 from shared.evaluation.eval_log import EVAL_LOG, load_eval_log, row_protocol
-from shared.evaluation.protocol import WORLD_META, evaluate_policy, file_world_sha256, world_sha256
+from shared.evaluation.protocol import WORLD_META, evaluate_policy, file_world_sha256, played_as_now, world_sha256
 from shared.evaluation.results import (
     EvalResults,
     ResultsError,
@@ -273,8 +273,7 @@ def rows_of_worlds_now(rows: Sequence[Mapping[str, Any]], digest_now: Callable[[
     since is another world under the same name; a row without the digest cannot say which it played);
     ``digest_now`` gives None for a built-in or procedural world, fixed by its name: all its rows stand.
     A row that does not name its world stands too (it ran the run's own: :func:`eval_curve_points`)."""
-    kept = [r for r in rows if not isinstance(r.get("world"), str)
-            or (now := digest_now(r["world"])) is None or r.get(WORLD_META) == now]
+    kept = [r for r in rows if not isinstance(r.get("world"), str) or played_as_now(r, digest_now(r["world"]))]
     return kept, len(rows) - len(kept)
 
 

@@ -67,6 +67,13 @@ def file_world_sha256(world: str) -> str | None:
     return world_sha256(loaded) if loaded.kind == "file" else None
 
 
+def played_as_now(meta: Mapping[str, Any], digest_now: str | None) -> bool:
+    """Whether results or an evaluation row with ``meta`` were played on their world as it is now:
+    ``digest_now`` is :func:`file_world_sha256` of that world (None for a built-in or procedural world,
+    fixed by its name: all its results stand; an MJCF file's stand only with its digest now)."""
+    return digest_now is None or meta.get(WORLD_META) == digest_now
+
+
 def episode_seed(seed: int, start_index: int, episode: int) -> int:
     """The reset seed of one episode: a function of (seed, start, episode) only, so any
     subset of the protocol reproduces the same episodes (and, under a jittered protocol, the
