@@ -17,7 +17,6 @@ import importlib.metadata
 import io
 import os
 import re
-import shlex
 import shutil
 import subprocess
 import sys
@@ -181,7 +180,9 @@ def test_compose_file_is_valid_against_the_compose_schema(services: dict[str, di
 # -- structure ------------------------------------------------------------------------------
 
 def test_services_are_router_learner_actor_evaluator_and_viewer(services: dict[str, dict]) -> None:
-    assert set(services) == {"router", *IMAGE_SERVICES}
+    assert set(services) == {"router", "report", *IMAGE_SERVICES}
+    # `docker compose up` starts all but the final report, which runs on demand once training has stopped
+    assert [name for name, spec in services.items() if spec.get("profiles")] == ["report"]
 
 
 def test_router_is_the_official_image_at_the_python_package_version(services: dict[str, dict]) -> None:
@@ -446,33 +447,37 @@ def test_up_starts_the_services_of_the_compose_file_with_the_same_options(
         assert not missing, f"{name}: up's services get {missing}, the container not"
 
 
-FINAL_REPORT = re.compile(r"`(docker compose run [^`]*cogexplore up [^`]*)`")
+FINAL_REPORT = re.compile(r"`(docker compose run [^`]*)`")
 
 
-def test_the_readme_s_final_report_of_a_compose_run_is_up_s(services: dict[str, dict], tmp_path: Path,
-                                                            monkeypatch: pytest.MonkeyPatch, capsys) -> None:
-    """Compose has no final evaluation and report (up's --final-episodes, --final-average); the README
-    says how to make them once its learner has finished: `up --resume` in the learner's container. That
-    command parses there, and up takes a finished run folder as compose leaves it (secured by the
-    `secure` service: TLS, certificates for the router service)."""
+def test_the_final_report_of_a_compose_run_is_up_s_without_training(services: dict[str, dict], tmp_path: Path,
+                                                                   monkeypatch: pytest.MonkeyPatch, capsys) -> None:
+    """Compose's final evaluation and report is its `report` service, which the README shows how to run:
+    `up --report-only` on the compose run's folder, as the `secure` service leaves it (TLS,
+    certificates for the router service). It parses there, with the image's offline environment,
+    and reaches the run folder (with no trained checkpoint yet: refused in one line)."""
     from services.cli import main
     from tests.services.up.test_resume import run_at
 
     shown = FINAL_REPORT.findall((ROOT / "README.md").read_text())
-    assert len(shown) == 1, f"the README shows {len(shown)} `docker compose run ... cogexplore up ...` commands"
-    words = shlex.split(shown[0])
-    service = words.index("cogexplore") - 1
-    assert words[:3] == ["docker", "compose", "run"] and words[service] in PROJECT_SERVICES, words
-    args = parse_command(words[service + 1:], service_env(services[words[service]]), monkeypatch)
-    assert args._command == "up" and args.resume and args.runs_dir == "/app/runs"
+    assert shown == ["docker compose run --rm report"], shown
+    spec = services["report"]
+    env = service_env(spec)
+    assert env["RERUN_ANALYTICS"] == "0" and env["COGEXPLORE_RUNS_DIR"] == "/app/runs"
+    assert {"router", "learner"}.isdisjoint(spec.get("depends_on", [])), "it trains nothing and needs no router"
+    assert [v for v in spec["volumes"] if v.endswith(":/app/runs")], "the runs folder the learner writes"
+    args = parse_command(spec["command"], env, monkeypatch)
+    assert args._command == "up" and args.report_only and args.runs_dir == "/app/runs"
     assert args.run == service_env(services["learner"])["COGEXPLORE_RUN"], "the compose run's name"
+    assert args.final_episodes == 10 and args.final_average == 4, "the paper's ten episodes, up's final model"
 
-    run_at(tmp_path / "made", updates=20, total_updates=20)  # a learner that reached its total updates
+    run_at(tmp_path / "made", updates=0, total_updates=20)  # a learner stopped in its warm-up
     (tmp_path / "made" / "again").rename(tmp_path / args.run)
     secure = [str(tmp_path / args.run / "secure") if a == "/secure" else a for a in services["secure"]["command"]]
     assert main(secure[1:]) == 0
-    assert main([*words[service + 2:], "--runs-dir", str(tmp_path), "--no-report", "--quiet"]) == 0
-    assert f"run {args.run!r} has finished training (20/20 updates)" in capsys.readouterr().err
+    assert main([*spec["command"][1:], "--runs-dir", str(tmp_path), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"--report-only: run {args.run!r} has no trained checkpoint yet" in err, err
 
 
 # -- Dockerfile and build context --------------------------------------------------------------

@@ -329,10 +329,21 @@ class Launcher:
         self.listen, self.endpoint = router_endpoints(getattr(args, "listen", None) or (), args.port, tls=tls)
         if getattr(args, "resume", False) and not self.paths.root.exists():
             raise RunStateError(f"--resume: there is no run {self.run!r} in {args.runs_dir} to resume")
+        self.report_only = getattr(args, "report_only", False)
+        if self.report_only:
+            refuse_training_options(args)
+            if not self.paths.root.exists():
+                raise RunStateError(f"--report-only: there is no run {self.run!r} in {args.runs_dir} to report on")
         self.lock = RunLock(self.paths, "up")  # before anything in the run folder is touched, --fresh included
+        self.learner_lock: RunLock | None = None
         try:
             self.config = self._config()  # a bad option is refused before the folder changes, --fresh's move too
-            self._prepare_folder()
+            if self.report_only:
+                # Held while the report is made: a learner still training would rotate away the checkpoints
+                # being averaged, and one started meanwhile is refused (its own RunLock).
+                self.learner_lock = RunLock(self.paths, "learner")
+            else:
+                self._prepare_folder()
         except BaseException:
             self.close()
             raise
@@ -349,6 +360,8 @@ class Launcher:
 
     def close(self) -> None:
         """Let go of the run (another `up` may start it); :meth:`execute` does at its end."""
+        if self.learner_lock is not None:
+            self.learner_lock.release()
         self.lock.release()
 
     def _prepare_folder(self) -> None:
@@ -552,6 +565,14 @@ class Launcher:
 
     def _execute(self) -> int:
         a = self.args
+        if self.report_only:
+            done = checkpoint_updates(self.paths)
+            if not done:  # none, or the learner's at update 0 (stopped in its warm-up)
+                raise RunStateError(f"--report-only: run {self.run!r} has no trained checkpoint yet "
+                                    f"({self.paths.checkpoints})")
+            print(f"run {self.run!r}: the final evaluation and report of its training so far ({done} updates)",
+                  file=sys.stderr)
+            return self.final_report()
         done = checkpoint_updates(self.paths, self.config)
         finished = done is not None and done >= self.total_updates
         if finished and not getattr(a, "resume", False):
@@ -712,6 +733,20 @@ def _cli(argv: list[str], stdout: int | None = None) -> int:
     """Run ``cogexplore ARGV`` in a child process (offline: no Rerun analytics); its exit status."""
     return subprocess.run([sys.executable, "-m", "services.cli", *argv], check=False, stdout=stdout,
                           env=dict(os.environ, RERUN_ANALYTICS="0"), preexec_fn=_die_with_parent).returncode
+
+
+def refuse_training_options(args: argparse.Namespace) -> None:
+    """RunStateError naming the options ``--report-only`` would ignore (it trains nothing and starts no
+    service): given, they would read as having been applied."""
+    given = [flag for flag, value in (("--updates", args.updates), ("--minutes", args.minutes),
+                                      ("--preset", args.preset), ("--set", args.overrides),
+                                      ("--device", args.device), ("--listen", args.listen), ("--tls", args.tls),
+                                      ("--host", args.host), ("--port", args.port),
+                                      ("--no-evaluator", args.no_evaluator), ("--no-report", args.no_report),
+                                      ("--rerun-connect", args.rerun_connect)) if value]
+    if given:
+        raise RunStateError(f"--report-only trains nothing and starts no service: {', '.join(given)} "
+                            f"would do nothing with it")
 
 
 class RunStateError(CogexploreError):

@@ -34,6 +34,10 @@ def add_up_arguments(parser: argparse.ArgumentParser) -> None:
                             "without either flag an unfinished run resumes and a finished one is refused")
     again.add_argument("--fresh", action="store_true",
                        help="start the run over: its existing folder is kept, renamed to <run>.old-<date>-<time>")
+    again.add_argument("--report-only", action="store_true",
+                       help="no training: the final evaluation and report of the existing run --run names, as far as "
+                            "its learner got (a run that services started without up, e.g. docker compose's, once its "
+                            "learner has stopped); starts no router or service")
     add_runs_dir_argument(parser)
     parser.add_argument("--device", default=None, help="learner device: auto, cpu, cuda")
     add_tensorboard_argument(parser)  # passed on to the learner, actors and evaluator
