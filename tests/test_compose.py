@@ -177,6 +177,40 @@ def test_compose_file_is_valid_against_the_compose_schema(services: dict[str, di
     assert proc.returncode != 0 and "no_such_key" in proc.stderr
 
 
+GPU_FILE = ROOT / "docker-compose.gpu.yml"
+
+
+def test_the_gpu_override_puts_the_learner_alone_on_a_cuda_build(services: dict[str, dict],
+                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    """docker-compose.gpu.yml over docker-compose.yml, merged by Compose itself: every service built
+    from the project's image gets one image with the CUDA build of torch (a tag of its own), the
+    learner alone reserves a GPU and trains on `cuda`; nothing else of the base file changes."""
+    import scripts.install_torch as install_torch
+
+    exe = compose_binary()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("COGEXPLORE_")}
+    proc = subprocess.run([exe, "-f", str(COMPOSE_FILE), "-f", str(GPU_FILE), "config"], capture_output=True,
+                          text=True, env=env, cwd=ROOT, timeout=120)
+    assert proc.returncode == 0, f"docker-compose config rejected the override:\n{proc.stderr}"
+    merged = yaml.safe_load(proc.stdout)["services"]
+    assert set(merged) == set(services)
+    built = {name for name, spec in services.items() if "build" in spec}
+    assert built == {*IMAGE_SERVICES, "report"}
+    for name, spec in merged.items():
+        gpus = spec.get("deploy", {}).get("resources", {}).get("reservations", {}).get("devices", [])
+        assert bool(gpus) == (name == "learner"), name
+        assert spec.get("command") == services[name].get("command"), name
+        expected_env = dict(service_env(services[name]), **({"COGEXPLORE_DEVICE": "cuda"} if name == "learner" else {}))
+        assert service_env(spec) == expected_env, name
+        if name in built:
+            assert spec["image"] == "cogexplore:cuda" and spec["build"]["args"] == {"TORCH_VARIANT": "cuda"}, name
+    assert merged["learner"]["deploy"]["resources"]["reservations"]["devices"] == [
+        {"driver": "nvidia", "count": 1, "capabilities": ["gpu"]}]
+    assert "cuda" in install_torch.VARIANTS  # what the Dockerfile's TORCH_VARIANT hands the script
+    args = parse_command(merged["learner"]["command"], service_env(merged["learner"]), monkeypatch)
+    assert args._command == "learner" and args.device == "cuda"
+
+
 # -- structure ------------------------------------------------------------------------------
 
 def test_services_are_router_learner_actor_evaluator_and_viewer(services: dict[str, dict]) -> None:
