@@ -480,10 +480,11 @@ class EvalRecorder:
         if self.grid is not None:
             ny, nx = self.grid.shape
             x0, y0 = self.grid.origin_xy
-            # Free light, occupied dark. Row 0 of OccupancyGrid.occupied is the lowest y, and
-            # GridMap puts the first row at ``translation`` (its lower-left corner), as a ROS
-            # OccupancyGrid does.
-            pixels = np.where(self.grid.occupied, 60, 235).astype(np.uint8)
+            # Free light, occupied dark. Row 0 of OccupancyGrid.occupied is the lowest y, but a
+            # GridMap's buffer is an image, read top row first: its last row lies at ``translation``
+            # (the lower-left corner). Unflipped, the map showed mirrored in y under the robot, its
+            # path and the starts (Rerun's own ROS OccupancyGrid import flips the rows too).
+            pixels = np.where(np.flipud(self.grid.occupied), 60, 235).astype(np.uint8)
             rec.log(MAP, rr.GridMap(
                 data=pixels.tobytes(),
                 format=rr.components.ImageFormat(width=nx, height=ny, color_model="L", channel_datatype="U8"),

@@ -211,6 +211,37 @@ def test_depth_without_a_return_is_recorded_as_no_return(tmp_path, world, grid) 
         assert mm[:5].tolist() == [0, 0, 0, 0, 2000], rrd
 
 
+def static_component(path: Path, entity: str, suffix: str):
+    """The first value of the static component of ``entity`` whose column name ends in ``suffix``."""
+    for chunk in RrdReader(path).stream().to_chunks():
+        if chunk.is_static and chunk.entity_path == "/" + entity:
+            batch = chunk.to_record_batch()
+            for name in batch.schema.names:
+                if name.endswith(suffix):
+                    return batch.column(name).to_pylist()[0][0]
+    raise AssertionError(f"{path} has no static {entity} {suffix}")
+
+
+def test_the_recorded_map_lies_under_the_robot_as_the_world_does(tmp_path, world, grid) -> None:
+    # A GridMap's buffer is an image, drawn top row first from translation + height * cell_size down
+    # (Rerun's ROS OccupancyGrid import flips its rows for that): the grid's lowest-y row was sent
+    # first, so the map showed mirrored in y under the robot, its path and the start arrows.
+    path = tmp_path / "map.rrd"
+    with EvalRecorder(path, world, grid, SensorConfig()):
+        pass
+    fmt = static_component(path, "world/map", ":format")
+    cell = static_component(path, "world/map", ":cell_size")
+    x0, y0, _ = static_component(path, "world/map", ":translation")
+    image = np.frombuffer(bytes(static_component(path, "world/map", ":data")), np.uint8).reshape(
+        fmt["height"], fmt["width"])
+    top = y0 + fmt["height"] * cell
+    iy, ix = np.nonzero(np.ones(grid.shape, bool))
+    x, y = grid.cell_to_world(ix, iy)
+    shown_dark = image[np.floor((top - y) / cell).astype(int), np.floor((x - x0) / cell).astype(int)] < 128
+    assert np.array_equal(shown_dark, grid.occupied[iy, ix])
+    assert grid.occupied.any() and not np.array_equal(grid.occupied, np.flipud(grid.occupied))  # it can tell
+
+
 def test_recorder_on_callers_stream_and_misuse(tmp_path, world) -> None:
     path = tmp_path / "own.rrd"
     stream = rr.RecordingStream("cogexplore-test")
