@@ -58,6 +58,9 @@ def trajectory_points(results: EvalResults | Sequence[EpisodeResult]) -> np.ndar
     return np.asarray(pts, dtype=np.float64)
 
 
+MAX_PANEL_ASPECT = 2.0
+"""A side-by-side panel's width over height at most (its inverse at least), whatever the world's shape."""
+
 HEATMAP_CELL_M = 0.25
 """Heatmap cell side: coarser than the 5 cm occupancy grid, so that paths 12.5 cm a step
 apart read as bands rather than dotted lines."""
@@ -108,7 +111,9 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
     ncols = ncols or min(n, 3)
     nrows = math.ceil(n / ncols)
     xmin, ymin, xmax, ymax = grid.extent
-    aspect = (xmax - xmin) / (ymax - ymin)
+    # bounded as render_map_png bounds its own: a corridor world 100 times longer than wide made a
+    # PNG 110,000 pixels wide (a tall one, panels a few pixels wide); the map keeps its shape inside
+    aspect = min(MAX_PANEL_ASPECT, max(1 / MAX_PANEL_ASPECT, (xmax - xmin) / (ymax - ymin)))
     panel = 3.6
     fig = Figure(figsize=(panel * aspect * ncols + 0.9, panel * nrows + 0.3))
     FigureCanvasAgg(fig)
@@ -142,10 +147,15 @@ def _row_numbers(row: Any, i: int, source: str) -> tuple[float, float]:
 
 def _rows_to_arrays(rows: Iterable[Any], source: str, skip_bad: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The rows' updates and losses; with ``skip_bad`` (a learner's own log, whose last line a
-    killed process can tear) a row that is not two numbers is left out, unless every row is."""
+    killed process can tear) a row that is not two numbers, or is short of cells, is left out,
+    unless every row is."""
     updates, losses, bad = [], [], []
     for i, row in enumerate(rows):
         try:
+            if skip_bad and isinstance(row, Mapping) and None in row.values():
+                # short of the header's cells (read_csv_records' None): a killed writer's torn line,
+                # whose last cell may be cut short too ("0.0123" read as 0.0)
+                raise FigureError(f"{source}: row {i} is torn (cells missing)")
             update, loss = _row_numbers(row, i, source)
         except FigureError as exc:
             if not skip_bad:
@@ -157,7 +167,7 @@ def _rows_to_arrays(rows: Iterable[Any], source: str, skip_bad: bool = False) ->
     if bad and not updates:
         raise bad[0]
     if bad:
-        logger.warning("%s: %d row(s) left out, not numbers (first: %s)", source, len(bad), bad[0])
+        logger.warning("%s: %d row(s) left out, torn or not numbers (first: %s)", source, len(bad), bad[0])
     return np.asarray(updates, dtype=np.float64), np.asarray(losses, dtype=np.float64)
 
 
@@ -167,7 +177,8 @@ def load_loss_log(log: str | Path | Sequence[Mapping[str, Any]] | Mapping[str, S
     ``loss``; other columns ignored), a JSON file (a list of row objects or an object of
     columns), a JSON Lines file (``.jsonl``, one row per line), or those objects in memory.
     Rows with an empty or non-finite loss are dropped (a diverged run still plots); so are a CSV
-    file's rows that do not parse (the learner's log after a crash), unless all of them do not."""
+    file's rows that do not parse or are short of cells (the learner's log after a crash: its torn
+    last line), unless all of them are."""
     source = "loss log"
     if isinstance(log, (str, Path)):
         path = Path(log)
@@ -243,8 +254,10 @@ def save_loss_curve_png(log: Any, out_path: str | Path, smooth_window: int | Non
     fig = Figure(figsize=(7.0, 4.0))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
+    # a line through one point draws nothing: a log of one row shows its point as a dot
+    marker = "o" if len(losses) == 1 else None
     ax.plot(updates, losses, color="#1f77b4", alpha=0.3, lw=0.8, label="raw")
-    ax.plot(updates, smoothed, color="#1f77b4", lw=2.0, label=f"moving average ({window})")
+    ax.plot(updates, smoothed, color="#1f77b4", lw=2.0, marker=marker, label=f"moving average ({window})")
     if log_y:
         ax.set_yscale("log")
     ax.set_xlabel("learner update")

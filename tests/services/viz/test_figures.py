@@ -91,6 +91,31 @@ def test_heatmap_pngs(tmp_path, world, grid) -> None:
         save_heatmaps_side_by_side(world, grid, {}, tmp_path / "none.png")
 
 
+CORRIDOR_XML = """<mujoco><worldbody>
+<geom name="wall_a" type="box" pos="{ax} {ay} 0.5" size="{along} 0.05 0.5" euler="0 0 {yaw}"/>
+<geom name="wall_b" type="box" pos="{bx} {by} 0.5" size="{along} 0.05 0.5" euler="0 0 {yaw}"/>
+<site name="start_a" pos="1 1 0" euler="0 0 {yaw}"/>
+</worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("tall", [False, True])
+def test_side_by_side_heatmaps_of_a_corridor_world_keep_a_drawable_shape(tmp_path, tall: bool) -> None:
+    # A world 120 m by 1.3 m made a PNG of two panels 13,000 pixels wide and 78 high at dpi 20 (110,000
+    # wide for three at the default dpi); standing on end, panels 10 pixels wide.
+    along = 60.2
+    walls = (dict(ax=1.6, ay=60, bx=0.4, by=60, yaw=90) if tall else dict(ax=60, ay=1.6, bx=60, by=0.4, yaw=0))
+    path = tmp_path / "corridor.xml"
+    path.write_text(CORRIDOR_XML.format(along=along, **walls))
+    world = load_world(str(path))
+    grid = occupancy_grid(world)
+    xmin, ymin, xmax, ymax = grid.extent
+    assert max((xmax - xmin) / (ymax - ymin), (ymax - ymin) / (xmax - xmin)) > 50
+    res = [episode(0, 0, [(1.0, 1.0 + 0.1 * i) if tall else (1.0 + 0.1 * i, 1.0) for i in range(20)])]
+    img = mpimg.imread(save_heatmaps_side_by_side(world, grid, {"A": res, "B": res}, tmp_path / "side.png", dpi=20))
+    height, width = img.shape[:2]
+    assert 0.9 < width / height < 4.5  # two panels, each between 1:2 and 2:1, and the colorbar
+
+
 def test_titles_holding_dollar_signs_draw_as_written(tmp_path, world, grid) -> None:
     # A run or model named "a$\\x$" (a file name may hold anything) made matplotlib parse its title as
     # mathtext: a ValueError at the end of a whole report's evaluations (and "a$x$b" set in italics).
@@ -167,6 +192,30 @@ def test_a_learner_log_with_a_torn_or_damaged_tail_still_plots_its_rows(tmp_path
     # In memory, numpy columns are columns.
     u, v = load_loss_log({"update": np.array([2, 1]), "loss": np.array([1.0, 3.0])})
     assert u.tolist() == [1, 2] and v.tolist() == [3.0, 1.0]
+
+
+def test_a_torn_last_row_is_left_out_not_plotted_as_its_cut_number(tmp_path, caplog) -> None:
+    # "3.0,300,3,0.0123,-2.9" cut after "0.0": the loss read as 0.0 at update 300 (and a log axis lost).
+    path = tmp_path / "learner.csv"
+    path.write_text("time_s,update,policy_version,loss,mean_q\n1.0,100,1,0.0234,-3.1\n2.0,200,2,0.0212,-3.0\n"
+                    "3.0,300,3,0.0")
+    with caplog.at_level("WARNING", logger="cogexplore.figures"):
+        updates, losses = load_loss_log(path)
+    assert updates.tolist() == [100, 200] and losses.tolist() == [0.0234, 0.0212]
+    assert "row 2 is torn" in caplog.text
+    path.write_text("time_s,update,policy_version,loss,mean_q\n3.0,300,3,0.0")
+    with pytest.raises(FigureError, match="row 0 is torn"):  # nothing else: named, not an empty plot
+        load_loss_log(path)
+
+
+def test_a_log_of_one_row_shows_its_point(tmp_path) -> None:
+    # A line through one point draws nothing: the first loss curve of a run was empty axes.
+    path = tmp_path / "learner.csv"
+    path.write_text("time_s,update,policy_version,loss\n1.0,100,1,0.5\n")
+    img = mpimg.imread(save_loss_curve_png(path, tmp_path / "loss.png"))[..., :3]
+    curve = np.all(np.abs(img - np.array([0x1f, 0x77, 0xb4]) / 255) < 0.08, axis=-1)
+    h, w = curve.shape
+    assert curve[int(0.4 * h):int(0.6 * h), int(0.4 * w):int(0.6 * w)].sum() > 20  # the dot, mid-axes
 
 
 def test_missing_log(tmp_path) -> None:
