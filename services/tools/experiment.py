@@ -186,6 +186,23 @@ def _stop_child(proc: subprocess.Popen, signal_it: bool) -> None:
         proc.wait()
 
 
+def training_inputs(opts: Options) -> dict[str, str]:
+    """The SHA-256 of each file the training stages read that its name does not fix: the MJCF world
+    files they train in (``--world``, ``--sl-worlds``: their content) and a preset given as a TOML path
+    (the config it gives: a comment may change). A built-in or procedural world and a preset named by
+    its name are fixed by that name (as for evaluations)."""
+    import hashlib
+
+    from shared.evaluation.protocol import file_world_sha256
+
+    digests = {f"world {w}": digest for w in dict.fromkeys((opts.world, *opts.sl_worlds))
+               if (digest := file_world_sha256(w)) is not None}
+    if Path(opts.preset).suffix:
+        config = json.dumps(load_preset(opts.preset).to_dict(), sort_keys=True)
+        digests[f"preset {opts.preset}"] = hashlib.sha256(config.encode()).hexdigest()
+    return digests
+
+
 class ExperimentState:
     """``state.json``: the options that fix the results, and every finished stage."""
 
@@ -201,7 +218,9 @@ class ExperimentState:
             if not (isinstance(old, dict) and old.get("format") == STATE_FORMAT and old.get("version") == STATE_VERSION
                     and isinstance(old.get("options"), dict) and isinstance(old.get("stages"), dict)
                     and isinstance(old.get("partial_seconds", {}), dict)
-                    and all(is_finite_number(v) for v in old.get("partial_seconds", {}).values())):
+                    and all(is_finite_number(v) for v in old.get("partial_seconds", {}).values())
+                    and isinstance(old.get("training_inputs", {}), dict)
+                    and all(isinstance(v, str) for v in old.get("training_inputs", {}).values())):
                 raise ExperimentError(f"{path} is not a {STATE_FORMAT} v{STATE_VERSION} state file: move it away "
                                       "to start afresh")
             for name, stage in old["stages"].items():
@@ -475,6 +494,25 @@ class Experiment:
                 results[label] = load_results(self.path(info["results"]))
         return results
 
+    def check_training_inputs(self) -> None:
+        """ExperimentError when a file the finished training stages read (:func:`training_inputs`) has
+        changed since: the models would stand for a world or recipe they were not trained on, and the
+        stages still to run would train on the new one. Evaluations are redone after an edit; training
+        is hours, so the user chooses. Recorded before the first stage (and by a state from before
+        this record, as the files are now)."""
+        now = training_inputs(self.o)
+        trained = [name for name in self.state.data["stages"] if name in ("sl", "rl") or name.startswith("drl-")]
+        recorded = self.state.data.get("training_inputs")
+        if trained and recorded is not None:
+            changed = sorted(k for k in now.keys() | recorded.keys() if now.get(k) != recorded.get(k))
+            if changed:
+                raise ExperimentError(f"{', '.join(changed)} changed since stage(s) {', '.join(trained)} trained on "
+                                      "it: put the file back as it was to resume, or start the experiment over "
+                                      "in another --out")
+        if recorded != now:
+            self.state.data["training_inputs"] = now
+            self.state.save()
+
     def forget_evaluations_of_edited_worlds(self) -> None:
         """Forget every finished evaluation on an MJCF file world that was played on other content than the
         file's now (edited since, or results from before they recorded it): its score would share a table
@@ -653,6 +691,7 @@ class Experiment:
                                   f"({', '.join(leftovers)}): use another --out, or move them away")
         self.out.mkdir(parents=True, exist_ok=True)
         self.state.save()
+        self.check_training_inputs()
         done_drl = [int(n.split("-", 1)[1]) for n in self.state.data["stages"] if n.startswith("drl-")]
         if done_drl and min(self.o.checkpoints) < max(done_drl) and any(
                 self.state.done(f"drl-{u}") is None for u in self.o.checkpoints if u < max(done_drl)):

@@ -403,3 +403,51 @@ def test_an_evaluation_on_a_world_file_edited_since_is_played_again(tmp_path):
     for label in labels:
         info = again.state.done(again.eval_stage(label, str(world)))
         assert json.loads((out / info["results"]).read_text())["meta"]["world_sha256"] == file_world_sha256(str(world))
+
+
+def test_a_training_world_or_preset_file_edited_after_training_stops_the_experiment(tmp_path, capsys):
+    # The models of the finished training stages stood for the edited file under its name, and the
+    # stages still to run trained on it: a DRL run resumed in another world, or on another recipe.
+    import shutil
+
+    from shared.config import PRESET_DIR
+    from tests.shared.evaluation.test_eval_log import write_room
+
+    out, world = tmp_path / "exp", write_room(tmp_path / "room.xml")
+    preset = shutil.copy(PRESET_DIR / "smoke.toml", tmp_path / "mine.toml")
+    argv = [*TINY, "--out", str(out), "--checkpoints", "20", "--world", str(world), "--sl-worlds", str(world),
+            "--preset", str(preset)]
+
+    def experiment() -> Experiment:
+        parser = argparse.ArgumentParser()
+        add_experiment_arguments(parser)
+        return Experiment(options_from_args(parser.parse_args(argv)), echo=lambda _: None)
+
+    first = experiment()
+    first.state.save()
+    first.check_training_inputs()  # as run() does before the first stage
+    recorded = first.state.data["training_inputs"]
+    assert sorted(recorded) == [f"preset {preset}", f"world {world}"]
+    first.state.finish("rl", 1.0, run="runs/rl", updates=20, env_steps=100)
+    experiment().check_training_inputs()  # the same files: it resumes
+
+    write_room(world, pillar_x=-0.6)  # the pillar moved into the robot's way
+    state = (out / "state.json").read_bytes()
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert f"world {world} changed since stage(s) rl trained on it" in err and err.count("\n") == 1, err
+    assert (out / "state.json").read_bytes() == state and not (out / "runs" / "drl").exists()  # nothing ran
+    write_room(world)  # put back as it was
+    Path(preset).write_text(Path(preset).read_text() + "# a comment changes no recipe\n")
+    experiment().check_training_inputs()
+    Path(preset).write_text(Path(preset).read_text().replace("lr = 1e-3", "lr = 1e-2"))
+    with pytest.raises(ExperimentError, match=f"preset {preset} changed since stage"):
+        experiment().check_training_inputs()
+
+    # A state from before the record: the files as they are now are recorded, nothing refused.
+    data = json.loads((out / "state.json").read_text())
+    del data["training_inputs"]
+    (out / "state.json").write_text(json.dumps(data))
+    again = experiment()
+    again.check_training_inputs()
+    assert again.state.data["training_inputs"][f"world {world}"] == recorded[f"world {world}"]
