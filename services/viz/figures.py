@@ -27,6 +27,7 @@ from shared.learning.stats import read_csv_records
 from shared.sim.maps import (
     OccupancyGrid,
     draw_map,
+    drawable_aspect,
     normalize_heatmap,
     plain_text,
     render_map_png,
@@ -57,9 +58,6 @@ def trajectory_points(results: EvalResults | Sequence[EpisodeResult]) -> np.ndar
         raise FigureError("the results hold no trajectory points (were they run with keep_trajectories=False?)")
     return np.asarray(pts, dtype=np.float64)
 
-
-MAX_PANEL_ASPECT = 2.0
-"""A side-by-side panel's width over height at most (its inverse at least), whatever the world's shape."""
 
 HEATMAP_CELL_M = 0.25
 """Heatmap cell side: coarser than the 5 cm occupancy grid, so that paths 12.5 cm a step
@@ -111,9 +109,7 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
     ncols = ncols or min(n, 3)
     nrows = math.ceil(n / ncols)
     xmin, ymin, xmax, ymax = grid.extent
-    # bounded as render_map_png bounds its own: a corridor world 100 times longer than wide made a
-    # PNG 110,000 pixels wide (a tall one, panels a few pixels wide); the map keeps its shape inside
-    aspect = min(MAX_PANEL_ASPECT, max(1 / MAX_PANEL_ASPECT, (xmax - xmin) / (ymax - ymin)))
+    aspect = drawable_aspect((xmax - xmin) / (ymax - ymin))  # a corridor world's PNG was 110,000 pixels wide
     panel = 3.6
     fig = Figure(figsize=(panel * aspect * ncols + 0.9, panel * nrows + 0.3))
     FigureCanvasAgg(fig)

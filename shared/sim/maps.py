@@ -600,6 +600,17 @@ def draw_map(ax: Any, world: Mappable, grid: OccupancyGrid, heatmap: np.ndarray 
     return im
 
 
+MAX_FIGURE_ASPECT = 2.0
+"""A map figure's width over height at most (its inverse at least), whatever the world's shape: a
+corridor 100 times longer than wide would make a figure 100,000 pixels wide; the map keeps its shape
+inside."""
+
+
+def drawable_aspect(width_over_height: float) -> float:
+    """``width_over_height`` bounded to [1 / MAX_FIGURE_ASPECT, MAX_FIGURE_ASPECT]."""
+    return min(MAX_FIGURE_ASPECT, max(1 / MAX_FIGURE_ASPECT, width_over_height))
+
+
 def render_map_png(world: Mappable, grid: OccupancyGrid, out_path: str | Path,
                    trajectories: Iterable[np.ndarray] | None = None, heatmap: np.ndarray | None = None,
                    title: str | None = None, dpi: int = 120) -> Path:
@@ -609,7 +620,7 @@ def render_map_png(world: Mappable, grid: OccupancyGrid, out_path: str | Path,
 
     xmin, ymin, xmax, ymax = grid.extent
     w, h = xmax - xmin, ymax - ymin
-    fig = Figure(figsize=(6.5 * min(2.0, max(0.5, w / h)) + (1.2 if heatmap is not None else 0.0), 6.5))
+    fig = Figure(figsize=(6.5 * drawable_aspect(w / h) + (1.2 if heatmap is not None else 0.0), 6.5))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot(1, 1, 1)
     im = draw_map(ax, world, grid, heatmap=heatmap, trajectories=trajectories, title=title)
