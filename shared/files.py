@@ -38,13 +38,23 @@ def read_regular_file(path: str | Path, max_bytes: int = MAX_READ_BYTES) -> byte
         return fh.read()
 
 
-def fsync_dir(path: Path) -> None:
-    """Make a rename in the folder ``path`` durable."""
+def fsync_path(path: Path) -> None:
+    """Flush the file ``path`` to disk (before it is renamed into place), or a folder's entries (after a
+    rename in it: the rename is then durable)."""
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
     finally:
         os.close(fd)
+
+
+def nearest_existing(path: Path) -> Path:
+    """``path`` (absolute) if it exists, else the nearest folder above it that does: where a file
+    under a folder yet to be made would be written (its disk, its permissions)."""
+    at = path.absolute()
+    while not at.exists() and at != at.parent:
+        at = at.parent
+    return at
 
 
 def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
@@ -55,16 +65,12 @@ def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
     tmp = final.with_name(f".{final.name}{TMP_MARK}{os.getpid()}")
     try:
         write(tmp)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
+        fsync_path(tmp)
         os.replace(tmp, final)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
-    fsync_dir(final.parent)
+    fsync_path(final.parent)
     return final
 
 

@@ -18,6 +18,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -94,9 +95,9 @@ def run_pretrain_command(args: argparse.Namespace) -> int:
                              batch_size=args.batch_size, lr=args.lr, class_balance=args.class_balance,
                              seed=args.seed, device=args.device, progress=not args.quiet)
     if args.json:
-        print(json.dumps(result.card, indent=2))
+        print(json.dumps(result.card, indent=2))  # stdout is the JSON alone: `| jq` reads it
     else:
         print(("reused" if result.data_reused else "collected") + f" data in {result.dataset.root}")
         print(card_summary(result.card))
-    print(f"model: {result.model_path}")
+    print(f"model: {result.model_path}", file=sys.stderr if args.json else sys.stdout)
     return 0

@@ -72,7 +72,7 @@ from shared.config import ACTION_NAMES, EnvConfig, SensorConfig
 from shared.depth import MM_PER_M, UINT16_MAX, depth_to_mm, range_gate
 from shared.errors import CogexploreError
 from shared.evaluation import PAPER_MAX_STEPS
-from shared.files import TMP_MARK
+from shared.files import TMP_MARK, fsync_path
 from shared.sim.maps import OccupancyGrid, occupancy_grid
 from shared.sim.world import World, load_world
 
@@ -318,7 +318,9 @@ class RecordingFile:
         if self.partial is None:
             return
         try:
+            fsync_path(self.partial)  # what the sink wrote so far, on disk before it has the name (a power loss)
             self.partial.replace(self.path)
+            fsync_path(self.path.parent)
         except BaseException:
             self.discard()
             raise

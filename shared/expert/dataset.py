@@ -32,7 +32,7 @@ import numpy as np
 from shared.config import ACTION_NAMES, NUM_ACTIONS, EnvConfig, SensorConfig, is_whole
 from shared.errors import CogexploreError
 from shared.expert.expert import CommandExpert, ExpertConfig, SupervisedError
-from shared.files import TMP_MARK, atomic_write_text, fsync_dir, write_atomically
+from shared.files import TMP_MARK, atomic_write_text, fsync_path, nearest_existing, write_atomically
 from shared.jsontext import SMALL_JSON_BYTES, read_json_file
 from shared.rollout import Rollout, Step
 
@@ -67,7 +67,7 @@ def _clear_dataset_files(out: Path) -> None:
         # the same shapes would pass for a whole dataset.
         if (out / MANIFEST).is_file():
             (out / MANIFEST).unlink()
-            fsync_dir(out)
+            fsync_path(out)
         for p in out.iterdir():
             p.unlink()
     out.mkdir(parents=True, exist_ok=True)
@@ -325,14 +325,21 @@ class _Frames:
         self.bar.update(1)
 
 
+def _check_room(out: Path, frames: int, height: int, width: int) -> None:
+    """SupervisedError unless the disk of ``out`` has room for the depth file, counting what the
+    dataset files already there would free: checked before they are deleted, so that a refused
+    request does not cost the dataset a run with the old settings would reuse."""
+    need = frames * height * width * 2
+    old = [out / name for name in DATASET_FILES] if out.is_dir() else []
+    free = shutil.disk_usage(nearest_existing(out)).free + sum(p.stat().st_size for p in old if p.is_file())
+    if need > free:
+        raise SupervisedError(f"{frames} frames of {width} x {height} need {need / 1e6:.1f} MB, "
+                              f"{out} has {free / 1e6:.1f} MB free: collect fewer frames")
+
+
 def _open_depth_file(path: Path, frames: int, height: int, width: int) -> np.memmap:
     """The (frames, height, width) uint16 memmap at ``path``, its blocks reserved: a disk that fills
     while the frames are written would end the process with SIGBUS, without a word."""
-    need = frames * height * width * 2
-    free = shutil.disk_usage(path.parent).free
-    if need > free:
-        raise SupervisedError(f"{frames} frames of {width} x {height} need {need / 1e6:.1f} MB, "
-                              f"{path.parent} has {free / 1e6:.1f} MB free: collect fewer frames")
     try:
         depth = np.lib.format.open_memmap(path, mode="w+", dtype=np.uint16, shape=(frames, height, width))
         if hasattr(os, "posix_fallocate"):  # the free space may have gone since it was measured
@@ -385,8 +392,9 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
         raise SupervisedError(f"test_fraction must be in (0, 1), got {test_fraction!r}")
     world_objs = [load_world(w) for w in worlds]  # fail early on an unknown world
     out = Path(out_dir)
-    _clear_dataset_files(out)
     h, w = sensor_cfg.height, sensor_cfg.width
+    _check_room(out, frames, h, w)
+    _clear_dataset_files(out)
     depth = _open_depth_file(out / "depth_mm.npy", frames, h, w)
     labels = np.zeros(frames, np.uint8)
     episodes = np.zeros(frames, np.int32)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import math
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -39,6 +40,7 @@ from shared.expert.dataset import (
     open_or_generate,
 )
 from shared.expert.expert import ExpertConfig, SupervisedError
+from shared.files import nearest_existing
 from shared.learning.checkpoints import card_path, save_supervised, supervised_model_path
 from shared.learning.model import (
     SupervisedNet,
@@ -220,6 +222,18 @@ def train_supervised(dataset: SupervisedDataset, settings: TrainSettings | None 
     return net, json.loads(json.dumps(card))  # plain JSON types, as the model file stores it
 
 
+def _check_writable(folder: Path) -> None:
+    """SupervisedError unless a file can be made in ``folder`` (or, where it is missing, in the
+    nearest folder above it, under which ``save_supervised`` makes it): a read-only folder was
+    found by the last write, after the data and the training, and as a traceback."""
+    at = nearest_existing(folder)
+    try:
+        with tempfile.TemporaryFile(dir=at):  # a real write: a read-only mount, no permission, not a folder
+            pass
+    except OSError as exc:
+        raise SupervisedError(f"{folder}: the model cannot be written there ({at}: {exc.strerror or exc})") from None
+
+
 @dataclass
 class PretrainResult:
     """What :func:`pretrain` produced."""
@@ -242,9 +256,10 @@ def pretrain(out: str | Path, *, worlds: Sequence[str], frames: int, sensor_cfg:
     resolve_device(settings.device)  # a device this machine lacks fails now, not after collecting the data
     data_dir = Path(data_dir) if data_dir is not None else out.with_name(out.name.removesuffix(".safetensors") + "-data")
     for path in (out, card_path(out)):  # written at the end: refused now, not after the data and the training
-        if path.is_dir() or path.absolute() == data_dir.absolute():
+        if path.is_dir() or path.resolve() == data_dir.resolve():  # resolved: x/../sl.safetensors is it too
             raise SupervisedError(f"{path} is {'a folder' if path.is_dir() else 'the dataset folder (--data)'}: "
                                   "the model and its card need a file of their own")
+    _check_writable(out.parent)
     request = dataset_request(worlds, frames, sensor_cfg, env_cfg, expert_cfg or ExpertConfig(),
                               drive_cfg or DriveConfig(), seed, test_fraction)
     t0 = time.monotonic()

@@ -435,7 +435,13 @@ def test_a_dataset_too_big_for_the_disk_is_refused_before_anything_is_written(tm
     with pytest.raises(SupervisedError, match=r"10+ frames of 40 x 30 need .* MB free: collect fewer frames"):
         generate_dataset(tmp_path / "d", worlds=["box-room"], frames=10**12, sensor_cfg=SMALL_SENSOR,
                          env_cfg=TEST_ENV, progress=False)
-    assert list((tmp_path / "d").iterdir()) == []
+    assert not (tmp_path / "d").exists()
+    # Nor is anything deleted: the folder's dataset was cleared first, then the request refused.
+    old = _tiny_dataset(tmp_path / "old")
+    with pytest.raises(SupervisedError, match="collect fewer frames"):
+        generate_dataset(old.root, worlds=["box-room"], frames=10**12, sensor_cfg=SMALL_SENSOR, env_cfg=TEST_ENV,
+                         progress=False)
+    assert SupervisedDataset.open(old.root).manifest["created_unix"] == old.manifest["created_unix"]
 
 
 def test_the_arrays_are_on_disk_before_the_manifest_and_the_old_manifest_goes_first(tmp_path, monkeypatch):
@@ -620,6 +626,7 @@ def test_evaluate_policy_sl_and_rl(trained, tmp_path, capsys):
     (["--out", "sl.safetensors", "--device", "gpu"], "unknown device 'gpu'"),  # failed after collecting
     (["--out", "sl.safetensors", "--data", "sl.safetensors"], "is the dataset folder (--data)"),  # after training
     (["--out", "sl.safetensors", "--data", "sl.card.json"], "is the dataset folder (--data)"),
+    (["--out", "sl.safetensors", "--data", "x/../sl.safetensors"], "is the dataset folder (--data)"),  # after training
 ])
 def test_pretrain_refuses_an_output_or_seed_it_cannot_use_before_collecting(argv, message, tmp_path, capsys,
                                                                          monkeypatch):
@@ -641,6 +648,36 @@ def test_pretrain_refuses_a_model_path_that_is_a_folder_before_collecting(folder
     assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "60", "--epochs", "1",
                  "--out", "sl.safetensors"]) == 2
     assert f"{folder} is a folder" in capsys.readouterr().err and [p.name for p in tmp_path.iterdir()] == [folder]
+
+
+@pytest.mark.parametrize("folder", ["proc", "read-only"])
+def test_pretrain_refuses_a_model_folder_it_cannot_write_before_collecting(folder, tmp_path, capsys):
+    # Found by the last write, after the data and the training, as a SafetensorError traceback.
+    from services.cli import main
+
+    if folder == "proc":
+        out = "/proc/cogexplore-sl/sl.safetensors"  # not even root makes a file there
+    else:
+        if os.geteuid() == 0:
+            pytest.skip("root writes into a read-only folder")
+        (tmp_path / "ro").mkdir(mode=0o555)
+        out = str(tmp_path / "ro" / "sl.safetensors")
+    assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "24", "--epochs", "1",
+                 "--out", out, "--data", str(tmp_path / "data"), "--quiet", "--device", "cpu"]) == 2
+    assert "the model cannot be written there" in capsys.readouterr().err
+    assert not (tmp_path / "data").exists()  # no data collected
+
+
+def test_pretrain_json_prints_the_card_alone_on_stdout(tmp_path, capsys):
+    # The "model: PATH" line followed the JSON on stdout, so `pretrain --json | jq` failed.
+    from services.cli import main
+
+    out = tmp_path / "sl.safetensors"
+    assert main(["pretrain", "--preset", "smoke", "--worlds", "box-room", "--frames", "24", "--epochs", "1",
+                 "--out", str(out), "--quiet", "--device", "cpu", "--json"]) == 0
+    printed = capsys.readouterr()
+    assert json.loads(printed.out) == load_supervised(out)[1]["card"]
+    assert f"model: {out}" in printed.err
 
 
 def test_a_diverging_training_stops_at_the_first_non_finite_loss_and_writes_no_model(tmp_path, monkeypatch):
