@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import errno
 import hashlib
 import json
 import logging
@@ -128,10 +129,19 @@ def _digest(arrays: Mapping[str, Any]) -> str:
 
 
 def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[str, Any]) -> None:
-    """Atomically write tensors + JSON metadata (with a digest of the tensors) as safetensors."""
+    """Atomically write tensors + JSON metadata (with a digest of the tensors) as safetensors. A write
+    that fails (a full disk, a quota) is an OSError, as any other file's: safetensors reports it as
+    its own error, which the CLI and the services would take for a bug (a traceback)."""
     meta = dict(meta, digest=_digest(tensors))
-    write_atomically(path, lambda tmp: safetensors.torch.save_file(tensors, tmp,
-                                                                    metadata={_META_KEY: json.dumps(meta)}))
+
+    def write(tmp: Path) -> None:
+        try:
+            safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
+        except SafetensorError as exc:
+            code = re.search(r"os error (\d+)", str(exc))
+            raise OSError(int(code.group(1)) if code else errno.EIO, f"{path} cannot be written: {exc}") from None
+
+    write_atomically(path, write)
 
 
 def _require_regular_file(path: Path) -> None:

@@ -843,3 +843,17 @@ def test_pruning_leaves_a_live_writers_temporary_file_and_removes_a_dead_ones(tm
     finally:
         live.kill()
         live.wait()
+
+
+def test_a_weights_file_that_fills_the_disk_is_one_line_and_leaves_nothing(tmp_path) -> None:
+    """safetensors reports a failed write as its own error: `model export` (and a learner's checkpoint)
+    on a full disk ended in a traceback, not the CLI's one line for a file that cannot be written."""
+    from service_processes import run_on_a_full_disk
+
+    out = tmp_path / "R3.safetensors"
+    done = run_on_a_full_disk("import sys; from services.cli import main; sys.exit(main(['model', 'export', "
+                              f"'pretrained', '--members', 'R3', '--out', {str(out)!r}]))", 100_000)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert "Traceback" not in done.stderr and done.stderr.count("\n") == 1, done.stderr
+    assert f"{out} cannot be written" in done.stderr and "File too large" in done.stderr
+    assert list(tmp_path.iterdir()) == []  # no file, no temporary
