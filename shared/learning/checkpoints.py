@@ -618,6 +618,9 @@ def save_supervised(path: str | Path, net: SupervisedNet, card: Mapping[str, Any
     meta = {"format": MODEL_FORMAT, "version": VERSION, "fingerprint": architecture_fingerprint(net),
             "sensor": asdict(net.sensor_cfg), "depth_encoding": net.trunk.depth_encoding,
             "card": json.loads(json.dumps(dict(card or {})))}
+    # The card file is a copy of the metadata's, for people: gone before the model changes, a process
+    # killed between the two writes leaves the new model without one, not beside the old model's.
+    card_path(path).unlink(missing_ok=True)
     save_tensors_file(path, weights_to_tensors(net), meta)
     atomic_write_text(card_path(path), json.dumps(meta["card"], indent=2) + "\n")
     return path

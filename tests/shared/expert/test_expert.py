@@ -520,6 +520,24 @@ def test_model_file_round_trips_with_its_card(trained, tmp_path):
         save_supervised(tmp_path / "model.pt", net)
 
 
+def test_a_model_write_that_fails_leaves_no_card_of_another_model_beside_it(trained, tmp_path):
+    # The card file was written after the model: a failed (or killed) model write left the old model's
+    # card beside whatever model file there was.
+    from service_processes import run_on_a_full_disk
+
+    _net, card, path = trained
+    out = tmp_path / "sl.safetensors"
+    out.write_bytes(path.read_bytes())
+    card_path(out).write_text(json.dumps({"accuracy": 0.25}))  # the card of the model there before
+    done = run_on_a_full_disk("from shared.learning.checkpoints import load_supervised, save_supervised; "
+                              f"net, meta = load_supervised({str(path)!r}); "
+                              f"save_supervised({str(out)!r}, net, {{'accuracy': 0.9}})", 1000)
+    assert done.returncode != 0 and "File too large" in done.stderr, done.stderr[-2000:]
+    assert out.read_bytes() == path.read_bytes() and not card_path(out).exists()
+    save_supervised(out, load_supervised(path)[0], card)  # written whole: both again
+    assert json.loads(card_path(out).read_text())["accuracy"] == card["accuracy"]
+
+
 # --------------------------------------------------------------------------------- transfer
 
 
