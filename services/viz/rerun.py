@@ -483,9 +483,9 @@ class EvalRecorder:
             ny, nx = self.grid.shape
             x0, y0 = self.grid.origin_xy
             # Free light, occupied dark. Row 0 of OccupancyGrid.occupied is the lowest y, but a
-            # GridMap's buffer is an image, read top row first: its last row lies at ``translation``
-            # (the lower-left corner). Unflipped, the map showed mirrored in y under the robot, its
-            # path and the starts (Rerun's own ROS OccupancyGrid import flips the rows too).
+            # GridMap's buffer is an image whose lower-left corner lies at ``translation``: its first
+            # row is the top one. Unflipped, the map showed mirrored in y under the robot, its path
+            # and the starts.
             pixels = np.where(np.flipud(self.grid.occupied), 60, 235).astype(np.uint8)
             rec.log(MAP, rr.GridMap(
                 data=pixels.tobytes(),

@@ -223,9 +223,9 @@ def static_component(path: Path, entity: str, suffix: str):
 
 
 def test_the_recorded_map_lies_under_the_robot_as_the_world_does(tmp_path, world, grid) -> None:
-    # A GridMap's buffer is an image, drawn top row first from translation + height * cell_size down
-    # (Rerun's ROS OccupancyGrid import flips its rows for that): the grid's lowest-y row was sent
-    # first, so the map showed mirrored in y under the robot, its path and the start arrows.
+    # A GridMap's buffer is an image whose lower-left corner lies at its translation (Rerun's GridMap
+    # reference), so its top row is drawn at translation + height * cell_size: the grid's lowest-y row
+    # was sent first, and the map showed mirrored in y under the robot, its path and the start arrows.
     path = tmp_path / "map.rrd"
     with EvalRecorder(path, world, grid, SensorConfig()):
         pass
