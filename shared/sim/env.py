@@ -59,6 +59,10 @@ START_DRAW_TRIES = 100
 FAILURE_START_TRIES = 20
 """Draws of a failure start (a remembered collision, a step back from it, a jitter) before the reset
 starts the episode as it would without them (``EnvConfig.failure_start_prob``)."""
+MAX_START_JITTER_M = 10.0
+MAX_START_JITTER_DEG = 180.0
+"""Bounds of the ``start_jitter`` reset option: wider than any world's start needs (a protocol's are at
+most 2 m), and 180 degrees already draws any heading."""
 RESET_OPTIONS = ("start_index", "start_jitter")
 """The ``reset`` options the env takes (see :class:`ExploreEnv`); any other is refused, not ignored."""
 log = logging.getLogger("cogexplore.env")
@@ -75,9 +79,11 @@ def _start_jitter(value: Any) -> tuple[float, float] | None:
         return None
     ok = isinstance(value, (tuple, list)) and len(value) == 2 and all(
         isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
-        and math.isfinite(v) and v >= 0 for v in value)
+        and math.isfinite(v) and v >= 0 for v in value) \
+        and value[0] <= MAX_START_JITTER_M and value[1] <= MAX_START_JITTER_DEG  # numpy's draw overflows past ~1e308
     if not ok:
-        raise EnvError(f"start_jitter {value!r}: expected (metres, degrees), both finite and >= 0")
+        raise EnvError(f"start_jitter {value!r}: expected (metres, degrees), metres in [0, {MAX_START_JITTER_M:g}] "
+                       f"and degrees in [0, {MAX_START_JITTER_DEG:g}]")
     jitter_m, jitter_deg = float(value[0]), float(value[1])
     return (jitter_m, jitter_deg) if jitter_m > 0 or jitter_deg > 0 else None
 

@@ -722,6 +722,7 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
         model = spec.compile()
     except ValueError as exc:
         raise WorldError(f"{label}: MuJoCo cannot compile it: {exc}".rstrip()) from None
+    _check_text_reads_same_files(spec, model, label)
     assets = _asset_digests(spec, label)  # now: the files MuJoCo has just read, not those of a later edit
     if model.njnt > 0:
         moving = sorted({model.body(int(model.jnt_bodyid[j])).name or f"body #{int(model.jnt_bodyid[j])}"
@@ -798,6 +799,31 @@ def _asset_files(spec: mujoco.MjSpec) -> list[tuple[str, str, Path]]:
         stripped = file.replace("\\", "/").rsplit("/", 1)[-1] if spec.strippath else file
         files.append((kind, file, Path(folder) / stripped))  # an absolute name replaces the folder
     return files
+
+
+_ASSET_DATA_FIELDS = ("mesh_vert", "mesh_face", "hfield_data", "tex_data", "skin_vert", "skin_face")
+"""The compiled model's arrays that hold what MuJoCo read from a world's asset files."""
+
+
+def _check_text_reads_same_files(spec: mujoco.MjSpec, model: mujoco.MjModel, label: str) -> None:
+    """WorldError unless the MJCF text a World keeps (``spec.to_xml()``, its files found from the world
+    file's meshdir and texturedir) compiles to the asset data MuJoCo just read from the file. A
+    ``<model>`` asset's files are found from its own folder or meshdir, which the text does not carry:
+    it would name other files (or none), and the digest with them."""
+    if not _asset_files(spec):  # nothing read from files, nothing to differ
+        return
+    text = spec.to_xml()  # outside the try: text that is not UTF-8 is load_world_file's to name
+    try:
+        again = mujoco.MjSpec.from_string(text).compile()
+    except ValueError as exc:  # a file the text names is not where the <model> found it
+        why = f" (its text does not compile: {' '.join(str(exc).split())})"
+    else:
+        if all(np.array_equal(getattr(model, f), getattr(again, f)) for f in _ASSET_DATA_FIELDS):
+            return
+        why = ""
+    raise WorldError(f"{label}: a <model> asset names mesh, height field, skin or texture files found from its "
+                     "own folder or meshdir, which cogexplore cannot carry (it would read other files): name "
+                     f"them by absolute paths, or move them under the world's meshdir or texturedir{why}")
 
 
 def _asset_digests(spec: mujoco.MjSpec, label: str) -> tuple[tuple[str, str, str], ...]:

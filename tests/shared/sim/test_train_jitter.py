@@ -158,3 +158,17 @@ def test_bad_jitter_values_are_config_errors_naming_the_field(field, value) -> N
     with pytest.raises(ConfigError, match=rf"\[env\] {field} = "):
         EnvConfig(**{field: value})
     EnvConfig(start_jitter_m=1.0, start_jitter_deg=45.0)  # the bounds themselves are allowed
+
+
+@pytest.mark.parametrize("jitter", [(1e300, 0.0), (1.7e308, 1e308), (0.0, 1e300), (10.01, 0.0), (0.1, 180.5)])
+def test_a_reset_jitter_beyond_any_world_is_an_env_error_not_an_overflow(jitter) -> None:
+    # numpy's uniform overflowed (a traceback) past ~9e307 m, and a 1e300 m draw became a cell index
+    # by an invalid cast; degrees past 180 draw no other heading.
+    env = ExploreEnv(EnvConfig(world="box-room"), SENSOR)
+    with pytest.raises(EnvError, match=r"start_jitter .*metres in \[0, 10\] and degrees in \[0, 180\]"):
+        env.reset(seed=0, options={"start_index": 0, "start_jitter": jitter})
+    try:  # the bounds themselves are taken (a 4 m room may have no clear draw within ±10 m)
+        env.reset(seed=0, options={"start_index": 0, "start_jitter": (10.0, 180.0)})
+    except EnvError as exc:
+        assert "none of 100 poses" in str(exc)
+    env.close()

@@ -655,3 +655,48 @@ def test_a_file_the_mjcf_names_that_is_missing_is_refused_by_mujoco(tmp_path):
 
 def test_built_in_and_procedural_worlds_name_no_files():
     assert load_world("paper-indoor").asset_sha256 == () and load_world("procedural:3").asset_sha256 == ()
+
+
+_INCLUDING_ROOM = """<mujoco><asset><model name="part" file="part/part.xml"/></asset>
+<worldbody><geom name="floor" type="plane" size="0 0 1"/>
+<geom type="box" pos="0 3 1" size="3 0.1 1"/><geom type="box" pos="0 -3 1" size="3 0.1 1"/>
+<geom type="box" pos="3 0 1" size="0.1 3 1"/><geom type="box" pos="-3 0 1" size="0.1 3 1"/>
+<body pos="1.5 1.5 0"><attach model="part" body="part" prefix="p_"/></body>
+<site name="start_a" pos="-1.5 -1.5 0" euler="0 0 45"/><site name="start_b" pos="1.5 -1.5 0" euler="0 0 135"/>
+</worldbody></mujoco>"""
+"""A room that attaches a model of its own file (``part/part.xml``) holding a mesh obstacle."""
+
+
+def write_including_world(folder: Path, part_compiler: str = "", mesh_file: str = "obstacle.stl") -> Path:
+    """``folder/room.xml`` (:data:`_INCLUDING_ROOM`) and ``folder/part/part.xml`` naming ``mesh_file``
+    under ``<compiler part_compiler>``."""
+    (folder / "part").mkdir(parents=True, exist_ok=True)
+    (folder / "part" / "part.xml").write_text(
+        f'<mujoco><compiler {part_compiler}/><asset><mesh name="m" file="{mesh_file}"/></asset>'
+        '<worldbody><body name="part"><geom type="mesh" mesh="m"/></body></worldbody></mujoco>')
+    (folder / "room.xml").write_text(_INCLUDING_ROOM)
+    return folder / "room.xml"
+
+
+def test_a_model_asset_whose_files_lie_beside_it_is_refused_not_loaded_with_others(tmp_path):
+    # MuJoCo reads an attached model's mesh from that model's folder (or its own meshdir); the MJCF
+    # text a World keeps names the bare file, found from the room's folder: a same-named mesh there
+    # became the obstacle, another world than the file's, with the other mesh in its digest.
+    write_stl(tmp_path / "obstacle.stl", 0.1)  # the room's own, unrelated file of that name
+    for compiler, where in (("", "part"), ('meshdir="meshes"', "part/meshes")):
+        path = write_including_world(tmp_path, compiler)
+        (tmp_path / where).mkdir(parents=True, exist_ok=True)
+        write_stl(tmp_path / where / "obstacle.stl", 0.4)
+        with pytest.raises(WorldError) as err:
+            load_world(str(path))
+        message = str(err.value)
+        assert "<model>" in message and "absolute" in message and "\n" not in message, compiler
+
+
+def test_a_model_asset_whose_files_are_named_absolute_loads_with_their_digest(tmp_path):
+    mesh = tmp_path / "elsewhere" / "obstacle.stl"
+    mesh.parent.mkdir()
+    write_stl(mesh, 0.4)
+    world = load_world(str(write_including_world(tmp_path, mesh_file=str(mesh))))
+    assert world.asset_sha256 == (("mesh", str(mesh), hashlib.sha256(mesh.read_bytes()).hexdigest()),)
+    assert StartChecker(world).check(1.5, 1.5 - 0.4 - RADIUS - 0.05, 0.0).clearance_m < 0.1  # the mesh is there
