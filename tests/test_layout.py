@@ -175,3 +175,15 @@ def test_the_license_is_an_spdx_expression_with_its_file() -> None:
     project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
     assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
     assert (REPO / "LICENSE").read_text().startswith("MIT License")
+
+
+def test_a_bare_pytest_imports_the_project_not_the_tests_folders() -> None:
+    """``pytest`` as a user types it (not ``python -m pytest``, which puts the repository first on the
+    path): tests/shared/ once shadowed the project's ``shared`` and every test under it failed to import."""
+    pytest_script = Path(sys.executable).with_name("pytest")
+    if not pytest_script.is_file():
+        pytest.skip(f"no pytest script beside {sys.executable}")
+    test = "tests/shared/sim/test_train_jitter.py"
+    run = subprocess.run([str(pytest_script), "-q", "-p", "no:cacheprovider", "--collect-only", test],
+                         cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-2000:]  # 2: a collection error
