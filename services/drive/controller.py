@@ -19,7 +19,11 @@ The safety rules, in the order they are checked:
 4. No valid image for ``watchdog_s`` stops the robot, and the stop is repeated each control period
    until images return. A command decided ``watchdog_s`` or more after its image arrived (a policy
    that stalled, a large image slow to read) is a stop too, except in lock step, where the simulator
-   waits for it.
+   waits for it. A command only ever comes from an image that arrived after the last stop the
+   watchdog sent (:meth:`DriveController.on_tick`'s, or the shell's while a decision stalls,
+   :meth:`DriveController.watchdog_stopped`), lock step included: an image read while the watchdog
+   stopped the robot decides nothing (in lock step the simulator answers that stop with the image
+   again, and the command waits for it).
 
 An image is read (decoded and checked, :meth:`DriveController.read`: it changes nothing) apart from
 the decision on it (:meth:`DriveController.decide`), so that the shell's watchdog can stop the robot
@@ -188,6 +192,8 @@ class DriveController:
         self.last_image_s: float | None = None  # arrival of the last valid image
         self.last_command_s: float | None = None  # the last move command
         self.last_stop_s: float | None = None
+        self.last_watchdog_stop_s: float | None = None
+        """When the watchdog last sent a stop: no image that arrived before it moves the robot."""
         self.moving = False
         self.decisions = 0
         self.rejects: dict[str, int] = {}
@@ -249,6 +255,13 @@ class DriveController:
         self.last_image_s = received_s
         if nearest < self.config.collision_distance_m:
             return self._stop("too_close", received_s, nearest, received_s)
+        if self.last_watchdog_stop_s is not None and received_s <= self.last_watchdog_stop_s:
+            # read while the watchdog stopped the robot: a command from it would undo that stop
+            # (the robot stands already: a reminder at most, as for any stop)
+            decision = self._stop("watchdog", self.clock(), nearest, received_s)
+            return None if decision is None else dataclasses.replace(
+                decision, error=f"the image arrived {self.last_watchdog_stop_s - received_s:.2f} s before "
+                                "the watchdog's stop")
         due = (self.config.lockstep or self.last_command_s is None
                or received_s - self.last_command_s >= 0.9 * self.period_s)  # 0.9: a camera's jitter
         if not due:
@@ -290,7 +303,16 @@ class DriveController:
         since = self.last_image_s if self.last_image_s is not None else self.started_s
         if now_s - since < self.config.watchdog_s:
             return None
-        return self._stop("watchdog" if self.last_image_s is not None else "no_image", now_s)
+        decision = self._stop("watchdog" if self.last_image_s is not None else "no_image", now_s)
+        if decision is not None:
+            self.watchdog_stopped(now_s)
+        return decision
+
+    def watchdog_stopped(self, at_s: float) -> None:
+        """The watchdog sent a stop at ``at_s`` (on ``clock``): no image that arrived before it moves
+        the robot. The shell calls it for the stop it sends while a decision holds the controller."""
+        if self.last_watchdog_stop_s is None or at_s > self.last_watchdog_stop_s:
+            self.last_watchdog_stop_s = at_s
 
     def exit_stop(self) -> Decision:
         """The stop sent when the process ends (always sent); nothing is decided after it."""

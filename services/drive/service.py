@@ -37,6 +37,9 @@ log = logging.getLogger("cogexplore.drive")
 WATCHDOG_TICK_S = 0.02
 RESET_LOG_EVERY_S = 1.0
 """At most one reset log line per this many seconds."""
+EXIT_WAIT_S = 0.5
+"""The exit stop waits at most this long (or the watchdog period, if shorter) for a decision under
+way; then it is sent without the controller."""
 NODE_NAME = "cogexplore_drive"
 
 
@@ -86,6 +89,8 @@ class DriveNode:
         self.last_stall_stop_s: float | None = None
         self.decide_errors = 0
         self.exit_sent = False
+        self.sent = 0
+        """Twists sent so far: each one's number in the diagnostics and the recording."""
         self.last_reset_log_s: float | None = None
         self.last_stop: tuple[str | None, str | None] | None = None
         """(reason, reject cause) of the last twist if it was a stop (its log line once, not each period)."""
@@ -123,6 +128,8 @@ class DriveNode:
                 # watchdog to read, which would hold the watchdog's stop
                 reading = payload if isinstance(payload, int) else self.controller.read(payload)
                 with self.lock:  # an image that waited for it after the exit stop decides nothing (the controller's rule)
+                    if self.last_stall_stop_s is not None:  # nor one that arrived before the watchdog's stall stop
+                        self.controller.watchdog_stopped(self.last_stall_stop_s)
                     decision = (self.controller.on_oversize_image(reading, received) if isinstance(reading, int)
                                 else self.controller.decide(reading, received))
                     if decision is not None:
@@ -171,8 +178,9 @@ class DriveNode:
 
     def stop_at_exit(self) -> None:
         """The last word: a zero twist, sent once, before the session closes; without the
-        controller when a decision holds it for longer than the watchdog (a stalled policy)."""
-        if not self.lock.acquire(timeout=self.controller.config.watchdog_s):
+        controller when a decision holds it for longer than :data:`EXIT_WAIT_S` or the watchdog (a
+        stalled policy): not the watchdog alone, which may be longer than a container's grace period."""
+        if not self.lock.acquire(timeout=min(self.controller.config.watchdog_s, EXIT_WAIT_S)):
             with self.send_lock:  # nothing after it
                 self._send(Decision(0.0, 0.0, None, "exit", error="the policy is still deciding"))
                 self.exit_sent = True
@@ -190,10 +198,15 @@ class DriveNode:
             if self.exit_sent:
                 return
             self.cmd_vel.put(encode_twist(decision.linear_mps, decision.angular_rps))
-        self._report(decision)
+            # numbered here, not by the controller: the stall and exit stops sent without it took the
+            # number of the decision before them (a move's, whose Q-values and image a recording showed
+            # beside the stop at that number)
+            self.sent += 1
+            number = self.sent
+        self._report(decision, number)
 
-    def _report(self, decision: Decision) -> None:
-        """The log line, diagnostics and recording of a twist sent."""
+    def _report(self, decision: Decision, number: int) -> None:
+        """The log line, diagnostics and recording of a twist sent, the ``number``-th."""
         c = self.controller
         if self.args.max_decisions is not None and c.decisions >= self.args.max_decisions:
             self.done.set()
@@ -206,7 +219,7 @@ class DriveNode:
                     f": {decision.error}" if decision.error else "")
         self.last_stop = stop
         message = DriveDiagnostics(
-            robot=self.args.robot, decision=c.decisions, command=decision.command, linear_mps=decision.linear_mps,
+            robot=self.args.robot, decision=number, command=decision.command, linear_mps=decision.linear_mps,
             angular_rps=decision.angular_rps, stop_reason=decision.stop_reason,
             nearest_depth_m=decision.nearest_depth_m, latency_ms=decision.latency_ms, q_values=decision.q_values,
             policy=printable_label(getattr(c.policy, "label", "")), rejects=dict(c.rejects))

@@ -42,7 +42,8 @@ class DriveDiagnostics(Message):
 
     robot: str
     decision: int
-    """Decisions so far, this one included."""
+    """Twists the node has sent so far, this one included (each stop one of its own, also those sent
+    without the policy: the watchdog's while a decision stalls, the exit's): the recording's timeline."""
     command: int | None
     """The policy's command 0..4, None for a stop."""
     linear_mps: float

@@ -7,7 +7,7 @@ from __future__ import annotations
 import threading
 import time
 
-from service_processes import client
+from service_processes import client, wait_for
 
 from services.bus.ros2 import Ros2Node
 from shared.ros2.formats import make_format
@@ -32,6 +32,10 @@ def test_a_flood_reaches_a_busy_callback_as_its_newest_samples_and_holds_up_noth
     with client(loopback_router) as robot_session, client(loopback_router) as outsider_session, \
             Ros2Node(robot_session, fmt, "robot") as robot, Ros2Node(outsider_session, fmt, "outsider") as outsider:
         subscriber = robot.subscriber("/cmd_vel", TWIST, on_twist)
+        # the same samples as the subscription, seen while its callback is busy
+        arrived: list[tuple[float, float]] = []
+        watcher = robot_session.declare_subscriber(subscriber.key,
+                                                   lambda sample: arrived.append(decode_twist(sample.payload.to_bytes())))
         reset_sub = robot_session.declare_subscriber("robot/reset", lambda _sample: reset.set())
         publisher = outsider.publisher("/cmd_vel", TWIST)
         try:
@@ -40,7 +44,10 @@ def test_a_flood_reaches_a_busy_callback_as_its_newest_samples_and_holds_up_noth
                 publisher.put(encode_twist(0.0, 0.0))
                 busy.wait(0.05)
             assert busy.is_set(), "no twist arrived"
-            time.sleep(0.2)  # the last of those in flight
+            # the last of those in flight (a fixed wait counted too early on a loaded machine): none once a
+            # marker sent after them has arrived (one key, in order) and been counted
+            publisher.put(encode_twist(0.0, 0.1))
+            wait_for(lambda: (0.0, 0.1) in arrived and subscriber.received == len(arrived), 10, "the marker", [])
             sent = subscriber.received + FLOOD + 1
             for _ in range(FLOOD):
                 publisher.put(encode_twist(0.0, 0.3))
@@ -59,3 +66,4 @@ def test_a_flood_reaches_a_busy_callback_as_its_newest_samples_and_holds_up_noth
         finally:
             release.set()
             reset_sub.undeclare()
+            watcher.undeclare()

@@ -336,3 +336,23 @@ def test_reading_an_image_changes_nothing_and_its_stamp_is_checked_again_when_it
     assert stale.reject_cause == STALE_STAMP and "0.40 s ago" in stale.error and drive.last_image_s is None
     drive.wall_clock_ns = lambda: now_ns
     assert drive.decide(reading, clock.t + 2.0).command is not None  # in time, it drives
+
+
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_an_image_that_arrived_before_a_watchdog_stop_never_moves_the_robot_after_it(policy, start_image, lockstep):
+    # The shell reads an image outside its lock, so the watchdog can stop the robot between the
+    # image's arrival and its decision. The image arrived 0.05 s before the stop, well within the
+    # watchdog of its own arrival, and its command undid the stop.
+    drive, clock = controller(policy, watchdog_s=0.5, lockstep=lockstep)
+    assert drive.on_image(image(start_image), clock.t).command is not None  # moving
+    arrived = clock.t + 0.45
+    reading = drive.read(image(start_image))
+    clock.t += 0.5
+    stop = drive.on_tick(clock.t)
+    assert stop is not None and stop.stop_reason == "watchdog"
+    clock.t += 0.01
+    late = drive.decide(reading, arrived)
+    assert late is None or late.is_stop
+    assert not drive.moving
+    # the next image, newer than the stop, drives again
+    assert drive.on_image(image(start_image), clock.t + 0.5).command is not None

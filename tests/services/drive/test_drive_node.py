@@ -17,6 +17,8 @@ from services.drive.options import add_drive_arguments
 from services.drive.service import DriveNode
 from shared.ros2.formats import make_format, qualify
 from shared.ros2.messages import IMAGE, TWIST, decode_twist, encode_depth_image
+from shared.wire.keys import RobotKeys
+from shared.wire.robot import DriveDiagnostics
 
 
 class Slow:
@@ -51,6 +53,10 @@ class Robot:
         self.twists: list[tuple[float, float, float]] = []
         self.lock = threading.Lock()
         self.node.subscriber(qualify("/", "cmd_vel"), TWIST, self._on_twist)
+        self.diagnostics: list[DriveDiagnostics] = []
+        self.diagnostics_sub = session.declare_subscriber(
+            RobotKeys("bot").diagnostics, lambda sample: self.diagnostics.append(
+                DriveDiagnostics.decode(sample.payload.to_bytes())))
 
     def _on_twist(self, payload: bytes) -> None:
         with self.lock:
@@ -90,6 +96,7 @@ def driving(router: str, policy, *options: str, watchdog: bool = False):
         finally:
             stop_watchdog()
             node.close()
+            robot.diagnostics_sub.undeclare()
             robot.node.close()
 
 
@@ -207,3 +214,77 @@ def test_a_node_closed_twice_stops_the_robot_once_and_the_second_close_does_noth
         node.close()
         time.sleep(0.3)
         assert robot.snapshot() == stops
+
+
+@pytest.mark.timeout(120)
+def test_an_image_that_arrived_before_a_stall_stop_never_moves_the_robot_after_it(loopback_router, policy,
+                                                                                   start_image):
+    # The policy stalled on one image; the next one arrived, waited, and the watchdog stopped the
+    # robot meanwhile (the stall stop). That waiting image was decided within the watchdog of its own
+    # arrival, and its command undid the stop.
+    class StallOnce(Slow):
+        def decide(self, depth_m):
+            self.delay_s, delay_s = 0.0, self.delay_s
+            time.sleep(delay_s)
+            return self.policy.decide(depth_m)
+
+    stalling = StallOnce(policy, 0.0)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with driving(loopback_router, stalling, "--watchdog", "2", watchdog=True) as (robot, _node, _stop):
+        wait_for_twist(robot, good, moving=True)
+        time.sleep(0.6)  # the next command is due
+        stalling.delay_s = 3.2
+        sent = time.monotonic()
+        robot.images.put(good)  # decided for 3.2 s: the stall stop comes 2 s after it arrived
+        time.sleep(1.6)
+        robot.images.put(good)  # waits for it, and is 1.6 s old when it is decided
+        time.sleep(3.5)
+        after = [(round(t - sent, 2), linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
+        assert after and all((linear, angular) == (0.0, 0.0) for _, linear, angular in after), after
+
+
+@pytest.mark.timeout(120)
+def test_a_stop_sent_while_the_policy_stalls_is_a_decision_of_its_own(loopback_router, policy, start_image):
+    # The stall stop (and the exit stop sent without the controller) reported the number of the
+    # decision before it: the recording's decision timeline put the stop at the move's index, over the
+    # move's command and beside its Q-values and image, as if the stop had been decided on them.
+    slow = Slow(policy, 0.0)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with driving(loopback_router, slow, "--watchdog", "0.5", watchdog=True) as (robot, node, stop_watchdog):
+        wait_for_twist(robot, good, moving=True)
+        slow.delay_s = 2.0
+        time.sleep(0.6)  # the next image is due
+        robot.images.put(good)
+        time.sleep(1.5)  # the stall stops meanwhile
+        stop_watchdog()
+        node.close()  # the exit stop, while the policy still stalls
+        deadline = time.monotonic() + 10
+        while not any(d.stop_reason == "exit" for d in robot.diagnostics):
+            assert time.monotonic() < deadline, "no exit stop in the diagnostics"
+            time.sleep(0.05)
+        numbers = [d.decision for d in robot.diagnostics]
+        assert any(d.stop_reason == "watchdog" for d in robot.diagnostics)
+        assert len(set(numbers)) == len(numbers), [(d.decision, d.command, d.stop_reason) for d in robot.diagnostics]
+
+
+@pytest.mark.timeout(120)
+def test_with_a_long_watchdog_the_exit_stop_does_not_wait_for_a_stalled_policy(loopback_router, policy, start_image):
+    # The exit stop waited up to the watchdog period for the decision's lock: with --watchdog 30 and
+    # a policy stalled on its GPU, SIGTERM left the robot on its last command for 30 s (a container
+    # stop kills after 10 s: no stop at all).
+    slow = Slow(policy, 0.0)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with driving(loopback_router, slow, "--watchdog", "30") as (robot, node, _stop):
+        wait_for_twist(robot, good, moving=True)
+        slow.delay_s = 8.0
+        time.sleep(0.6)  # the next image is due
+        robot.images.put(good)
+        time.sleep(0.5)  # the policy is deciding on it
+        closing = time.monotonic()
+        node.close()
+        deadline = time.monotonic() + 10
+        while not any(t > closing and (linear, angular) == (0.0, 0.0) for t, linear, angular in robot.snapshot()):
+            assert time.monotonic() < deadline, "no exit stop"
+            time.sleep(0.05)
+        stop_s = min(t for t, linear, angular in robot.snapshot() if t > closing) - closing
+        assert stop_s < 2.0, f"the exit stop came {stop_s:.1f} s after close"

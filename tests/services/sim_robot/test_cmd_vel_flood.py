@@ -7,7 +7,7 @@ import argparse
 import threading
 import time
 
-from service_processes import client
+from service_processes import client, wait_for
 
 from services.bus.ros2 import Ros2Node
 from services.sim_robot.options import add_sim_robot_arguments
@@ -18,6 +18,8 @@ from shared.ros2.messages import TWIST, encode_twist
 FLOOD = 1500
 """More than the 1000 commands the robot once queued, dropping the newest beyond them."""
 NEWEST = (0.0, -0.3)
+MARKER = (0.0, 0.1)
+"""Sent after the probes: once the robot holds it, no probe is left in flight (one key, in order)."""
 
 
 def test_a_flood_of_commands_drives_the_newest_and_counts_the_rest(loopback_router: str) -> None:
@@ -36,16 +38,19 @@ def test_a_flood_of_commands_drives_the_newest_and_counts_the_rest(loopback_rout
                 while robot.cmd_sub.received == 0 and time.monotonic() < deadline:  # until matched
                     publisher.put(encode_twist(0.0, 0.0))
                     time.sleep(0.05)
-                time.sleep(0.2)  # the last of those in flight
+                # the last of those in flight: a fixed wait counted too early on a loaded machine
+                publisher.put(encode_twist(*MARKER))
+                wait_for(lambda: robot.command is not None and robot.command[:2] == MARKER, 10, "the marker", [])
                 sent = robot.cmd_sub.received + FLOOD + 1
                 for _ in range(FLOOD):  # while the robot is busy elsewhere (its loop not yet started)
                     publisher.put(encode_twist(0.0, 0.3))
                 publisher.put(encode_twist(*NEWEST))
-                deadline = time.monotonic() + 3.0
+                deadline = time.monotonic() + 10.0
                 while robot.cmd_sub.received < sent and time.monotonic() < deadline:
                     time.sleep(0.01)
                 assert robot.cmd_sub.received == sent
-                time.sleep(0.2)  # the subscription's thread hands the robot what it holds
+                # the subscription's thread hands the robot what it holds, the newest last
+                wait_for(lambda: robot.command is not None and robot.command[:2] == NEWEST, 10, "the newest", [])
                 loop.start()
                 deadline = time.monotonic() + 3.0
                 while robot.twist != NEWEST and time.monotonic() < deadline:
