@@ -5,7 +5,8 @@ The safety rules, in the order they are checked:
 
 1. An image that cannot be read (garbage, truncated, another encoding, an absurd or wrong size,
    negative depths, no return within the camera's range at all: a blinded or saturated sensor
-   that reads NaN, 0 or its maximum everywhere) is refused, counted by cause, and stops the robot.
+   that reads NaN, 0 or its maximum everywhere) is refused, counted by cause, and stops the robot;
+   so is one whose reading fails in any other way (out of memory on a large image).
 2. An image whose nearest valid depth is below the collision distance stops the robot (the task's
    collision rule, ``EnvConfig.collision_distance_m``: the policy was never taught to act there).
    A -Inf pixel, REP 117's return too near to measure, is nearer than any.
@@ -59,6 +60,9 @@ BAD_DEPTH = "bad_depth"
 """Reject cause of an image the policy's camera refuses: negative depths, another aspect ratio."""
 POLICY_ERROR = "policy_error"
 """Reject cause of an image the policy failed on (the error is in the decision and the log)."""
+READ_ERROR = "read_error"
+"""Reject cause of an image whose reading failed unexpectedly (out of memory on a large image, the
+policy's camera raising what it never should): it is refused and stops the robot as any other."""
 STALE_STAMP = "stale_stamp"
 """Reject cause of an image stamped longer ago than ``max_image_age_s`` (or never stamped)."""
 FUTURE_STAMP = "future_stamp"
@@ -232,6 +236,8 @@ class DriveController:
             return Refusal(exc.cause, str(exc))
         except CogexploreError as exc:  # the policy's camera refused it: negative depths, millimetres in metres
             return Refusal(BAD_DEPTH, str(exc))
+        except Exception as exc:  # noqa: BLE001 -- whatever else failed, no command comes from this image
+            return Refusal(READ_ERROR, f"{type(exc).__name__}: {exc}")
         # Beyond the camera's range is no return, as the network sees it (range-gated to 0): an image
         # that reads its maximum everywhere is as blind as one that reads NaN everywhere.
         return Reading(depth, observation, nearest_valid_depth(depth, float(self.policy.sensor.max_range_m)),

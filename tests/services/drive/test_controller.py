@@ -12,6 +12,7 @@ from services.drive.controller import (
     FUTURE_STAMP,
     NO_VALID_DEPTH,
     POLICY_ERROR,
+    READ_ERROR,
     STALE_STAMP,
     TOO_SMALL,
     DriveConfig,
@@ -205,6 +206,31 @@ def test_a_policy_that_fails_stops_the_robot_every_period_until_it_decides_again
     assert drive.rejects == {POLICY_ERROR: 11} and not drive.moving
     flaky.failing = False
     assert drive.on_image(image(start_image), clock.t + 2.0).command is not None
+
+
+def test_an_image_whose_reading_fails_unexpectedly_stops_the_moving_robot(policy, start_image):
+    # An error read() did not expect (out of memory on a large image) reached the shell, which
+    # counted it and sent nothing: the robot drove on its last command until the watchdog.
+    class Starved:
+        def __init__(self) -> None:
+            self.failing = False
+
+        def __getattr__(self, name):
+            return getattr(policy, name)
+
+        def observation(self, depth_m):
+            if self.failing:
+                raise MemoryError("cannot allocate 512 MiB")
+            return policy.observation(depth_m)
+
+    starved, clock = Starved(), Clock()
+    policy.reset()
+    drive = DriveController(starved, DriveConfig(), clock=clock)
+    assert drive.on_image(image(start_image), clock.t).command is not None and drive.moving
+    starved.failing = True
+    stop = drive.on_image(image(start_image), clock.t + 0.1)
+    assert stop is not None and stop.is_stop and stop.reject_cause == READ_ERROR
+    assert "MemoryError: cannot allocate" in stop.error and drive.rejects == {READ_ERROR: 1} and not drive.moving
 
 
 def test_q_values_that_are_not_finite_stop_the_robot_as_a_policy_error(policy, start_image):
