@@ -16,7 +16,8 @@ overall (``shared.evaluation.results``) go to the JSON, the steps to an optional
 (``--rrd``), a running viewer (``--rerun-connect URL``, e.g. one started with ``rerun``; a
 viewer that does not answer is warned about and skipped) or a gRPC server plus web viewer that
 this command hosts (``--rerun-serve``; it prints the address to open and keeps serving after
-the evaluation until Ctrl-C, or for ``--rerun-serve-seconds``).
+the evaluation until Ctrl-C, or for ``--rerun-serve-seconds``; the ``--rrd`` file takes its name
+when serving stops).
 
 ``--ensemble CKPT ...`` adds checkpoints whose Q-values the greedy policy averages with
 ``--checkpoint``'s (each fed the command the ensemble chose last): a Q-value ensemble of
@@ -192,7 +193,9 @@ def run_evaluate(args: argparse.Namespace) -> int:
                                        [e.terminated for _, r in probes for e in r.episodes], probes[0][0].horizon)
             print(json.dumps({"worlds": len(probes), "foresight": pooled}))
     if args.rrd:
-        print(f"recording: {args.rrd}")
+        # Served, the file takes its name when serving stops, as every recording takes it once closed:
+        # its sink stays open while the server runs, and Rerun writes a file's footer only as it closes.
+        print(f"recording: {args.rrd}" + (" (written when serving stops)" if recorder is not None else ""))
     if recorder is not None:
         try:
             recorder.rec.flush(timeout_sec=30.0)  # everything on disk and in the server while we serve
@@ -244,8 +247,6 @@ def _evaluate_one(args: argparse.Namespace, world: str | None, model: LoadedMode
             results = evaluate_recorded(policy_fn, world=setup.world, sensor_cfg=setup.sensor_cfg,
                                         env_cfg=setup.env_cfg, rrd=args.rrd, rerun_connect=args.rerun_connect,
                                         image_every=args.image_every, recording_name=recording_name, **run)
-        if recorder is not None:
-            recorder.commit()  # the file is whole and named while the server stays up
     except BaseException:
         if recorder is not None:
             recorder.close(keep=False)

@@ -20,7 +20,7 @@ from typing import Any, Iterable, Mapping, Sequence
 import numpy as np
 
 from shared.errors import CogexploreError
-from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of, escape_text, markdown_cell
+from shared.evaluation.results import EpisodeResult, EvalResults, episodes_of, escape_text, markdown_cell, one_line
 from shared.files import read_regular_file, save_png
 from shared.jsontext import parse_json
 from shared.learning.stats import read_csv_records
@@ -85,11 +85,29 @@ def trajectory_heatmap(grid: OccupancyGrid, results: EvalResults | Sequence[Epis
     return normalize_heatmap(counts)
 
 
+def check_results_world(world: World, results: EvalResults | Sequence[EpisodeResult], what: str = "the results") -> None:
+    """FigureError when ``results`` say they were played in another world than ``world`` (their
+    ``meta.world_sha256``, else their ``meta.world`` name): their points drawn on this map would be
+    off it (a blank map) or in the wrong rooms. Results that do not say are taken as they come."""
+    from shared.evaluation.protocol import WORLD_META, world_sha256
+
+    meta = results.meta if isinstance(results, EvalResults) else {}
+    played_in, digest = meta.get("world"), meta.get(WORLD_META)
+    # the content, not the name, when recorded: a file world edited since is another map under its old name
+    same = digest == world_sha256(world) if isinstance(digest, str) else played_in in (None, world.name)
+    if not same:
+        named = f"world '{one_line(played_in)}'" if isinstance(played_in, str) else "another world"
+        edited = " as it was before an edit" if played_in == world.name else ""
+        raise FigureError(f"{one_line(what)} were played in {named}{edited}, not {world.label} being "
+                          f"drawn: draw them on their own world")
+
+
 def save_heatmap_png(world: World, grid: OccupancyGrid, results: EvalResults | Sequence[EpisodeResult],
                      out_path: str | Path, title: str | None = None,
                      cell_m: float | None = HEATMAP_CELL_M, dpi: int = 120) -> Path:
     """One model's trajectory heatmap over the world map (starts numbered from 1); ``title`` (default
-    the world's name, a file world's path) is plain text."""
+    the world's name, a file world's path) is plain text. FigureError for results of another world."""
+    check_results_world(world, results)
     return render_map_png(world, grid, out_path, heatmap=trajectory_heatmap(grid, results, cell_m),
                           title=title, dpi=dpi)
 
@@ -99,12 +117,15 @@ def save_heatmaps_side_by_side(world: World, grid: OccupancyGrid,
                                out_path: str | Path, ncols: int | None = None, dpi: int = 110,
                                cell_m: float | None = HEATMAP_CELL_M) -> Path:
     """Several models' heatmaps in one PNG (the paper's Fig. 6 panels), one shared colour
-    scale: each panel is normalised to its own busiest cell, as in the paper."""
+    scale: each panel is normalised to its own busiest cell, as in the paper. FigureError when a
+    model's results are of another world."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     if not models:
         raise FigureError("save_heatmaps_side_by_side needs at least one model")
+    for name, results in models.items():  # before anything is drawn
+        check_results_world(world, results, f"{name}'s results")
     n = len(models)
     ncols = ncols or min(n, 3)
     nrows = math.ceil(n / ncols)

@@ -314,7 +314,7 @@ class RecordingFile:
                 log.info("removed %s, a recording its process left unfinished", orphan)
 
     def commit(self) -> None:
-        """Give the file its name now (a sink may go on writing into it)."""
+        """Give the file its name (once its sink has closed: Rerun writes a file's footer as it closes)."""
         if self.partial is None:
             return
         try:
@@ -679,14 +679,6 @@ class EvalRecorder:
             if not self.live or "grpc" not in str(exc).lower():  # a file that fails is an error
                 raise
             log.warning("Rerun live stream failed (%s); the recording file, if any, is complete", exc)
-
-    def commit(self) -> None:
-        """Flush, and give the file its name while the stream stays open (a served recording is
-        complete on disk before its server goes away); nothing to do without a file."""
-        if self.file is None or self._closed:
-            return
-        self._flush()
-        self.file.commit()  # the open sink writes on into the renamed file
 
     def close(self, keep: bool = True) -> None:
         """Flush everything and close the sinks this recorder opened; a stream passed in by the

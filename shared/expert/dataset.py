@@ -11,7 +11,7 @@ episodes run through the one rollout loop (``shared.rollout``). On disk (never p
     <dir>/depth_mm.npy     (N, H, W) uint16 millimetres, 0 = no return
     <dir>/labels.npy       (N,) uint8 expert command (shared.config.ACTION_NAMES)
     <dir>/episodes.npy     (N,) int32 episode id (the split is by episode, never by frame)
-    <dir>/worlds.npy       (N,) uint8 index into manifest["worlds"]
+    <dir>/worlds.npy       (N,) uint8 index into manifest["worlds"] (uint16 past 256 worlds)
     <dir>/poses.npy        (N, 3) float64 robot x, y, yaw (the expert labels exactly these)
 """
 
@@ -180,12 +180,23 @@ class SupervisedDataset:
         return {name: int(c) for name, c in zip(ACTION_NAMES, counts)}
 
 
-def _files_layout(frames: int, height: int, width: int) -> dict[str, dict[str, Any]]:
-    """The manifest's ``files``: each array's dtype and shape for ``frames`` images of height x width."""
+def world_index_dtype(n_worlds: int) -> np.dtype:
+    """The dtype of ``worlds.npy`` for a dataset of ``n_worlds`` worlds: one byte up to 256 worlds (the
+    layout every dataset had before, so those stay readable and reusable), wider past that, where a
+    byte could not hold the index."""
+    for dtype in (np.uint8, np.uint16, np.uint32):
+        if n_worlds <= np.iinfo(dtype).max + 1:
+            return np.dtype(dtype)
+    raise SupervisedError(f"{n_worlds} worlds are more than a dataset can index")
+
+
+def _files_layout(frames: int, height: int, width: int, n_worlds: int) -> dict[str, dict[str, Any]]:
+    """The manifest's ``files``: each array's dtype and shape for ``frames`` images of height x width
+    collected in ``n_worlds`` worlds."""
     return {"depth_mm": {"dtype": "uint16", "shape": [frames, height, width]},
             "labels": {"dtype": "uint8", "shape": [frames]},
             "episodes": {"dtype": "int32", "shape": [frames]},
-            "worlds": {"dtype": "uint8", "shape": [frames]},
+            "worlds": {"dtype": str(world_index_dtype(n_worlds)), "shape": [frames]},
             "poses": {"dtype": "float64", "shape": [frames, 3]}}
 
 
@@ -222,7 +233,7 @@ def _check_manifest(manifest: dict[str, Any], path: Path) -> None:
     # The arrays' layout, as generate_dataset writes it: one frame count, the sensor's image size.
     labels_shape = files["labels"]["shape"]
     n = labels_shape[0] if len(labels_shape) == 1 else -1
-    for name, want in _files_layout(n, sensor_cfg.height, sensor_cfg.width).items():
+    for name, want in _files_layout(n, sensor_cfg.height, sensor_cfg.width, len(worlds)).items():
         dtype, shape = want["dtype"], want["shape"]
         if files[name]["dtype"] != dtype or files[name]["shape"] != shape:
             raise SupervisedError(f"{path}: files.{name} is {files[name]['dtype']} {files[name]['shape']}; a dataset "
@@ -398,7 +409,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
     depth = _open_depth_file(out / "depth_mm.npy", frames, h, w)
     labels = np.zeros(frames, np.uint8)
     episodes = np.zeros(frames, np.int32)
-    world_idx = np.zeros(frames, np.uint8)
+    world_idx = np.zeros(frames, world_index_dtype(len(worlds)))
     poses = np.zeros((frames, 3), np.float64)
     rng = np.random.default_rng(seed)
     started = time.monotonic()
@@ -463,7 +474,7 @@ def generate_dataset(out_dir: str | Path, *, worlds: Sequence[str], frames: int,
         "test_episodes": sorted(test_eps),
         "test_frames": int(covered),
         "seconds": round(time.monotonic() - started, 3),
-        "files": _files_layout(frames, h, w),
+        "files": _files_layout(frames, h, w, len(worlds)),
     }
     atomic_write_text(out / MANIFEST, json.dumps(manifest, indent=1))
     return SupervisedDataset.open(out)

@@ -57,6 +57,11 @@ def _check_seed(seed: Any) -> None:
         raise SupervisedError(f"seed must be an integer in [0, {MAX_SEED}] (2**53 - 1), got {seed!r}")
 
 
+MAX_EPOCHS = 10_000
+"""The most supervised training epochs: thousands of times the default 3, yet a bound, so that a
+mistyped count is refused at once instead of training for ever."""
+
+
 @dataclass(frozen=True)
 class TrainSettings:
     """Supervised training hyperparameters."""
@@ -83,8 +88,8 @@ class TrainSettings:
         if self.depth_encoding not in DEPTH_ENCODINGS:
             raise SupervisedError(f"depth_encoding must be one of {', '.join(DEPTH_ENCODINGS)}, "
                                   f"got {self.depth_encoding!r}")
-        if not (isinstance(self.epochs, int) and self.epochs >= 1):
-            raise SupervisedError(f"epochs must be an integer >= 1, got {self.epochs!r}")
+        if not (is_whole(self.epochs) and 1 <= self.epochs <= MAX_EPOCHS):
+            raise SupervisedError(f"epochs must be an integer in [1, {MAX_EPOCHS}], got {self.epochs!r}")
         if not (isinstance(self.batch_size, int) and 1 <= self.batch_size <= 4096):
             raise SupervisedError(f"batch_size must be an integer in [1, 4096], got {self.batch_size!r}")
         if not (isinstance(self.lr, (int, float)) and 0 < self.lr <= 1):

@@ -307,3 +307,28 @@ def test_q_value_table_errors() -> None:
     for odd in (["a", 1, 2, 3, 4], [[1, 2], [3]], {"left": 1.0}):  # text, ragged, an object: named, not a traceback
         with pytest.raises(FigureError, match="need 5 finite values"):
             q_value_table_markdown({"S1": {"SL": odd}})
+
+
+def test_results_of_another_world_are_refused_not_drawn_blank(tmp_path, world, grid) -> None:
+    from shared.evaluation.protocol import WORLD_META, world_sha256
+
+    # paper-indoor's results lie mostly outside box-room's 4 m square: drawn there, the map came out blank
+    xy = [(5.0 + 0.1 * i, 3.0) for i in range(20)]
+    other = load_world("paper-indoor")
+    elsewhere = EvalResults((episode(0, 0, xy),), meta={"world": other.name, WORLD_META: world_sha256(other)})
+    with pytest.raises(FigureError, match=r"paper-indoor.*box-room") as err:
+        save_heatmap_png(world, grid, elsewhere, tmp_path / "one.png")
+    assert "\n" not in str(err.value)
+    with pytest.raises(FigureError, match=r"paper-indoor.*box-room"):
+        save_heatmaps_side_by_side(world, grid, {"ours": elsewhere}, tmp_path / "side.png")
+    assert not (tmp_path / "one.png").exists() and not (tmp_path / "side.png").exists()
+    # the same name, other content (a world file edited since): not the map the episodes were played on
+    edited = EvalResults((episode(0, 0, xy),), meta={"world": world.name, WORLD_META: "0" * 64})
+    with pytest.raises(FigureError, match="box-room"):
+        save_heatmap_png(world, grid, edited, tmp_path / "edited.png")
+    # results that do not say (a bare list of episodes, meta from before the world was recorded) draw
+    here = EvalResults((episode(0, 0, [(0.1, 0.1), (0.2, 0.2)]),), meta={"world": world.name})
+    assert save_heatmap_png(world, grid, here, tmp_path / "here.png", dpi=40).is_file()
+    own = EvalResults(here.episodes, meta={"world": world.name, WORLD_META: world_sha256(world)})
+    assert save_heatmaps_side_by_side(world, grid, {"a": own, "b": list(here.episodes)}, tmp_path / "s.png",
+                                      dpi=40).is_file()
