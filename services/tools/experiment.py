@@ -719,11 +719,14 @@ class Experiment:
 def options_from_args(args: argparse.Namespace) -> Options:
     from services.options import protocol_from_args
     from services.tools.pretrain import parse_worlds
+    from shared.expert.supervised import MAX_EPOCHS
 
     checkpoints = parse_checkpoints(args.checkpoints)
     for name in ("actors", "sl_frames", "sl_epochs", "episodes_per_start", "max_steps"):
         if getattr(args, name) < 1:
             raise ExperimentError(f"--{name.replace('_', '-')} must be >= 1, got {getattr(args, name)}")
+    if args.sl_epochs > MAX_EPOCHS:  # the pretrain stage's bound, as the seed's below
+        raise ExperimentError(f"--sl-epochs must be <= {MAX_EPOCHS}, got {args.sl_epochs}")
     if not 0 <= args.seed <= MAX_SEED:  # the pretrain stage's bound, known before any stage runs
         raise ExperimentError(f"--seed must be in [0, {MAX_SEED}] (2**53 - 1), got {args.seed}")
     if args.rl_updates is not None and args.rl_updates < 1:

@@ -254,11 +254,12 @@ def run_protocol(policy_fn: PolicyFn, make_env: Callable[[], Any], starts: Seque
                     episodes.append(result)
                     bar.update(1)
                     bar.set_postfix(mean_steps=f"{np.mean([e.steps for e in episodes]):.1f}")
-        run_meta = {"world": env.world.name, WORLD_META: world_sha256(env.world),
+        # the conditions played win over a caller's meta: results that misstate them would be reused
+        # by report and selection for another world or protocol
+        run_meta = {**(meta or {}), "world": env.world.name, WORLD_META: world_sha256(env.world),
                     "speed_table": env.env_config.speed_table,
                     "starts": start_list, "episodes_per_start": episodes_per_start,
                     "max_steps": max_steps, "seed": seed, "protocol": protocol.to_dict()}
-        run_meta.update(meta or {})
         return EvalResults(tuple(episodes), run_meta)
     finally:
         env.close()
@@ -288,8 +289,8 @@ def evaluate_policy(policy_fn: PolicyFn, *, world: str, sensor_cfg: SensorConfig
     def make_env() -> ExploreEnv:
         return ExploreEnv(cfg, sensor_cfg, world=world_obj)
 
-    full_meta = {"sensor": asdict(sensor_cfg), "env": {k: v for k, v in asdict(cfg).items() if k != "start_index"}}
-    full_meta.update(meta or {})
+    full_meta = {**(meta or {}), "sensor": asdict(sensor_cfg),
+                 "env": {k: v for k, v in asdict(cfg).items() if k != "start_index"}}
     results = run_protocol(policy_fn, make_env, starts=starts, episodes_per_start=episodes_per_start,
                            max_steps=max_steps, seed=seed, recorder=recorder, progress=progress,
                            meta=full_meta, stop=stop, protocol=protocol)

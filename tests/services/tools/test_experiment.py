@@ -276,6 +276,14 @@ def test_a_seed_out_of_range_is_refused_before_any_stage(tmp_path, capsys, seed)
     assert "--seed must be in [0, 9007199254740991]" in capsys.readouterr().err and not (tmp_path / "x").exists()
 
 
+def test_sl_epochs_past_the_pretrain_bound_are_refused_before_any_stage(tmp_path, capsys):
+    from shared.expert.supervised import MAX_EPOCHS
+
+    # refused only by the SL stage, after the run folder was made
+    assert main([*TINY, "--out", str(tmp_path / "x"), "--checkpoints", "20", "--sl-epochs", str(MAX_EPOCHS + 1)]) == 2
+    assert f"--sl-epochs must be <= {MAX_EPOCHS}" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
 def test_an_up_child_is_told_to_stop_when_only_the_experiment_got_the_signal(tmp_path):
     from services.tools.experiment import _stop_child
 

@@ -132,6 +132,21 @@ def test_protocol_runs_every_start_times_episodes_within_the_cap() -> None:
     assert all(e.truncated and not e.terminated for e in circling.episodes)
 
 
+def test_the_conditions_played_win_over_a_callers_meta() -> None:
+    # a caller's meta overwrote them: results that said another world, protocol or sensor than
+    # they were played under, and that report and selection would reuse as such
+    sensor = SensorConfig(width=40, height=30)
+    claimed = {"world": "paper-indoor", "world_sha256": "0" * 64, "protocol": {"name": "robust"},
+               "sensor": {"width": 80}, "env": {}, "max_steps": 200, "seed": 7, "model": "mine"}
+    results = evaluate_policy(lambda d: (0, None), world="box-room", sensor_cfg=sensor, starts=[2], max_steps=3,
+                              episodes_per_start=1, progress=False, meta=claimed)
+    plain = evaluate_policy(lambda d: (0, None), world="box-room", sensor_cfg=sensor, starts=[2], max_steps=3,
+                            episodes_per_start=1, progress=False)
+    assert results.meta["model"] == "mine"  # what the caller alone knows is kept
+    assert {k: results.meta[k] for k in claimed if k != "model"} == {k: plain.meta[k] for k in claimed if k != "model"}
+    assert results.meta["world"] == "box-room" and results.meta["protocol"]["name"] == "paper"
+
+
 def test_training_worlds_the_protocol_never_plays_are_not_loaded(tmp_path: Path) -> None:
     # A run trained beside a world file that was moved since could not be tested any more: the
     # protocol's env loaded every extra world at construction, though it plays --world alone.
