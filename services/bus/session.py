@@ -601,5 +601,8 @@ def zenoh_settings(args: argparse.Namespace, role: str | None = None) -> ZenohSe
         found = SecureFiles(run_paths(args).secure).config(role)
         if found.is_file():
             log.info("Zenoh credentials of role %s: %s", role, found)
-            settings = dataclasses.replace(settings, config_file=str(found))
+            # credentials name no router (SecureFiles writes none): without --connect the default
+            # router, as without them, not a client that knows of no router to connect to
+            settings = dataclasses.replace(settings, config_file=str(found),
+                                           connect=settings.connect or settings.effective_connect)
     return settings

@@ -164,6 +164,11 @@ def test_a_service_finds_its_runs_credentials_unless_told_others(tmp_path: Path,
     assert found.config_file == str(files.config("actor")) and found.connect == ("tcp/127.0.0.1:9",)
     assert str(files.config("actor")) in caplog.text  # the log names the file
     assert zenoh_settings(parser.parse_args(argv), "evaluator").config_file == str(files.config("evaluator"))
+    # without --connect, the run's credentials go to the default router as a run without them does (they
+    # name no router: the client had none to connect to, "No peer specified and multicast scouting deactivated")
+    bare = zenoh_settings(parser.parse_args(argv[2:]), "actor")
+    assert bare.config_file == str(files.config("actor")) and bare.effective_connect == DEFAULT_CONNECT
+    assert json.loads(bare.to_config().get_json("connect/endpoints")) == list(DEFAULT_CONNECT)
     assert zenoh_settings(parser.parse_args(argv)).config_file is None  # no role, no search
     other = tmp_path / "other.json5"
     other.write_text("{}")  # a file that is not there is refused where the settings are made
