@@ -343,6 +343,7 @@ class Launcher:
                 # being averaged, and one started meanwhile is refused (its own RunLock).
                 self.learner_lock = RunLock(self.paths, "learner")
             else:
+                self._check_ports()  # a refused start leaves no run folder behind, nor moves one aside
                 self._prepare_folder()
         except BaseException:
             self.close()
@@ -423,11 +424,15 @@ class Launcher:
                 "--zenoh-mode", "client", "--zenoh-config", str(self.secure.config(role)),
                 "--tensorboard" if self.args.tensorboard else "--no-tensorboard"]
 
-    def start(self) -> None:
-        for endpoint in self.listen:  # else the progress session would wait on whatever holds it
+    def _check_ports(self) -> None:
+        """TransportError naming a router endpoint something else holds (else the progress session would
+        wait on whatever holds it)."""
+        for endpoint in self.listen:
             if (taken := port_taken(endpoint)) is not None:
                 raise TransportError(f"the router cannot listen on {endpoint}: {taken}. Another router or "
                                      "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
+
+    def start(self) -> None:
         for role, name, argv in self.service_argvs():
             self._spawn(role, name, argv)
 
