@@ -143,7 +143,10 @@ def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxP
     except Exception as exc:  # noqa: BLE001  onnxruntime's load errors (InvalidProtobuf, Fail...) share no other base
         reason = " ".join(str(exc).split()) or type(exc).__name__
         raise OnnxModelError(f"{path}: not a readable ONNX model: {reason}") from None
-    metadata = session.get_modelmeta().custom_metadata_map
+    try:
+        metadata = session.get_modelmeta().custom_metadata_map
+    except UnicodeDecodeError:  # a damaged byte: onnxruntime decodes every entry as UTF-8
+        raise OnnxModelError(f"{path}: its metadata is not UTF-8 text (a damaged file?)") from None
     if METADATA_KEY not in metadata:
         raise OnnxModelError(f"{path}: not a cogexplore ONNX export (no {METADATA_KEY!r} metadata; write one with "
                              "`cogexplore model export CKPT --onnx FILE`)")

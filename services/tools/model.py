@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 from typing import Any
@@ -34,9 +35,12 @@ def run_export(args: argparse.Namespace) -> int:
                           "or both")
     if args.half and not args.out:
         raise ConfigError("--half stores the --out weights as float16; an --onnx export is float32")
+    if args.out and args.onnx and _same_file(args.out, args.onnx):
+        # the weights would be written over the ONNX file just written, and both reported written
+        raise ConfigError(f"--out and --onnx name the same file ({args.out}): give each its own")
     from services.tools.selection import check_output
-    from shared.learning.checkpoints import (average_models, ensemble_members, ensemble_models, export_tensors,
-                                             export_weights, load_model)
+    from shared.learning.checkpoints import (average_models, ensemble_members, ensemble_models, export_weights,
+                                             load_model)
 
     if args.ensemble and len(args.checkpoint) < 2:
         raise ConfigError("--ensemble joins several checkpoints: give at least two")
@@ -54,14 +58,10 @@ def run_export(args: argparse.Namespace) -> int:
         if not isinstance(card, dict):
             raise ConfigError(f"--card {args.card} must hold a JSON object")
     report: dict[str, Any] = {}
-    if args.out and args.onnx:  # a refused --out (float16 overflow) must not leave the ONNX file written
-        export_tensors(loaded.net, args.out, half=args.half)
-    if args.onnx:  # first: its check against torch may refuse it, and then nothing is written
-        from shared.learning.onnx_export import export_onnx
 
-        onnx_path = export_onnx(loaded, args.onnx, extra={"card": card} if card else None)
-        report["onnx"] = {"out": str(onnx_path), "bytes": onnx_path.stat().st_size}
-    if args.out:
+    def write_weights() -> None:
+        if not args.out:
+            return
         extra: dict[str, Any] = {}
         if loaded.averaged_from:
             extra["averaged_from"] = list(loaded.averaged_from)
@@ -72,9 +72,35 @@ def run_export(args: argparse.Namespace) -> int:
         out = export_weights(args.out, loaded.net, loaded.policy_version, half=args.half,
                              run_config=loaded.run_config, extra=extra or None)
         report.update(out=str(out), bytes=out.stat().st_size, half=args.half)
+
+    if args.onnx:
+        from shared.files import write_atomically
+        from shared.learning.onnx_export import onnx_file_bytes
+
+        # first: its check against torch may refuse it, and then nothing is written
+        data = onnx_file_bytes(loaded, args.onnx, extra={"card": card} if card else None)
+        onnx_path = Path(args.onnx)
+        onnx_path.parent.mkdir(parents=True, exist_ok=True)
+        # the weights are written while the ONNX file has its temporary name: a refused or failed --out
+        # (float16 overflow, a full disk) leaves neither file, and an earlier export under the name as it was
+        write_atomically(onnx_path, lambda tmp: (tmp.write_bytes(data), write_weights()))
+        report["onnx"] = {"out": str(onnx_path), "bytes": onnx_path.stat().st_size}
+    else:
+        write_weights()
     _print_json({**report, "policy_version": loaded.policy_version, "source": str(loaded.path),
                  "averaged": max(1, len(loaded.averaged_from)), "ensemble": len(loaded.ensemble_of)})
     return 0
+
+
+def _same_file(a: str, b: str) -> bool:
+    """Whether two paths name one file: the same path once links and ``..`` are resolved, or one
+    existing file under two names (a hard link)."""
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one of them does not exist yet
+        return False
 
 
 def run_select(args: argparse.Namespace) -> int:

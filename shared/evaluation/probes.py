@@ -25,7 +25,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from shared.config import SensorConfig
+from shared.config import MUST_MATCH_FIELDS, SensorConfig
 from shared.depth import MM_PER_M, resize_depth
 from shared.errors import CogexploreError
 from shared.jsontext import read_json_file
@@ -33,6 +33,10 @@ from shared.jsontext import read_json_file
 PROBE_DIR = Path(__file__).resolve().with_name("probe_scenes")
 """Where the stored probe scenes live (``shared/evaluation/probe_scenes/``)."""
 PROBE_WORLD = "paper-indoor"
+CAMERA_FIELDS: tuple[str, ...] = tuple(n.partition(".")[2] for n in MUST_MATCH_FIELDS if n.startswith("sensor."))
+"""The sensor fields that decide what image a pose gives (size, field of view, range, mount):
+a stored probe image stands for another camera only when they all agree."""
+_ALWAYS_RECORDED = ("width", "height", "hfov_deg", "vfov_deg", "max_range_m", "mount_height_m")
 
 
 class ProbeError(CogexploreError):
@@ -99,9 +103,17 @@ def render_probe(scene: ProbeScene, sensor_cfg: SensorConfig | None = None) -> n
 def _scene_meta(scene: ProbeScene, sensor_cfg: SensorConfig) -> dict[str, Any]:
     return {"name": scene.name, "world": scene.world, "pose": {"x": scene.x, "y": scene.y, "yaw": scene.yaw},
             "description": scene.description, "units": "metres, 0 = no return",
-            "sensor": {"width": sensor_cfg.width, "height": sensor_cfg.height, "hfov_deg": sensor_cfg.hfov_deg,
-                       "vfov_deg": sensor_cfg.vfov_deg, "max_range_m": sensor_cfg.max_range_m,
-                       "mount_height_m": sensor_cfg.mount_height_m}}
+            # fields beyond the six every description records only where they are not the default sensor's,
+            # which _stored_camera reads for a field left out
+            "sensor": {name: getattr(sensor_cfg, name) for name in CAMERA_FIELDS
+                       if name in _ALWAYS_RECORDED or getattr(sensor_cfg, name) != getattr(SensorConfig(), name)}}
+
+
+def _stored_camera(stored: dict[str, Any]) -> dict[str, Any]:
+    """The camera a stored scene's image was taken with; fields its description leaves out are the
+    default sensor's (``generate_probes``'s, when the description recorded fewer fields)."""
+    default = SensorConfig()
+    return {name: stored.get(name, getattr(default, name)) for name in CAMERA_FIELDS}
 
 
 def generate_probes(out_dir: str | Path = PROBE_DIR, scenes: Sequence[ProbeScene] = PROBE_SCENES,
@@ -123,8 +135,8 @@ def generate_probes(out_dir: str | Path = PROBE_DIR, scenes: Sequence[ProbeScene
 def load_probes(directory: str | Path = PROBE_DIR, sensor_cfg: SensorConfig | None = None) -> list[Probe]:
     """The stored probe scenes, sorted by name, for ``sensor_cfg`` (default: the paper's).
 
-    For a sensor of another size the scenes are rendered again from their stored poses (a
-    resized image would not be what that sensor sees)."""
+    For another camera (``CAMERA_FIELDS``: another size, field of view, range or mount) the scenes
+    are rendered again from their stored poses (a resized image would not be what it sees)."""
     cfg = sensor_cfg or SensorConfig()
     d = Path(directory)
     metas = sorted(d.glob("*.json"))
@@ -140,13 +152,16 @@ def load_probes(directory: str | Path = PROBE_DIR, sensor_cfg: SensorConfig | No
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             raise ProbeError(f"{meta_path}: not a probe description ({exc!r})") from None
         stored = meta.get("sensor") if isinstance(meta.get("sensor"), dict) else {}
-        if (stored.get("width"), stored.get("height")) == (cfg.width, cfg.height) and \
-                (d / f"{scene.name}.npy").exists():
+        camera = {name: getattr(cfg, name) for name in CAMERA_FIELDS}
+        # the size alone is not the image: a camera mounted elsewhere or with another field of view or range
+        # sees another one at the pose
+        if _stored_camera(stored) == camera and (d / f"{scene.name}.npy").exists():
             depth, notes = load_probe_image(d / f"{scene.name}.npy", cfg)
         else:
             depth = render_probe(scene, cfg)
             notes = (f"probe scenes rendered from their stored poses for the {cfg.width}x{cfg.height} sensor "
-                     f"(the stored images are {stored.get('width')}x{stored.get('height')})",)
+                     f"(the stored images are another camera's: {stored.get('width')}x{stored.get('height')}, "
+                     f"{stored.get('hfov_deg')} x {stored.get('vfov_deg')} degrees)",)
         probes.append(Probe(scene.name, depth, meta, tuple(notes)))
     return probes
 
@@ -217,6 +232,11 @@ def load_probe_image(path: str | Path, sensor_cfg: SensorConfig | None = None,
         notes.append(f"{p.name}: {int(beyond.sum())} pixels beyond the sensor's {cfg.max_range_m} m range set to 0 "
                      "(no return), as the simulated camera reports them")
         depth = np.where(beyond, 0.0, depth)
+    nearer = (depth > 0) & (depth < cfg.min_range_m)
+    if nearer.any():
+        notes.append(f"{p.name}: {int(nearer.sum())} pixels nearer than the sensor's {cfg.min_range_m} m range set "
+                     "to 0 (no return), as the simulated camera reports them")
+        depth = np.where(nearer, 0.0, depth)
     return depth.astype(np.float32), notes
 
 

@@ -106,6 +106,17 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
     ``cogexplore.load_policy`` has it. Raises OnnxModelError, writing nothing, when onnxruntime's
     Q-values differ from torch's by more than ``MATCH_TOLERANCE``. Returns the path."""
     path = Path(path)
+    data = onnx_file_bytes(model, path, label=label, extra=extra)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomically(path, lambda tmp: tmp.write_bytes(data))
+    return path
+
+
+def onnx_file_bytes(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, label: str | None = None,
+                    extra: Mapping[str, Any] | None = None) -> bytes:
+    """The bytes :func:`export_onnx` writes to ``path`` (named in its errors), checked against torch;
+    for a caller that writes them with other files (``model export --onnx F --out G``)."""
+    path = Path(path)
     if isinstance(model, LoadedModel):
         net, source, version = model.net, str(model.path), model.policy_version
         label = label or model.label
@@ -134,9 +145,7 @@ def export_onnx(model: LoadedModel | QNetwork, path: str | os.PathLike[str], *, 
     OnnxPolicyInfo.from_json(text, f"{path}: not written")
     data = _serialise(net, info)
     _check_against_torch(net, data, path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomically(path, lambda tmp: tmp.write_bytes(data))
-    return path
+    return data
 
 
 def _control_period_s(model: LoadedModel | QNetwork) -> float:

@@ -234,3 +234,16 @@ def test_evaluate_plays_an_onnx_policy_as_the_torch_policy_of_its_network(torch_
     assert ours.meta["model"] == theirs.meta["model"] == torch_policy.label
     assert ours.meta["policy_version"] == theirs.meta["policy_version"] > 0
     assert ours.meta["sensor"]["width"] == 40
+
+
+def test_metadata_that_is_not_text_is_a_one_line_error(onnx_path: Path, tmp_path: Path) -> None:
+    # a damaged byte in the metadata: onnxruntime's UnicodeDecodeError came out as a traceback
+    proto = onnx.load(str(onnx_path))
+    onnx.helper.set_model_props(proto, {**{p.key: p.value for p in proto.metadata_props}, "note": "@" * 16})
+    data = proto.SerializeToString()
+    assert data.count(b"@" * 16) == 1
+    damaged = tmp_path / "bytes.onnx"
+    damaged.write_bytes(data.replace(b"@" * 16, b"\xcc" * 16))
+    with pytest.raises(OnnxModelError, match="metadata is not UTF-8 text") as caught:
+        load_onnx_policy(damaged)
+    assert "\n" not in str(caught.value) and str(damaged) in str(caught.value)

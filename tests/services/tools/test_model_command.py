@@ -55,3 +55,40 @@ def test_an_export_to_a_folder_is_one_line_before_any_window_is_played(tmp_path:
         err = capsys.readouterr().err
         assert "Is a directory (give a file name)" in err and err.count("\n") == 1, err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]
+
+
+def test_the_weights_and_the_onnx_file_of_one_export_must_be_two_files(tmp_path: Path, capsys, monkeypatch) -> None:
+    # --out F --onnx F wrote the ONNX file, then the weights over it, and reported both written
+    run = make_run(tmp_path / "run", (100,))
+    monkeypatch.chdir(tmp_path)
+    kept = tmp_path / "kept.bin"
+    kept.write_bytes(b"an earlier file")
+    (tmp_path / "link.bin").symlink_to(kept)
+    for out, onnx in (("m.bin", "m.bin"), ("m.bin", "./sub/../m.bin"), ("kept.bin", "link.bin")):
+        (tmp_path / "sub").mkdir(exist_ok=True)
+        assert main(["model", "export", str(run), "--out", out, "--onnx", onnx]) == 2, (out, onnx)
+        err = capsys.readouterr().err
+        assert "--out and --onnx name the same file" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "m.bin").exists() and kept.read_bytes() == b"an earlier file"
+
+
+def test_a_failed_weights_write_leaves_no_onnx_file_of_the_same_export(tmp_path: Path, capsys, monkeypatch) -> None:
+    # --onnx F --out G where G cannot be written: F was written (over an earlier export of the same name)
+    # and the command failed, leaving one half of an export
+    run = make_run(tmp_path / "run", (100,))
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "afile").write_text("not a folder")
+    (tmp_path / "earlier.onnx").write_bytes(b"an earlier export")
+    for onnx in ("new.onnx", "earlier.onnx"):
+        assert main(["model", "export", str(run), "--onnx", onnx, "--out", "afile/w.safetensors"]) == 2
+        err = capsys.readouterr().err
+        assert "afile" in err and err.count("\n") == 1, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile", "earlier.onnx", "run"]
+    assert (tmp_path / "earlier.onnx").read_bytes() == b"an earlier export"
+    # both written when both can be
+    assert main(["model", "export", str(run), "--onnx", "new.onnx", "--out", "w.safetensors"]) == 0
+    from cogexplore.onnx_runner import load_onnx_policy
+    from shared.learning.checkpoints import load_model
+
+    assert load_onnx_policy(tmp_path / "new.onnx").label == load_model(tmp_path / "w.safetensors").label.replace(
+        "w@", "run@")
