@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import sys
 import threading
 import time
 from pathlib import Path
@@ -27,7 +28,8 @@ from services.runs import RunLock, RunPaths, resolve_config, save_config
 from shared.config import RunConfig
 from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager
-from shared.learning.learner import LearnerCore, RateMeter, resume_from
+from shared.learning.learner import LearnerCore, RateMeter, check_start_sources, resume_from
+from shared.learning.model import resolve_device
 from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
 from shared.learning.stats import (
     CsvLog,
@@ -35,6 +37,7 @@ from shared.learning.stats import (
     LearnerRow,
     TensorBoardLog,
     episode_row,
+    read_csv_records,
     rewind,
 )
 from shared.rollout import Episode, Rollout, Step
@@ -43,6 +46,10 @@ from shared.wire.keys import validate_name
 from shared.wire.messages import new_epoch
 
 log = logging.getLogger("cogexplore.train")
+
+NON_TERMINAL_REDRAW_S = 60.0
+"""Seconds between redraws of the progress bar where stderr is no terminal (a log file, a pipe): each
+redraw there is one more carriage return and bar in one endless line."""
 
 
 class _Training:
@@ -72,7 +79,8 @@ class _Training:
                             step.terminated, step.truncated, self.guide.teacher_label(step.info["pose"]),
                             self.guide.safe_label(step.info["pose"]))
         for _ in range(core.updates_due()):
-            core.train_step()
+            if core.train_step() is None:  # skipped (a non-finite loss): no update to count, log or save
+                continue
             self.update_rate.add(1)
             self.bar.update(1)
             if core.updates % train.log_every == 0:
@@ -125,7 +133,11 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     save_config(cfg, paths)  # only now: a config that cannot resume the run (or run here) must not replace its own
     # its updates after the checkpoint come again; with none (a trainer killed before its first), all do
     rewind(paths.stats, LearnerRow, core.updates)
-    rewind(paths.stats, EpisodeRow, core.updates)
+    # by env step: the episodes that ended after the checkpoint at its update (the warm-up's, or at a
+    # replay ratio under 1) come again too
+    rewind(paths.stats, EpisodeRow, core.received, column=EpisodeRow.STEP)
+    logged_episodes = sum(1 for _ in read_csv_records(paths.stats / EpisodeRow.FILE)) \
+        if (paths.stats / EpisodeRow.FILE).is_file() else 0
     env = ExploreEnv(cfg.env, cfg.sensor)
     guide = ExpertGuide(env, cfg.explore.expert_episode_prob, seed=cfg.train.seed + 2,
                         label_prob=cfg.explore.expert_label_prob, safe_prob=cfg.explore.safe_label_prob)
@@ -135,9 +147,11 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     with CsvLog(paths.stats, LearnerRow) as learner_log, CsvLog(paths.stats, EpisodeRow) as episode_log, \
             TensorBoardLog(paths.tensorboard_folder("train") if tensorboard else None) as board, \
             tqdm(total=cfg.train.total_updates, initial=core.updates, desc="train", unit="upd",
-                 dynamic_ncols=True, disable=not progress) as bar:
+                 dynamic_ncols=True, disable=not progress, mininterval=NON_TERMINAL_REDRAW_S
+                 if not sys.stderr.isatty() else 0.1) as bar:
         training = _Training(cfg, core, checkpoints, guide, learner_log, episode_log, bar, board)
         loop = Rollout(env, policy, [guide, training], env_steps=core.received)  # epsilon goes on after a resume
+        loop.episodes = logged_episodes  # episodes.csv numbers them on too
         loop.begin_episode(seed=cfg.train.seed + (core.received if resumed else 0))
         while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
             if loop.step().last:
@@ -162,6 +176,9 @@ def run_train_command(args: argparse.Namespace) -> int:
     validate_name(run, "run name")
     paths = RunPaths(Path(args.runs_dir) / run)
     cfg = train_config(args, paths)  # a bad preset or --set fails here, before the run folder exists
+    # and so do a device this machine lacks and a missing or unfit transfer or demonstration file
+    resolve_device(cfg.train.device)
+    check_start_sources(cfg)
     setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
                                   max_minutes=args.minutes, tensorboard=args.tensorboard)

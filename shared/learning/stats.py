@@ -250,17 +250,17 @@ def summarize_learner_log(path: Path) -> TrainingSummary | None:
 RowT = TypeVar("RowT", bound=_Row)
 
 
-def rewind(stats_dir: Path, row_type: type[_Row], update: int) -> int:
+def rewind(stats_dir: Path, row_type: type[_Row], update: int, column: str = "update") -> int:
     """Drop the rows of ``row_type``'s file logged after ``update`` (a run resumed from an older
-    checkpoint logs those updates again: its column must not go back). Rewritten atomically;
-    returns how many rows went."""
+    checkpoint logs those updates again: its column must not go back); ``column``: the one that
+    count is of (``env_step``: transitions). Rewritten atomically; returns how many rows went."""
     path = Path(stats_dir) / row_type.FILE
     if not path.is_file():
         return 0
     rows = list(read_csv(path))
-    if not rows or "update" not in rows[0]:
+    if not rows or column not in rows[0]:
         return 0
-    col = rows[0].index("update")
+    col = rows[0].index(column)
 
     def kept(row: list[str]) -> bool:
         try:

@@ -220,3 +220,104 @@ def test_a_resumed_trainer_marks_each_session_and_the_summary_adds_their_times(t
     session_s = {r["session"]: float(r["time_s"]) for r in rows}  # each session's time at its last row
     assert [int(r["update"]) for r in rows] == [5, 10, 12, 15, 16] and len(session_s) == 3
     assert summarize_learner_log(paths.stats / LearnerRow.FILE).learner_s == pytest.approx(sum(session_s.values()))
+
+
+def test_a_resumed_trainer_s_episode_log_goes_on_from_its_checkpoint(tmp_path: Path):
+    # episodes.csv was cut back by update only: a session's episodes logged after its last checkpoint at
+    # that same update (the warm-up's, all at update 0, or at a replay ratio under 1) stayed, and the
+    # next session, going on from the checkpoint's env step, logged env_step going back; its episode
+    # numbers started at 0 again.
+    import shutil
+
+    from shared.learning.stats import read_csv_records
+
+    paths = RunPaths(tmp_path / "r")
+    cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": 64, "train.replay_ratio": 0.25,
+                                               "train.checkpoint_every": 5, "train.log_every": 5})
+
+    def train(updates: int) -> list[dict]:
+        train_single_process(cfg.with_overrides({"train.total_updates": updates}), paths, progress=False,
+                             tensorboard=False)
+        return list(read_csv_records(paths.stats / EpisodeRow.FILE))
+
+    first = train(6)
+    rows = train(12)
+    assert len(rows) > len(first)
+    for column in ("env_step", "episode"):
+        values = [int(r[column]) for r in rows]
+        assert values == sorted(values), (column, values)
+    assert len({r["episode"] for r in rows}) == len(rows)
+    shutil.rmtree(paths.checkpoints)  # as if the run had died before its first checkpoint
+    rows = train(3)
+    steps = [int(r["env_step"]) for r in rows]
+    assert steps == sorted(steps) and [int(r["episode"]) for r in rows] == list(range(len(rows)))
+
+
+def test_train_s_progress_bar_on_a_non_terminal_is_not_redrawn_every_tenth_of_a_second(tmp_path: Path, capsys):
+    # stderr to a file or a pipe (nohup, a CI log): tqdm drew its bar every 0.1 s there, a paper run's
+    # log a single line of megabytes of carriage returns.
+    from services.cli import main
+
+    assert main(["train", "--preset", "smoke", "--updates", "60", "--runs-dir", str(tmp_path), "--run", "r",
+                 "--set", "train.warmup_transitions=32"]) == 0
+    err = capsys.readouterr().err
+    assert "train: 100%" in err and err.count("\r") <= 3, err.count("\r")
+
+
+def test_an_update_skipped_for_a_non_finite_loss_is_not_logged_saved_or_counted(tmp_path: Path,
+                                                                                checkpoint_saves: list[int]):
+    # A skipped update (LearnerCore.train_step None) left the update count where it was, but the trainer
+    # went on as if it had run: the bar moved, and the update before it was logged and checkpointed again
+    # (update 0 too, before any update had run).
+    import io
+
+    from tqdm import tqdm
+
+    from services.tools.train import _Training
+    from shared.expert.expert import ExpertGuide
+    from shared.learning.learner import LearnerCore
+    from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
+    from shared.learning.stats import CsvLog, TensorBoardLog, read_csv_records
+
+    cfg = load_preset("smoke").with_overrides({
+        "train.warmup_transitions": 8, "dqn.batch_size": 8, "dqn.n_step": 1, "dqn.loss": "mse",
+        "train.log_every": 1, "train.checkpoint_every": 1, "train.total_updates": 12})
+    core = LearnerCore(cfg, device="cpu")
+    frame = np.ones((cfg.sensor.height, cfg.sensor.width), np.float32)
+    for i in range(16):  # a replay memory saved before the reward bounds existed: every other one poisoned
+        core.replay.add(("old", i), frame + 0.01 * i, i % 5, 3.4e38 if i % 2 else 1.0, frame * 1.1, False)
+        core.received += 1
+    paths = RunPaths(tmp_path / "r")
+    paths.make()
+    env = ExploreEnv(cfg.env, cfg.sensor)
+    guide = ExpertGuide(env, 0.0, seed=0)
+    policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=1, guide=guide)
+    with CsvLog(paths.stats, LearnerRow) as learner_log, CsvLog(paths.stats, EpisodeRow) as episode_log, \
+            TensorBoardLog(None) as board, tqdm(total=12, file=io.StringIO()) as bar:
+        training = _Training(cfg, core, CheckpointManager(paths.checkpoints, keep=20), guide, learner_log,
+                             episode_log, bar, board)
+        loop = Rollout(env, policy, [guide, training], env_steps=core.received)
+        loop.begin_episode(seed=0)
+        while not core.done:
+            if loop.step().last:
+                loop.begin_episode()
+        assert bar.n == core.updates == 12
+    env.close()
+    assert core.dropped_nonfinite > 0
+    assert [int(r["update"]) for r in read_csv_records(paths.stats / LearnerRow.FILE)] == list(range(1, 13))
+    assert checkpoint_saves == list(range(1, 12))  # the last one is the final save's
+
+
+def test_train_refuses_a_device_or_start_file_it_cannot_use_before_it_makes_the_run_folder(tmp_path: Path, capsys):
+    # The run folder (stats/, checkpoints/, logs/...) was made first, then LearnerCore refused: a run
+    # with no config and nothing in it was left behind.
+    from services.cli import main
+
+    common = ["train", "--preset", "smoke", "--updates", "5", "--runs-dir", str(tmp_path), "--run", "r", "--quiet"]
+    for bad, said in ((["--device", "cuda:99"], "cuda:99"),
+                      (["--set", f"train.init_from={tmp_path / 'none.safetensors'}"], "no such file"),
+                      (["--set", f"train.demos={tmp_path / 'none.npz'}", "--set", "dqn.demo_batch=4"], "none.npz")):
+        assert main([*common, *bad]) == 2
+        err = capsys.readouterr().err
+        assert said in err and len(err.strip().splitlines()) == 1, err
+        assert not (tmp_path / "r").exists()
