@@ -247,14 +247,16 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             # 2. one due update per pass (an update can take a second on a CPU: data, credit
             # and statistics keep flowing between updates)
             due = min(core.updates_due(), 1)
+            trained = 0  # a step skipped for a non-finite loss (None) is no update: its checkpoint was written again
             for _ in range(due):
-                core.train_step()
-                update_rate.add(1)
+                if core.train_step() is not None:
+                    trained += 1
+                    update_rate.add(1)
             if core.updates - last_published >= weights_every:
                 sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
                 last_published = core.updates
             # the last update's checkpoint is the final one below: written here too, it was written twice
-            if core.updates and core.updates % cfg.train.checkpoint_every == 0 and due and not core.done:
+            if core.updates and core.updates % cfg.train.checkpoint_every == 0 and trained and not core.done:
                 save_checkpoint()
             # 3. control and statistics
             now = time.monotonic()

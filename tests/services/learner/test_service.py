@@ -108,6 +108,28 @@ def test_the_last_update_s_checkpoint_is_written_once(tmp_path: Path, checkpoint
         f"ckpt-{u:09d}.safetensors" for u in (5, 10, 13)]  # keep_checkpoints: the newest 3
 
 
+def test_an_update_skipped_for_a_non_finite_loss_is_not_checkpointed_again(tmp_path: Path, monkeypatch,
+                                                                           checkpoint_saves: list[int]):
+    # A skipped update (LearnerCore.train_step None: some sampled rows gave a non-finite loss) left the
+    # count where it was, and the loop wrote the checkpoint of the update before it once more. The
+    # replay's checks at load and ingest keep the poisoned rows that cause one out of a run (the trainer's
+    # test poisons its memory directly), so the step after update 5 is made to skip as the core skips: no
+    # update applied, None returned.
+    cfg = load_preset("smoke").with_overrides({"train.total_updates": 12, "train.checkpoint_every": 1})
+    paths = RunPaths(tmp_path / "run").make()
+    _run_with_transitions(paths, cfg)
+    real_step, calls = LearnerCore.train_step, []
+
+    def skips_once(core):
+        calls.append(core.updates)
+        return None if len(calls) == 6 else real_step(core)
+
+    monkeypatch.setattr(LearnerCore, "train_step", skips_once)
+    checkpoint_saves.clear()
+    assert _learn(cfg, paths)["updates"] == 12 and calls[5:7] == [5, 5]  # the skip, then update 6
+    assert checkpoint_saves == list(range(1, 13))
+
+
 def test_a_new_run_s_transfer_file_is_read_once_and_its_config_saved(tmp_path: Path, monkeypatch):
     # `cogexplore learner` on a new run read its train.init_from file twice: once to refuse a bad one
     # before saving the config, then again in the learner.
