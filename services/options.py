@@ -145,10 +145,15 @@ def add_protocol_arguments(parser: argparse.ArgumentParser, default: str = DEFAU
                        help="Gaussian depth noise of S m at every distance, instead of the set's (0: none)")
 
 
+MAX_TORCH_THREADS = 1024
+"""The most torch CPU threads a command takes: far beyond any machine's cores; OpenMP crashes the
+process (no error) when asked for 100000000."""
+
+
 def add_cpu_threads_argument(parser: argparse.ArgumentParser) -> None:
     """``--threads`` of a command that plays policies one image at a time (``evaluate``, ``report``,
     ``model select``)."""
-    parser.add_argument("--threads", type=whole_number_argument(0), default=1, metavar="N",
+    parser.add_argument("--threads", type=whole_number_argument(0, MAX_TORCH_THREADS), default=1, metavar="N",
                         help="torch CPU threads (default 1, as the services' actors and evaluator: a policy "
                              "steps one image at a time, and processes that each take every core wait on one "
                              "another, so two evaluations side by side, or one beside `cogexplore up`'s learner, "

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from services.bench import print_json
+from services.bench import interrupt_on_stop_signals, print_json
 from services.bus.options import DEFAULT_CMD_VEL_TOPIC, DEFAULT_IMAGE_TOPIC
 from services.bus.ros2 import Ros2Node
 from services.bus.session import ZenohSettings, free_tcp_port, open_router, open_session
@@ -103,7 +103,10 @@ def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int 
                 image_pub = node.publisher(qualify("/", DEFAULT_IMAGE_TOPIC), IMAGE, qos="default")
                 node.subscriber(qualify("/", DEFAULT_CMD_VEL_TOPIC), TWIST, on_twist, qos="default")
                 diag = session.declare_subscriber(keys.diagnostics, on_diag)
-                payloads = [encode_depth_image(f, encoding=encoding, stamp_ns=time.time_ns()) for f in frames]
+                # each distinct image encoded once: a payload per image sent held them all (4 MB each at
+                # 1920 x 1080, so --images 10000 asked for 41 GB)
+                encoded = {id(f): encode_depth_image(f, encoding=encoding, stamp_ns=time.time_ns()) for f in frames}
+                payloads = [encoded[id(f)] for f in frames]
                 # Wait for the drive node (its torch import and model load) to answer an image.
                 deadline = time.monotonic() + 120
                 while not got.wait(0.5):
@@ -140,6 +143,8 @@ def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int 
 
 
 def run_command(args: argparse.Namespace) -> int:
+    """``cogexplore bench drive``."""
+    interrupt_on_stop_signals()  # SIGTERM stops the drive process it started, as Ctrl-C does
     result = run(checkpoint=args.checkpoint, onnx=args.onnx, images=args.images, width=args.width,
                  height=args.height, encoding=args.encoding, ros2_format=args.ros2_format)
     print_json(result, args.json)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 
 from services.bus.options import ROS2_FORMATS
-from services.options import count_argument, positive_number_argument, whole_number_argument
+from services.options import MAX_TORCH_THREADS, count_argument, positive_number_argument, whole_number_argument
 from shared.wire.messages import MAX_BATCH_STEPS, MAX_FRAME_PIXELS
 
 JSON_HELP = "print the JSON indented (default: on one line)"
@@ -32,7 +32,8 @@ def add_env_arguments(p: argparse.ArgumentParser) -> None:
 def add_learner_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--device", default="auto", help="torch device: auto, cpu, cuda, cuda:N (default auto)")
     p.add_argument("--repeats", type=count_argument, default=8, help="timed updates per variant (default 8)")
-    p.add_argument("--threads", type=count_argument, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=whole_number_argument(1, MAX_TORCH_THREADS), default=None,
+                   help=f"torch threads (default: torch's; at most {MAX_TORCH_THREADS})")
     p.add_argument("--baseline", action="store_true",
                    help="also time a plain PyTorch update (the paper network only: not with --preset or --set)")
     p.add_argument("--preset", default=None,

@@ -25,7 +25,7 @@ from typing import Any
 
 import numpy as np
 
-from services.bench import print_json
+from services.bench import interrupt_on_stop_signals, print_json
 from services.bus.session import (
     LinkWatch,
     ZenohSettings,
@@ -160,13 +160,16 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
             workers: list[Any] = [ctx.Process(target=_subscriber, args=sub_args)]
         else:
             ready, control, results, drained = queue.Queue(), queue.Queue(), queue.Queue(), queue.Queue()
-            workers = [threading.Thread(target=_subscriber, args=(endpoint, seconds, ready, control, results))]
+            # daemons: an interrupted bench must not wait at exit for a side still measuring
+            workers = [threading.Thread(target=_subscriber, args=(endpoint, seconds, ready, control, results),
+                                        daemon=True)]
         workers[0].start()
+        measured = False
         try:
             _report(ready, 60, "subscriber (starting)")
             pub_args = (endpoint, steps, height, width, seconds, results, drained)
             pub = (ctx.Process(target=_publisher, args=pub_args) if processes
-                   else threading.Thread(target=_publisher, args=pub_args))
+                   else threading.Thread(target=_publisher, args=pub_args, daemon=True))
             workers.append(pub)
             pub.start()
             first = _report(results, seconds + _REPORT_SLACK_S, "publisher")
@@ -175,10 +178,21 @@ def _loopback(steps: int, height: int, width: int, seconds: float, processes: bo
             control.put(first["sent"])
             sub = _report(results, 60, "subscriber")
             links_closed = links.closed  # before the publisher may close: the links lost while measuring
+            measured = True
         finally:
             drained.put(True)  # the publisher may close (also when the subscriber failed)
+            if not measured:
+                # an error or Ctrl-C: the subscriber would wait for the publisher's count (seconds + 120 s)
+                # and this process for it at exit; the processes are stopped, the threads are daemons
+                control.put(0)
+                for worker in workers:
+                    if processes and worker.is_alive():
+                        worker.terminate()
             for worker in workers:
                 worker.join(timeout=30)
+                if processes and worker.is_alive():
+                    worker.kill()  # stuck in a Zenoh close: not left behind
+                    worker.join(timeout=5)
     sent, received = first["sent"], sub["received"]
     return {
         "mode": "processes (spawn)" if processes else "threads (one process, separate sessions)",
@@ -216,6 +230,7 @@ def run(seconds: float = 3.0, *, batch_steps: int = 16, height: int = 120, width
 
 def run_command(args: argparse.Namespace) -> int:
     """``cogexplore bench transport``."""
+    interrupt_on_stop_signals()  # its spawned publisher and subscriber are stopped, not left behind
     result = run(args.seconds, batch_steps=args.batch_steps, height=args.height, width=args.width,
                  processes=not args.threads)
     print_json(result, args.json)

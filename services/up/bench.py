@@ -27,7 +27,6 @@ import json
 import math
 import os
 import shutil
-import signal
 import sys
 import tempfile
 import threading
@@ -126,8 +125,11 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
         raise ValueError(f"seconds must be > 0, got {seconds}")
     if warmup_s < 0:
         raise ValueError(f"warmup_s must be >= 0, got {warmup_s}")
-    if learner_threads is not None and learner_threads < 1:
-        raise ValueError(f"learner_threads must be >= 1, got {learner_threads}")
+    from services.options import MAX_TORCH_THREADS
+
+    if learner_threads is not None and not 1 <= learner_threads <= MAX_TORCH_THREADS:
+        # OMP_NUM_THREADS=100000000 crashed the learner (SIGSEGV) once everything had started
+        raise ValueError(f"--learner-threads must be in 1..{MAX_TORCH_THREADS}, got {learner_threads}")
     from services.bus.session import open_session, subscribe_messages
     from services.runs import resolve_config, save_config
     from services.up.launcher import Launcher
@@ -158,13 +160,13 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
     observed = _Observed()
     keys = RunKeys(launcher.run)
     started = time.monotonic()
-    succeeded = False
+    succeeded = unnamed_failure = False
 
     def check_alive() -> None:
         for child in launcher.children:
             if child.process.poll() is not None:
-                raise BenchError(f"{child.name} exited with status {child.process.returncode}; "
-                                 f"see {child.logfile}")
+                # its last line says why (--device cuda without a GPU: the learner's refusal), as up says it
+                raise BenchError(f"run {launcher.run!r}: {child.exited()}")
 
     try:
         saved_omp = os.environ.get("OMP_NUM_THREADS")
@@ -209,6 +211,9 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
             finally:
                 for sub in subs:
                     sub.undeclare()
+    except BaseException as exc:
+        unnamed_failure = not isinstance(exc, BenchError)  # Ctrl-C, a session that failed: no folder named
+        raise
     finally:
         try:
             launcher.stop_services()  # the launcher's order: learner first (final checkpoint), then the rest
@@ -217,8 +222,9 @@ def run(actors: int = 1, seconds: float = 60.0, *, preset: str = "fast", overrid
         # A service that crashed at the stop (the learner's final checkpoint, say) is said in one line, as
         # up says it, and the figures say the run failed; a failure before it is the error raised.
         failed_at_stop = launcher.failed_at_stop() if succeeded else []
-        if temporary and succeeded and not failed_at_stop:
-            shutil.rmtree(root, ignore_errors=True)  # on failure the logs stay for the error message
+        # on failure the logs stay for the error message that names them
+        if temporary and (unnamed_failure or (succeeded and not failed_at_stop)):
+            shutil.rmtree(root, ignore_errors=True)
 
     (t_first, s_first), (t_last, s_last) = first, last
     span_s = s_last.uptime_s - s_first.uptime_s  # the learner's own clock between its two reports
@@ -348,19 +354,13 @@ def _print_text(result: dict[str, Any]) -> None:
         print(f"  FAILED at stop   {', '.join(result['failed_at_stop'])} (logs in {result['run_dir']})")
 
 
-def _interrupt(_signum: int, _frame: object) -> None:
-    raise KeyboardInterrupt
-
-
 def run_command(args: argparse.Namespace) -> int:
+    from services.bench import interrupt_on_stop_signals
     from services.process import setup_logging
     from shared.config import ConfigError
 
     setup_logging("WARNING")
-    # SIGTERM, and SIGINT even where a background shell ignored it, end the measurement through
-    # the normal clean-up (stop the processes, learner first).
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, _interrupt)
+    interrupt_on_stop_signals()  # the measurement ends through its clean-up: the processes stop, learner first
     actors = args.actors if args.actors is not None else (2 if args.compare_single_process else 1)
     if args.compare_single_process:
         from services.up.compare import compare

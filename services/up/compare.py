@@ -27,6 +27,8 @@ from shared.learning.stats import summarize_learner_log
 PROTOCOLS = ("robust", "paper")
 RUNS = {"up": "up", "single_process": "single"}
 """Each side's run folder in the runs folder."""
+_STOP_S = 120.0
+"""How long an interrupted run may take to stop (up: the learner's final checkpoint, then the rest)."""
 
 
 class CompareError(CogexploreError, RuntimeError):
@@ -37,8 +39,20 @@ def _cli(argv: list[str], log: Path) -> float:
     """Run ``cogexplore ARGV`` to the end (output to ``log``); its wall time in seconds."""
     started = time.monotonic()
     with open(log, "wb") as out:
-        code = subprocess.call([sys.executable, "-m", "services.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
-                               stdin=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"))
+        proc = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
+                                stdin=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"))
+        try:
+            code = proc.wait()
+        except BaseException:
+            # Ctrl-C: stopped as a user stops it (up's learner writes its final checkpoint) and waited for,
+            # since the folder is removed next (killed, its orphaned learner wrote into it after the removal)
+            proc.terminate()
+            try:
+                proc.wait(timeout=_STOP_S)
+            except BaseException:  # it did not stop in time, or Ctrl-C again: no more waiting
+                proc.kill()
+                proc.wait()
+            raise
     if code != 0:
         raise CompareError(f"`cogexplore {' '.join(argv[:1])}` exited {code}: see {log}")
     return time.monotonic() - started
@@ -84,6 +98,7 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
     timed = ["train.total_updates=1000000000", *(overrides or [])]
     config = [*(["--preset", preset] if preset else []), *[a for o in timed for a in ("--set", o)]]
     common = ["--runs-dir", str(root), "--minutes", str(minutes), "--no-tensorboard", *config]
+    failed = False
     try:
         runs: dict[str, dict[str, Any]] = {}
         for name, argv in (("up", ["up", "--run", RUNS["up"], "--actors", str(actors), "--no-report", "--quiet",
@@ -110,6 +125,9 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
             },
             "runs_dir": str(root) if runs_dir else None,
         }
+    except CompareError:
+        failed = True  # its message names a log or a run in the folder: it stays
+        raise
     finally:
-        if not runs_dir:
+        if not runs_dir and not failed:
             shutil.rmtree(root, ignore_errors=True)

@@ -231,7 +231,13 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
                            prefix=RUN_PREFIX)
     args.no_evaluator = False
     args.eval_every = 1_000_000
-    launcher = Launcher(args)
+    try:
+        launcher = Launcher(args)  # a preset refused here has left an empty folder
+    except BaseException:
+        if temporary:
+            shutil.rmtree(root, ignore_errors=True)  # nothing ran: nothing to keep
+        raise
+    unnamed_failure = False
     sent: Counter = Counter()
     sent_kinds: Counter = Counter()
     stats_rejects = RejectCounter("fuzzed stats")
@@ -330,11 +336,17 @@ def run(payloads: int = 10_000, *, max_bytes: int = 64 * 1024, big_bytes: int = 
             for sub in subs:
                 sub.undeclare()
         alive = {c.name: c.process.poll() is None for c in launcher.children}
+    except BaseException as exc:
+        # a FuzzError names the logs, which stay; Ctrl-C or another error (out of memory) names no folder
+        unnamed_failure = not isinstance(exc, FuzzError)
+        raise
     finally:
         try:
             launcher.stop_services()
         finally:
             launcher.close()  # the run is let go however it ended (a traceback kept would hold it)
+            if temporary and unnamed_failure:
+                shutil.rmtree(root, ignore_errors=True)
     for c in launcher.children:
         c.said = not alive[c.name]  # a crash while fuzzing is said in "crashes"
     # one that crashed at the stop (the learner's final checkpoint, the actor's last counts) is said as up says it
@@ -386,6 +398,9 @@ def run_command(args: argparse.Namespace) -> int:
     """``cogexplore bench fuzz``."""
     import sys
 
+    from services.bench import interrupt_on_stop_signals
+
+    interrupt_on_stop_signals()  # SIGTERM ends the fuzzing through its clean-up, as Ctrl-C does
     result = run(args.payloads, max_bytes=args.max_bytes, big_bytes=args.big_bytes, seed=args.seed,
                  preset=args.preset, runs_dir=args.runs_dir,
                  echo=lambda msg: print(msg, file=sys.stderr, flush=True))

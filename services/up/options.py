@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 
 from services.options import (
+    MAX_TORCH_THREADS,
     add_runs_dir_argument,
     add_tensorboard_argument,
     count_argument,
     port_argument,
     positive_number_argument,
     seconds_argument,
+    whole_number_argument,
 )
 from shared.config import DEFAULT_PRESET
 
@@ -97,7 +99,7 @@ def add_bench_system_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--device", default=None,
                         help="learner device: auto, cpu, cuda (not with --compare-single-process, whose runs "
                              "take the preset's)")
-    parser.add_argument("--learner-threads", type=count_argument, default=None,
+    parser.add_argument("--learner-threads", type=whole_number_argument(1, MAX_TORCH_THREADS), default=None,
                         help="OMP_NUM_THREADS for the started processes (default: inherited; not with "
                              "--compare-single-process)")
     parser.add_argument("--startup-timeout-s", type=positive_number_argument, default=None,
