@@ -10,7 +10,9 @@ onnxruntime, with the same surface as :class:`cogexplore.Policy`.
 Imports numpy, onnxruntime and the torch-free parts of cogexplore only, so a robot computer needs
 neither torch nor MuJoCo. The image is seen exactly as ``Policy`` sees it (``cogexplore._policy_io``)
 and the command is the same greedy argmax (ties to the lowest index) of the same network, whose
-export was checked against torch to ``MATCH_TOLERANCE``.
+export was checked against torch to ``MATCH_TOLERANCE``; a file that records the Q-values its graph
+gave when exported (``OnnxPolicyInfo.self_check_q_values``) is refused when this onnxruntime gives
+others (damaged weights).
 """
 
 from __future__ import annotations
@@ -32,8 +34,11 @@ from shared.learning.onnx_format import (
     NO_PREVIOUS_ACTION,
     PREVIOUS_ACTION_INPUT,
     Q_OUTPUT,
+    SELF_CHECK_TOLERANCE,
     OnnxModelError,
     OnnxPolicyInfo,
+    q_difference,
+    self_check_inputs,
 )
 
 __all__ = ["OnnxModelError", "OnnxPolicy", "load_onnx_policy"]
@@ -113,6 +118,24 @@ class OnnxPolicy(CameraPolicy):
         self._previous_images = (observation, *self._previous_images)[:self._images - 1]
         return command, q
 
+    def self_check(self) -> None:
+        """OnnxModelError (one line) when the graph no longer gives the Q-values the exporter's
+        onnxruntime recorded for the format's self-check inputs (to ``SELF_CHECK_TOLERANCE``): damaged
+        weights. Nothing to check in a file exported before they were recorded."""
+        if self.info.self_check_q_values is None:
+            return
+        depth, previous = self_check_inputs(self.sensor, self._images, self._history)
+        try:
+            q = self._session.run([Q_OUTPUT], {DEPTH_INPUT: depth, PREVIOUS_ACTION_INPUT: previous})[0]
+        except Exception as exc:  # noqa: BLE001  onnxruntime's run errors share no other base
+            raise OnnxModelError(f"{self.path}: the graph fails on its self-check: "
+                                 f"{' '.join(str(exc).split())[:300]}") from None
+        error = q_difference(q, np.array(self.info.self_check_q_values))
+        if not error <= SELF_CHECK_TOLERANCE:  # NaN (or another shape) fails too
+            raise OnnxModelError(f"{self.path}: its graph no longer gives the Q-values recorded at export (by "
+                                 f"{error:.2g} relative, more than {SELF_CHECK_TOLERANCE:g}): damaged weights? "
+                                 "Export it again")
+
     def reset(self) -> None:
         """A new episode: no previous command, no earlier images."""
         self._previous_commands = ()
@@ -126,7 +149,9 @@ class OnnxPolicy(CameraPolicy):
 def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxPolicy:
     """An :class:`OnnxPolicy` from a cogexplore ONNX export. ``threads``: onnxruntime's intra-op
     threads (1: the small network is fastest on one core and leaves the others to the robot).
-    Raises OnnxModelError (one line) for a missing, corrupt or foreign file."""
+    Raises OnnxModelError (one line) for a missing, corrupt or foreign file, and for one whose graph
+    no longer gives the Q-values its metadata recorded at export (a file exported before they were
+    recorded loads without that check)."""
     if not isinstance(path, (str, os.PathLike)):
         raise PolicyError(f"path must be an .onnx file path, got {type(path).__name__}")
     if not (isinstance(threads, int) and not isinstance(threads, bool) and 1 <= threads <= MAX_THREADS):
@@ -157,6 +182,7 @@ def load_onnx_policy(path: str | os.PathLike[str], *, threads: int = 1) -> OnnxP
         policy.q_values(np.zeros((info.sensor.height, info.sensor.width), np.float32))
     except (PolicyError, OnnxModelError) as exc:
         raise OnnxModelError(f"{path}: {exc}") from None
+    policy.self_check()
     return policy
 
 

@@ -5,13 +5,16 @@
 The graph is traced from :class:`_ExportGraph`, which has fixed tensor inputs and no Python branch
 on their values, so the trace is the whole computation for every input. Every export is checked
 before it lands on disk: onnxruntime runs the serialised file on random range-gated images with
-every previous command, at batch sizes 1 and 12, against the network's forward; a mismatch raises
-:class:`OnnxModelError` and leaves no file behind.
+every previous command, at batch sizes 1 and 12, and on the format's ``self_check_inputs``, against
+the network's forward; a mismatch raises :class:`OnnxModelError` and leaves no file behind. The
+self-check's Q-values, as onnxruntime gives them for the file's graph, go into its metadata for the
+runner to compare with its own.
 """
 
 from __future__ import annotations
 
 import copy
+import dataclasses
 import io
 import os
 import warnings
@@ -47,8 +50,11 @@ from shared.learning.onnx_format import (
     NO_PREVIOUS_ACTION,
     PREVIOUS_ACTION_INPUT,
     Q_OUTPUT,
+    SELF_CHECK_TOLERANCE,
     OnnxModelError,
     OnnxPolicyInfo,
+    q_difference,
+    self_check_inputs,
 )
 
 OPSET = 17
@@ -148,6 +154,11 @@ def onnx_file_bytes(model: LoadedModel | QNetwork, path: str | os.PathLike[str],
     return data
 
 
+def _graph_inputs(net: QNetwork | QEnsemble) -> tuple[np.ndarray, np.ndarray]:
+    """The format's self-check inputs for this network's graph."""
+    return self_check_inputs(net.sensor_cfg.noise_free(), net.model_cfg.frame_stack, command_history(net))
+
+
 def _control_period_s(model: LoadedModel | QNetwork) -> float:
     if isinstance(model, LoadedModel):  # the rule Policy.control_period_s follows
         return float(setup_evaluation(None, model=model).env_cfg.control_period_s)
@@ -196,6 +207,12 @@ def _serialise(net: QNetwork | QEnsemble, info: OnnxPolicyInfo) -> bytes:
                         f"{PREVIOUS_ACTION_INPUT} int64 "
                         f"{'(B,)' if history == 1 else f'(B, {history}), most recent first'}, -1 = none -> "
                         f"{Q_OUTPUT} float32 (B, {NUM_ACTIONS}); greedy command = argmax")
+    # the metadata is no input of the graph: its Q-values are the file's, whatever the metadata says
+    depth, previous = _graph_inputs(net)
+    q = onnxruntime.InferenceSession(proto.SerializeToString(), providers=["CPUExecutionProvider"]).run(
+        [Q_OUTPUT], {DEPTH_INPUT: depth, PREVIOUS_ACTION_INPUT: previous})[0]
+    # float32 to float (exact) to JSON (repr, exact): the file holds the bits onnxruntime gave
+    info = dataclasses.replace(info, self_check_q_values=tuple(tuple(float(v) for v in row) for row in q))
     onnx.helper.set_model_props(proto, {METADATA_KEY: info.to_json()})
     onnx.checker.check_model(proto, full_check=True)
     return proto.SerializeToString()
@@ -218,11 +235,6 @@ def check_inputs(net: QNetwork | QEnsemble, seed: int = 0) -> tuple[np.ndarray, 
     return range_gate(depth, s.min_range_m, s.max_range_m), commands
 
 
-def q_difference(q: np.ndarray, reference: np.ndarray) -> float:
-    """max |q - reference| relative to the largest |reference| (at least 1): what ``MATCH_TOLERANCE`` bounds."""
-    return float(np.abs(q - reference).max() / max(1.0, float(np.abs(reference).max())))
-
-
 def _check_against_torch(net: QNetwork | QEnsemble, data: bytes, path: Path) -> None:
     depth, previous = check_inputs(net)
     with torch.inference_mode():  # float32 convs, as the graph and every acting network run them (not a
@@ -237,3 +249,15 @@ def _check_against_torch(net: QNetwork | QEnsemble, data: bytes, path: Path) -> 
         if not error <= MATCH_TOLERANCE:  # NaN fails too
             raise OnnxModelError(f"{path}: not written: onnxruntime's Q-values differ from torch's by {error:.2g} "
                                  f"(relative), more than {MATCH_TOLERANCE:g}")
+    # the self-check's values are the torch network's too, and the file's own (read back as the runner reads them)
+    depth, previous = _graph_inputs(net)
+    with torch.inference_mode():
+        reference = net(preprocess_depth(depth), previous, float32=True).numpy()
+    q = session.run([Q_OUTPUT], {DEPTH_INPUT: depth, PREVIOUS_ACTION_INPUT: previous})[0]
+    recorded = OnnxPolicyInfo.from_json(session.get_modelmeta().custom_metadata_map[METADATA_KEY]).self_check_q_values
+    error = q_difference(q, reference)
+    if not error <= MATCH_TOLERANCE:
+        raise OnnxModelError(f"{path}: not written: onnxruntime's self-check Q-values differ from torch's by "
+                             f"{error:.2g} (relative), more than {MATCH_TOLERANCE:g}")
+    if not q_difference(q, np.array(recorded)) <= SELF_CHECK_TOLERANCE:
+        raise OnnxModelError(f"{path}: not written: onnxruntime's self-check Q-values differ from those it recorded")
