@@ -81,7 +81,7 @@ def test_evaluate_report_and_model_select_play_on_one_cpu_thread_unless_told(cap
     with pytest.raises(SystemExit) as stop:
         main(["evaluate", "--threads", "two"])
     assert stop.value.code == 2
-    assert "--threads: must be a whole number >= 0, got 'two'" in capsys.readouterr().err
+    assert "--threads: must be a whole number in 0..1024, got 'two'" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize("argv", [

@@ -109,6 +109,15 @@ def wait_for_twist(robot: Robot, image: bytes, moving: bool = False) -> None:
         time.sleep(0.1)
 
 
+def stall_on_next_image(robot: Robot, slow: Slow, image: bytes, delay_s: float) -> float:
+    """The policy takes ``delay_s`` on the next image, sent once due; when it was sent."""
+    slow.delay_s = delay_s
+    time.sleep(0.6)  # the next image is due
+    sent = time.monotonic()
+    robot.images.put(image)
+    return sent
+
+
 @pytest.mark.timeout(120)
 def test_a_flood_of_images_never_queues_and_commands_come_from_the_newest(loopback_router, policy, start_image):
     # Zenoh hands samples to a Python callback in order, through a queue: a node slower than its
@@ -140,10 +149,7 @@ def test_a_stalled_policy_holds_neither_the_watchdog_nor_the_exit_stop(loopback_
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
     with driving(loopback_router, slow, "--watchdog", "0.5", watchdog=True) as (robot, node, stop_watchdog):
         wait_for_twist(robot, good, moving=True)
-        slow.delay_s = 3.0
-        time.sleep(0.6)  # the next image is due
-        sent = time.monotonic()
-        robot.images.put(good)
+        sent = stall_on_next_image(robot, slow, good, 3.0)
         time.sleep(3.5)
         after = [(t - sent, linear, angular) for t, linear, angular in robot.snapshot() if t > sent]
         assert after and after[0][0] < 0.5 + 1.0, f"first twist {after[:1]} after the stalled image"
@@ -252,9 +258,7 @@ def test_a_stop_sent_while_the_policy_stalls_is_a_decision_of_its_own(loopback_r
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
     with driving(loopback_router, slow, "--watchdog", "0.5", watchdog=True) as (robot, node, stop_watchdog):
         wait_for_twist(robot, good, moving=True)
-        slow.delay_s = 2.0
-        time.sleep(0.6)  # the next image is due
-        robot.images.put(good)
+        stall_on_next_image(robot, slow, good, 2.0)
         time.sleep(1.5)  # the stall stops meanwhile
         stop_watchdog()
         node.close()  # the exit stop, while the policy still stalls
@@ -276,9 +280,7 @@ def test_with_a_long_watchdog_the_exit_stop_does_not_wait_for_a_stalled_policy(l
     good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
     with driving(loopback_router, slow, "--watchdog", "30") as (robot, node, _stop):
         wait_for_twist(robot, good, moving=True)
-        slow.delay_s = 8.0
-        time.sleep(0.6)  # the next image is due
-        robot.images.put(good)
+        stall_on_next_image(robot, slow, good, 8.0)
         time.sleep(0.5)  # the policy is deciding on it
         closing = time.monotonic()
         node.close()
