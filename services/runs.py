@@ -155,6 +155,14 @@ def resolve_config(args: argparse.Namespace, paths: RunPaths | None = None,
     return cfg.with_overrides(overrides) if overrides else cfg
 
 
+def saved_config(paths: RunPaths) -> RunConfig | None:
+    """The run's saved config; None when it has none or it cannot be read (whoever needs it says so)."""
+    try:
+        return load_preset(paths.config, complete=True) if paths.config.is_file() else None
+    except CogexploreError:
+        return None
+
+
 def save_config(cfg: RunConfig, paths: RunPaths) -> None:
     """Write the run's config atomically (services started later read it back)."""
     paths.root.mkdir(parents=True, exist_ok=True)

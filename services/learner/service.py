@@ -143,8 +143,9 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
     epoch = new_epoch()  # this process: its word replaces a quiet earlier learner's, whatever their update
-    core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
+    core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline,
+                       transfer=not checkpoints.checkpoints())
     resume_from(checkpoints, core)
     if not paths.config.exists():  # only now: a transfer or demonstration file it cannot read refused the run
         save_config(cfg, paths)

@@ -24,7 +24,7 @@ from typing import Any
 from tqdm import tqdm
 
 from services.process import setup_logging, stop_event_on_signals
-from services.runs import RunLock, RunPaths, resolve_config, save_config
+from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_config
 from shared.config import RunConfig
 from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager
@@ -127,8 +127,8 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
     stop = stop or threading.Event()
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
-    core = LearnerCore(cfg, device=cfg.train.device)
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
+    core = LearnerCore(cfg, device=cfg.train.device, transfer=not checkpoints.checkpoints())
     resumed = resume_from(checkpoints, core)
     save_config(cfg, paths)  # only now: a config that cannot resume the run (or run here) must not replace its own
     # its updates after the checkpoint come again; with none (a trainer killed before its first), all do
@@ -178,7 +178,8 @@ def run_train_command(args: argparse.Namespace) -> int:
     cfg = train_config(args, paths)  # a bad preset or --set fails here, before the run folder exists
     # and so do a device this machine lacks and a missing or unfit transfer or demonstration file
     resolve_device(cfg.train.device)
-    check_start_sources(cfg)
+    resumable = CheckpointManager(paths.checkpoints).checkpoints()
+    check_start_sources(cfg, resumed_from=saved_config(paths) if resumable else None)
     setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
                                   max_minutes=args.minutes, tensorboard=args.tensorboard)

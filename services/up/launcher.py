@@ -53,7 +53,7 @@ from services.bus.session import (
     subscribe_messages,
 )
 from services.process import setup_logging, stop_signals_handled
-from services.runs import RunLock, RunPaths, resolve_config, save_config
+from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_config
 from shared.config import RunConfig
 from shared.errors import CogexploreError
 from shared.learning.stats import LearnerRow, read_csv_records
@@ -587,7 +587,7 @@ class Launcher:
                 f"above {done} it trains on to N), --fresh moves it aside to {self.paths.root.name}.old-<time> "
                 "and starts over")
         if not finished:
-            check_learner_sources(self.run, self.config)
+            check_learner_sources(self.run, self.config, saved_config(self.paths) if done is not None else None)
         save_config(self.config, self.paths)
         if finished:
             print(f"run {self.run!r} has finished training ({done}/{self.total_updates} updates)"
@@ -794,9 +794,11 @@ def checkpoint_updates(paths: RunPaths, config: RunConfig | None = None) -> int 
     return checkpoint.update_count
 
 
-def check_learner_sources(run: str, config: RunConfig) -> None:
-    """RunStateError when the learner of ``config`` could not start: a transfer file or a
-    demonstration file that is missing or does not fit (checked before the config is saved)."""
+def check_learner_sources(run: str, config: RunConfig, resumed_from: RunConfig | None = None) -> None:
+    """RunStateError when the learner of ``config`` could not start: a transfer file (not the one the
+    run resumes with from a checkpoint, ``resumed_from`` its saved config: shared.learning.learner's
+    check_start_sources) or a demonstration file that is missing or does not fit (checked before the
+    config is saved)."""
     if not (config.train.init_from or config.train.init_conv_from or config.train.demo_paths):
         return  # nothing to read: no need to import torch here
     from shared.learning.checkpoints import CheckpointError
@@ -804,7 +806,7 @@ def check_learner_sources(run: str, config: RunConfig) -> None:
     from shared.learning.learner import check_start_sources
 
     try:
-        check_start_sources(config)
+        check_start_sources(config, resumed_from=resumed_from)
     except (CheckpointError, DemoError) as exc:
         raise RunStateError(f"run {run!r} cannot start its learner: {exc}") from None
 

@@ -91,26 +91,34 @@ def run_demonstrations(cfg: RunConfig) -> list[Demonstration]:
     return demos
 
 
-def check_start_sources(cfg: RunConfig) -> None:
-    """Load what a learner of ``cfg`` reads from files at every start besides its checkpoint (the
-    transfer's weights, the demonstrations), so that a launcher refuses a missing or unfit one
-    before it saves the config, not in the learner after. Raises CheckpointError or DemoError."""
-    transfer_weights(DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu"), cfg)
+def check_start_sources(cfg: RunConfig, *, resumed_from: RunConfig | None = None) -> None:
+    """Load what a learner of ``cfg`` reads from files at its start besides its checkpoint, so that a
+    launcher refuses a missing or unfit one before it saves the config, not in the learner after: the
+    demonstrations, and the transfer's weights unless the run resumes from a checkpoint
+    (``resumed_from``: the config it was saved with) with the same transfer files (the checkpoint
+    replaces those weights, and the files may have gone since; one given anew is checked all the same).
+    Raises CheckpointError or DemoError."""
+    same_transfer = resumed_from is not None and all(
+        getattr(cfg.train, name) == getattr(resumed_from.train, name) for name in ("init_from", "init_conv_from"))
+    if not same_transfer:
+        transfer_weights(DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device="cpu"), cfg)
     run_demonstrations(cfg)
 
 
 class LearnerCore:
     """Replay memory, agent and the replay-ratio rule. ``pipeline``: compute each update's TD targets
     on a second thread during the update before it (:class:`shared.learning.pipeline.TargetPipeline`;
-    call :meth:`close` at the end)."""
+    call :meth:`close` at the end). ``transfer``: start from the run's transfer files (``train.init_from``,
+    ``init_conv_from``); not for a run that resumes from a checkpoint, which replaces those weights (the
+    files may have gone since)."""
 
-    def __init__(self, cfg: RunConfig, device: str = "auto", *, pipeline: bool = False):
+    def __init__(self, cfg: RunConfig, device: str = "auto", *, pipeline: bool = False, transfer: bool = True):
         self.cfg = cfg
         self.agent = DQNAgent(cfg.model, cfg.sensor, cfg.dqn, device=device, seed=cfg.train.seed)
         # its copies of the nets are refreshed at every batch, so a later resume or transfer reaches them
         self._pipeline = TargetPipeline(self.agent) if pipeline else None
-        # Transfer before any resume: restoring a checkpoint afterwards overwrites these weights.
-        transfer_weights(self.agent, cfg)
+        if transfer:  # before any resume, which overwrites these weights
+            transfer_weights(self.agent, cfg)
         frame_shape = (cfg.sensor.height, cfg.sensor.width)
         self.replay = ReplayMemory(cfg.replay, frame_shape, seed=cfg.train.seed)
         # Planner demonstrations (train.demos) live apart and are never overwritten; they are

@@ -152,3 +152,12 @@ def test_a_new_run_s_transfer_file_is_read_once_and_its_config_saved(tmp_path: P
     assert reads == [str(source)]
     saved = load_preset(tmp_path / "new" / "config.toml")
     assert saved.train.init_from == str(source) and saved.train.total_updates == 0
+
+
+def test_a_resumed_learner_does_not_read_its_transfer_file_again(tmp_path: Path):
+    # Its checkpoint replaces the transferred weights, yet the learner read train.init_from at every
+    # start: a file moved or deleted since stopped the run.
+    trained = load_preset("smoke").with_overrides({"train.total_updates": 3})
+    paths = RunPaths(tmp_path / "run").make()
+    _run_with_transitions(paths, trained)  # its checkpoint, from the transfer when the file was there
+    assert _learn(trained.with_overrides({"train.init_from": str(tmp_path / "gone.safetensors")}), paths)["updates"] == 3

@@ -321,3 +321,28 @@ def test_train_refuses_a_device_or_start_file_it_cannot_use_before_it_makes_the_
         err = capsys.readouterr().err
         assert said in err and len(err.strip().splitlines()) == 1, err
         assert not (tmp_path / "r").exists()
+
+
+def test_a_run_resumes_after_its_transfer_file_has_gone(tmp_path: Path, capsys):
+    # Its checkpoint replaces the transferred weights, yet the trainer (and the distributed learner, and
+    # up's start check) read train.init_from again at every start: a moved or deleted file stopped the run.
+    from services.cli import main
+    from shared.learning.checkpoints import export_weights
+    from shared.learning.learner import LearnerCore
+
+    source = export_weights(tmp_path / "w.safetensors", LearnerCore(load_preset("smoke"), device="cpu").agent.online)
+    common = ["train", "--preset", "smoke", "--runs-dir", str(tmp_path), "--run", "r", "--quiet",
+              "--set", "train.warmup_transitions=32"]
+    assert main([*common, "--set", f"train.init_from={source}", "--updates", "5"]) == 0
+    source.unlink()
+    # the run's own config, as it was saved: no --preset or --set of the transfer
+    assert main(["train", "--runs-dir", str(tmp_path), "--run", "r", "--quiet", "--updates", "8"]) == 0, \
+        capsys.readouterr().err
+    assert CheckpointManager(tmp_path / "r" / "checkpoints").latest().name == "ckpt-000000008.safetensors"
+    # a transfer file given anew is checked, on a resumed run as on a new one, before anything is written
+    for run in ("r", "r2"):
+        assert main(["train", "--runs-dir", str(tmp_path), "--run", run, "--quiet", "--updates", "9", "--preset",
+                     "smoke", "--set", f"train.init_from={tmp_path / 'other.safetensors'}"]) == 2
+        assert "other.safetensors" in capsys.readouterr().err
+    assert not (tmp_path / "r2").exists()
+    assert CheckpointManager(tmp_path / "r" / "checkpoints").latest().name == "ckpt-000000008.safetensors"

@@ -547,3 +547,16 @@ def test_report_only_reports_a_run_as_far_as_it_got_and_trains_nothing(tmp_path:
         PROTOCOLS["robust"].to_dict()
     assert "| Count | again@" in (paths.report / "report.md").read_text()  # the run (its one checkpoint)
     RunLock(paths, "learner").release()  # let go once the report is made
+
+
+def test_a_resumed_run_s_own_transfer_file_is_not_needed_but_one_given_anew_is(tmp_path: Path) -> None:
+    # The checkpoint replaces the transferred weights: up refused to resume a run whose transfer file
+    # had gone since (its learner read it at every start too).
+    from services.up.launcher import RunStateError, check_learner_sources
+    from shared.config import load_preset
+
+    gone = load_preset("smoke").with_overrides({"train.init_conv_from": str(tmp_path / "gone.safetensors")})
+    check_learner_sources("r", gone, resumed_from=gone)
+    for resumed_from in (None, load_preset("smoke")):  # a new run; a transfer given anew on resume
+        with pytest.raises(RunStateError, match="gone.safetensors"):
+            check_learner_sources("r", gone, resumed_from=resumed_from)
