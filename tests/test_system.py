@@ -20,6 +20,7 @@ from services.bus.session import (
     query_latest,
     subscribe_messages,
 )
+from shared.config import load_preset
 from shared.wire.keys import RunKeys
 from shared.wire.messages import (
     LearnerStats,
@@ -137,7 +138,10 @@ def test_router_learner_two_actors_churn_and_bad_input(tmp_path: Path):
             watch.wait(lambda w: w.stats.transitions_rejected >= rejected_then + len(bad) + 1, 30, "rejects counted")
             with watch.lock:
                 assert watch.received("actor-evil") == 0
-                assert watch.stats.replay_size >= replay_then
+                # nothing thrown out by them; at capacity a row that waits for its n-step successors (one
+                # or two per live actor) replaces one that could be sampled, so the count may dip by those
+                n_step, live_actors = load_preset("smoke").dqn.n_step, 2
+                assert watch.stats.replay_size >= replay_then - n_step * live_actors
                 assert {"garbage", "truncated", "shape", "range"} <= set(watch.stats.rejects)
             assert procs["learner"].poll() is None, "the learner survived bad input"
             assert "failed on a message" not in (tmp_path / RUN / "logs" / "learner-service.log").read_text()
