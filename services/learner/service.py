@@ -7,7 +7,9 @@ agent: drain the queue into replay -> run the updates that are due -> publish we
 ``--weights-every`` updates (from a sender thread that keeps only the newest, so a slow
 link never stalls training) -> publish flow control and statistics -> checkpoint. On start
 with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIGINT or at
-``total_updates`` it writes a final checkpoint and exits 0.
+``total_updates`` it writes a final checkpoint and exits 0. Weights that have diverged (NaN or
+infinite) are neither published nor saved: the learner stops with one error line naming the run's last
+good checkpoint (a non-zero exit, which ``up`` reports as the run's failure).
 """
 
 from __future__ import annotations
@@ -35,8 +37,8 @@ from services.bus.session import (
 from services.process import setup_logging, stop_event_on_signals
 from services.runs import RunLock, RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
-from shared.learning.checkpoints import CheckpointManager
-from shared.learning.learner import LearnerCore, RateMeter, resume_from
+from shared.learning.checkpoints import CheckpointManager, NonFiniteWeights
+from shared.learning.learner import Diverged, LearnerCore, RateMeter, diverged_error, resume_from
 from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
 from shared.learning.weights import to_message
@@ -138,7 +140,8 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 tensorboard: Path | None = None, pipeline: bool = False) -> dict:
     """The learner loop; saves ``cfg`` as the run's config where it has none. Returns final counters.
     ``tensorboard``: a folder for its rows as TensorBoard events; ``pipeline``: TD targets one update
-    ahead on a second thread (LearnerCore)."""
+    ahead on a second thread (LearnerCore). Diverged (after closing down) when the agent's weights have
+    diverged: they are then neither published nor saved, and the run's checkpoints stay as they were."""
     keys = RunKeys(run)
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
@@ -154,8 +157,14 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     config_dict = cfg.to_dict()
 
     def save_checkpoint() -> None:
+        core.check_finite()  # said as the weights' divergence (the manager would refuse them as its file's)
         checkpoints.save(core.agent, replay=core.replay if save_replay else None, config=config_dict,
                          extra=core.checkpoint_extra())
+
+    def weights_message() -> bytes:
+        # NaN weights would be refused by the message itself (a MessageError out of the loop), and by every actor
+        core.check_finite()
+        return to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode()
     # a batch of this sensor's frames at most: anything longer is refused before it is copied
     batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
     inbox = BatchInbox()
@@ -187,7 +196,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                                  max_bytes=batch_bytes)
         flow_pub = session.declare_publisher(keys.flow)
         stats_pub = session.declare_publisher(keys.learner_stats(learner_id))
-        sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
+        sender.offer(weights_message())
         # Announce the learner only now that it can receive: actors start sending on this token.
         token = declare_alive(session, keys.alive("learner", learner_id))  # noqa: F841
 
@@ -229,60 +238,67 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             board.write_row(row)
             last_stats = now
 
-        while not stop.is_set() and not core.done:
-            pass_started = time.monotonic()
-            # 1. data in, for INGEST_BUDGET_S at most: a flood must not hold the updates, flow
-            # control and a stop request off (the loop ingested until the inbox was empty)
-            drained = 0
-            while not stop.is_set() and time.monotonic() - pass_started < INGEST_BUDGET_S:
-                batch = inbox.get()
-                if batch is None:
-                    break
-                try:
-                    drained += core.ingest(batch)
-                except (MessageError, ValueError) as exc:
-                    rejects.reject(exc if isinstance(exc, MessageError) else MessageError("inconsistent", str(exc)),
-                                   batch.actor_id)
-            if drained:
-                transition_rate.add(drained)
-            # 2. one due update per pass (an update can take a second on a CPU: data, credit
-            # and statistics keep flowing between updates)
-            due = min(core.updates_due(), 1)
-            trained = 0  # a step skipped for a non-finite loss (None) is no update: its checkpoint was written again
-            for _ in range(due):
-                if core.train_step() is not None:
-                    trained += 1
-                    update_rate.add(1)
-            if core.updates - last_published >= weights_every:
-                sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
-                last_published = core.updates
-            # the last update's checkpoint is the final one below: written here too, it was written twice
-            if core.updates and core.updates % cfg.train.checkpoint_every == 0 and trained and not core.done:
-                save_checkpoint()
-            # 3. control and statistics
-            now = time.monotonic()
-            if now - last_flow >= 0.1 or due:
-                flow_pub.put(FlowControl(learner_id=learner_id, updates=core.updates,
-                                         transitions_received=core.received,
-                                         transitions_wanted=core.transitions_wanted(flow_slack),
-                                         received_from=core.received_by_actor, actor_epochs=core.actor_epochs(),
-                                         learner_epoch=epoch).encode())
-                last_flow = now
-            if now - last_stats >= stats_every_s:
-                publish_stats(now)
-            if not drained and not due:
-                time.sleep(0.005)  # idle: wait for data without spinning a core
-            if not due:
-                waiting_s += time.monotonic() - pass_started
+        diverged: Diverged | NonFiniteWeights | None = None
+        try:
+            while not stop.is_set() and not core.done:
+                pass_started = time.monotonic()
+                # 1. data in, for INGEST_BUDGET_S at most: a flood must not hold the updates, flow
+                # control and a stop request off (the loop ingested until the inbox was empty)
+                drained = 0
+                while not stop.is_set() and time.monotonic() - pass_started < INGEST_BUDGET_S:
+                    batch = inbox.get()
+                    if batch is None:
+                        break
+                    try:
+                        drained += core.ingest(batch)
+                    except (MessageError, ValueError) as exc:
+                        rejects.reject(exc if isinstance(exc, MessageError)
+                                       else MessageError("inconsistent", str(exc)), batch.actor_id)
+                if drained:
+                    transition_rate.add(drained)
+                # 2. one due update per pass (an update can take a second on a CPU: data, credit
+                # and statistics keep flowing between updates)
+                due = min(core.updates_due(), 1)
+                # a step skipped for a non-finite loss (None) is no update: its checkpoint was written again
+                trained = 0
+                for _ in range(due):
+                    if core.train_step() is not None:
+                        trained += 1
+                        update_rate.add(1)
+                if core.updates - last_published >= weights_every:
+                    sender.offer(weights_message())
+                    last_published = core.updates
+                # the last update's checkpoint is the final one below: written here too, it was written twice
+                if core.updates and core.updates % cfg.train.checkpoint_every == 0 and trained and not core.done:
+                    save_checkpoint()
+                # 3. control and statistics
+                now = time.monotonic()
+                if now - last_flow >= 0.1 or due:
+                    flow_pub.put(FlowControl(learner_id=learner_id, updates=core.updates,
+                                             transitions_received=core.received,
+                                             transitions_wanted=core.transitions_wanted(flow_slack),
+                                             received_from=core.received_by_actor,
+                                             actor_epochs=core.actor_epochs(), learner_epoch=epoch).encode())
+                    last_flow = now
+                if now - last_stats >= stats_every_s:
+                    publish_stats(now)
+                if not drained and not due:
+                    time.sleep(0.005)  # idle: wait for data without spinning a core
+                if not due:
+                    waiting_s += time.monotonic() - pass_started
 
-        # Final: the log's last row at the last update, weights out (actors and evaluator see the
-        # last version), checkpoint.
-        publish_stats(time.monotonic())
-        sender.offer(to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode())
-        save_checkpoint()
+            # Final: the log's last row at the last update, weights out (actors and evaluator see the
+            # last version), checkpoint.
+            publish_stats(time.monotonic())
+            sender.offer(weights_message())
+            save_checkpoint()
+        except (Diverged, NonFiniteWeights) as exc:  # it can no longer learn: its last good weights stay out
+            diverged = exc
         sender.close()  # after it has put the final weights, even behind a slow put of earlier ones
         actors.close()
         core.close()
+    if diverged is not None:
+        raise diverged_error(diverged, checkpoints)
     return {"updates": core.updates, "transitions": core.received, "rejected": rejects.total,
             "rejects": rejects.counts, "replay_size": len(core.replay)}
 

@@ -9,6 +9,8 @@ LearnerCore (replay + agent + ratio rule) that the learner service drives, fed d
 one environment through the rollout loop (``shared.rollout``) instead of by actors over Zenoh.
 Writes runs/<run>/ like the distributed system: config, checkpoints, stats/learner.csv (loss,
 mean Q) and stats/episodes.csv (length, return, epsilon), both also as TensorBoard events in tb/train/.
+Weights that have diverged (NaN or infinite) are never saved: the trainer stops with one error line
+naming the run's last good checkpoint.
 """
 
 from __future__ import annotations
@@ -27,8 +29,15 @@ from services.process import setup_logging, stop_event_on_signals
 from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_config
 from shared.config import RunConfig
 from shared.expert.expert import ExpertGuide
-from shared.learning.checkpoints import CheckpointManager
-from shared.learning.learner import LearnerCore, RateMeter, check_start_sources, resume_from
+from shared.learning.checkpoints import CheckpointManager, NonFiniteWeights
+from shared.learning.learner import (
+    Diverged,
+    LearnerCore,
+    RateMeter,
+    check_start_sources,
+    diverged_error,
+    resume_from,
+)
 from shared.learning.model import resolve_device
 from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
 from shared.learning.stats import (
@@ -70,6 +79,7 @@ class _Training:
         self.logged_update = core.updates
 
     def save(self) -> Path:
+        self.core.check_finite()  # said as the weights' divergence (the manager would refuse them as its file's)
         return self.checkpoints.save(self.core.agent, replay=self.core.replay, config=self.config_dict,
                                      extra=self.core.checkpoint_extra())
 
@@ -123,7 +133,8 @@ class _Training:
 def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
                          progress: bool = True, max_minutes: float | None = None, tensorboard: bool = True) -> dict:
     """Train until ``total_updates`` (or ``max_minutes``, or ``stop``); returns a summary. ``tensorboard``:
-    the rows also as TensorBoard events in ``tb/train``."""
+    the rows also as TensorBoard events in ``tb/train``. Diverged when the agent's weights have diverged:
+    they are not saved, and the run's checkpoints stay as they were."""
     stop = stop or threading.Event()
     lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
@@ -153,13 +164,19 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
         loop = Rollout(env, policy, [guide, training], env_steps=core.received)  # epsilon goes on after a resume
         loop.episodes = logged_episodes  # episodes.csv numbers them on too
         loop.begin_episode(seed=cfg.train.seed + (core.received if resumed else 0))
-        while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
-            if loop.step().last:
-                loop.begin_episode()
-        if core.updates != training.logged_update:  # the log ends at the last update, as the checkpoint does
-            training.log_row()
-        final = training.save()
+        diverged: Diverged | NonFiniteWeights | None = None
+        try:
+            while not core.done and not stop.is_set() and (deadline is None or time.monotonic() < deadline):
+                if loop.step().last:
+                    loop.begin_episode()
+            if core.updates != training.logged_update:  # the log ends at the last update, as the checkpoint does
+                training.log_row()
+            final = training.save()
+        except (Diverged, NonFiniteWeights) as exc:  # it can no longer learn: its last good checkpoint stays
+            diverged = exc
     env.close()
+    if diverged is not None:
+        raise diverged_error(diverged, checkpoints)
     return {"updates": core.updates, "env_steps": core.received, "episodes": training.episodes,
             "checkpoint": str(final), "seconds": time.monotonic() - training.started}
 

@@ -18,7 +18,9 @@ Every file is written to a temporary name, fsynced, renamed into place and the d
 fsynced, replay before checkpoint before ``latest``, so a crash at any point leaves ``latest``
 naming a complete checkpoint; the last ``keep`` checkpoints stay on disk, and the replay memory
 with the newest ``keep_replays`` of them only (a replay is the bulk of a checkpoint's bytes and
-only a resume reads it; an older checkpoint resumes with an empty replay). Loading verifies the
+only a resume reads it; an older checkpoint resumes with an empty replay). An agent whose weights or
+optimiser state have diverged (NaN, infinite) is refused before any file is written, so its save never
+prunes the run's good checkpoints (:class:`NonFiniteWeights`). Loading verifies the
 format and the digest: a truncated or corrupt file raises :class:`CheckpointError` and
 ``CheckpointManager.load_latest`` falls back to the newest older checkpoint that loads.
 
@@ -109,6 +111,11 @@ class CheckpointError(CogexploreError):
     """A checkpoint or weights file is missing, partial, corrupt or does not fit."""
 
 
+class NonFiniteWeights(CheckpointError):
+    """An agent whose weights or optimiser state hold NaN or infinite values (diverged): never written
+    as a checkpoint, since no loader takes it and saving it would prune the run's good ones."""
+
+
 class WrongFileFormat(CheckpointError):
     """A readable safetensors file that is not of the format asked for (another cogexplore format,
     no cogexplore metadata, or metadata that is no table): not a damaged file of that format."""
@@ -195,14 +202,15 @@ def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict
     if framework == "pt":
         # the digest only proves the bytes are the writer's: a network with NaN or infinite weights gives
         # NaN Q-values, whose argmax an evaluation or a robot would play as a command
-        bad = _non_finite(tensors)
+        bad = non_finite_tensor(tensors)
         if bad is not None:
             raise CheckpointError(f"{path}: {bad} holds NaN or infinite values (diverged or damaged weights)")
     return tensors, meta
 
 
-def _non_finite(tensors: Mapping[str, torch.Tensor]) -> str | None:
-    """The name of the first floating-point tensor with a NaN or an infinity; None when all are finite."""
+def non_finite_tensor(tensors: Mapping[str, torch.Tensor]) -> str | None:
+    """The name of the first floating-point tensor with a NaN or an infinity; None when all are finite
+    (read on the tensors' own device)."""
     for name, t in tensors.items():
         if not t.is_floating_point():
             continue
@@ -275,11 +283,16 @@ def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory |
     """Write one checkpoint file (and ``<stem>.replay-<digest>.safetensors`` with ``replay``).
 
     ``config`` is the run's config dict (RunConfig.to_dict()); ``extra`` any JSON-able state of
-    the caller (environment steps, episode counts, other RNG states).
+    the caller (environment steps, episode counts, other RNG states). NonFiniteWeights, with nothing
+    written, when a weight or optimiser tensor of the agent is NaN or infinite.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     tensors, agent_meta = agent.state_tensors()
+    bad = non_finite_tensor(tensors)
+    if bad is not None:  # before any file, the replay's included: a loader would refuse the checkpoint
+        raise NonFiniteWeights(f"{path}: not written: {bad} holds NaN or infinite values at update "
+                               f"{agent.update_count} (diverged weights)")
+    path.parent.mkdir(parents=True, exist_ok=True)
     replay_info = None
     if replay is not None:
         arrays, rmeta = replay.state_dict()
@@ -396,7 +409,9 @@ class CheckpointManager:
 
     def save(self, agent: DQNAgent, *, replay: ReplayMemory | None = None,
              config: Mapping[str, Any] | None = None, extra: Mapping[str, Any] | None = None) -> Path:
-        """Save at the agent's update count, point ``latest`` at it, prune older ones."""
+        """Save at the agent's update count, point ``latest`` at it, prune older ones. An agent whose
+        state is not finite (diverged) is refused (NonFiniteWeights) before anything is written or
+        pruned: ``latest`` and every checkpoint stay as they were."""
         self.directory.mkdir(parents=True, exist_ok=True)
         path = save_checkpoint(self.path_for(agent.update_count), agent, replay=replay,
                                config=config, extra=extra)
@@ -486,11 +501,11 @@ def export_tensors(net: QNetwork | QEnsemble, path: Path | str, *, half: bool = 
     tensors = weights_to_tensors(net)
     if half:
         tensors = {n: t.half() if t.is_floating_point() else t for n, t in tensors.items()}
-    bad = _non_finite(tensors)
+    bad = non_finite_tensor(tensors)
     if bad is not None:
+        in_half = half and non_finite_tensor(weights_to_tensors(net)) is None
         raise CheckpointError(f"{path}: not written: weight {bad} is not finite"
-                              + (" in float16 (drop --half)" if half and _non_finite(weights_to_tensors(net)) is None
-                                 else " (diverged weights?)"))
+                              + (" in float16 (drop --half)" if in_half else " (diverged weights?)"))
     return tensors
 
 

@@ -34,6 +34,7 @@ from shared.learning.checkpoints import (
     CheckpointManager,
     init_agent_conv,
     init_agent_weights,
+    non_finite_tensor,
 )
 from shared.learning.demos import DemoError, Demonstration, demo_replay, load_demonstrations
 from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
@@ -46,6 +47,20 @@ log = logging.getLogger("cogexplore.learner")
 MAX_TRACKED_ACTORS = 256
 """Actor processes the learner keeps a record of (counts, weights version); beyond, the one heard
 from least recently is forgotten (a real fleet is far smaller; invented ids cannot grow it)."""
+
+
+class Diverged(DQNError):
+    """The agent can no longer learn: a weight is NaN or infinite, or every sample's loss is. Its
+    weights must reach neither an actor nor a checkpoint (:func:`diverged_error`)."""
+
+
+def diverged_error(cause: Exception, checkpoints: CheckpointManager) -> Diverged:
+    """The one-line error a learner stops with when its agent has diverged (``cause``): what diverged,
+    and the run's newest checkpoint that loads, which a resume starts from."""
+    good = checkpoints.load_latest()
+    where = (f"the run resumes from its last good checkpoint {good.path} (update {good.update_count})"
+             if good is not None else f"no checkpoint in {checkpoints.directory} loads")
+    return Diverged(f"{cause}; stopped without saving its weights: {where}")
 
 
 @dataclass
@@ -249,7 +264,7 @@ class LearnerCore:
 
         When some samples make the loss non-finite, nothing is applied, those samples' transitions
         leave the replay memory (counted in ``dropped_nonfinite``) and None is returned; when every
-        sample does, the network itself has diverged: DQNError."""
+        sample does, or a weight is NaN or infinite, the network itself has diverged: Diverged."""
         if self._pipeline is None:
             batch = self._sample()
             prepared = self.agent.prepare(batch, self.agent.draw_augmentation(batch))
@@ -261,10 +276,13 @@ class LearnerCore:
         try:
             metrics = self.agent.apply(prepared)
         except NonFiniteLoss as exc:
+            # weights gone non-finite make some samples' loss so (an infinite bias of one command): the
+            # samples are not to blame, and removing them would empty the replay memory update by update
+            self.check_finite()
             n_replay = self._replay_rows(batch)
             bad = exc.non_finite[:n_replay]
             if not bad.any() or exc.non_finite.all():
-                raise DQNError(f"{exc}: every sample's loss is non-finite, the network has diverged "
+                raise Diverged(f"{exc}: every sample's loss is non-finite, the network has diverged "
                                "(the learning rate is probably too high)") from None
             removed = self.replay.remove(batch.indices[:n_replay][bad])
             self.dropped_nonfinite += removed
@@ -285,6 +303,16 @@ class LearnerCore:
                 window.append(metrics[name])
         self._last_metrics = metrics
         return metrics
+
+    def check_finite(self) -> None:
+        """Diverged when a weight of the online or target network is NaN or infinite (read where the
+        weights are, not copied): such weights must reach neither an actor nor a checkpoint."""
+        bad = non_finite_tensor({f"{side}.{name}": t for side, net in (("online", self.agent.online),
+                                                                         ("target", self.agent.target))
+                                 for name, t in net.state_dict().items()})
+        if bad is not None:
+            raise Diverged(f"update {self.updates}: weight {bad} holds NaN or infinite values, the network has "
+                           "diverged (the learning rate is probably too high)")
 
     def _sample(self) -> Batch:
         """An update's batch: the replay memory's samples, then the demonstrations' (if any)."""

@@ -7,6 +7,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from services.bus.session import ZenohSettings, free_tcp_port, open_router
 from services.learner.service import LatestSender, run_learner
@@ -15,6 +16,7 @@ from shared.config import load_preset
 from shared.learning.checkpoints import CheckpointManager, export_weights
 from shared.learning.learner import LearnerCore
 from shared.learning.stats import CsvLog, LearnerRow, read_csv_records
+from tests.shared.learning.test_learner import diverge_at
 
 
 class SlowLink:
@@ -161,3 +163,31 @@ def test_a_resumed_learner_does_not_read_its_transfer_file_again(tmp_path: Path)
     paths = RunPaths(tmp_path / "run").make()
     _run_with_transitions(paths, trained)  # its checkpoint, from the transfer when the file was there
     assert _learn(trained.with_overrides({"train.init_from": str(tmp_path / "gone.safetensors")}), paths)["updates"] == 3
+
+
+@pytest.mark.parametrize("weights_every, diverged_at", [(100, 4), (1, 3)], ids=["at-a-checkpoint", "at-a-publish"])
+def test_diverged_weights_stop_the_learner_in_one_line_and_its_good_checkpoint_stays(
+        tmp_path: Path, monkeypatch, capsys, weights_every: int, diverged_at: int):
+    # Weights gone NaN at a checkpoint's update were saved like any other, and with one checkpoint kept the
+    # run's good one pruned: nothing of it loaded. At a publish, the weights message refused them, and the
+    # learner stopped on a MessageError that did not say the network had diverged.
+    from services.cli import main
+
+    cfg = load_preset("smoke")
+    paths = RunPaths(tmp_path / "run").make()
+    _run_with_transitions(paths, cfg)
+    diverge_at(monkeypatch, diverged_at)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    with open_router([endpoint]):
+        code = main(["learner", "--run", "run", "--runs-dir", str(tmp_path), "--preset", "smoke", "--connect", endpoint,
+                     "--weights-every", str(weights_every), "--set", "train.total_updates=10",
+                     "--set", "train.checkpoint_every=2", "--set", "train.keep_checkpoints=1"])
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "diverged" in line]
+    good = paths.checkpoints / "ckpt-000000002.safetensors"
+    assert code == 2 and "Traceback" not in err and said == [
+        f"cogexplore learner: error: update {diverged_at}: weight online.advantage.bias holds NaN or infinite values, "
+        "the network has diverged (the learning rate is probably too high); stopped without saving its weights: "
+        f"the run resumes from its last good checkpoint {good} (update 2)"], err
+    checkpoints = CheckpointManager(paths.checkpoints)
+    assert checkpoints.checkpoints() == [good] and checkpoints.load_latest().update_count == 2

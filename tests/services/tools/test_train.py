@@ -346,3 +346,28 @@ def test_a_run_resumes_after_its_transfer_file_has_gone(tmp_path: Path, capsys):
         assert "other.safetensors" in capsys.readouterr().err
     assert not (tmp_path / "r2").exists()
     assert CheckpointManager(tmp_path / "r" / "checkpoints").latest().name == "ckpt-000000008.safetensors"
+
+
+@pytest.mark.parametrize("diverged_at", [4, 3], ids=["at-a-checkpoint", "between-checkpoints"])
+def test_diverged_weights_stop_the_trainer_in_one_line_and_its_good_checkpoint_stays(tmp_path: Path, monkeypatch,
+                                                                                     capsys, diverged_at: int):
+    # Weights gone NaN at a checkpoint's update were saved like any other, and with one checkpoint kept the
+    # run's good one pruned: nothing of it loaded, and the trainer stopped at the next update on a DQNError
+    # that named no checkpoint to resume from.
+    from services.cli import main
+    from tests.shared.learning.test_learner import diverge_at
+
+    diverge_at(monkeypatch, diverged_at)
+    code = main(["train", "--preset", "smoke", "--updates", "10", "--runs-dir", str(tmp_path), "--run", "r", "--quiet",
+                 "--set", "train.warmup_transitions=32", "--set", "train.checkpoint_every=2",
+                 "--set", "train.keep_checkpoints=1"])
+    err = capsys.readouterr().err
+    checkpoints = CheckpointManager(tmp_path / "r" / "checkpoints")
+    good = checkpoints.path_for(2)
+    # at a checkpoint the weights are checked at its save; between, at the next update (a loss that is NaN)
+    said = [line for line in err.splitlines() if "diverged" in line]
+    assert code == 2 and "Traceback" not in err and said == [
+        f"cogexplore train: error: update {diverged_at}: weight online.advantage.bias holds NaN or infinite values, "
+        "the network has diverged (the learning rate is probably too high); stopped without saving its weights: "
+        f"the run resumes from its last good checkpoint {good} (update 2)"], err
+    assert checkpoints.checkpoints() == [good] and checkpoints.load_latest().update_count == 2

@@ -183,6 +183,43 @@ def test_non_finite_weights_are_never_loaded_nor_written(tmp_path):
         "w32.safetensors"]  # neither w16 nor inf
 
 
+def test_diverged_weights_are_refused_and_every_saved_checkpoint_stays(tmp_path):
+    """A real update at an absurd learning rate overflows a weight while its loss is finite. Saved through
+    a manager that keeps one checkpoint, it was written (no loader takes it) and the good one pruned:
+    nothing of the run loaded any more. Now it is refused, naming the tensor, before any file is written."""
+    from shared.learning.checkpoints import NonFiniteWeights
+
+    agent, mem = setup(DQNConfig(optimizer="sgd", lr=1e-4))
+    fill(mem)
+    cm = CheckpointManager(tmp_path, keep=1)
+    step(agent, mem)
+    good = cm.save(agent, replay=mem, extra={"note": "good"})
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+
+    def refused(diverged: DQNAgent, tensor: str) -> None:
+        with pytest.raises(NonFiniteWeights) as refusal:
+            cm.save(diverged, replay=mem)
+        assert isinstance(refusal.value, CheckpointError) and str(refusal.value) == (
+            f"{cm.path_for(diverged.update_count)}: not written: {tensor} holds NaN or infinite values at update "
+            f"{diverged.update_count} (diverged weights)")
+        # latest, the good checkpoint and its replay as they were, byte for byte; no file of the refused one
+        assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
+        assert cm.load_latest().path == good and cm.load().extra == {"note": "good"} and not cm.skipped
+
+    for group in agent.optimizer.param_groups:
+        group["lr"] = 3e38  # lr x gradient overflows float32
+    step(agent, mem)
+    overflowed = [n for n, p in agent.online.named_parameters() if not bool(torch.isfinite(p).all())]
+    assert overflowed
+    refused(agent, f"online.{overflowed[0]}")
+    # finite weights, a NaN in the optimiser's state (the next step spreads it to the weights)
+    agent, _ = setup(DQNConfig(optimizer="adam"))
+    step(agent, mem)
+    agent.update_count = 5
+    agent.optimizer.state[agent.optimizer.param_groups[0]["params"][0]]["exp_avg"].view(-1)[0] = float("nan")
+    refused(agent, "optim.0.exp_avg")
+
+
 def test_only_the_newest_checkpoints_keep_their_replay_and_an_older_one_resumes_without(tmp_path, caplog):
     from shared.learning.learner import LearnerCore, resume_from
 

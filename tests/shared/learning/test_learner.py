@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from shared.config import load_preset
-from shared.learning.learner import LearnerCore
+from shared.learning.learner import Diverged, LearnerCore
 from shared.learning.replay import ReplayError
 from shared.wire.messages import MessageError, TransitionBatch
 
@@ -172,6 +172,47 @@ def test_an_update_skipped_for_a_non_finite_loss_is_skipped_once(pipeline: bool)
     for i in range(2):
         core.replay.add(("s", i), _frame(1.0 + 0.1 * i), i, 3.4e38 if i == 1 else 1.0, _frame(1.2), False)
     assert core.train_step() is None and core.train_step() is not None
+    core.close()
+
+
+def diverge_at(monkeypatch: pytest.MonkeyPatch, update: int) -> None:
+    """From update ``update`` on, the first command's output bias is infinite, as an update whose arithmetic
+    overflowed leaves it (NaN Q-values for a dueling network); the updates themselves are real."""
+    from shared.learning.dqn import DQNAgent
+
+    real_apply = DQNAgent.apply
+
+    def apply(agent: DQNAgent, prepared):
+        metrics = real_apply(agent, prepared)
+        if agent.update_count == update:
+            with torch.no_grad():
+                list(agent.online.parameters())[-1][0] = float("inf")
+        return metrics
+
+    monkeypatch.setattr(DQNAgent, "apply", apply)
+
+
+@pytest.mark.parametrize("pipeline", [False, True])
+def test_weights_gone_infinite_stop_the_learner_and_leave_its_replay_memory_alone(pipeline: bool):
+    # One command's Q-value infinite (its bias overflowed): the samples that took it gave an infinite loss,
+    # were blamed and removed from the replay memory, update after update, and the rest trained on.
+    cfg = load_preset("smoke").with_overrides({"model.dueling": False, "dqn.batch_size": 8, "dqn.n_step": 1,
+                                               "train.warmup_transitions": 8, "replay.capacity": 64})
+    core = LearnerCore(cfg, device="cpu", pipeline=pipeline)
+    for i in range(32):
+        core.replay.add(("s", i), _frame(1.0 + 0.01 * i), i % 2, 1.0, _frame(1.1), False)
+        core.received += 1
+    assert core.train_step() is not None
+    core.check_finite()  # finite: nothing to say
+    with torch.no_grad():
+        core.agent.online.fc3.bias[0] = float("inf")
+    said = r"^update 1: weight online.fc3.bias holds NaN or infinite values, the network has diverged"
+    with pytest.raises(Diverged, match=said):
+        core.check_finite()
+    for _ in range(5):
+        with pytest.raises(Diverged, match=said):
+            core.train_step()
+    assert (len(core.replay), core.dropped_nonfinite, core.updates) == (32, 0, 1)
     core.close()
 
 
