@@ -541,12 +541,18 @@ class DQNAgent:
             if name in tensors:
                 _check_fits(name, tensors[name], now.shape, now.dtype)
         # all checked: from here on nothing refuses, so a misfit never leaves the agent half loaded
+        # The agent's config sets the hyper-parameters, not the file: a run resumed with `--set dqn.lr=...`
+        # (after a divergence, say) trains at the rate its saved config.toml now says.
+        own_groups = [{k: v for k, v in g.items() if k != "params"} for g in self.optimizer.param_groups]
         self.optimizer.load_state_dict({"state": state, "param_groups": opt_meta["param_groups"]})
+        for group, own in zip(self.optimizer.param_groups, own_groups):
+            group.update(own)
         load_tensors(self.online, online)
         load_tensors(self.target, target)
         self.target_version += 1
         self.update_count = update_count
         self.policy_version = policy_version
+        self._set_lr(lr_factor(update_count, self.cfg.lr_decay_updates, self.cfg.lr_final_scale))
         if "rng.torch" in tensors:
             torch.set_rng_state(tensors["rng.torch"])
         if "rng.cuda" in tensors and self.device.type == "cuda":
@@ -556,8 +562,8 @@ class DQNAgent:
         """DQNError unless each saved optimiser group holds this agent's group's hyper-parameters, each
         a sane value: ``load_state_dict`` takes them unchecked, and an lr that is a string, NaN or
         negative, or betas that are no pair, failed only in the first step or trained on nonsense.
-        Their values are the checkpoint's to keep (a resumed run goes on at its saved lr), so numbers
-        are checked for range only; flags and names must be this agent's own."""
+        Their values give way to the agent's own config's on loading, so numbers are checked for range
+        only (a value out of range marks a damaged file); flags and names must be this agent's own."""
         for i, (saved, own) in enumerate(zip(saved_groups, self.optimizer.param_groups)):
             where = f"state's optimiser group {i} ({own.get('name')})"
             keys, own_keys = set(saved) - {"params"}, set(own) - {"params"}

@@ -384,8 +384,8 @@ def test_optimiser_state_of_another_dtype_or_shape_is_refused_before_the_agent_c
 def test_optimiser_hyperparameters_that_are_no_sane_value_are_refused_before_the_agent_changes(tmp_path, optimizer):
     """An lr that is a string, negative or NaN, betas that are no pair, a missing or unknown key, a flag
     not this agent's (a damaged or hand-made file): torch took them, and failed at the first update or
-    trained on nonsense. Refused naming the group and key, the agent as it was; a sane checkpoint's
-    own lr stays what a resumed run trains at."""
+    trained on nonsense. Refused naming the group and key, the agent as it was; a sane checkpoint loads,
+    and the resumed agent trains at its own config's lr (what the run's config.toml says), not the file's."""
     f = ForgedCheckpoints(tmp_path, optimizer, 5e-4)
     forgeries = [(0, "lr", "0.001"), (1, "lr", -1e-3), (0, "lr", float("nan")), (0, "weight_decay", float("inf")),
                  (1, "maximize", True), (0, "name", "conv"), (0, "lr", None), (1, "fused", 1)]
@@ -400,7 +400,7 @@ def test_optimiser_hyperparameters_that_are_no_sane_value_are_refused_before_the
             groups[group][key] = value
         f.refused(f.tensors, forged, rf"optimiser group {group} \((fc|conv)\).*'?{key}")
     load_checkpoint(f.good).restore(f.fresh)
-    assert f.fresh.lr == pytest.approx(5e-4)  # the checkpoint's, not the config's: the run goes on as it was
+    assert f.fresh.lr == pytest.approx(1e-3)  # the config's (the file's was 5e-4)
     step(f.fresh, f.mem)
 
 

@@ -252,6 +252,25 @@ def test_learning_rates_fall_linearly_to_the_final_scale_and_resume_on_schedule(
     with pytest.raises(ValueError, match="lr_decay_updates"):
         DQNConfig(lr_decay_updates=-1)
 
+def test_a_resumed_agent_trains_at_its_own_configs_rate_not_the_files():
+    """`--set dqn.lr=...` on a resume (after a divergence, say) is what config.toml then says: the
+    checkpoint's optimiser state loads, its hyper-parameters give way to the agent's config."""
+    saved = DQNAgent(SMALL, TINY, DQNConfig(optimizer="adam", lr=1e-3, conv_lr_scale=0.5), device="cpu", seed=0)
+    saved.update(make_batch())
+    tensors, meta = saved.state_tensors()
+    lowered = DQNConfig(optimizer="adam", lr=1e-5, conv_lr_scale=0.5)
+    resumed = DQNAgent(SMALL, TINY, lowered, device="cpu", seed=1)
+    resumed.load_state_tensors(tensors, meta)
+    assert {g["name"]: g["lr"] for g in resumed.optimizer.param_groups} == {
+        "fc": pytest.approx(1e-5), "conv": pytest.approx(5e-6)}
+    assert resumed.update_count == 1 and resumed.optimizer.state  # the moments came with it
+    # with a schedule, the rate is the schedule's at the resumed update before the first step
+    decaying = DQNAgent(SMALL, TINY, DQNConfig(optimizer="adam", lr=1e-3, conv_lr_scale=0.5, lr_decay_updates=2,
+                                               lr_final_scale=0.5), device="cpu", seed=1)
+    decaying.load_state_tensors(tensors, meta)
+    assert decaying.lr == pytest.approx(1e-3 * lr_factor(1, 2, 0.5))
+
+
 def test_importance_weights_scale_each_sample():
     a = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3), device="cpu", seed=0)
     b = DQNAgent(SMALL, TINY, DQNConfig(lr=1e-3), device="cpu", seed=0)
