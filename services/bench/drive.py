@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from services.bench import interrupt_on_stop_signals, print_json
+from services.bench.options import MAX_IMAGES, MIN_IMAGES
 from services.bus.options import DEFAULT_CMD_VEL_TOPIC, DEFAULT_IMAGE_TOPIC
 from services.bus.ros2 import Ros2Node
 from services.bus.session import ZenohSettings, free_tcp_port, open_router, open_session
@@ -64,8 +65,8 @@ def sample_images(count: int, width: int | None, height: int | None, seed: int =
 
 def run(*, checkpoint: str = "pretrained", onnx: str | None = None, images: int = 300, width: int | None = None,
         height: int | None = None, encoding: str = "16UC1", ros2_format: str = "rmw_zenoh") -> dict[str, Any]:
-    if images < 10:
-        raise CogexploreError(f"--images must be >= 10, got {images}")
+    if not (isinstance(images, int) and MIN_IMAGES <= images <= MAX_IMAGES):
+        raise CogexploreError(f"--images must be a whole number in {MIN_IMAGES}..{MAX_IMAGES}, got {images!r}")
     if (width is None) != (height is None):
         raise CogexploreError("give both --width and --height, or neither")
     if width is not None and height is not None and width * height > MAX_SENT_PIXELS:

@@ -12,6 +12,11 @@ from services.options import MAX_TORCH_THREADS, count_argument, positive_number_
 from shared.wire.messages import MAX_BATCH_STEPS, MAX_FRAME_PIXELS
 
 JSON_HELP = "print the JSON indented (default: on one line)"
+MIN_IMAGES = 10
+MAX_IMAGES = 1_000_000
+"""The most images ``bench drive --images`` may ask for: 3,300 times the default 300 (a p99 is steady
+after a few thousand), over five hours at the 20 ms target, for a soak as long as anyone would run,
+and its bookkeeping stays near 100 MB. 10**10 grew a list of 80 GB before the first image was sent."""
 
 
 def add_env_arguments(p: argparse.ArgumentParser) -> None:
@@ -61,7 +66,7 @@ def add_transport_arguments(p: argparse.ArgumentParser) -> None:
 def add_drive_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--checkpoint", default="pretrained", help="the policy drive runs (default pretrained)")
     p.add_argument("--onnx", default=None, metavar="FILE", help="time `drive --onnx FILE` instead")
-    p.add_argument("--images", type=whole_number_argument(10), default=300, help="images timed (default 300)")
+    p.add_argument("--images", type=whole_number_argument(MIN_IMAGES, MAX_IMAGES), default=300, help="images timed (default 300)")
     p.add_argument("--width", type=count_argument, default=None,
                    help="image width sent (default: the network's, 40 for the shipped model; a Kinect sends 640; "
                         "width x height at most 1920 x 1080 pixels)")

@@ -19,6 +19,7 @@ import atexit
 import logging
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import zenoh
@@ -181,19 +182,18 @@ class DriveNode:
         controller when a decision holds it for longer than :data:`EXIT_WAIT_S` or the watchdog (a
         stalled policy): not the watchdog alone, which may be longer than a container's grace period."""
         if not self.lock.acquire(timeout=min(self.controller.config.watchdog_s, EXIT_WAIT_S)):
-            with self.send_lock:  # nothing after it
-                self._send(Decision(0.0, 0.0, None, "exit", error="the policy is still deciding"))
-                self.exit_sent = True
+            self._send(Decision(0.0, 0.0, None, "exit", error="the policy is still deciding"), last=True)
             return
         try:
             with self.send_lock:
                 if not self.exit_sent:
-                    self._send(self.controller.exit_stop())
-                    self.exit_sent = True
+                    self._send(self.controller.exit_stop(), last=True)
         finally:
             self.lock.release()
 
-    def _send(self, decision: Decision) -> None:
+    def _send(self, decision: Decision, last: bool = False) -> None:
+        """Publish ``decision``'s twist, then report it; with ``last`` (the exit stop) nothing is sent
+        after it, once it is out, even when its report fails."""
         with self.send_lock:
             if self.exit_sent:
                 return
@@ -203,6 +203,7 @@ class DriveNode:
             # beside the stop at that number)
             self.sent += 1
             number = self.sent
+            self.exit_sent = last
         self._report(decision, number)
 
     def _report(self, decision: Decision, number: int) -> None:
@@ -228,17 +229,29 @@ class DriveNode:
             self.recorder.log_decision(message, c.last_depth_m if decision.command is not None else None)
 
     def close(self) -> None:
-        """Stop the robot (once), end the decider and close the node's topics; a second call does nothing."""
-        self.stop_at_exit()
+        """Stop the robot (once), end the decider and close the node's topics; a second call does
+        nothing. Each step is taken even when one before it fails (a recorder that raised on the
+        exit stop left the topics declared), its failure logged in one line."""
+        _close_step("the exit stop", self.stop_at_exit)
         with self.pending_ready:
             if self.closing:
                 return
             self.closing = True
             self.pending_ready.notify()
         self.decider.join(timeout=1.0)  # a stalled policy's thread is a daemon: it does not hold the exit
-        for handle in (self.reset_sub, self.diagnostics):  # the node closes its own topics
-            handle.undeclare()
-        self.node.close()
+        # the node closes its own topics
+        _close_step("undeclaring the reset subscriber", self.reset_sub.undeclare)
+        _close_step("undeclaring the diagnostics publisher", self.diagnostics.undeclare)
+        _close_step("closing the node's topics", self.node.close)
+
+
+def _close_step(what: str, step: Callable[[], object]) -> None:
+    """One step of :meth:`DriveNode.close`: a failure is logged in one line, and the next step runs."""
+    try:
+        step()
+    except Exception as exc:  # noqa: BLE001 -- whatever failed, the rest is still closed
+        log.error("closing the drive node: %s failed (%s: %s); closing the rest", what, type(exc).__name__,
+                  " ".join(str(exc).split()))
 
 
 def run_drive_command(args: argparse.Namespace) -> int:

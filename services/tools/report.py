@@ -646,7 +646,8 @@ def _versions(model: LoadedModel) -> str:
 
 def _baseline_setup(name: str, run_cfg: Any, model: LoadedModel | None, world: str, seed: int) -> EvalSetup:
     """A baseline that sees the run's own sensor and robot: the run's config, else its
-    checkpoint's, else the paper preset's."""
+    checkpoint's, else the paper preset's (the map expert plans for that robot too, as the
+    episodes play it)."""
     from shared.config import EnvConfig, load_preset
     from shared.evaluation.policies import make_policy
 
@@ -658,7 +659,7 @@ def _baseline_setup(name: str, run_cfg: Any, model: LoadedModel | None, world: s
     else:
         paper = load_preset("paper")
         sensor, env = paper.sensor, paper.env
-    return EvalSetup(name, make_policy(name, sensor_cfg=sensor, seed=seed), sensor, env, world, None)
+    return EvalSetup(name, make_policy(name, sensor_cfg=sensor, seed=seed, env_cfg=env), sensor, env, world, None)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -5,7 +5,9 @@ camera. Reward +1 (r_move) for a collision-free move, -100 (r_ter) on collision,
 the episode (``terminated``). A collision is either the paper's rule -- the minimum valid
 depth falls below l_s = 0.55 m -- or the robot body touching an obstacle; ``info`` reports
 the cause. Reaching the step cap is ``truncated``, never ``terminated``, so value targets
-bootstrap through it.
+bootstrap through it. Either way the episode has ended: as Gymnasium's ``Env.step`` asks, the next
+step needs a ``reset`` first, and one without it is an :class:`EnvError` (it drove on from inside
+the collision and reported it again, or past the cap).
 
 Importing this module registers the Gymnasium ids (``shared.sim.gym_register``, which also says
 how the TimeLimit and the env's own step cap meet)::
@@ -261,6 +263,8 @@ class ExploreEnv(gym.Env):
         self._path_length = 0.0
         self._steps = 0
         self._needs_reset = True
+        self._ended: str | None = None
+        """How the episode ended (a collision, the step cap), None while it plays: stepping on needs a reset."""
         self._random_start = False
         self._failure_start_now = False
         # The poses of the episode's last steps and the collisions kept with theirs (failure_start_prob).
@@ -346,6 +350,7 @@ class ExploreEnv(gym.Env):
         self._recent_poses.append((x, y, yaw))
         self._path_length = 0.0
         self._steps = 0
+        self._ended = None
         self._needs_reset = False
         return self._depth, self._info(None, min_valid_depth(self._depth))
 
@@ -365,6 +370,8 @@ class ExploreEnv(gym.Env):
                            f"±{MAX_TWIST_MPS:g} m/s and ±{MAX_TWIST_RPS:g} rad/s")
         if self._needs_reset:  # the robot would drive from wherever MuJoCo put it, a wall perhaps
             raise EnvError("step before reset: call env.reset() first")
+        if self._ended is not None:  # it would drive on from inside the collision, or past the cap
+            raise EnvError(f"step after the episode ended ({self._ended}): call env.reset() first")
         cfg = self.env_config
         touched = self.robot.drive(float(linear_mps), float(angular_rps), cfg.substeps)
         self._depth = self.camera.capture(self.data)
@@ -378,6 +385,8 @@ class ExploreEnv(gym.Env):
         cause = "contact" if touched else ("depth" if min_depth < cfg.collision_distance_m else None)
         terminated = cause is not None
         truncated = not terminated and self._steps >= cfg.max_episode_steps
+        if terminated or truncated:
+            self._ended = "a collision" if terminated else f"truncated at its {cfg.max_episode_steps}-step cap"
         reward = cfg.reward_collision if terminated else cfg.reward_move
         if cfg.failure_start_prob > 0:  # off, the step keeps no poses
             self._recent_poses.append((x, y, yaw))
@@ -405,15 +414,17 @@ class ExploreEnv(gym.Env):
         """The episode's state now (robot physics, step count, path, image, the floor seen for the
         novelty reward, whether the pose has a way out for the trap reward): :meth:`restore` puts
         the episode back exactly there, so a planner can try several commands from one pose
-        (shared.learning.demos). Only within the episode and world it was taken in; the sensor's
-        noise draws (``SensorConfig.noise_std_m``) are not rewound."""
+        (shared.learning.demos), ended or not as it was then (one taken before a collision plays
+        on after it). Only within the episode and world it was taken in; the sensor's noise draws
+        (``SensorConfig.noise_std_m``) are not rewound."""
         seen = self._scene.coverage().seen if self.env_config.reward_new_area_per_m2 > 0 else None
         return (self._scene, self.robot.state(), self._steps, self._path_length, self._last_xy,
-                self._depth.copy(), tuple(self._trail), seen, self._trapped)
+                self._depth.copy(), tuple(self._trail), seen, self._trapped, self._ended)
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
         """Return to a :meth:`snapshot` of the current episode."""
-        scene, state, self._steps, self._path_length, self._last_xy, depth, trail, seen, self._trapped = snapshot
+        scene, state, self._steps, self._path_length, self._last_xy, depth, trail, seen, self._trapped, \
+            self._ended = snapshot
         if scene is not self._scene:
             raise EnvError("a snapshot can only be restored in the episode's own world")
         if seen is not None:

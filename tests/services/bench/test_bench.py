@@ -191,3 +191,22 @@ def test_bench_drive_refuses_an_image_no_camera_sends(capsys) -> None:
     err = capsys.readouterr().err
     assert err.startswith("cogexplore bench drive: error: --width x --height is 100000 x 100000: at most 2073600 "
                           "pixels") and err.count("\n") == 1, err
+
+
+@pytest.mark.timeout(60)
+def test_bench_drive_refuses_an_absurd_image_count(capsys) -> None:
+    from services.bench.drive import run
+    from services.bench.options import MAX_IMAGES
+    from services.cli import main
+    from shared.errors import CogexploreError
+
+    # No bound: 10**10 grew an 80 GB list of frames before the first image was sent (out of memory
+    # after 33 s under a 6 GB cap); one past the bound went on to start drive and time a million images.
+    for images in (MAX_IMAGES + 1, 10**10):
+        with pytest.raises(SystemExit) as stop:
+            main(["bench", "drive", "--images", str(images)])
+        assert stop.value.code == 2
+        assert (f"--images: must be a whole number in 10..{MAX_IMAGES}, got '{images}'"
+                in capsys.readouterr().err)
+        with pytest.raises(CogexploreError, match=f"--images must be a whole number in 10..{MAX_IMAGES}"):
+            run(images=images)  # the API as the command line

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import threading
 import time
 
@@ -48,6 +49,7 @@ class Robot:
     """This test as the robot: a depth image publisher and a cmd_vel listener."""
 
     def __init__(self, session) -> None:
+        self.session = session
         self.node = Ros2Node(session, make_format("rmw_zenoh"), "test_robot")
         self.images = self.node.publisher(qualify("/", "camera/depth/image_raw"), IMAGE, qos="sensor_data")
         self.twists: list[tuple[float, float, float]] = []
@@ -68,13 +70,13 @@ class Robot:
 
 
 @contextlib.contextmanager
-def driving(router: str, policy, *options: str, watchdog: bool = False):
-    """This test as the robot and a drive node with ``options``, on ``router``; with ``watchdog``,
+def driving(router: str, policy, *options: str, watchdog: bool = False, recorder=None):
+    """This test as the robot and a drive node with ``options`` (and ``recorder``), on ``router``; with ``watchdog``,
     run_drive_command's loop too (the node's watchdog every 20 ms). Yields (robot, node, a function
     that stops that loop); all is stopped and closed on the way out (a node's close is idempotent)."""
     with client(router) as robot_session, client(router) as drive_session:
         robot = Robot(robot_session)
-        node = DriveNode(drive_session, drive_args(router, *options), policy)
+        node = DriveNode(drive_session, drive_args(router, *options), policy, recorder)
         ticking = threading.Event()
 
         def watch() -> None:
@@ -290,3 +292,62 @@ def test_with_a_long_watchdog_the_exit_stop_does_not_wait_for_a_stalled_policy(l
             time.sleep(0.05)
         stop_s = min(t for t, linear, angular in robot.snapshot() if t > closing) - closing
         assert stop_s < 2.0, f"the exit stop came {stop_s:.1f} s after close"
+
+
+class FailingRecorder:
+    """A recorder whose disk is full by the time the exit stop is recorded."""
+
+    def log_decision(self, diagnostics, depth_m) -> None:
+        if diagnostics.stop_reason == "exit":
+            raise OSError(28, "No space left on device")
+
+
+class CountingResets(Slow):
+    """The shipped policy, counting its resets (the node's reset subscription calls it)."""
+
+    resets = 0
+
+    def reset(self) -> None:
+        self.resets += 1
+        self.policy.reset()
+
+
+@pytest.mark.timeout(60)
+def test_a_recorder_that_fails_on_the_exit_stop_leaves_no_cleanup_step_undone(loopback_router, policy, start_image,
+                                                                              caplog):
+    # The recorder raised inside the exit stop close() sends: the zero twist had gone out, but close()
+    # stopped there, leaving the decider running and the reset subscription, the diagnostics publisher
+    # and the node's topics and liveliness token declared on the session.
+    counting = CountingResets(policy, 0.0)
+    good = encode_depth_image(start_image, encoding="32FC1", stamp_ns=1)
+    with driving(loopback_router, counting, recorder=FailingRecorder()) as (robot, node, _stop):
+        wait_for_twist(robot, good, moving=True)
+        reset_key = RobotKeys("bot").reset
+        deadline = time.monotonic() + 10
+        while not counting.resets:  # the reset subscription works before close
+            assert time.monotonic() < deadline, "no reset"
+            robot.session.put(reset_key, b"")
+            time.sleep(0.1)
+        token = node.node.token_key
+        assert [r.ok for r in robot.session.liveliness().get(token, timeout=2.0)]
+        closing = time.monotonic()
+        with caplog.at_level(logging.ERROR, logger="cogexplore.drive"):
+            node.close()
+        deadline = time.monotonic() + 10
+        while not any(t > closing and (linear, angular) == (0.0, 0.0) for t, linear, angular in robot.snapshot()):
+            assert time.monotonic() < deadline, "no exit stop"
+            time.sleep(0.05)
+        failures = [r for r in caplog.records if r.levelno >= logging.ERROR]
+        assert len(failures) == 1 and "No space left on device" in failures[0].getMessage(), caplog.text
+        assert "\n" not in failures[0].getMessage() and failures[0].exc_info is None
+        assert not node.decider.is_alive()
+        assert not [r.ok for r in robot.session.liveliness().get(token, timeout=2.0)]  # the node's topics are closed
+        resets = counting.resets
+        robot.session.put(reset_key, b"")
+        time.sleep(0.5)
+        assert counting.resets == resets  # and so is its reset subscription
+        twists = robot.snapshot()
+        node.stop_at_exit()  # at exit, the stop is not sent again
+        node.close()
+        time.sleep(0.3)
+        assert robot.snapshot() == twists

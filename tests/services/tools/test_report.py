@@ -784,3 +784,28 @@ def test_find_results_reads_each_file_once_per_cache(tmp_path: Path) -> None:
     os.utime(tmp_path / "m.json", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
     assert find_results([tmp_path], {"model": "a"}, cache=cache) is None
     assert find_results([tmp_path], {"model": "b"}, cache=cache)[1] == tmp_path / "m.json"
+
+
+def test_the_expert_baseline_drives_the_runs_robot(tmp_path: Path) -> None:
+    # The map expert planned for the default robot (0.5 s control period) while the episodes played
+    # the run's (0.3 s): its row scored a controller of another robot.
+    from shared.evaluation.policies import make_policy
+    from shared.evaluation.protocol import evaluate_policy
+
+    run = tmp_path / "run"
+    run.mkdir()
+    cfg = small_config().with_overrides({"env.control_period_s": 0.3})
+    (run / "config.toml").write_text(to_toml(cfg))
+    quick = {**QUICK, "baselines": ("expert",), "max_steps": 10}
+    played = load_results(build_report(run, **quick).results["paper"]["expert"])
+    assert played.meta["env"]["control_period_s"] == 0.3
+
+    def trajectories(env_cfg) -> list:
+        expert = make_policy("expert", sensor_cfg=cfg.sensor, env_cfg=env_cfg)
+        results = evaluate_policy(expert, world="box-room", sensor_cfg=cfg.sensor, env_cfg=cfg.env,
+                                  episodes_per_start=1, max_steps=10, seed=played.meta["seed"],
+                                  progress=False, protocol=PROTOCOLS["paper"])
+        return [e.trajectory_xy for e in results.episodes]
+
+    assert trajectories(None) != trajectories(cfg.env)  # the default robot's expert drives otherwise here
+    assert [e.trajectory_xy for e in played.episodes] == trajectories(cfg.env)

@@ -519,3 +519,42 @@ def test_a_world_keeps_its_start_maps_as_a_bool_map_and_int32_cells():
     assert not [a for t in held for a in t if isinstance(a, np.ndarray) and a.dtype == np.float64]
     assert fits.nbytes + cells.nbytes < grid.occupied.size * 3
     env.close()
+
+
+def test_a_step_after_the_episode_ended_is_refused_until_reset():
+    # Stepping on after a collision drove the robot on from inside it and reported the collision
+    # again (-100 each time, no error): a loop that missed `terminated` trained on the same crash.
+    env = ExploreEnv(world=_corridor_world([0.70, 6.0]), speed_table="train", max_episode_steps=2)
+    try:
+        env.reset(options={"start_index": 0})
+        assert env.step(2)[2]  # into the wall
+        for step in (lambda: env.step(2), lambda: env.step_twist(0.0, 0.0)):
+            with pytest.raises(EnvError, match=r"after the episode ended \(a collision\): call env.reset\(\)") as err:
+                step()
+            assert "\n" not in str(err.value)
+        env.reset(options={"start_index": 1})
+        assert env.step(0)[2:4] == (False, False)
+        assert env.step(0)[2:4] == (False, True)  # the env's own step cap, as Gymnasium's Env.step asks: reset
+        with pytest.raises(EnvError, match=r"after the episode ended \(truncated at its 2-step cap\)"):
+            env.step(0)
+        assert env.reset(options={"start_index": 1})[1]["step"] == 0 and env.step(0)[4]["step"] == 1
+    finally:
+        env.close()
+
+
+def test_a_snapshot_restores_whether_its_episode_had_ended():
+    # The planner (shared.learning.demos) steps into a collision and restores the pose before it to try
+    # another command: a snapshot taken before the end plays on, one taken at the end is ended still.
+    env = ExploreEnv(world=_corridor_world([0.70]), speed_table="train", start_index=0)
+    try:
+        env.reset(seed=0)
+        before = env.snapshot()
+        assert env.step(2)[2]
+        ended = env.snapshot()
+        env.restore(before)
+        assert env.step(0)[4]["step"] == 1  # the episode plays on from the pose before the collision
+        env.restore(ended)
+        with pytest.raises(EnvError, match="after the episode ended"):
+            env.step(0)
+    finally:
+        env.close()
