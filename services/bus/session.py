@@ -197,7 +197,7 @@ class ZenohSettings:
         try:
             config = zenoh.Config.from_file(str(path))
         except Exception as exc:  # zenoh raises its own ZError for parse errors
-            raise TransportConfigError(f"Zenoh config file {path} is invalid: {exc}") from None
+            raise TransportConfigError(f"Zenoh config file {path} is invalid: {_config_problem(exc)}") from None
         # Secrets (a password, the router's passwords, a private key) other users may read are refused, as
         # ssh refuses such a key; certificates are public.
         if isinstance(_json_value(config, PASSWORD_KEY), str):
@@ -249,6 +249,38 @@ def _check_secret(path: Path) -> None:
         check_private(path)
     except SecurityError as exc:  # one kind of error for a bad config file, which callers catch
         raise TransportConfigError(str(exc)) from None
+
+
+_RUST_SOURCE_RE = re.compile(r"\s+at \S+\.rs:\d+\.?$")
+_QUOTED_RE = re.compile(r'`[^`]*`|\\?"(?:[^"\\]|\\[^"])*\\?"')
+
+
+def _config_problem(exc: object) -> str:
+    """What Zenoh says is wrong with a config file, in one line and without the file's text: its parser
+    draws the line it stopped at, serde quotes the value it refused and the validator prints the
+    whole config, a role's password among them, into a terminal and a log that other users may read."""
+    text = str(exc)
+    if text.startswith("Invalid configuration:"):  # the validator's: the whole config follows
+        return "a value Zenoh refuses (a user without a password, a queue size out of range, ...)"
+    where = re.search(r"-->\s*(\d+):(\d+)|line: (\d+), column: (\d+)", text)
+    said = re.search(r'(?:msg|message): "((?:[^"\\]|\\.)*)"', text)  # serde's (JSON, YAML, TOML)
+    lines = [line.strip() for line in text.splitlines()]
+    drawn = next((line[1:].strip() for line in lines if line.startswith("=")), None)  # the JSON5 parser's
+    if said:
+        # the value refused (`unknown variant `<it>``, `invalid type: string "<it>"`) is left out, what
+        # was expected in its place is said; an unknown field's name is not a value
+        head, sep, tail = said.group(1).partition("expected")
+        what = head if head.startswith("unknown field") else _QUOTED_RE.sub("…", head)
+        what += sep + tail
+    elif drawn is not None:
+        what = drawn
+    else:
+        what = _QUOTED_RE.sub("…", lines[0] if lines else "")
+    what = _RUST_SOURCE_RE.sub("", what.strip())
+    if where:
+        line, column = (g for g in where.groups() if g is not None)
+        return f"line {line}, column {column}: {what}"
+    return what
 
 
 def _json_value(config: zenoh.Config, key: str) -> object:

@@ -84,6 +84,7 @@ def settle(predicate=lambda: False, timeout_s: float = 1.5) -> None:
 def test_the_folder_is_private_complete_and_denies_by_default(tmp_path: Path):
     files = init_secure(tmp_path / "secure", RUN, tls=True, hosts=["robot-lab.local"])
     assert files.tls and files.check(RUN, tls=True) is files
+    assert stat.S_IMODE(files.root.stat().st_mode) == 0o700, "the folder's names are others' to list"
     for path in files.root.iterdir():
         assert stat.S_IMODE(path.stat().st_mode) == 0o600, path.name
     router = json.loads(files.router_config.read_text())
@@ -387,3 +388,199 @@ def test_export_closes_a_folder_of_its_own_and_refuses_one_that_holds_other_file
         export_role(files.root, "actor", shared)
     assert stat.S_IMODE(shared.stat().st_mode) == 0o1777 and sorted(p.name for p in shared.iterdir()) == [
         "someone-elses"]
+
+
+# ---------------------------------------------------------------------------------------------
+# An attacker's view: outsiders, insiders stepping outside their part, secrets in messages
+# ---------------------------------------------------------------------------------------------
+
+def test_a_damaged_role_config_is_refused_in_one_line_without_its_password(tmp_path: Path, capsys):
+    # Zenoh's parser drew the line it stopped at (the password's), serde quoted the value it refused and
+    # the validator printed the whole config: a service said the run's password to the terminal and
+    # to its log, which other users may read.
+    from services.cli import main
+
+    files = init_secure(tmp_path / "secure", RUN)
+    password = json.loads(files.credentials.read_text())["users"]["actor"]["password"]
+    good = json.loads(files.config("actor").read_text())
+    text = files.config("actor").read_text()
+    no_user = json.loads(text)
+    del no_user["transport"]["auth"]["usrpwd"]["user"]
+    queue = json.loads(text)
+    queue["transport"]["link"] = {"tx": {"queue": {"size": {"data": 100}}}}
+    damaged = {"a stray word": (text.replace(f'"{password}"', f'"{password}" x'), "line 12, column 21: expected"),
+               "no quotes": (text.replace(f'"{password}"', password), "line 12, column 21: expected"),
+               "cut short": (text[:text.index(password) + 5], "line 12, column 27: expected"),
+               "the password as the mode": (json.dumps({**good, "mode": password}),
+                                            "unknown variant …, expected one of `router`, `peer`, `client`"),
+               "no user": (json.dumps(no_user), "a value Zenoh refuses"),
+               "a queue out of range": (json.dumps(queue), "a value Zenoh refuses")}
+    bad = tmp_path / "bad.json5"
+    for name, (content, said) in damaged.items():
+        write_secret(bad, {})
+        bad.write_text(content)
+        with pytest.raises(TransportConfigError) as refused:
+            ZenohSettings(config_file=str(bad))
+        message = str(refused.value)
+        assert password[:5] not in message and "\n" not in message and said in message, (name, message)
+        assert message.startswith(f"Zenoh config file {bad} is invalid: ") and ".rs:" not in message, (name, message)
+    code = main(["evaluator", "--run", RUN, "--runs-dir", str(tmp_path), "--zenoh-config", str(bad)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and password[:5] not in err and "a value Zenoh refuses" in err, err
+
+
+def test_an_insider_reaches_nothing_beyond_its_part_with_wildcards_deletes_tokens_or_the_admin_space(tmp_path: Path):
+    """Actor, evaluator and viewer credentials against a router with its admin space open (zenohd, the
+    compose router, opens it): what passes the router is seen by a subscriber, a queryable and a
+    liveliness subscriber of the router itself, which the access control does not filter."""
+    import zenoh
+
+    files = init_secure(tmp_path / "secure", RUN)
+    config = json.loads(files.router_config.read_text())
+    config["adminspace"] = {"enabled": True, "permissions": {"read": True, "write": True}}
+    config["transport"]["auth"]["usrpwd"]["dictionary_file"] = str(files.root / "users.txt")
+    write_secret(tmp_path / "zenohd.json5", config)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    p = KEYS.prefix
+    keys = [KEYS.transitions("x"), KEYS.weights, KEYS.weights_latest, KEYS.flow, KEYS.config, KEYS.episode_stats("x"),
+            KEYS.learner_stats("x"), KEYS.eval_results("x"), f"{p}/other", "cogexplore/other-run/weights", "other/x",
+            "cogexplore/@robot/r/reset"]
+    wild = ["**", "cogexplore/**", f"{p}/**", f"{p}/*", f"{p}/transitions/*", f"{p}/stats/**", f"{p}/weights/*"]
+    own = {"actor": {KEYS.transitions("x"), KEYS.episode_stats("x"), f"{p}/transitions/*"},
+           "evaluator": {KEYS.eval_results("x")}, "viewer": set()}
+    queries_of = {KEYS.weights_latest, KEYS.config}
+    asks = {"actor": queries_of, "evaluator": queries_of, "viewer": set()}
+    stats = {KEYS.episode_stats("x"), KEYS.learner_stats("x"), KEYS.eval_results("x")}
+    hears = {"actor": {KEYS.weights, KEYS.flow}, "evaluator": {KEYS.weights, KEYS.flow}, "viewer": {KEYS.flow, *stats}}
+    alive = {role: KEYS.alive(role, "r") for role in ("learner", "actor", "evaluator")}
+    watches = {"actor": {alive["learner"]}, "evaluator": set(), "viewer": set(alive.values())}
+    with open_router([endpoint], config_file=str(tmp_path / "zenohd.json5")) as router:
+        run_tokens = [router.liveliness().declare_token(key) for key in alive.values()]
+        admin = f"@/{router.zid()}"
+        assert any(r.ok for r in router.get(f"{admin}/**", timeout=1.0)), "the admin space is open"
+        samples: list[tuple[str, str]] = []
+        queries: list[str] = []
+        tokens: list[tuple[str, str]] = []
+
+        def answer(query) -> None:  # type: ignore[no-untyped-def]
+            key = str(query.selector.key_expr)
+            queries.append(key)
+            if "*" not in key:  # a concrete key is answered as itself (a wildcard query is refused anyway)
+                query.reply(key, b"router")
+
+        observers = [router.declare_subscriber("**", lambda s: samples.append((str(s.key_expr), str(s.kind)))),
+                     router.declare_queryable("**", answer),
+                     router.liveliness().declare_subscriber(
+                         "**", lambda s: tokens.append((str(s.key_expr), str(s.kind))))]
+        for role in ("actor", "evaluator", "viewer"):
+            samples.clear(), queries.clear(), tokens.clear()
+            with open_session(ZenohSettings(connect=(endpoint,), config_file=str(files.config(role))),
+                              wait_s=2.0) as s:
+                for key in keys + wild:
+                    s.put(key, b"attack")
+                    s.delete(key)
+                s.put(f"{admin}/router/config/scouting/delay", b"1")  # the admin space's write access
+                held = [s.liveliness().declare_token(k) for k in  # a fake of each role, and wildcards
+                        [KEYS.alive(r, role) for r in ("learner", "actor", "evaluator", "router", "trainer")]
+                        + [f"{p}/alive/**", f"{p}/alive/learner/*"]]
+                replies = {k: [str(r.ok.key_expr) for r in s.get(k, timeout=0.5, target=zenoh.QueryTarget.ALL)
+                               if r.ok] for k in keys + wild + [f"{admin}/**", "@/**"]}
+                settle(timeout_s=0.5)
+                passed = {k for k, kind in samples if "PUT" in kind}, {k for k, kind in samples if "DELETE" in kind}
+                heard: set[str] = set()
+                watched: set[str] = set()
+                subs = [s.declare_subscriber(w, lambda x: heard.add(str(x.key_expr))) for w in wild + keys]
+                watch = [s.liveliness().declare_subscriber(w, lambda x: watched.add(str(x.key_expr)), history=True)
+                         for w in ("**", f"{p}/alive/**", *(KEYS.all_alive(r) for r in alive))]
+                settle(timeout_s=0.5)
+                for key in keys:
+                    router.put(key, b"the run's data")
+                settle(timeout_s=0.5)
+                assert heard == hears[role], role
+                assert watched - {f"{p}/alive/**", f"{p}/alive/learner/*"} - set(map(lambda r: KEYS.alive(r, role), (
+                    "learner", "actor", "evaluator", "router", "trainer"))) == watches[role], role  # less its own
+                assert passed == (own[role], set()), role
+                assert set(queries) == asks[role], role
+                assert {k for k, r in replies.items() if any(not key.startswith("@/") for key in r)} == asks[role], role
+                # the session's own admin space answers (its link to the router), the router's does not
+                assert {key.split("/")[1] for r in replies.values() for key in r if key.startswith("@/")} <= {
+                    str(s.zid())}, role
+                declared = {k for k, kind in tokens if "PUT" in kind}  # the last role's going is a DELETE
+                assert declared == ({KEYS.alive(role, role)} if role != "viewer" else set()), (role, tokens)
+                del held, subs, watch  # kept until here: dropping one undeclares it
+        delay = router.get(f"{admin}/router/config/scouting/delay", timeout=1.0)
+        assert [r.ok.payload.to_bytes() for r in delay if r.ok] != [b"1"]
+        del observers, run_tokens
+
+
+def test_outsiders_get_no_session_in_any_mode_nor_with_another_runs_credentials_or_certificates(tmp_path: Path):
+    bus = Bus(tmp_path / "secure", tls=True)
+
+    def refused(config: Path) -> None:  # no retries: the router is up, a refusal is final
+        open_session(ZenohSettings(connect=(bus.endpoint,), config_file=str(config))).close()
+
+    try:
+        heard = bus.listen("learner", KEYS.all_transitions)
+        for mode in ("peer", "router"):  # these open without a router: they must get none
+            config = tmp_path / f"{mode}.json5"
+            config.write_text(json.dumps({"mode": mode, "scouting": {"multicast": {"enabled": False}},
+                                          "listen": {"endpoints": []}}))
+            with open_session(ZenohSettings(connect=(bus.endpoint,), config_file=str(config))) as s:
+                settle(lambda: bool(list(s.info.routers_zid())), timeout_s=1.0)
+                assert list(s.info.routers_zid()) == [], mode
+                s.put(KEYS.transitions("outsider"), b"forged")
+        # another run made the same way, and this run's name made again in another folder
+        for other in (init_secure(tmp_path / "other", "other", tls=True),
+                      init_secure(tmp_path / "again", RUN, tls=True)):
+            for role in ROLES:
+                with pytest.raises(TransportError):
+                    refused(other.config(role))
+            # another run's certificate with this run's CA and password: no TLS link either
+            stolen = json.loads(bus.files.config("actor").read_text())
+            stolen["transport"]["link"]["tls"].update(
+                {"root_ca_certificate": str(bus.files.root / "ca.pem"),
+                 "connect_certificate": str(other.root / "actor.pem"),
+                 "connect_private_key": str(other.root / "actor.key")})
+            write_secret(tmp_path / "stolen.json5", stolen)
+            with pytest.raises(TransportError):
+                refused(tmp_path / "stolen.json5")
+        settle(timeout_s=0.3)
+        assert heard == []
+    finally:
+        bus.close()
+
+
+def test_idle_connections_do_not_hold_a_tls_router(tmp_path: Path):
+    """Anyone may open TCP connections and say nothing. Zenoh admits 100 links at a time into its
+    handshake (transport/unicast/accept_pending): on a plain TCP router (`up` on loopback) 100 idle
+    connections refuse every new session for as long as they are held. With mutual TLS a link that
+    has not shown the run's certificate never reaches those 100: this is why a router that other
+    machines reach listens on TLS only."""
+    import socket
+
+    bus = Bus(tmp_path / "secure", tls=True)
+    idle = []
+    try:
+        port = int(bus.endpoint.rsplit(":", 1)[1])
+        for _ in range(150):
+            idle.append(socket.create_connection(("127.0.0.1", port)))
+        idle[0].send(bytes.fromhex("160301"))  # and one that starts a TLS record and stops
+        settle(timeout_s=0.3)
+        session = bus.open("actor")
+        session.close()
+    finally:
+        for sock in idle:
+            sock.close()
+        bus.close()
+
+
+def test_secure_init_and_export_say_no_secret(tmp_path: Path, capsys):
+    from services.cli import main
+
+    root = tmp_path / "secure"
+    assert main(["secure", "init", str(root), "--run", RUN, "--tls"]) == 0
+    assert main(["secure", "export", str(root), "--role", "actor", "--out", str(tmp_path / "bundle")]) == 0
+    said = "".join(capsys.readouterr())
+    secrets = [u["password"] for u in json.loads((root / "credentials.json").read_text())["users"].values()]
+    secrets += [line for p in root.glob("*.key") for line in p.read_text().splitlines() if "PRIVATE" not in line]
+    assert "actor.json5" in said and not any(secret in said for secret in secrets)
