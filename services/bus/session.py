@@ -374,7 +374,12 @@ def open_service_session(settings: ZenohSettings, stop: threading.Event | None =
 
 def declare_reliable_publisher(session: zenoh.Session, key_expr: str, *,
                                priority: zenoh.Priority = zenoh.Priority.DATA) -> zenoh.Publisher:
-    """A publisher that blocks rather than drops when queues are full (transitions, weights)."""
+    """A publisher that blocks rather than drops when queues are full (transitions, weights).
+
+    A receiver that stops reading holds such a message, and with it everything else that comes after
+    it on the sender's link to the router, DROP messages included, for up to Zenoh's wait_before_close
+    (5 s): a process whose other messages must not wait that long (the learner's flow control behind
+    its weights) publishes on a session of its own."""
     return session.declare_publisher(key_expr, congestion_control=zenoh.CongestionControl.BLOCK,
                                      reliability=zenoh.Reliability.RELIABLE, priority=priority)
 

@@ -4,8 +4,9 @@
 
 Zenoh callbacks only decode, validate and queue; one loop owns the replay memory and the
 agent: drain the queue into replay -> run the updates that are due -> publish weights every
-``--weights-every`` updates (from a sender thread that keeps only the newest, so a slow
-link never stalls training) -> publish flow control and statistics -> checkpoint. On start
+``--weights-every`` updates (from a sender thread that keeps only the newest, on a Zenoh
+session of its own, so that neither a slow link nor a receiver that stops reading stalls
+training or the flow control) -> publish flow control and statistics -> checkpoint. On start
 with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIGINT or at
 ``total_updates`` it writes a final checkpoint and exits 0. Weights that have diverged (NaN or
 infinite) are neither published nor saved: the learner stops with one error line naming the run's last
@@ -185,10 +186,15 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         if not inbox.put(batch):
             rejects.reject(MessageError("oversize", "learner inbox full"), key)
 
-    with open_service_session(settings, stop) as session, CsvLog(paths.stats, LearnerRow) as stats_log, \
-            TensorBoardLog(tensorboard) as board:
+    # The weights go out on a session (a link to the router) of their own. The router forwards a message on
+    # the task that reads the link it came on: a BLOCK message for a receiver that stopped reading (a laptop
+    # asleep, a process stopped) holds that link for up to Zenoh's wait_before_close (5 s), and the sender's
+    # own queue waits behind it. On one link with the weights, the flow control and statistics (DROP) waited
+    # too: the learner's loop stood still and every actor ran out of credit, 5 s per such receiver.
+    with open_service_session(settings, stop) as session, open_service_session(settings, stop) as weights_session, \
+            CsvLog(paths.stats, LearnerRow) as stats_log, TensorBoardLog(tensorboard) as board:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
-        sender = LatestSender(declare_reliable_publisher(session, keys.weights))
+        sender = LatestSender(declare_reliable_publisher(weights_session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
         run_config = RunConfigMessage(learner_id=learner_id, config=cfg).encode()  # what actors without a preset take
         config_queryable = serve_latest(session, keys.config, lambda: run_config)  # noqa: F841
