@@ -124,6 +124,9 @@ class ZenohSettings:
     router_wait_s: float = DEFAULT_ROUTER_WAIT_S
     """How long a service keeps retrying while no router answers (``open_service_session``): its
     router may still be starting; 0 fails at once."""
+    listen_nowhere: bool = False
+    """Listen on no endpoint, whatever ``config_file`` says: a process's second session, whose listeners
+    would take the first's ports (:meth:`second_link`)."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
@@ -230,7 +233,18 @@ class ZenohSettings:
             config.insert_json5("connect/endpoints", json.dumps(list(connect)))
         if self.listen:
             config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
+        elif self.listen_nowhere:
+            config.insert_json5("listen/endpoints", "[]")
         return config
+
+    def second_link(self) -> "ZenohSettings | None":
+        """Settings for a second session of this process, a link of its own to the same router (for BLOCK
+        data that must not hold the rest up: :func:`declare_reliable_publisher`): a client's, listening
+        nowhere. None for a peer or a router, whose second session would meet no one the first meets
+        (peers that dial it) or take its ports: such a process keeps one session."""
+        if self.effective_mode != "client":
+            return None
+        return dataclasses.replace(self, listen=(), listen_nowhere=True)
 
     def describe(self) -> str:
         """One line for logs and errors."""
@@ -251,32 +265,50 @@ def _check_secret(path: Path) -> None:
         raise TransportConfigError(str(exc)) from None
 
 
-_RUST_SOURCE_RE = re.compile(r"\s+at \S+\.rs:\d+\.?$")
-_QUOTED_RE = re.compile(r'`[^`]*`|\\?"(?:[^"\\]|\\[^"])*\\?"')
+_CONFIG_WHERE_RE = re.compile(r"-->\s*(\d+):(\d+)|line:? (\d+),? column:? (\d+)")
+_SERDE_MESSAGE_RE = re.compile(r'(?:msg: |message: |Error\()"')
+_IDENTIFIER_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_-]{0,63}")
+_SERDE_KINDS = ("invalid type", "invalid value", "invalid length", "unknown variant", "unknown field",
+                "missing field", "duplicate field")
 
 
 def _config_problem(exc: object) -> str:
-    """What Zenoh says is wrong with a config file, in one line and without the file's text: its parser
-    draws the line it stopped at, serde quotes the value it refused and the validator prints the
-    whole config, a role's password among them, into a terminal and a log that other users may read."""
+    """What Zenoh says is wrong with a config file, in one line and without any of the file's text:
+    its parser draws the line it stopped at, serde quotes the value it refused and the validator prints
+    the whole config, a role's password among them, into a terminal and a log that other users may
+    read. Said: where (line, column), the kind of error and what was expected, which come from the
+    parser's grammar and the config's schema, not from the file; an unknown key's name where it is one."""
     text = str(exc)
     if text.startswith("Invalid configuration:"):  # the validator's: the whole config follows
         return "a value Zenoh refuses (a user without a password, a queue size out of range, ...)"
-    where = re.search(r"-->\s*(\d+):(\d+)|line: (\d+), column: (\d+)", text)
-    said = re.search(r'(?:msg|message): "((?:[^"\\]|\\.)*)"', text)  # serde's (JSON, YAML, TOML)
+    where = _CONFIG_WHERE_RE.search(text)
     lines = [line.strip() for line in text.splitlines()]
-    drawn = next((line[1:].strip() for line in lines if line.startswith("=")), None)  # the JSON5 parser's
-    if said:
-        # the value refused (`unknown variant `<it>``, `invalid type: string "<it>"`) is left out, what
-        # was expected in its place is said; an unknown field's name is not a value
-        head, sep, tail = said.group(1).partition("expected")
-        what = head if head.startswith("unknown field") else _QUOTED_RE.sub("…", head)
-        what += sep + tail
-    elif drawn is not None:
+    drawn = next((line[1:].strip() for line in lines if line.startswith("= ")), None)  # the JSON5 grammar's
+    said = _SERDE_MESSAGE_RE.search(text)
+    if drawn is not None:
         what = drawn
+    elif said:
+        message = text[said.end():]
+        path = re.match(r"[A-Za-z_][\w-]*(?:\.[A-Za-z_][\w-]*|\[\d+\])*: ", message)  # serde_yaml's key path
+        if path:
+            message = message[path.end():]
+        # The refused value sits between the kind of error and ", expected ...": neither edge is taken from
+        # it (a value may hold quotes, backticks or the word "expected"). Only serde's own kinds are said
+        # (a message of another shape may begin with the value), and the schema's words after the last
+        # ", expected ", up to the message's closing quote.
+        kind = next((k for k in _SERDE_KINDS if message.startswith(k)), None)
+        what = (path.group(0) if path else "") + (kind or "a value Zenoh refuses")
+        if kind in ("unknown field", "missing field", "duplicate field"):
+            name = re.match(kind + r" `([^`]*)`", message)
+            what += f" `{name.group(1)}`" if name and _IDENTIFIER_RE.fullmatch(name.group(1)) else " …"
+        elif kind is not None:
+            what += " …"
+        _, found, expected = message.rpartition(", expected ")
+        if found:
+            what += ", expected " + expected.split('"')[0].split("\n")[0].strip()
     else:
-        what = _QUOTED_RE.sub("…", lines[0] if lines else "")
-    what = _RUST_SOURCE_RE.sub("", what.strip())
+        what = "it cannot be parsed"
+    what = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", what)  # the Rust source line that raised
     if where:
         line, column = (g for g in where.groups() if g is not None)
         return f"line {line}, column {column}: {what}"
@@ -379,7 +411,7 @@ def declare_reliable_publisher(session: zenoh.Session, key_expr: str, *,
     A receiver that stops reading holds such a message, and with it everything else that comes after
     it on the sender's link to the router, DROP messages included, for up to Zenoh's wait_before_close
     (5 s): a process whose other messages must not wait that long (the learner's flow control behind
-    its weights) publishes on a session of its own."""
+    its weights) publishes on a session of its own (:meth:`ZenohSettings.second_link`)."""
     return session.declare_publisher(key_expr, congestion_control=zenoh.CongestionControl.BLOCK,
                                      reliability=zenoh.Reliability.RELIABLE, priority=priority)
 

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import contextlib
 import json
 import logging
 import threading
@@ -139,7 +140,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
                 learner_id: str = "learner", weights_every: int = 25, stats_every_s: float = 1.0,
                 flow_slack: int | None = None, device: str | None = None, save_replay: bool = True,
                 tensorboard: Path | None = None, pipeline: bool = False) -> dict:
-    """The learner loop; saves ``cfg`` as the run's config where it has none. Returns final counters.
+    """The learner loop; saves ``cfg`` as the run's config once it has resumed. Returns final counters.
     ``tensorboard``: a folder for its rows as TensorBoard events; ``pipeline``: TD targets one update
     ahead on a second thread (LearnerCore). Diverged (after closing down) when the agent's weights have
     diverged: they are then neither published nor saved, and the run's checkpoints stay as they were."""
@@ -151,16 +152,16 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline,
                        transfer=not checkpoints.checkpoints())
     resume_from(checkpoints, core)
-    if not paths.config.exists():  # only now: a transfer or demonstration file it cannot read refused the run
-        save_config(cfg, paths)
+    # The run's config is what trains it (a resume's --set dqn.lr included, which a later start without it
+    # keeps), saved only now: a transfer or demonstration file it cannot read, or a checkpoint it does not
+    # fit, refused the run, and its config stays as it was.
+    save_config(cfg, paths)
     # its updates after the checkpoint come again; with none (a learner killed before its first), all do
     rewind(paths.stats, LearnerRow, core.updates)
     config_dict = cfg.to_dict()
 
     def save_checkpoint() -> None:
-        core.check_finite()  # said as the weights' divergence (the manager would refuse them as its file's)
-        checkpoints.save(core.agent, replay=core.replay if save_replay else None, config=config_dict,
-                         extra=core.checkpoint_extra())
+        core.save(checkpoints, config_dict, with_replay=save_replay)
 
     def weights_message() -> bytes:
         # NaN weights would be refused by the message itself (a MessageError out of the loop), and by every actor
@@ -190,9 +191,12 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     # the task that reads the link it came on: a BLOCK message for a receiver that stopped reading (a laptop
     # asleep, a process stopped) holds that link for up to Zenoh's wait_before_close (5 s), and the sender's
     # own queue waits behind it. On one link with the weights, the flow control and statistics (DROP) waited
-    # too: the learner's loop stood still and every actor ran out of credit, 5 s per such receiver.
-    with open_service_session(settings, stop) as session, open_service_session(settings, stop) as weights_session, \
-            CsvLog(paths.stats, LearnerRow) as stats_log, TensorBoardLog(tensorboard) as board:
+    # too: the learner's loop stood still and every actor ran out of credit, 5 s per such receiver. A learner
+    # in peer or router mode keeps one session (second_link says why).
+    weights_link = settings.second_link()
+    with open_service_session(settings, stop) as session, \
+            (open_service_session(weights_link, stop) if weights_link else contextlib.nullcontext(session)) \
+            as weights_session, CsvLog(paths.stats, LearnerRow) as stats_log, TensorBoardLog(tensorboard) as board:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(weights_session, keys.weights))
         queryable = serve_latest(session, keys.weights_latest, lambda: sender.latest)  # noqa: F841

@@ -191,3 +191,56 @@ def test_diverged_weights_stop_the_learner_in_one_line_and_its_good_checkpoint_s
         f"the run resumes from its last good checkpoint {good} (update 2)"], err
     checkpoints = CheckpointManager(paths.checkpoints)
     assert checkpoints.checkpoints() == [good] and checkpoints.load_latest().update_count == 2
+
+
+def test_a_learner_that_listens_trains_and_sends_its_weights(tmp_path: Path):
+    # The weights' own session (a link of their own to the router) took the learner's settings whole: a
+    # learner given --listen (or a config file with listen endpoints) bound its ports twice, "Address
+    # already in use", and never started. The second session now listens nowhere, and a peer keeps one.
+    import json
+
+    from services.bus.session import open_session
+    from shared.wire.keys import RunKeys
+
+    cfg = load_preset("smoke").with_overrides({"train.total_updates": 3})
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    listening_file = tmp_path / "learner.json5"
+    listening_file.write_text(json.dumps({"mode": "client", "listen": {"endpoints": [f"tcp/127.0.0.1:{free_tcp_port()}"]}}))
+    learners = {"--listen": ZenohSettings(mode="client", connect=(endpoint,), listen=(f"tcp/127.0.0.1:{free_tcp_port()}",),
+                                          router_wait_s=0),
+                "a config file that listens": ZenohSettings(connect=(endpoint,), config_file=str(listening_file),
+                                                            router_wait_s=0),
+                "a peer": ZenohSettings(mode="peer", connect=(endpoint,), listen=(f"tcp/127.0.0.1:{free_tcp_port()}",),
+                                        router_wait_s=0)}
+    assert learners["a peer"].second_link() is None
+    for name, settings in learners.items():
+        paths = RunPaths(tmp_path / name.replace(" ", "-")).make()
+        _run_with_transitions(paths, cfg)
+        with open_router([endpoint]), open_session(ZenohSettings(mode="client", connect=(endpoint,))) as watcher:
+            seen: list[int] = []
+            sub = watcher.declare_subscriber(RunKeys("run").weights, lambda sample: seen.append(len(sample.payload)))  # noqa: F841
+            time.sleep(0.3)  # the subscription reaches the router before the learner's first weights
+            assert run_learner(cfg, "run", paths, settings, threading.Event())["updates"] == 3, name
+            deadline = time.monotonic() + 5
+            while not seen and time.monotonic() < deadline:
+                time.sleep(0.05)
+        assert seen, f"{name}: no weights reached the router's subscribers"
+
+
+def test_a_learner_resumed_with_a_new_rate_saves_it_as_the_runs_config(tmp_path: Path):
+    # A learner kept the run's saved config.toml whatever it was started with: resumed with --set dqn.lr (after a
+    # divergence, say) it trained at the new rate, and a later start without --set went back to the old one.
+    from services.cli import main
+
+    paths = RunPaths(tmp_path / "run").make()
+    _run_with_transitions(paths, load_preset("smoke"))
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    base = ["learner", "--run", "run", "--runs-dir", str(tmp_path), "--connect", endpoint]
+    with open_router([endpoint]):
+        assert main([*base, "--preset", "smoke", "--set", "train.total_updates=2"]) == 0
+        assert main([*base, "--set", "dqn.lr=1e-6", "--set", "train.total_updates=4"]) == 0
+        saved = load_preset(paths.config, complete=True)
+        assert saved.dqn.lr == 1e-6 and saved.train.total_updates == 4
+        assert main([*base, "--set", "train.total_updates=6"]) == 0  # no --set dqn.lr: the run's own
+    assert load_preset(paths.config, complete=True).dqn.lr == 1e-6
+    assert CheckpointManager(paths.checkpoints).load_latest().update_count == 6
