@@ -79,9 +79,7 @@ class _Training:
         self.logged_update = core.updates
 
     def save(self) -> Path:
-        self.core.check_finite()  # said as the weights' divergence (the manager would refuse them as its file's)
-        return self.checkpoints.save(self.core.agent, replay=self.core.replay, config=self.config_dict,
-                                     extra=self.core.checkpoint_extra())
+        return self.core.save(self.checkpoints, self.config_dict)
 
     def on_step(self, step: Step) -> None:
         core, train = self.core, self.cfg.train

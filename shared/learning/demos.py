@@ -146,6 +146,9 @@ def plan_commands(env: ExploreEnv, start_index: int, *, horizon: int = 80, beam:
     explored sequence: reset it before use."""
     if not (isinstance(horizon, int) and 1 <= horizon <= 1000):
         raise DemoError(f"horizon must be an integer in [1, 1000], got {horizon!r}")
+    if horizon > env.env_config.max_episode_steps:  # the search would step on from nodes the cap ended
+        raise DemoError(f"horizon {horizon} exceeds the env's step cap ({env.env_config.max_episode_steps}): "
+                        "build the env with env.max_episode_steps at least the horizon")
     if not (isinstance(beam, int) and 1 <= beam <= 100_000):
         raise DemoError(f"beam must be an integer in [1, 100000], got {beam!r}")
     if not (0 < cell_m <= 1.0 and 0 < heading_deg <= 180):

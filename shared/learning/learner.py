@@ -24,6 +24,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Hashable
 
 import numpy as np
@@ -224,6 +225,14 @@ class LearnerCore:
     def checkpoint_extra(self) -> dict[str, int]:
         """What a checkpoint keeps of the core beside the agent and replay (read by :func:`resume_from`)."""
         return {"transitions_received": self.received, "transitions_unpaced": self.unpaced}
+
+    def save(self, checkpoints: CheckpointManager, config: dict[str, Any], *, with_replay: bool = True) -> Path:
+        """A checkpoint of the agent, this core's counters and (``with_replay``) the replay memory.
+        Diverged, nothing written, when a weight is not finite: said as the network's divergence, not as
+        the file's refusal (the manager refuses any non-finite state: NonFiniteWeights)."""
+        self.check_finite()
+        return checkpoints.save(self.agent, replay=self.replay if with_replay else None, config=config,
+                                extra=self.checkpoint_extra())
 
     # -- the ratio rule --------------------------------------------------------------------
     @property

@@ -422,11 +422,12 @@ class ExploreEnv(gym.Env):
                 self._depth.copy(), tuple(self._trail), seen, self._trapped, self._ended)
 
     def restore(self, snapshot: tuple[Any, ...]) -> None:
-        """Return to a :meth:`snapshot` of the current episode."""
+        """Return to a :meth:`snapshot` of the current episode (one of another world is refused, the env
+        as it was)."""
+        if snapshot[0] is not self._scene:
+            raise EnvError("a snapshot can only be restored in the episode's own world")
         scene, state, self._steps, self._path_length, self._last_xy, depth, trail, seen, self._trapped, \
             self._ended = snapshot
-        if scene is not self._scene:
-            raise EnvError("a snapshot can only be restored in the episode's own world")
         if seen is not None:
             scene.coverage().restore(seen)
         self.robot.set_state(state)

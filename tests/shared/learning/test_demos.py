@@ -83,6 +83,18 @@ def test_the_planner_turns_about_where_straight_collides_and_the_recording_repla
     np.testing.assert_array_equal(demo.depth_mm, again.depth_mm)
 
 
+def test_a_plan_longer_than_the_envs_step_cap_is_refused_before_it_searches():
+    # The search stepped on from nodes the cap had ended (an env that now refuses a step after its episode
+    # ended raised in the middle of the search); a horizon the env cannot play is said at once.
+    capped = ExploreEnv(world=dead_end_world(), sensor=TINY, speed_table="test", max_episode_steps=10)
+    try:
+        with pytest.raises(DemoError, match=r"horizon 11 exceeds the env's step cap \(10\)"):
+            plan_commands(capped, 0, horizon=11, beam=5)
+        assert len(plan_commands(capped, 0, horizon=10, beam=5).actions) == 10
+    finally:
+        capped.close()
+
+
 def test_a_plan_from_a_start_draw_begins_where_that_draw_puts_the_robot_and_replays_from_it(env):
     exact = plan_commands(env, 0, horizon=5, beam=20)
     assert exact.draw is None and exact.start_pose == (0.0, 0.0, 0.0)

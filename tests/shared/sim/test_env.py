@@ -556,5 +556,11 @@ def test_a_snapshot_restores_whether_its_episode_had_ended():
         env.restore(ended)
         with pytest.raises(EnvError, match="after the episode ended"):
             env.step(0)
+        # one of another world is refused before it changes anything: the env plays on as it was
+        env.reset(seed=0)
+        other = ("another world's scene", *ended[1:])
+        with pytest.raises(EnvError, match="own world"):
+            env.restore(other)
+        assert env.step(0)[4]["step"] == 1
     finally:
         env.close()
