@@ -25,6 +25,7 @@ import json
 import logging
 import os
 import re
+import secrets
 import signal
 import socket
 import threading
@@ -124,9 +125,10 @@ class ZenohSettings:
     router_wait_s: float = DEFAULT_ROUTER_WAIT_S
     """How long a service keeps retrying while no router answers (``open_service_session``): its
     router may still be starting; 0 fails at once."""
-    listen_nowhere: bool = False
-    """Listen on no endpoint, whatever ``config_file`` says: a process's second session, whose listeners
-    would take the first's ports (:meth:`second_link`)."""
+    second_session: bool = False
+    """A process's second session (:meth:`second_link`): it listens nowhere and takes a Zenoh id of its
+    own, whatever ``config_file`` says (the first's listeners hold their ports, and a router refuses a
+    second session under an id it already has)."""
 
     def __post_init__(self) -> None:
         if self.mode is not None and self.mode not in MODES:
@@ -196,7 +198,9 @@ class ZenohSettings:
             return config
         path = Path(self.config_file)
         if not path.is_file():
-            raise TransportConfigError(f"Zenoh config file {path} does not exist")
+            name = str(self.config_file) or "''"  # Path("") reads ".", a folder
+            said = "is not a file" if path.exists() and str(self.config_file) else "does not exist"
+            raise TransportConfigError(f"Zenoh config file {name} {said}")
         try:
             config = zenoh.Config.from_file(str(path))
         except Exception as exc:  # zenoh raises its own ZError for parse errors
@@ -233,8 +237,10 @@ class ZenohSettings:
             config.insert_json5("connect/endpoints", json.dumps(list(connect)))
         if self.listen:
             config.insert_json5("listen/endpoints", json.dumps(list(self.listen)))
-        elif self.listen_nowhere:
+        elif self.second_session:
             config.insert_json5("listen/endpoints", "[]")
+        if self.second_session:
+            config.insert_json5("id", json.dumps(secrets.token_hex(16)))
         return config
 
     def second_link(self) -> "ZenohSettings | None":
@@ -244,7 +250,7 @@ class ZenohSettings:
         (peers that dial it) or take its ports: such a process keeps one session."""
         if self.effective_mode != "client":
             return None
-        return dataclasses.replace(self, listen=(), listen_nowhere=True)
+        return dataclasses.replace(self, listen=(), second_session=True)
 
     def describe(self) -> str:
         """One line for logs and errors."""
@@ -265,53 +271,48 @@ def _check_secret(path: Path) -> None:
         raise TransportConfigError(str(exc)) from None
 
 
-_CONFIG_WHERE_RE = re.compile(r"-->\s*(\d+):(\d+)|line:? (\d+),? column:? (\d+)")
-_SERDE_MESSAGE_RE = re.compile(r'(?:msg: |message: |Error\()"')
-_IDENTIFIER_RE = re.compile(r"[A-Za-z_][A-Za-z0-9_-]{0,63}")
+_PEST_WHERE_RE = re.compile(r"^\s*-->\s*(\d+):(\d+)")
+_SERDE_WHERE_RE = re.compile(r"line:? (\d+),? column:? (\d+)")
+_SERDE_MESSAGE_RE = re.compile(r'(?:msg: |message: |Error\()"((?:[^"\\]|\\.)*)"')
 _SERDE_KINDS = ("invalid type", "invalid value", "invalid length", "unknown variant", "unknown field",
                 "missing field", "duplicate field")
 
 
 def _config_problem(exc: object) -> str:
     """What Zenoh says is wrong with a config file, in one line and without any of the file's text:
-    its parser draws the line it stopped at, serde quotes the value it refused and the validator prints
-    the whole config, a role's password among them, into a terminal and a log that other users may
-    read. Said: where (line, column), the kind of error and what was expected, which come from the
-    parser's grammar and the config's schema, not from the file; an unknown key's name where it is one."""
+    its parser draws the line it stopped at, serde quotes the value it refused (the TOML parser the whole
+    file) and the validator prints the whole config, a role's password among them, into a terminal and
+    a log that other users may read. Said: where (line, column), serde's kind of error and what the
+    schema expected, taken from where the parser or serde put them, never from the file's text."""
     text = str(exc)
     if text.startswith("Invalid configuration:"):  # the validator's: the whole config follows
         return "a value Zenoh refuses (a user without a password, a queue size out of range, ...)"
-    where = _CONFIG_WHERE_RE.search(text)
-    lines = [line.strip() for line in text.splitlines()]
-    drawn = next((line[1:].strip() for line in lines if line.startswith("= ")), None)  # the JSON5 grammar's
+    lines = text.splitlines()
+    pest_where = _PEST_WHERE_RE.match(lines[0]) if lines else None
+    drawn = next((line.strip()[1:].strip() for line in lines if line.strip().startswith("= ")), None)
     said = _SERDE_MESSAGE_RE.search(text)
-    if drawn is not None:
-        what = drawn
+    where = None
+    if pest_where and drawn is not None:  # the JSON5 grammar's: its place first, what it expected last
+        where, what = pest_where, drawn
     elif said:
-        message = text[said.end():]
+        message = said.group(1)  # serde's, up to its closing quote: what follows may quote the whole file
+        where = _SERDE_WHERE_RE.search(text, said.end())  # after the message, which quotes the value
         path = re.match(r"[A-Za-z_][\w-]*(?:\.[A-Za-z_][\w-]*|\[\d+\])*: ", message)  # serde_yaml's key path
         if path:
             message = message[path.end():]
-        # The refused value sits between the kind of error and ", expected ...": neither edge is taken from
-        # it (a value may hold quotes, backticks or the word "expected"). Only serde's own kinds are said
-        # (a message of another shape may begin with the value), and the schema's words after the last
-        # ", expected ", up to the message's closing quote.
+        # The refused value (or key) sits between serde's kind of error and its last ", expected ": neither
+        # edge is taken from it, whatever quotes, backticks or words it holds. A message of another shape
+        # (Zenoh's own checks, which quote the value first) says nothing but that it refused.
         kind = next((k for k in _SERDE_KINDS if message.startswith(k)), None)
         what = (path.group(0) if path else "") + (kind or "a value Zenoh refuses")
-        if kind in ("unknown field", "missing field", "duplicate field"):
-            name = re.match(kind + r" `([^`]*)`", message)
-            what += f" `{name.group(1)}`" if name and _IDENTIFIER_RE.fullmatch(name.group(1)) else " …"
-        elif kind is not None:
-            what += " …"
-        _, found, expected = message.rpartition(", expected ")
-        if found:
-            what += ", expected " + expected.split('"')[0].split("\n")[0].strip()
+        if kind is not None:
+            _, found, expected = message.rpartition(", expected ")
+            what += " …" + (", expected " + expected.replace("\\n", " ").strip() if found else "")
     else:
         what = "it cannot be parsed"
     what = re.sub(r"\s+at \S+\.rs:\d+\.?\s*$", "", what)  # the Rust source line that raised
     if where:
-        line, column = (g for g in where.groups() if g is not None)
-        return f"line {line}, column {column}: {what}"
+        return f"line {where.group(1)}, column {where.group(2)}: {what}"
     return what
 
 

@@ -415,15 +415,37 @@ def test_a_damaged_role_config_is_refused_in_one_line_without_its_password(tmp_p
                                             "unknown variant …, expected one of `router`, `peer`, `client`"),
                "no user": (json.dumps(no_user), "a value Zenoh refuses"),
                "a queue out of range": (json.dumps(queue), "a value Zenoh refuses")}
-    bad = tmp_path / "bad.json5"
+    # a value that holds serde's own ", expected ", a quote or a backtick: a parse of the message by its quotes
+    # let the value's tail through
+    variants = {"'expected' in it": f"{password[:6]}, expected {password[6:]}", "a quote in it": f'{password[:6]}"{password[6:]}',
+                "a backtick in it": f"{password[:6]}`{password[6:]}"}
+    for name, mode in variants.items():
+        damaged[f"the password as the mode, {name}"] = (json.dumps({**good, "mode": mode}),
+                                                        "unknown variant …, expected one of `router`, `peer`, `client`")
+    # Zenoh's own checks quote the value first; a place written in the value came before serde's own
+    damaged["an endpoint holding ', expected '"] = (json.dumps({**good, "connect": {"endpoints": [f"x, expected {password}"]}}),
+                                                    ": a value Zenoh refuses")
+    damaged["a place in the value"] = (json.dumps({**good, "mode": f"--> 77:77 line 77, column 77 {password}"}),
+                                       "unknown variant …, expected one of")
+    # Zenoh reads a file by its suffix: serde_yaml words its errors otherwise, and TOML's quote the whole file
+    damaged["YAML, the password as the mode"] = (f'mode: "{password}"\n', "line 1, column 7: mode: unknown variant …")
+    damaged["YAML, the password as a key"] = (f"transport:\n  auth:\n    usrpwd: {{user: u, {password}}}\n",
+                                              "transport.auth.usrpwd: unknown field …, expected one of `user`")
+    damaged["TOML, the password in a comment"] = (f'mode = "peer"\nzzz = 1\n# , expected {password}\n',
+                                                  "unknown field …, expected one of `id`")
     for name, (content, said) in damaged.items():
+        bad = tmp_path / ("bad.yaml" if name.startswith("YAML") else "bad.toml" if name.startswith("TOML") else "bad.json5")
         write_secret(bad, {})
         bad.write_text(content)
         with pytest.raises(TransportConfigError) as refused:
             ZenohSettings(config_file=str(bad))
         message = str(refused.value)
-        assert password[:5] not in message and "\n" not in message and said in message, (name, message)
+        assert password[:5] not in message and password[-5:] not in message, (name, message)
+        assert "line 77" not in message and "column 77:" not in message, (name, message)  # the place in the value
+        assert "\n" not in message and said in message, (name, message)
         assert message.startswith(f"Zenoh config file {bad} is invalid: ") and ".rs:" not in message, (name, message)
+    bad = tmp_path / "bad.json5"
+    bad.write_text(damaged["a queue out of range"][0])
     code = main(["evaluator", "--run", RUN, "--runs-dir", str(tmp_path), "--zenoh-config", str(bad)])
     err = capsys.readouterr().err
     assert code == 2 and err.count("\n") == 1 and password[:5] not in err and "a value Zenoh refuses" in err, err

@@ -122,6 +122,11 @@ def test_bad_settings_are_refused() -> None:
         ZenohSettings.from_env({"COGEXPLORE_ZENOH_CONNECT": "127.0.0.1:7447"})
     with pytest.raises(TransportConfigError, match="does not exist"):
         ZenohSettings(config_file="/nonexistent/zenoh.json5").to_config()
+    # a folder, or an empty name (Path("") is the working folder), was said not to exist
+    with pytest.raises(TransportConfigError, match="^Zenoh config file /tmp is not a file$"):
+        ZenohSettings(config_file="/tmp").to_config()
+    with pytest.raises(TransportConfigError, match="^Zenoh config file '' does not exist$"):
+        ZenohSettings(config_file="").to_config()
 
 
 def test_config_file_is_the_base_and_fields_override_it(tmp_path: Path) -> None:

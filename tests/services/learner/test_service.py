@@ -196,7 +196,8 @@ def test_diverged_weights_stop_the_learner_in_one_line_and_its_good_checkpoint_s
 def test_a_learner_that_listens_trains_and_sends_its_weights(tmp_path: Path):
     # The weights' own session (a link of their own to the router) took the learner's settings whole: a
     # learner given --listen (or a config file with listen endpoints) bound its ports twice, "Address
-    # already in use", and never started. The second session now listens nowhere, and a peer keeps one.
+    # already in use", and one whose file names its Zenoh id was refused by the router the second time;
+    # neither started. The second session now listens nowhere under an id of its own; a peer keeps one.
     import json
 
     from services.bus.session import open_session
@@ -205,7 +206,9 @@ def test_a_learner_that_listens_trains_and_sends_its_weights(tmp_path: Path):
     cfg = load_preset("smoke").with_overrides({"train.total_updates": 3})
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     listening_file = tmp_path / "learner.json5"
-    listening_file.write_text(json.dumps({"mode": "client", "listen": {"endpoints": [f"tcp/127.0.0.1:{free_tcp_port()}"]}}))
+    # a file that also names the session's Zenoh id: the router refused a second session under it
+    listening_file.write_text(json.dumps({"mode": "client", "id": "abcdef12",
+                                          "listen": {"endpoints": [f"tcp/127.0.0.1:{free_tcp_port()}"]}}))
     learners = {"--listen": ZenohSettings(mode="client", connect=(endpoint,), listen=(f"tcp/127.0.0.1:{free_tcp_port()}",),
                                           router_wait_s=0),
                 "a config file that listens": ZenohSettings(connect=(endpoint,), config_file=str(listening_file),
