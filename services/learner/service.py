@@ -47,6 +47,7 @@ from shared.learning.weights import to_message
 from shared.wire.keys import KeyExprError, RunKeys, parse_key
 from shared.wire.messages import (
     MAX_BATCH_STEPS,
+    NON_FINITE,
     FlowControl,
     LearnerStats,
     MessageError,
@@ -164,9 +165,12 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
         core.save(checkpoints, config_dict, with_replay=save_replay)
 
     def weights_message() -> bytes:
-        # NaN weights would be refused by the message itself (a MessageError out of the loop), and by every actor
-        core.check_finite()
-        return to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode()
+        try:  # the message checks its tensors are finite: a second pass over the weights would cost a publish
+            return to_message(core.agent.online, core.agent.policy_version, learner_epoch=epoch).encode()
+        except MessageError as exc:
+            if exc.cause == NON_FINITE:
+                core.check_finite()  # said as the network's divergence, naming the weight
+            raise
     # a batch of this sensor's frames at most: anything longer is refused before it is copied
     batch_bytes = (MAX_BATCH_STEPS + 1) * cfg.sensor.height * cfg.sensor.width * 2 + 2**16
     inbox = BatchInbox()

@@ -33,6 +33,7 @@ from shared.config import RunConfig, is_whole
 from shared.learning.checkpoints import (
     CheckpointError,
     CheckpointManager,
+    NonFiniteWeights,
     init_agent_conv,
     init_agent_weights,
     non_finite_tensor,
@@ -229,10 +230,13 @@ class LearnerCore:
     def save(self, checkpoints: CheckpointManager, config: dict[str, Any], *, with_replay: bool = True) -> Path:
         """A checkpoint of the agent, this core's counters and (``with_replay``) the replay memory.
         Diverged, nothing written, when a weight is not finite: said as the network's divergence, not as
-        the file's refusal (the manager refuses any non-finite state: NonFiniteWeights)."""
-        self.check_finite()
-        return checkpoints.save(self.agent, replay=self.replay if with_replay else None, config=config,
-                                extra=self.checkpoint_extra())
+        the file's refusal (the manager refuses any non-finite state, the optimiser's too: NonFiniteWeights)."""
+        try:
+            return checkpoints.save(self.agent, replay=self.replay if with_replay else None, config=config,
+                                    extra=self.checkpoint_extra())
+        except NonFiniteWeights:
+            self.check_finite()  # a weight: said as the divergence it is, naming it
+            raise
 
     # -- the ratio rule --------------------------------------------------------------------
     @property
