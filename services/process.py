@@ -6,6 +6,7 @@ import logging
 import os
 import signal
 import socket
+import sys
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -21,11 +22,47 @@ def default_process_id(role: str) -> str:
     return f"{role}-{host}-{os.getpid()}"
 
 
+class LogFileHandler(logging.FileHandler):
+    """A process's log file. A line it cannot write (a full disk) is said once on stderr, and again
+    once lines get through: logging's own handler printed a traceback for every line lost."""
+
+    def __init__(self, filename: Path):
+        super().__init__(filename)
+        self.failing = False
+        self._failed_now = False
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._failed_now = False
+        super().emit(record)  # a failure calls handleError
+        if self.failing and not self._failed_now:
+            self.failing = False
+            self._say(f"the log file {self.baseFilename} is written again (lines since the last were lost)")
+
+    def handleError(self, record: logging.LogRecord) -> None:
+        exc = sys.exc_info()[1]
+        if not isinstance(exc, OSError):  # a bad message (a bug): logging's own report
+            super().handleError(record)
+            return
+        self._failed_now = True
+        if not self.failing:
+            self.failing = True
+            why = exc.strerror or exc
+            self._say(f"the log file {self.baseFilename} cannot be written ({why}): its lines are lost, the "
+                      "process goes on")
+
+    @staticmethod
+    def _say(line: str) -> None:
+        try:
+            print(f"cogexplore: {line}", file=sys.stderr, flush=True)
+        except (OSError, ValueError):  # stderr on the full disk too, or closed: nowhere left to say it
+            pass
+
+
 def setup_logging(level: str = "INFO", logfile: Path | None = None) -> None:
     handlers: list[logging.Handler] = [logging.StreamHandler()]
     if logfile is not None:
         logfile.parent.mkdir(parents=True, exist_ok=True)
-        handlers.append(logging.FileHandler(logfile))
+        handlers.append(LogFileHandler(logfile))
     logging.basicConfig(level=getattr(logging, level.upper(), logging.INFO), handlers=handlers, force=True,
                         format="%(asctime)s %(levelname)s %(name)s: %(message)s")
 

@@ -89,8 +89,8 @@ class RunLock:
     """An exclusive hold on a run for one role (``up``, ``learner``): ``<runs>/.<run>.<role>.lock``, a
     lock the system drops when the process ends however it ends. Two learners writing one run's
     checkpoints, or two `up` starting one run, would corrupt it. Beside the run's folder, not in it,
-    so that `up --fresh` can move the folder aside while holding it. Released by :meth:`release` or
-    when the object goes."""
+    so that `up --fresh` can move the folder aside while holding it. Released by :meth:`release`, at
+    the end of a ``with`` block, or when the object goes."""
 
     def __init__(self, paths: RunPaths, role: str):
         self.path = paths.root.parent / f".{paths.root.name}.{role}.lock"
@@ -115,13 +115,24 @@ class RunLock:
                                 "(a file system without locks?)") from None
         self._file.seek(0)
         self._file.truncate()
-        self._file.write(f"pid {os.getpid()} on {socket.gethostname()}\n")
-        self._file.flush()
+        note = f"pid {os.getpid()} on {socket.gethostname()}\n".encode()
+        try:  # unbuffered: a write a full disk refuses must not wait in the buffer to fail again at release
+            if os.pwrite(self._file.fileno(), note, 0) != len(note):
+                os.ftruncate(self._file.fileno(), 0)  # cut short: a pid cut short would name another process
+        except OSError:  # only a note for another process's refusal: the lock is held without it
+            pass
 
     def release(self) -> None:
         if self._file is not None:
             self._file.close()  # closing drops the lock
             self._file = None
+
+    def __enter__(self) -> "RunLock":
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        # at once, also on an error: a traceback kept by the caller would keep the object, and the lock
+        self.release()
 
 
 def run_paths(args: argparse.Namespace) -> RunPaths:

@@ -57,16 +57,33 @@ def nearest_existing(path: Path) -> Path:
     return at
 
 
+WRITE_FAILURES = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO})
+"""The errnos of a write the disk refused (full, over a quota or a file size limit, read-only, failing):
+what a service that writes only records may outlive, unlike a missing file or a bug."""
+
+
+def named(exc: OSError, path: str | Path) -> OSError:
+    """``exc``, a failed write, as one naming ``path`` where it names no file: a full disk fails the
+    write, not the open, and "[Errno 28] No space left on device" alone says not where."""
+    if exc.filename is not None:
+        return exc
+    what = f"{path} cannot be written: {exc.strerror or exc}"
+    return OSError(exc.errno, what) if exc.errno is not None else OSError(what)
+
+
 def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
     """``write(tmp)`` to a temporary file beside ``final``, fsynced and renamed to it: a reader never
     sees half a file. The temporary file is removed when any step fails (a full disk, ``final`` a
-    folder). Returns ``final``."""
+    folder). Returns ``final``; a failed write is raised naming it (:func:`named`)."""
     final = Path(final)
     tmp = final.with_name(f".{final.name}{TMP_MARK}{os.getpid()}")
     try:
         write(tmp)
         fsync_path(tmp)
         os.replace(tmp, final)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise named(exc, final) from None
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -94,8 +111,11 @@ def append_line(path: str | Path, line: str) -> None:
     after ending a torn last line (:func:`ends_torn`) so only that line is lost."""
     path = Path(path)
     torn = path.exists() and ends_torn(path)
-    with open(path, "ab") as fh:
-        fh.write((("\n" if torn else "") + line + "\n").encode())
+    try:
+        with open(path, "ab") as fh:
+            fh.write((("\n" if torn else "") + line + "\n").encode())
+    except OSError as exc:  # a full disk: the line lost, or cut short (ended by the next one)
+        raise named(exc, path) from None
 
 
 def save_png(figure: Any, out_path: str | Path, dpi: int) -> Path:

@@ -89,7 +89,7 @@ from shared.evaluation.eval_log import EVAL_LOG, evaluation_digest, evaluation_k
 from shared.evaluation.policies import GreedyPolicy
 from shared.evaluation.protocol import WORLD_META, EvaluationCancelled, file_world_sha256
 from shared.evaluation.results import EvalResults, ResultsError, load_results, save_results
-from shared.files import append_line
+from shared.files import WRITE_FAILURES, append_line
 from shared.learning.checkpoints import weights_sha256
 from shared.learning.model import (
     QNetwork,
@@ -288,6 +288,21 @@ class EvaluatorService:
                  o["collisions"], o["reached_cap"], duration)
         return row
 
+    def evaluate_in_service(self, message: WeightsMessage, stop: threading.Event | None = None,
+                            session: Any = None) -> dict[str, Any] | None:
+        """:meth:`evaluate` as the service runs it, for as long as the run trains: an evaluation whose
+        files cannot be written (a full disk, a quota, a read-only folder: :data:`WRITE_FAILURES`) is said
+        in one line and lost, and the next version's goes on (None); its results file stays whole or
+        absent, never half written."""
+        try:
+            return self.evaluate(message, stop, session, repeat=False)
+        except OSError as exc:
+            if exc.errno not in WRITE_FAILURES:  # a world file gone, a bug: not for every version to meet again
+                raise
+            log.error("evaluation of policy version %d lost: %s; the evaluator goes on with the next version",
+                      message.policy_version, exc)
+            return None
+
     def result_message(self, results: EvalResults, duration_s: float) -> EvalResult:
         """The wire form of an evaluation (one entry per episode, the summary in ``extra``)."""
         eps = results.episodes
@@ -329,7 +344,8 @@ class EvaluatorService:
                     if not once and not self.due(message):
                         continue
                     try:
-                        row = self.evaluate(message, stop, session, repeat=once)
+                        row = self.evaluate(message, stop, session, repeat=once) if once \
+                            else self.evaluate_in_service(message, stop, session)
                     except EvaluationCancelled:
                         log.info("evaluation of version %d cancelled", message.policy_version)
                         break

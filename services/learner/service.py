@@ -10,7 +10,8 @@ training or the flow control) -> publish flow control and statistics -> checkpoi
 with an existing run it resumes from the run's latest checkpoint; on SIGTERM/SIGINT or at
 ``total_updates`` it writes a final checkpoint and exits 0. Weights that have diverged (NaN or
 infinite) are neither published nor saved: the learner stops with one error line naming the run's last
-good checkpoint (a non-zero exit, which ``up`` reports as the run's failure).
+good checkpoint (a non-zero exit, which ``up`` reports as the run's failure); its next start resumes
+there at half the learning rate (``shared.learning.divergence``).
 """
 
 from __future__ import annotations
@@ -39,7 +40,8 @@ from services.bus.session import (
 from services.process import setup_logging, stop_event_on_signals
 from services.runs import RunLock, RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
-from shared.learning.checkpoints import CheckpointManager, NonFiniteWeights
+from shared.learning.checkpoints import CheckpointError, CheckpointManager, NonFiniteWeights
+from shared.learning.divergence import RunDivergences, lr_given
 from shared.learning.learner import Diverged, LearnerCore, RateMeter, diverged_error, resume_from
 from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
@@ -140,16 +142,28 @@ class LatestSender:
 def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threading.Event, *,
                 learner_id: str = "learner", weights_every: int = 25, stats_every_s: float = 1.0,
                 flow_slack: int | None = None, device: str | None = None, save_replay: bool = True,
-                tensorboard: Path | None = None, pipeline: bool = False) -> dict:
+                tensorboard: Path | None = None, pipeline: bool = False, lr_given: bool = False) -> dict:
     """The learner loop; saves ``cfg`` as the run's config once it has resumed. Returns final counters.
     ``tensorboard``: a folder for its rows as TensorBoard events; ``pipeline``: TD targets one update
-    ahead on a second thread (LearnerCore). Diverged (after closing down) when the agent's weights have
-    diverged: they are then neither published nor saved, and the run's checkpoints stay as they were."""
+    ahead on a second thread (LearnerCore); ``lr_given``: ``cfg``'s ``dqn.lr`` is the user's choice for this
+    start, kept after a divergence (``shared.learning.divergence``). Diverged (after closing down) when the
+    agent's weights have diverged: they are then neither published nor saved, and the run's checkpoints
+    stay as they were."""
+    with RunLock(paths, "learner"):  # one learner writes a run
+        return _learn_locked(cfg, run, paths, settings, stop, learner_id=learner_id, weights_every=weights_every,
+                             stats_every_s=stats_every_s, flow_slack=flow_slack, device=device,
+                             save_replay=save_replay, tensorboard=tensorboard, pipeline=pipeline, lr_given=lr_given)
+
+
+def _learn_locked(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threading.Event, *, learner_id: str,
+                  weights_every: int, stats_every_s: float, flow_slack: int | None, device: str | None,
+                  save_replay: bool, tensorboard: Path | None, pipeline: bool, lr_given: bool) -> dict:
     keys = RunKeys(run)
-    lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
     paths.make()
     epoch = new_epoch()  # this process: its word replaces a quiet earlier learner's, whatever their update
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
+    divergences = RunDivergences(paths.root)
+    cfg = divergences.resume_config(cfg, lr_given=lr_given)  # after a divergence: at half the rate it diverged at
     core = LearnerCore(cfg, device=device or cfg.train.device, pipeline=pipeline,
                        transfer=not checkpoints.checkpoints())
     resume_from(checkpoints, core)
@@ -161,8 +175,10 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
     rewind(paths.stats, LearnerRow, core.updates)
     config_dict = cfg.to_dict()
 
-    def save_checkpoint() -> None:
-        core.save(checkpoints, config_dict, with_replay=save_replay)
+    def save_checkpoint(final: bool = False) -> None:
+        """A periodic checkpoint whose write fails is said and training goes on; a final one raises."""
+        if core.checkpoint(checkpoints, config_dict, final=final, with_replay=save_replay) is not None:
+            divergences.saved(core.updates, cfg.dqn.lr)
 
     def weights_message() -> bytes:
         try:  # the message checks its tensors are finite: a second pass over the weights would cost a publish
@@ -253,6 +269,7 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             last_stats = now
 
         diverged: Diverged | NonFiniteWeights | None = None
+        unsaved: CheckpointError | None = None
         try:
             while not stop.is_set() and not core.done:
                 pass_started = time.monotonic()
@@ -305,14 +322,18 @@ def run_learner(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: threa
             # last version), checkpoint.
             publish_stats(time.monotonic())
             sender.offer(weights_message())
-            save_checkpoint()
+            save_checkpoint(final=True)
         except (Diverged, NonFiniteWeights) as exc:  # it can no longer learn: its last good weights stay out
             diverged = exc
+        except CheckpointError as exc:  # the final checkpoint's write failed: said once all is closed
+            unsaved = exc
         sender.close()  # after it has put the final weights, even behind a slow put of earlier ones
         actors.close()
         core.close()
     if diverged is not None:
-        raise diverged_error(diverged, checkpoints)
+        raise diverged_error(diverged, checkpoints, core, divergences)
+    if unsaved is not None:
+        raise unsaved
     return {"updates": core.updates, "transitions": core.received, "rejected": rejects.total,
             "rejects": rejects.counts, "replay_size": len(core.replay)}
 
@@ -331,7 +352,7 @@ def run_learner_command(args: argparse.Namespace) -> int:
     settings = zenoh_settings(args, "learner")
     log.info("learner %s for run %r via %s", args.learner_id, args.run, settings.describe())
     result = run_learner(cfg, args.run, paths, settings, stop, learner_id=args.learner_id,
-                         weights_every=args.weights_every, pipeline=pipeline,
+                         weights_every=args.weights_every, pipeline=pipeline, lr_given=lr_given(args.overrides),
                          tensorboard=paths.tensorboard_folder(args.learner_id) if args.tensorboard else None)
     log.info("learner done: %s", json.dumps(result))  # one JSON line: scripts read it
     return 0

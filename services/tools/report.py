@@ -75,7 +75,7 @@ from shared.evaluation.results import (
     table_markdown,
 )
 from shared.evaluation.setup import EvalSetup, setup_evaluation
-from shared.files import save_png
+from shared.files import atomic_write_text, save_png
 from shared.learning.checkpoints import LoadedModel, load_model, resolve_checkpoint
 from shared.learning.stats import TrainingSummary, summarize_learner_log
 
@@ -631,8 +631,9 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     all_notes = notes + probe_notes
     if all_notes:
         doc += [Heading(2, "Notes"), Bullets(tuple(map(escape_text, all_notes)))]
-    report.markdown.write_text(markdown(doc))
-    report.html.write_text(html_page(doc, f"Report: run {run.name}", out))
+    # whole or not at all: a report written again on a full disk keeps the earlier one, not half of each
+    atomic_write_text(report.markdown, markdown(doc))
+    atomic_write_text(report.html, html_page(doc, f"Report: run {run.name}", out))
     return report
 
 

@@ -10,7 +10,8 @@ one environment through the rollout loop (``shared.rollout``) instead of by acto
 Writes runs/<run>/ like the distributed system: config, checkpoints, stats/learner.csv (loss,
 mean Q) and stats/episodes.csv (length, return, epsilon), both also as TensorBoard events in tb/train/.
 Weights that have diverged (NaN or infinite) are never saved: the trainer stops with one error line
-naming the run's last good checkpoint.
+naming the run's last good checkpoint, and its next start resumes there at half the learning rate
+(``shared.learning.divergence``).
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_
 from shared.config import RunConfig
 from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager, NonFiniteWeights
+from shared.learning.divergence import RunDivergences, lr_given
 from shared.learning.learner import (
     Diverged,
     LearnerCore,
@@ -66,9 +68,10 @@ class _Training:
     and checkpoints; every finished episode to ``episodes.csv`` and the progress bar. Both kinds of
     row also go to TensorBoard."""
 
-    def __init__(self, cfg: RunConfig, core: LearnerCore, checkpoints: CheckpointManager, guide: ExpertGuide,
-                 learner_log: CsvLog, episode_log: CsvLog, bar: Any, board: TensorBoardLog):
-        self.cfg, self.core, self.checkpoints, self.guide = cfg, core, checkpoints, guide
+    def __init__(self, cfg: RunConfig, core: LearnerCore, checkpoints: CheckpointManager,
+                 divergences: RunDivergences, guide: ExpertGuide, learner_log: CsvLog, episode_log: CsvLog,
+                 bar: Any, board: TensorBoardLog):
+        self.cfg, self.core, self.checkpoints, self.divergences, self.guide = cfg, core, checkpoints, divergences, guide
         self.learner_log, self.episode_log, self.bar, self.board = learner_log, episode_log, bar, board
         self.started = time.monotonic()
         self.session = new_epoch()  # learner.csv's mark of this session: a resume's time_s starts again
@@ -78,8 +81,13 @@ class _Training:
         self.recent_lengths: list[int] = []
         self.logged_update = core.updates
 
-    def save(self) -> Path:
-        return self.core.save(self.checkpoints, self.config_dict)
+    def save(self, final: bool = False) -> Path | None:
+        """A checkpoint (None: its write failed, said in one line; training goes on). CheckpointError when
+        the ``final`` one fails (:meth:`LearnerCore.checkpoint`)."""
+        path = self.core.checkpoint(self.checkpoints, self.config_dict, final=final)
+        if path is not None:
+            self.divergences.saved(self.core.updates, self.cfg.dqn.lr)
+        return path
 
     def on_step(self, step: Step) -> None:
         core, train = self.core, self.cfg.train
@@ -129,14 +137,23 @@ class _Training:
 
 
 def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event | None = None, *,
-                         progress: bool = True, max_minutes: float | None = None, tensorboard: bool = True) -> dict:
+                         progress: bool = True, max_minutes: float | None = None, tensorboard: bool = True,
+                         lr_given: bool = False) -> dict:
     """Train until ``total_updates`` (or ``max_minutes``, or ``stop``); returns a summary. ``tensorboard``:
-    the rows also as TensorBoard events in ``tb/train``. Diverged when the agent's weights have diverged:
-    they are not saved, and the run's checkpoints stay as they were."""
-    stop = stop or threading.Event()
-    lock = RunLock(paths, "learner")  # noqa: F841 (held while this function runs): one learner writes a run
+    the rows also as TensorBoard events in ``tb/train``; ``lr_given``: ``cfg``'s ``dqn.lr`` is the user's
+    choice for this start, kept after a divergence (``shared.learning.divergence``). Diverged when the
+    agent's weights have diverged: they are not saved, and the run's checkpoints stay as they were."""
+    with RunLock(paths, "learner"):  # one learner writes a run
+        return _train_locked(cfg, paths, stop or threading.Event(), progress=progress, max_minutes=max_minutes,
+                             tensorboard=tensorboard, lr_given=lr_given)
+
+
+def _train_locked(cfg: RunConfig, paths: RunPaths, stop: threading.Event, *, progress: bool,
+                  max_minutes: float | None, tensorboard: bool, lr_given: bool) -> dict:
     paths.make()
     checkpoints = CheckpointManager(paths.checkpoints, keep=cfg.train.keep_checkpoints)
+    divergences = RunDivergences(paths.root)
+    cfg = divergences.resume_config(cfg, lr_given=lr_given)  # after a divergence: at half the rate it diverged at
     core = LearnerCore(cfg, device=cfg.train.device, transfer=not checkpoints.checkpoints())
     resumed = resume_from(checkpoints, core)
     save_config(cfg, paths)  # only now: a config that cannot resume the run (or run here) must not replace its own
@@ -158,7 +175,7 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
             tqdm(total=cfg.train.total_updates, initial=core.updates, desc="train", unit="upd",
                  dynamic_ncols=True, disable=not progress, mininterval=NON_TERMINAL_REDRAW_S
                  if not sys.stderr.isatty() else 0.1) as bar:
-        training = _Training(cfg, core, checkpoints, guide, learner_log, episode_log, bar, board)
+        training = _Training(cfg, core, checkpoints, divergences, guide, learner_log, episode_log, bar, board)
         loop = Rollout(env, policy, [guide, training], env_steps=core.received)  # epsilon goes on after a resume
         loop.episodes = logged_episodes  # episodes.csv numbers them on too
         loop.begin_episode(seed=cfg.train.seed + (core.received if resumed else 0))
@@ -169,12 +186,12 @@ def train_single_process(cfg: RunConfig, paths: RunPaths, stop: threading.Event 
                     loop.begin_episode()
             if core.updates != training.logged_update:  # the log ends at the last update, as the checkpoint does
                 training.log_row()
-            final = training.save()
+            final = training.save(final=True)
         except (Diverged, NonFiniteWeights) as exc:  # it can no longer learn: its last good checkpoint stays
             diverged = exc
     env.close()
     if diverged is not None:
-        raise diverged_error(diverged, checkpoints)
+        raise diverged_error(diverged, checkpoints, core, divergences)
     return {"updates": core.updates, "env_steps": core.received, "episodes": training.episodes,
             "checkpoint": str(final), "seconds": time.monotonic() - training.started}
 
@@ -197,6 +214,7 @@ def run_train_command(args: argparse.Namespace) -> int:
     check_start_sources(cfg, resumed_from=saved_config(paths) if resumable else None)
     setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
-                                  max_minutes=args.minutes, tensorboard=args.tensorboard)
+                                  max_minutes=args.minutes, tensorboard=args.tensorboard,
+                                  lr_given=lr_given(args.overrides))
     print(result)
     return 0

@@ -140,13 +140,21 @@ def save_tensors_file(path: Path, tensors: dict[str, torch.Tensor], meta: dict[s
     that fails (a full disk, a quota) is an OSError, as any other file's: safetensors reports it as
     its own error, which the CLI and the services would take for a bug (a traceback)."""
     meta = dict(meta, digest=_digest(tensors))
+    _write_safetensors(path, lambda tmp: safetensors.torch.save_file(tensors, tmp,
+                                                                     metadata={_META_KEY: json.dumps(meta)}))
 
+
+def _write_safetensors(path: Path, save: Callable[[Path], None]) -> None:
+    """``save(tmp)``, a safetensors writer, via :func:`write_atomically`: its failure (a full disk, a
+    quota) an OSError naming ``path``, not safetensors' own error, which the CLI and the services would
+    take for a bug (a traceback)."""
     def write(tmp: Path) -> None:
         try:
-            safetensors.torch.save_file(tensors, tmp, metadata={_META_KEY: json.dumps(meta)})
+            save(tmp)
         except SafetensorError as exc:
             code = re.search(r"os error (\d+)", str(exc))
-            raise OSError(int(code.group(1)) if code else errno.EIO, f"{path} cannot be written: {exc}") from None
+            # named by write_atomically: "<path> cannot be written: <safetensors' message>"
+            raise OSError(int(code.group(1)) if code else errno.EIO, str(exc)) from None
 
     write_atomically(path, write)
 
@@ -298,7 +306,8 @@ def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory |
         arrays, rmeta = replay.state_dict()
         rdigest = _digest(arrays)
         rpath = path.with_name(_replay_name(path, rdigest))
-        write_atomically(rpath, lambda tmp: safetensors.numpy.save_file(
+        new_replay = not rpath.exists()
+        _write_safetensors(rpath, lambda tmp: safetensors.numpy.save_file(
             {k: np.ascontiguousarray(v) for k, v in arrays.items()}, tmp,
             metadata={_META_KEY: json.dumps({"format": FORMAT + "-replay", "version": VERSION,
                                              "replay": rmeta, "digest": rdigest})}))
@@ -310,7 +319,12 @@ def save_checkpoint(path: Path | str, agent: DQNAgent, *, replay: ReplayMemory |
         json.dumps(meta)
     except TypeError as exc:
         raise CheckpointError(f"checkpoint config/extra must be JSON-serialisable: {exc}") from None
-    save_tensors_file(path, tensors, meta)
+    try:
+        save_tensors_file(path, tensors, meta)
+    except BaseException:
+        if replay_info is not None and new_replay:  # no checkpoint names it: on a full disk, space the retry needs
+            rpath.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -39,6 +39,7 @@ from shared.learning.checkpoints import (
     non_finite_tensor,
 )
 from shared.learning.demos import DemoError, Demonstration, demo_replay, load_demonstrations
+from shared.learning.divergence import RunDivergences
 from shared.learning.dqn import DQNAgent, DQNError, NonFiniteLoss
 from shared.learning.pipeline import TargetPipeline
 from shared.learning.replay import Batch, ReplayError, ReplayMemory, concat_batches
@@ -56,12 +57,18 @@ class Diverged(DQNError):
     weights must reach neither an actor nor a checkpoint (:func:`diverged_error`)."""
 
 
-def diverged_error(cause: Exception, checkpoints: CheckpointManager) -> Diverged:
+def diverged_error(cause: Exception, checkpoints: CheckpointManager, core: "LearnerCore | None" = None,
+                   divergences: RunDivergences | None = None) -> Diverged:
     """The one-line error a learner stops with when its agent has diverged (``cause``): what diverged,
-    and the run's newest checkpoint that loads, which a resume starts from."""
+    and the run's newest checkpoint that loads, which a resume starts from. With ``core`` and
+    ``divergences`` (the run's record) the divergence is recorded, and the line says the rate the next
+    start resumes at."""
     good = checkpoints.load_latest()
     where = (f"the run resumes from its last good checkpoint {good.path} (update {good.update_count})"
              if good is not None else f"no checkpoint in {checkpoints.directory} loads")
+    if core is not None and divergences is not None:
+        where += "; " + divergences.diverged(update=core.updates, resumed_from=good.update_count if good else 0,
+                                             lr=core.cfg.dqn.lr, cause=str(cause))
     return Diverged(f"{cause}; stopped without saving its weights: {where}")
 
 
@@ -237,6 +244,28 @@ class LearnerCore:
         except NonFiniteWeights:
             self.check_finite()  # a weight: said as the divergence it is, naming it
             raise
+
+    def checkpoint(self, checkpoints: CheckpointManager, config: dict[str, Any], *, final: bool = False,
+                   with_replay: bool = True) -> Path | None:
+        """:meth:`save` where a write that fails (a full disk, a quota, a folder gone read-only) is said in
+        one line naming the checkpoint the run resumes from instead. A periodic one (None) only logs it
+        and training goes on: the next checkpoint tries again, and the files it cut short are gone (the
+        run's earlier checkpoints stay whole: every file is written atomically). A ``final`` one raises
+        it as a CheckpointError: the updates since the last checkpoint are lost, which a clean exit
+        would hide."""
+        try:
+            return self.save(checkpoints, config, with_replay=with_replay)
+        except OSError as exc:
+            try:
+                latest = checkpoints.latest()
+            except CheckpointError:
+                latest = None
+            resumes = f"the run resumes from {latest}" if latest is not None else "the run has no checkpoint yet"
+            what = f"checkpoint at update {self.updates} not written: {exc}; {resumes}"
+            if final:
+                raise CheckpointError(what) from None
+            log.error("%s; training goes on and the next checkpoint tries again", what)
+            return None
 
     # -- the ratio rule --------------------------------------------------------------------
     @property

@@ -17,7 +17,8 @@ import csv
 import io
 import logging
 import math
-from collections.abc import Iterator, Mapping
+import time
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field, fields
 from numbers import Real
 from pathlib import Path
@@ -297,10 +298,17 @@ def _widen(path: Path, row_type: type[_Row], header: list[str]) -> None:
     atomic_write_text(path, text.getvalue())
 
 
+CSV_RETRY_S = 30.0
+"""Seconds a statistics log that could not be written (a full disk) waits before it tries again: its
+rows in between are lost, and a full disk is not asked at every row."""
+
+
 class CsvLog(Generic[RowT]):
     """Appends rows of one record type to ``<stats dir>/<its FILE>``, the header first when the file
     is new (an older version's header is widened first: :func:`_widen`); every row is flushed, so a
-    crash loses at most the row being written."""
+    crash loses at most the row being written. The log is a record of training, not the training: a
+    row that cannot be written (a full disk, a quota) is said once and lost, the process goes on, and
+    the file is tried again :data:`CSV_RETRY_S` later (its torn last line ended first)."""
 
     def __init__(self, stats_dir: Path, row_type: type[RowT]):
         self.row_type = row_type
@@ -313,22 +321,67 @@ class CsvLog(Generic[RowT]):
         if header is not None and len(header) < len(columns) and tuple(header) == columns[:len(header)]:
             _widen(self.path, row_type, header)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "a", newline="")
-        if existed and ends_torn(self.path):
-            self._file.write("\r\n")  # a killed writer's torn last line: the next row starts its own
-        self._writer = csv.writer(self._file)
-        if new:
-            self._writer.writerow(columns)
-            self._file.flush()
+        self._file: Any = None
+        self._failed_at = 0.0
+        self.lost = 0
+        """Rows not written since the last one that was (the file could not be written)."""
+        try:
+            self._open(header=new)
+        except OSError as exc:
+            self._fail(exc)
 
-    def write(self, row: RowT) -> None:
-        if not isinstance(row, self.row_type):
-            raise TypeError(f"{self.path.name} takes {self.row_type.__name__} rows, got {type(row).__name__}")
-        self._writer.writerow(row.cells())
+    def _open(self, header: bool) -> None:
+        self._file = open(self.path, "a", newline="")
+        self._writer = csv.writer(self._file)
+        if ends_torn(self.path):
+            self._file.write("\r\n")  # a killed writer's (or a full disk's) torn last line: the next row starts its own
+        if header:
+            self._writer.writerow(self.row_type.columns())
         self._file.flush()
 
+    def _fail(self, exc: OSError) -> None:
+        if not self.lost:
+            log.warning("%s cannot be written (%s): its rows are lost, the process goes on; tried again every %.0f s",
+                        self.path, exc.strerror or exc, CSV_RETRY_S)
+        self._failed_at = time.monotonic()
+        self._drop()
+
+    def _drop(self) -> None:
+        """Close the file; what its buffer still holds is lost (a full disk fails its flush again)."""
+        handle, self._file = self._file, None
+        if handle is not None:
+            try:
+                handle.close()
+            except OSError:
+                pass
+
+    def write(self, row: RowT) -> None:
+        """Append ``row``; where the file cannot be written, count it lost (:attr:`lost`) instead."""
+        if not isinstance(row, self.row_type):
+            raise TypeError(f"{self.path.name} takes {self.row_type.__name__} rows, got {type(row).__name__}")
+        if self._file is None:
+            if time.monotonic() - self._failed_at < CSV_RETRY_S:
+                self.lost += 1
+                return
+            try:
+                self._open(header=not self.path.is_file() or _header(self.path, self.row_type) is None)
+            except OSError as exc:
+                self._fail(exc)
+                self.lost += 1
+                return
+        try:
+            self._writer.writerow(row.cells())
+            self._file.flush()
+        except OSError as exc:
+            self._fail(exc)  # said when it is the first row lost
+            self.lost += 1
+            return
+        if self.lost:
+            log.warning("%s written again (%d row(s) lost)", self.path, self.lost)
+            self.lost = 0
+
     def close(self) -> None:
-        self._file.close()
+        self._drop()
 
     def __enter__(self) -> "CsvLog[RowT]":
         return self
@@ -351,6 +404,44 @@ def scalars(values: Mapping[str, Any], prefix: str = "") -> Iterator[tuple[str, 
             yield f"{prefix}{name}", float(value)
 
 
+class _HeldRecords:
+    """The record writer of a TensorBoard writer's thread, whose failed write (a full disk) it keeps in
+    :attr:`error` for the process's thread to find, writing nothing more: raised in that thread, it
+    ended it with a traceback on stderr."""
+
+    def __init__(self, records: Any):
+        self.records = records
+        self.error: OSError | None = None
+
+    def _do(self, step: Callable[[], None]) -> None:
+        if self.error is None:
+            try:
+                step()
+            except OSError as exc:
+                self.error = exc
+
+    def write(self, data: bytes) -> None:
+        self._do(lambda: self.records.write(data))
+
+    def flush(self) -> None:
+        self._do(self.records.flush)
+
+    def close(self) -> None:
+        self._do(self.records.close)
+
+
+def _hold_records(writer: Any) -> _HeldRecords | None:
+    """Put a :class:`_HeldRecords` between ``writer`` (a ``SummaryWriter``) and its file; None where
+    this tensorboard's insides differ (its thread then fails as it does)."""
+    try:
+        events = writer.file_writer.event_writer._async_writer
+        held = _HeldRecords(events._writer)
+        events._writer = events._worker._record_writer = held
+        return held
+    except AttributeError:
+        return None
+
+
 class TensorBoardLog:
     """One process's scalars as TensorBoard event files in ``folder`` (``runs/<run>/tb/<process>/``,
     so that no two writers share a file); ``folder`` None writes nothing.
@@ -368,6 +459,7 @@ class TensorBoardLog:
     def __init__(self, folder: Path | None, flush_s: float = TENSORBOARD_FLUSH_S):
         self.folder = None if folder is None else Path(folder)
         self._writer: Any = None
+        self._held: _HeldRecords | None = None
         self._last_step: dict[str, int] = {}
         if self.folder is None:
             return
@@ -375,6 +467,7 @@ class TensorBoardLog:
             from torch.utils.tensorboard import SummaryWriter
 
             self._writer = SummaryWriter(str(self.folder), flush_secs=flush_s)
+            self._held = _hold_records(self._writer)
         except Exception as exc:  # ImportError, OSError, ...: whatever it is, training goes on
             self._give_up(exc)
 
@@ -397,6 +490,8 @@ class TensorBoardLog:
         try:
             for name, value in scalars(values):
                 self._writer.add_scalar(f"{group}/{name}", value, step)
+            if self._held is not None and self._held.error is not None:  # its thread's write failed
+                raise self._held.error
         except Exception as exc:
             self._give_up(exc)
         self._last_step[group] = step

@@ -188,7 +188,8 @@ def test_diverged_weights_stop_the_learner_in_one_line_and_its_good_checkpoint_s
     assert code == 2 and "Traceback" not in err and said == [
         f"cogexplore learner: error: update {diverged_at}: weight online.advantage.bias holds NaN or infinite values, "
         "the network has diverged (the learning rate is probably too high); stopped without saving its weights: "
-        f"the run resumes from its last good checkpoint {good} (update 2)"], err
+        f"the run resumes from its last good checkpoint {good} (update 2); its next start resumes at "
+        f"dqn.lr={load_preset('smoke').dqn.lr / 2:g} (diverged.json)"], err
     checkpoints = CheckpointManager(paths.checkpoints)
     assert checkpoints.checkpoints() == [good] and checkpoints.load_latest().update_count == 2
 
@@ -246,4 +247,29 @@ def test_a_learner_resumed_with_a_new_rate_saves_it_as_the_runs_config(tmp_path:
         assert saved.dqn.lr == 1e-6 and saved.train.total_updates == 4
         assert main([*base, "--set", "train.total_updates=6"]) == 0  # no --set dqn.lr: the run's own
     assert load_preset(paths.config, complete=True).dqn.lr == 1e-6
+    assert CheckpointManager(paths.checkpoints).load_latest().update_count == 6
+
+
+def test_a_learner_that_diverged_resumes_at_half_the_rate_and_ends_the_streak_past_it(tmp_path: Path, monkeypatch,
+                                                                                      capsys):
+    # The learner service's start and checkpoints take part in the run's divergence record as the trainer's do:
+    # compose restarts a diverged learner with its preset (COGEXPLORE_PRESET) at once.
+    from services.cli import main
+
+    paths = RunPaths(tmp_path / "run").make()
+    _run_with_transitions(paths, load_preset("smoke"))
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    base = ["learner", "--run", "run", "--runs-dir", str(tmp_path), "--preset", "smoke", "--connect", endpoint,
+            "--set", "train.checkpoint_every=2", "--set", "train.total_updates=6"]
+    rate = load_preset("smoke").dqn.lr
+    with open_router([endpoint]):
+        with monkeypatch.context() as patch:
+            diverge_at(patch, 3)
+            assert main(base) == 2
+        assert f"its next start resumes at dqn.lr={rate / 2:g} (diverged.json)" in capsys.readouterr().err
+        assert main(base) == 0
+    err = capsys.readouterr().err
+    assert f"at half that rate, dqn.lr={rate / 2:g} (divergence 1 in a row" in err
+    assert load_preset(paths.config, complete=True).dqn.lr == rate / 2
+    assert not (paths.root / "diverged.json").exists()  # checkpoints at 4 and 6: past update 3
     assert CheckpointManager(paths.checkpoints).load_latest().update_count == 6

@@ -275,6 +275,7 @@ def test_an_update_skipped_for_a_non_finite_loss_is_not_logged_saved_or_counted(
 
     from services.tools.train import _Training
     from shared.expert.expert import ExpertGuide
+    from shared.learning.divergence import RunDivergences
     from shared.learning.learner import LearnerCore
     from shared.learning.policy import EpsilonGreedyPolicy, EpsilonSchedule
     from shared.learning.stats import CsvLog, TensorBoardLog, read_csv_records
@@ -294,8 +295,8 @@ def test_an_update_skipped_for_a_non_finite_loss_is_not_logged_saved_or_counted(
     policy = EpsilonGreedyPolicy(core.agent.online, EpsilonSchedule(cfg.explore), seed=1, guide=guide)
     with CsvLog(paths.stats, LearnerRow) as learner_log, CsvLog(paths.stats, EpisodeRow) as episode_log, \
             TensorBoardLog(None) as board, tqdm(total=12, file=io.StringIO()) as bar:
-        training = _Training(cfg, core, CheckpointManager(paths.checkpoints, keep=20), guide, learner_log,
-                             episode_log, bar, board)
+        training = _Training(cfg, core, CheckpointManager(paths.checkpoints, keep=20), RunDivergences(paths.root),
+                             guide, learner_log, episode_log, bar, board)
         loop = Rollout(env, policy, [guide, training], env_steps=core.received)
         loop.begin_episode(seed=0)
         while not core.done:
@@ -369,5 +370,38 @@ def test_diverged_weights_stop_the_trainer_in_one_line_and_its_good_checkpoint_s
     assert code == 2 and "Traceback" not in err and said == [
         f"cogexplore train: error: update {diverged_at}: weight online.advantage.bias holds NaN or infinite values, "
         "the network has diverged (the learning rate is probably too high); stopped without saving its weights: "
-        f"the run resumes from its last good checkpoint {good} (update 2)"], err
+        f"the run resumes from its last good checkpoint {good} (update 2); its next start resumes at "
+        f"dqn.lr={load_preset('smoke').dqn.lr / 2:g} (diverged.json)"], err
     assert checkpoints.checkpoints() == [good] and checkpoints.load_latest().update_count == 2
+
+
+def test_a_run_that_diverges_resumes_at_half_the_rate_and_a_streak_of_them_stops(tmp_path: Path, monkeypatch, capsys):
+    # A run restarted on failure (compose's restart: on-failure) resumed from its last good checkpoint at the
+    # rate it had diverged at, and would diverge there again, for ever. The preset named at every start
+    # (compose's COGEXPLORE_PRESET, `train --preset`) must not bring its own rate back.
+    from services.cli import main
+    from services.runs import saved_config
+    from tests.shared.learning.test_learner import diverge_at
+
+    paths = RunPaths(tmp_path / "r")
+    args = ["train", "--runs-dir", str(tmp_path), "--run", "r", "--quiet", "--updates", "6", "--preset", "smoke",
+            "--set", "train.warmup_transitions=32", "--set", "train.checkpoint_every=2"]
+    rate = load_preset("smoke").dqn.lr
+    for n in range(1, 5):  # diverges at update 3 from its checkpoint at 2, four times
+        with monkeypatch.context() as patch:
+            diverge_at(patch, 3)
+            assert main(args) == 2
+        err = capsys.readouterr().err
+        if n > 1:
+            assert f"divergence {n - 1} in a row" in err and saved_config(paths).dqn.lr == pytest.approx(rate)
+        rate /= 2
+        said = err.strip().splitlines()[-1]
+        assert (f"its next start resumes at dqn.lr={rate:g}" in said) == (n < 4), said
+    assert "diverged 4 times in a row, it is not resumed again without --set dqn.lr=<rate>" in said
+    assert main(args) == 2 and "not resumed again" in capsys.readouterr().err
+    assert CheckpointManager(paths.checkpoints).load_latest().update_count == 2
+    # the user's rate resumes it, even the one it last diverged at; past update 3 the streak is over
+    assert main(args + ["--set", f"dqn.lr={rate * 2!r}"]) == 0
+    assert f"at the rate given, dqn.lr={rate * 2:g}" in capsys.readouterr().err
+    assert not (paths.root / "diverged.json").exists() and saved_config(paths).dqn.lr == rate * 2
+    assert CheckpointManager(paths.checkpoints).load_latest().update_count == 6
