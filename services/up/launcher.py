@@ -343,6 +343,7 @@ class Launcher:
                 # being averaged, and one started meanwhile is refused (its own RunLock).
                 self.learner_lock = RunLock(self.paths, "learner")
             else:
+                self._check_learner_free()
                 self._check_ports()  # a refused start leaves no run folder behind, nor moves one aside
                 self._prepare_folder()
         except BaseException:
@@ -358,6 +359,12 @@ class Launcher:
         if config.train.keep_checkpoints < a.final_average:  # the final model averages them
             overrides["train.keep_checkpoints"] = a.final_average
         return config.with_overrides(overrides) if overrides else config
+
+    def _check_learner_free(self) -> None:
+        """RunInUseError when a learner of the run runs outside up (started by hand, or one of a killed `up`
+        still writing its final checkpoint): refused before the run's config is replaced under it and a
+        router and actors are started for a learner of up's own that could only fail."""
+        RunLock(self.paths, "learner").release()  # up's own learner takes it when it starts
 
     def close(self) -> None:
         """Let go of the run (another `up` may start it); :meth:`execute` does at its end."""
@@ -433,6 +440,12 @@ class Launcher:
                                      "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
 
     def start(self) -> None:
+        from services.viz.rerun import remove_orphan_recordings
+
+        # an evaluator killed mid-recording (a crash, a killed `up`) left its temporary, which nothing else removes
+        if removed := remove_orphan_recordings(self.paths.recordings):
+            print(f"run {self.run!r}: removed {len(removed)} recording(s) a killed evaluator left unfinished "
+                  f"({self.paths.recordings})", file=sys.stderr)
         for role, name, argv in self.service_argvs():
             self._spawn(role, name, argv)
 
@@ -599,9 +612,17 @@ class Launcher:
         print(f"run {self.run!r}: router {self.endpoint}, {a.actors} actor(s), logs in {self.paths.logs}",
               file=sys.stderr)
 
+        stopping = threading.Event()  # the monitor has ended: the services are being stopped
+
+        def say_stopping() -> None:
+            print(f"run {self.run!r}: stopping: its learner writes its final checkpoint (Ctrl-C again "
+                  "to stop at once without it)", file=sys.stderr)
+
         def on_stop_signal(signum: int, _frame: object) -> None:
             if not stop.is_set():
                 stop.set()
+                if stopping.is_set():  # the run stops already (--minutes, its learner done): say it was heard
+                    say_stopping()
                 return
             # asked again while the learner writes its final checkpoint (up to a minute): now, without it
             print(f"run {self.run!r}: {_signal_name(signum)} again: killing its services now (the last checkpoint "
@@ -618,9 +639,9 @@ class Launcher:
             finally:
                 # Order matters: the learner writes its final checkpoint first, then the
                 # producers and the evaluator go, the router last.
+                stopping.set()
                 if stop.is_set():
-                    print(f"run {self.run!r}: stopping: its learner writes its final checkpoint (Ctrl-C again "
-                          "to stop at once without it)", file=sys.stderr)
+                    say_stopping()
                 self.stop_services()
         print(f"run {self.run!r} ended: {reason}", file=sys.stderr)
         return self.finish(reason)

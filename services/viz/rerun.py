@@ -249,6 +249,23 @@ def default_blueprint(world: World | None = None) -> rrb.Blueprint:
     )
 
 
+def remove_orphan_recordings(folder: Path) -> list[Path]:
+    """Remove every recording temporary in ``folder`` that a killed process left (``.<name>.rrd.tmp-...``,
+    which nobody holds; one a live recorder is writing is left alone) and return them. A
+    :class:`RecordingFile` removes one only when a recorder next opens its very path, which a resumed
+    run's evaluator never does: it goes on from newer versions."""
+    removed = []
+    for orphan in folder.glob(f".*.rrd{TMP_MARK}*"):
+        try:
+            with open(orphan, "rb") as held:
+                fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                orphan.unlink()
+        except OSError:  # being written (the lock is taken), or gone in the meantime
+            continue
+        removed.append(orphan)
+    return removed
+
+
 class RecordingFile:
     """An ``.rrd`` written under a temporary name beside ``path`` that takes its name only when the
     recording is whole (:meth:`commit`, :meth:`finish`): a recording that fails, is cancelled or is
