@@ -74,7 +74,7 @@ from services.evaluator.options import (
 from services.options import protocol_from_args
 from services.process import default_process_id, lower_priority, setup_logging, stop_event_on_signals
 from services.runs import run_paths
-from services.viz.rerun import ViewerLink, evaluate_recorded
+from services.viz.rerun import ViewerLink, evaluate_recorded, remove_orphan_recordings
 from shared.config import ConfigError, RunConfig, is_whole
 from shared.errors import CogexploreError, StopRequested
 from shared.evaluation import (
@@ -152,6 +152,10 @@ class EvaluatorService:
                               "--episodes-per-start")
         self.image_every = image_every
         self.record = record
+        # an evaluator killed mid-recording left its temporary, which no later recorder opens again
+        if record and (removed := remove_orphan_recordings(self.root / "recordings")):
+            log.info("removed %d recording(s) a killed evaluator left unfinished (%s)", len(removed),
+                     self.root / "recordings")
         # A malformed URL fails here, at start-up; one that does not answer is checked per evaluation.
         self.viewer = ViewerLink(rerun_url, what="streaming evaluations") if rerun_url else None
         self.seed = seed

@@ -440,12 +440,6 @@ class Launcher:
                                      "`cogexplore up`? Stop it, or choose another port (--listen, --port)")
 
     def start(self) -> None:
-        from services.viz.rerun import remove_orphan_recordings
-
-        # an evaluator killed mid-recording (a crash, a killed `up`) left its temporary, which nothing else removes
-        if removed := remove_orphan_recordings(self.paths.recordings):
-            print(f"run {self.run!r}: removed {len(removed)} recording(s) a killed evaluator left unfinished "
-                  f"({self.paths.recordings})", file=sys.stderr)
         for role, name, argv in self.service_argvs():
             self._spawn(role, name, argv)
 

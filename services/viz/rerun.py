@@ -253,7 +253,8 @@ def remove_orphan_recordings(folder: Path) -> list[Path]:
     """Remove every recording temporary in ``folder`` that a killed process left (``.<name>.rrd.tmp-...``,
     which nobody holds; one a live recorder is writing is left alone) and return them. A
     :class:`RecordingFile` removes one only when a recorder next opens its very path, which a resumed
-    run's evaluator never does: it goes on from newer versions."""
+    run's evaluator never does: it goes on from newer versions. The evaluator service calls it as it
+    starts."""
     removed = []
     for orphan in folder.glob(f".*.rrd{TMP_MARK}*"):
         try:
