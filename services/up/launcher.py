@@ -125,6 +125,9 @@ LEARNER_WAITS = 0.1
 actors are the limit. Below it the learner nearly always has an update due."""
 ACTORS_HELD = 0.2
 """From this share of their episodes' time held by flow control the actors wait for the learner."""
+LEARNER_SILENT_S = 15.0
+"""Seconds without a word from the learner (it reports every second, also while it waits for data)
+from which the progress line says it is silent: stopped (SIGSTOP, a laptop asleep), stuck, or cut off."""
 HELD_WINDOW_S = 60.0
 """The actors' held share is taken over the episodes that ended this long ago at most."""
 ETA_AFTER_S = 60.0
@@ -178,12 +181,16 @@ class ProgressFigures:
     after a resume without its memory is not the transitions count."""
     safe_agreement: float | None = None
     """Share of the learner's recent safe-set marked samples whose greedy command keeps a way out (None: no marks)."""
+    learner_silent_s: float | None = None
+    """Seconds since the learner's last report (None: no report yet)."""
 
 
 def limiter(f: ProgressFigures) -> str:
-    """What holds the run back now: the warm-up, the learner or the actors."""
+    """What holds the run back now: the warm-up, the learner or the actors; or a learner gone silent."""
     if f.transitions_received is None:
         return "starting: waiting for the learner"
+    if f.learner_silent_s is not None and f.learner_silent_s >= LEARNER_SILENT_S:
+        return f"learner silent for {_duration(f.learner_silent_s)}: stopped or stuck?"
     if f.learning_s is None:
         filled = f.transitions_received if f.replay_size is None else f.replay_size
         return f"warm-up: filling replay {min(filled, f.warmup_transitions)}/{f.warmup_transitions}"
@@ -262,11 +269,14 @@ class Progress:
     env_since: float | None = None
     episodes: int = 0
     recent_steps: collections.deque = field(default_factory=lambda: collections.deque(maxlen=50))
+    learner_heard: float | None = None
+    """When the learner's last report came (monotonic seconds)."""
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def on_learner(self, stats: LearnerStats, _key: str = "", now: float | None = None) -> None:
         now = time.monotonic() if now is None else now
         with self.lock:
+            self.learner_heard = now
             if self.session_first_updates is None:
                 self.session_first_updates = stats.updates
             elif self.learning_since is None and stats.updates > self.session_first_updates:
@@ -314,7 +324,8 @@ class Progress:
                 episodes=self.episodes,
                 mean_steps=sum(self.recent_steps) / len(self.recent_steps) if self.recent_steps else None,
                 loss=self.loss, actors_alive=actors_alive, clock_s=time.time() if clock_s is None else clock_s,
-                label_agreement=self.label_agreement, safe_agreement=self.safe_agreement)
+                label_agreement=self.label_agreement, safe_agreement=self.safe_agreement,
+                learner_silent_s=None if self.learner_heard is None else now - self.learner_heard)
 
 
 class Launcher:
@@ -520,6 +531,7 @@ class Launcher:
             bar = tqdm(total=cfg_updates, desc=f"{self.run}", unit="upd", dynamic_ncols=True, disable=a.quiet,
                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} upd [{elapsed}{postfix}]")
             reason = "done"
+            learner_silent = False
             try:
                 while True:
                     if stop.is_set():
@@ -554,6 +566,12 @@ class Launcher:
                             bar.write(f"{why}; training goes on {goes_on}", file=sys.stderr)
                     stop.wait(1.0)
                     figures = progress.figures(len(actors.alive))
+                    silent = figures.learner_silent_s is not None and figures.learner_silent_s >= LEARNER_SILENT_S
+                    if silent != learner_silent:  # said once each way: the bar alone may not be on screen
+                        learner_silent = silent
+                        bar.write(f"run {self.run!r}: its learner " + (
+                            f"has said nothing for {LEARNER_SILENT_S:.0f} s: stopped or stuck? (its log: "
+                            f"{learner.logfile})" if silent else "reports again"), file=sys.stderr)
                     if deadline is not None:
                         figures = dataclasses.replace(figures, time_left_s=deadline - time.monotonic())
                     bar.n = min(figures.updates, cfg_updates)

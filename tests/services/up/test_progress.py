@@ -8,6 +8,7 @@ import time
 
 from services.up.launcher import (
     ETA_AFTER_S,
+    LEARNER_SILENT_S,
     Progress,
     ProgressFigures,
     limiter,
@@ -105,3 +106,21 @@ def test_progress_averages_over_the_run_and_leaves_the_warm_up_out_of_the_rate()
     assert limiter(f) == "learner-bound: actors held by flow control 90% of the time"
     assert progress.figures(2, now=200.0).held_share is None  # a minute on, nothing new: no claim
     assert progress_line(f).endswith("ends ~12:03 (3m05s left)")  # 370 updates left at 2/s
+
+
+def test_a_learner_that_goes_silent_is_said_and_one_that_speaks_again_is_not() -> None:
+    # A learner stopped (SIGSTOP, a laptop asleep) or stuck froze the progress line on its last figures, which
+    # went on reading "learner-bound" with an end time: nothing said the run had stopped moving.
+    progress = Progress(total_updates=500, warmup_transitions=100)
+    assert progress.figures(2, now=0.0).learner_silent_s is None
+    progress.on_learner(learner_stats(200, 2000, waiting_share=0.0), now=5.0)
+    progress.on_learner(learner_stats(201, 2004, waiting_share=0.0), now=10.0)  # learning
+    assert limiter(progress.figures(2, now=10.0 + LEARNER_SILENT_S - 1)).startswith("learner-bound")
+    quiet = progress.figures(2, now=10.0 + LEARNER_SILENT_S + 65)
+    assert quiet.learner_silent_s == LEARNER_SILENT_S + 65
+    assert limiter(quiet) == "learner silent for 1m20s: stopped or stuck?"  # 15 + 65 s
+    assert progress_line(quiet).startswith("learner silent for")
+    progress.on_learner(learner_stats(202, 2008, waiting_share=0.0), now=100.0)
+    assert limiter(progress.figures(2, now=101.0)).startswith("learner-bound")
+    # a learner not heard from yet is starting, not silent
+    assert limiter(figures(transitions_received=None, learner_silent_s=None)) == "starting: waiting for the learner"
