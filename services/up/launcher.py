@@ -56,6 +56,7 @@ from services.process import setup_logging, stop_signals_handled
 from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_config
 from shared.config import RunConfig
 from shared.errors import CogexploreError
+from shared.learning.divergence import lr_given
 from shared.learning.stats import LearnerRow, read_csv_records
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EpisodeStats, LearnerStats, RejectCounter
@@ -464,6 +465,8 @@ class Launcher:
         learner_argv = ["learner", *self._common("learner"), *config]
         if a.device:
             learner_argv += ["--device", a.device]
+        if lr_given(getattr(a, "overrides", None)):  # in its config too; said again as the user's choice, kept after a divergence
+            learner_argv += ["--set", f"dqn.lr={self.config.dqn.lr!r}"]
         services.append(("learner", "learner", learner_argv))
         for i in range(a.actors):
             services.append(("actor", f"actor-{i}", ["actor", *self._common("actor"), *config, "--actor-id",
@@ -625,10 +628,17 @@ class Launcher:
               file=sys.stderr)
 
         stopping = threading.Event()  # the monitor has ended: the services are being stopped
+        said_stopping = threading.Event()
 
         def say_stopping() -> None:
-            print(f"run {self.run!r}: stopping: its learner writes its final checkpoint (Ctrl-C again "
-                  "to stop at once without it)", file=sys.stderr)
+            if said_stopping.is_set():  # a signal between the monitor's end and the stop said it already
+                return
+            said_stopping.set()
+            if any(c.role == "learner" and c.process.poll() is None for c in self.children):
+                print(f"run {self.run!r}: stopping: its learner writes its final checkpoint (Ctrl-C again "
+                      "to stop at once without it)", file=sys.stderr)
+            else:  # it has ended (done, failed): only the others are left to stop
+                print(f"run {self.run!r}: stopping its services (Ctrl-C again to stop them at once)", file=sys.stderr)
 
         def on_stop_signal(signum: int, _frame: object) -> None:
             if not stop.is_set():

@@ -249,14 +249,16 @@ def default_blueprint(world: World | None = None) -> rrb.Blueprint:
     )
 
 
-def remove_orphan_recordings(folder: Path) -> list[Path]:
-    """Remove every recording temporary in ``folder`` that a killed process left (``.<name>.rrd.tmp-...``,
-    which nobody holds; one a live recorder is writing is left alone) and return them. A
+def remove_orphan_recordings(folder: Path, prefix: str = "eval-") -> list[Path]:
+    """Remove every temporary of a recording named ``prefix...`` in ``folder`` that a killed process left
+    (``.<name>.rrd.tmp-...``, which nobody holds; one a live recorder is writing is left alone) and
+    return them: the evaluator's own kind only (a killed `drive`'s partial log, which it keeps, may lie
+    there too). A
     :class:`RecordingFile` removes one only when a recorder next opens its very path, which a resumed
     run's evaluator never does: it goes on from newer versions. The evaluator service calls it as it
     starts."""
     removed = []
-    for orphan in folder.glob(f".*.rrd{TMP_MARK}*"):
+    for orphan in folder.glob(f".{glob.escape(prefix)}*.rrd{TMP_MARK}*"):
         try:
             with open(orphan, "rb") as held:
                 fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)

@@ -124,9 +124,11 @@ def resume_lr(streak: list[Divergence], configured_lr: float, *, lr_given: bool 
             f"the run diverged {len(streak)} times in a row, the last at update {last.update} at dqn.lr={last.lr:g}, "
             f"its rate halved after each: not resumed again. Look for the cause (the rewards, the preset, "
             f"{DIVERGENCE_FILE} in the run's folder), then resume with --set dqn.lr=<rate>")
-    lowered = min(configured_lr, last.lr * LR_BACKOFF)
-    return lowered, (f"{after} at half that rate, dqn.lr={lowered:g} (divergence {len(streak)} in a row; "
-                     f"--set dqn.lr=<rate> chooses another)")
+    half = last.lr * LR_BACKOFF
+    how = (f"at half that rate, dqn.lr={half:g}" if half <= configured_lr else
+           f"at its configured rate, dqn.lr={configured_lr:g}, below half that")
+    return min(configured_lr, half), (f"{after} {how} (divergence {len(streak)} in a row; --set dqn.lr=<rate> "
+                                       f"chooses another)")
 
 
 class RunDivergences:

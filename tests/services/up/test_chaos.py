@@ -64,17 +64,20 @@ def test_the_next_evaluator_removes_the_recording_a_killed_one_left_and_keeps_a_
     recordings = tmp_path / "svc" / "recordings"
     recordings.mkdir(parents=True)
     killed, live = _recorder(recordings / "eval-000005.rrd"), _recorder(recordings / "eval-000010.rrd")
+    drive = _recorder(recordings / "drive.rrd")  # a killed `drive --rrd`'s partial log, which it keeps
     try:
         left, writing = Path(killed.stdout.readline().strip()), Path(live.stdout.readline().strip())
-        killed.kill()
-        killed.wait()
+        drive_log = Path(drive.stdout.readline().strip())
+        for gone in (killed, drive):
+            gone.kill()
+            gone.wait()
         with caplog.at_level("INFO"):
             EvaluatorService(load_preset("smoke"), "svc", tmp_path / "svc", ZenohSettings(), "ev-1")
     finally:
         live.kill()
         live.wait()
     assert f"removed 1 recording(s) a killed evaluator left unfinished ({recordings})" in caplog.text
-    assert not left.exists() and writing.exists()
+    assert not left.exists() and writing.exists() and drive_log.exists()
 
 
 def _signal_pending(pid: int, signum: int) -> bool:
@@ -116,3 +119,22 @@ def test_a_ctrl_c_while_the_run_stops_at_its_time_limit_is_said_at_once(tmp_path
     heard = [i for i, line in enumerate(lines) if "stopping: its learner writes its final checkpoint" in line]
     killed = [i for i, line in enumerate(lines) if "SIGINT again: killing its services now" in line]
     assert len(heard) == 1 and len(killed) == 1 and heard[0] < killed[0], err[-2000:]
+
+
+def test_up_passes_a_rate_set_for_this_start_on_to_its_learner_as_the_users_choice(tmp_path: Path) -> None:
+    # up writes its --set into the run's config and starts its learner with that file alone: after a divergence
+    # the learner took `up --set dqn.lr=X` for the config's own rate and halved it, or refused the run for good
+    from services.cli import build_parser
+    from services.up.launcher import Launcher
+    from shared.learning.divergence import lr_given
+
+    def learner_argv(*flags: str) -> list[str]:
+        launcher = Launcher(build_parser().parse_args(["up", "--run", "r", "--runs-dir", str(tmp_path), *flags]))
+        try:
+            return next(argv for role, _, argv in launcher.service_argvs() if role == "learner")
+        finally:
+            launcher.close()
+
+    chosen = learner_argv("--set", "dqn.lr=1e-5", "--set", "train.seed=3")
+    assert chosen[-2:] == ["--set", "dqn.lr=1e-05"] and lr_given(build_parser().parse_args(chosen).overrides)
+    assert "--set" not in learner_argv("--set", "train.seed=3")

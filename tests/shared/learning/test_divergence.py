@@ -36,7 +36,8 @@ def test_each_resume_after_a_divergence_halves_the_rate_until_the_streak_is_too_
         assert lr == pytest.approx(rates[-1] / 2) and f"divergence {n} in a row" in why
         # a preset's own rate (the first one) does not undo the halving; a lower one configured is kept
         assert resume_lr(streak, rates[0])[0] == pytest.approx(rates[-1] / 2)
-        assert resume_lr(streak, rates[-1] / 10)[0] == pytest.approx(rates[-1] / 10)
+        lower, why = resume_lr(streak, rates[-1] / 10)
+        assert lower == pytest.approx(rates[-1] / 10) and "at its configured rate" in why and "below half" in why
         rates.append(lr)
     streak = _streak(tmp_path, rates[-1:])
     assert len(streak) == MAX_BACKOFFS + 1
