@@ -41,7 +41,7 @@ from services.process import setup_logging, stop_event_on_signals
 from services.runs import RunLock, RunPaths, resolve_config, run_paths, save_config
 from shared.config import RunConfig
 from shared.learning.checkpoints import CheckpointError, CheckpointManager, NonFiniteWeights
-from shared.learning.divergence import RunDivergences, lr_given
+from shared.learning.divergence import RunDivergences, sets_lr
 from shared.learning.learner import Diverged, LearnerCore, RateMeter, diverged_error, resume_from
 from shared.learning.model import resolve_device
 from shared.learning.stats import CsvLog, LearnerRow, TensorBoardLog, rewind
@@ -352,7 +352,7 @@ def run_learner_command(args: argparse.Namespace) -> int:
     settings = zenoh_settings(args, "learner")
     log.info("learner %s for run %r via %s", args.learner_id, args.run, settings.describe())
     result = run_learner(cfg, args.run, paths, settings, stop, learner_id=args.learner_id,
-                         weights_every=args.weights_every, pipeline=pipeline, lr_given=lr_given(args.overrides),
+                         weights_every=args.weights_every, pipeline=pipeline, lr_given=sets_lr(args.overrides),
                          tensorboard=paths.tensorboard_folder(args.learner_id) if args.tensorboard else None)
     log.info("learner done: %s", json.dumps(result))  # one JSON line: scripts read it
     return 0

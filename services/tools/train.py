@@ -31,7 +31,7 @@ from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_
 from shared.config import RunConfig
 from shared.expert.expert import ExpertGuide
 from shared.learning.checkpoints import CheckpointManager, NonFiniteWeights
-from shared.learning.divergence import RunDivergences, lr_given
+from shared.learning.divergence import RunDivergences, sets_lr
 from shared.learning.learner import (
     Diverged,
     LearnerCore,
@@ -215,6 +215,6 @@ def run_train_command(args: argparse.Namespace) -> int:
     setup_logging("INFO", paths.make().logs / "train.log")
     result = train_single_process(cfg, paths, stop_event_on_signals(), progress=not args.quiet,
                                   max_minutes=args.minutes, tensorboard=args.tensorboard,
-                                  lr_given=lr_given(args.overrides))
+                                  lr_given=sets_lr(args.overrides))
     print(result)
     return 0

@@ -56,7 +56,7 @@ from services.process import setup_logging, stop_signals_handled
 from services.runs import RunLock, RunPaths, resolve_config, save_config, saved_config
 from shared.config import RunConfig
 from shared.errors import CogexploreError
-from shared.learning.divergence import lr_given
+from shared.learning.divergence import sets_lr
 from shared.learning.stats import LearnerRow, read_csv_records
 from shared.wire.keys import RunKeys, validate_name
 from shared.wire.messages import EpisodeStats, LearnerStats, RejectCounter
@@ -465,7 +465,7 @@ class Launcher:
         learner_argv = ["learner", *self._common("learner"), *config]
         if a.device:
             learner_argv += ["--device", a.device]
-        if lr_given(getattr(a, "overrides", None)):  # in its config too; said again as the user's choice, kept after a divergence
+        if sets_lr(getattr(a, "overrides", None)):  # in its config too; said again as the user's choice, kept after a divergence
             learner_argv += ["--set", f"dqn.lr={self.config.dqn.lr!r}"]
         services.append(("learner", "learner", learner_argv))
         for i in range(a.actors):

@@ -34,12 +34,13 @@ DIVERGENCE_FILE = "diverged.json"
 """In the run's folder: the divergences since the run last trained past one."""
 
 LR_BACKOFF = 0.5
-"""The factor on ``dqn.lr`` at each resume after a divergence at the configured rate."""
+"""The factor on the rate a run diverged at, for its next start."""
 
 MAX_BACKOFFS = 3
 """Divergences in a row a run resumes after (at an eighth of the rate, at most); at the next it is refused."""
 
 MAX_CAUSE_CHARS = 300
+"""A divergence's cause is kept to this (one line): the record is read back at every start."""
 
 
 class DivergenceStreakError(CogexploreError):
@@ -175,6 +176,6 @@ class RunDivergences:
         return f"its next start resumes at dqn.lr={next_lr:g} ({DIVERGENCE_FILE})"
 
 
-def lr_given(overrides: list[str] | None) -> bool:
+def sets_lr(overrides: list[str] | None) -> bool:
     """Whether a command's ``--set`` options (``section.field=value``) choose ``dqn.lr``."""
     return any(parse_override(text)[0] == "dqn.lr" for text in overrides or ())

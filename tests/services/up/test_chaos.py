@@ -126,7 +126,7 @@ def test_up_passes_a_rate_set_for_this_start_on_to_its_learner_as_the_users_choi
     # the learner took `up --set dqn.lr=X` for the config's own rate and halved it, or refused the run for good
     from services.cli import build_parser
     from services.up.launcher import Launcher
-    from shared.learning.divergence import lr_given
+    from shared.learning.divergence import sets_lr
 
     def learner_argv(*flags: str) -> list[str]:
         launcher = Launcher(build_parser().parse_args(["up", "--run", "r", "--runs-dir", str(tmp_path), *flags]))
@@ -136,5 +136,5 @@ def test_up_passes_a_rate_set_for_this_start_on_to_its_learner_as_the_users_choi
             launcher.close()
 
     chosen = learner_argv("--set", "dqn.lr=1e-5", "--set", "train.seed=3")
-    assert chosen[-2:] == ["--set", "dqn.lr=1e-05"] and lr_given(build_parser().parse_args(chosen).overrides)
+    assert chosen[-2:] == ["--set", "dqn.lr=1e-05"] and sets_lr(build_parser().parse_args(chosen).overrides)
     assert "--set" not in learner_argv("--set", "train.seed=3")

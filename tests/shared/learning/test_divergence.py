@@ -12,10 +12,10 @@ from shared.learning.divergence import (
     MAX_BACKOFFS,
     DivergenceStreakError,
     RunDivergences,
-    lr_given,
     read_streak,
     record_divergence,
     resume_lr,
+    sets_lr,
 )
 
 
@@ -79,6 +79,6 @@ def test_a_record_that_cannot_be_written_is_not_promised(tmp_path: Path):
     assert said == f"{DIVERGENCE_FILE} could not be written: its next start resumes at the same rate"
 
 
-def test_lr_given_reads_the_commands_set_options():
-    assert lr_given(["dqn.lr=1e-4"]) and lr_given(["train.seed=2", " dqn.lr = 5e-5"])
-    assert not lr_given([]) and not lr_given(None) and not lr_given(["dqn.lr_decay_updates=0"])
+def test_sets_lr_reads_the_commands_set_options():
+    assert sets_lr(["dqn.lr=1e-4"]) and sets_lr(["train.seed=2", " dqn.lr = 5e-5"])
+    assert not sets_lr([]) and not sets_lr(None) and not sets_lr(["dqn.lr_decay_updates=0"])
