@@ -195,7 +195,12 @@ def run_evaluate(args: argparse.Namespace) -> int:
     if args.rrd:
         # Served, the file takes its name when serving stops, as every recording takes it once closed:
         # its sink stays open while the server runs, and Rerun writes a file's footer only as it closes.
-        print(f"recording: {args.rrd}" + (" (written when serving stops)" if recorder is not None else ""))
+        if recorder is not None:
+            print(f"recording: {args.rrd} (written when serving stops)")
+        elif done[0][1].meta.get("recording"):  # named by the results only once whole
+            print(f"recording: {args.rrd}")
+        else:
+            print(f"recording: {args.rrd} not written (the error above says why)")
     if recorder is not None:
         try:
             recorder.rec.flush(timeout_sec=30.0)  # everything on disk and in the server while we serve

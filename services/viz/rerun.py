@@ -45,6 +45,7 @@ the training actors, whose env loop must never wait on a viewer.
 from __future__ import annotations
 
 import dataclasses
+import errno
 import fcntl
 import glob
 import logging
@@ -52,6 +53,7 @@ import math
 import os
 import queue
 import re
+import shutil
 import socket
 import threading
 import time
@@ -269,6 +271,10 @@ def remove_orphan_recordings(folder: Path, prefix: str = "eval-") -> list[Path]:
     return removed
 
 
+MIN_FREE_BYTES = 16 * 2**20
+"""Free space a recording needs on its disk to be started (its scene and first episode)."""
+
+
 class RecordingFile:
     """An ``.rrd`` written under a temporary name beside ``path`` that takes its name only when the
     recording is whole (:meth:`commit`, :meth:`finish`): a recording that fails, is cancelled or is
@@ -281,7 +287,8 @@ class RecordingFile:
     process is writing is left alone. An earlier release's unlocked ``<name>.partial`` is dealt with
     the same way once it has lain untouched for :data:`LEGACY_PARTIAL_STALE_S` (kept as
     ``<stem>.unfinished-earlier<suffix>``).
-    RerunLogError when ``path`` is a folder."""
+    RerunLogError when ``path`` is a folder; OSError (ENOSPC) when its disk has under
+    :data:`MIN_FREE_BYTES` free."""
 
     def __init__(self, path: str | Path, orphans: str = "remove"):
         self.path = Path(path)
@@ -290,6 +297,13 @@ class RecordingFile:
             raise RerunLogError(f"the recording {self.path} is a folder: name a file in it, e.g. "
                                 f"{self.path / 'recording.rrd'}")
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        free = shutil.disk_usage(self.path.parent).free
+        if free < MIN_FREE_BYTES:
+            # Rerun's file sink that cannot write its first bytes fails inside set_sinks (a RuntimeError: a
+            # traceback from `evaluate --rrd`, the evaluator stopped), or waits there for ever where the write
+            # fails past a file size limit: refused before it opens, as the full disk it is
+            raise OSError(errno.ENOSPC, f"{self.path} is not started: {free / 2**20:.1f} MiB free on its disk, "
+                                        f"under {MIN_FREE_BYTES // 2**20} MiB")
         self._handle_orphans(orphans)
         tag = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
         # Locked under a name the orphan search does not match, then renamed (the lock goes with the

@@ -9,6 +9,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from service_processes import ENV, REPO, run_on_a_full_disk
 
 from shared.learning.checkpoints import CheckpointManager
@@ -197,3 +198,46 @@ lock.release()
     done = run_on_a_full_disk(code, 8)
     assert done.returncode == 0, done.stderr[-2000:]
     assert "REFUSED run 'r' is in use: its learner is another process" in done.stdout, done.stdout
+
+
+EVALUATE = ["evaluate", "--policy", "reactive", "--starts", "1", "2", "3", "--episodes-per-start", "1", "--quiet"]
+
+
+def test_evaluate_says_a_recording_a_full_disk_cut_short_was_not_written(tmp_path: Path) -> None:
+    """`evaluate --rrd` printed "recording: PATH" for a recording that could not be written (an earlier
+    file of that name, if any, was what the path held)."""
+    rrd = tmp_path / "eval.rrd"
+    done = run_on_a_full_disk(f"import sys; from services.cli import main; sys.exit(main({EVALUATE + ['--rrd', str(rrd)]!r}))",
+                              200_000)
+    assert done.returncode == 0, done.stderr[-3000:]
+    said = [line for line in done.stdout.splitlines() if line.startswith("recording: ")]
+    assert said == [f"recording: {rrd} not written (the error above says why)"], done.stdout[-2000:]
+    assert "could not be written" in done.stderr and not rrd.exists()
+
+
+def test_a_recording_on_a_disk_with_no_room_is_refused_before_rerun_opens_it(tmp_path: Path) -> None:
+    """Rerun's file sink that could not write its first bytes failed inside set_sinks: `evaluate --rrd` on a
+    full disk ended in a RuntimeError's traceback (and the evaluator stopped). A real full disk: a tmpfs,
+    where this process may mount one."""
+    import os
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m", "tmpfs", str(disk)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("needs a tmpfs of its own (root)")
+    try:
+        with open(disk / "filler", "wb") as filler:  # the disk full to its last block
+            try:
+                while True:
+                    filler.write(b"\0" * 2**16)
+                    filler.flush()
+            except OSError:
+                pass
+        done = subprocess.run([sys.executable, "-m", "services.cli", *EVALUATE, "--rrd", str(disk / "eval.rrd")],
+                              cwd=REPO, env=ENV, capture_output=True, text=True, timeout=60)
+    finally:
+        subprocess.run(["umount", str(disk)], check=True)
+    last = done.stderr.strip().splitlines()[-1]
+    assert done.returncode != 0 and f"{disk / 'eval.rrd'} is not started: 0.0 MiB free on its disk, under 16 MiB" \
+        in last, done.stderr[-2000:]
