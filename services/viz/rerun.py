@@ -58,7 +58,7 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, is_dataclass
 from pathlib import Path
 from typing import Any
@@ -259,16 +259,20 @@ def remove_orphan_recordings(folder: Path, prefix: str = "eval-") -> list[Path]:
     :class:`RecordingFile` removes one only when a recorder next opens its very path, which a resumed
     run's evaluator never does: it goes on from newer versions. The evaluator service calls it as it
     starts."""
-    removed = []
-    for orphan in folder.glob(f".{glob.escape(prefix)}*.rrd{TMP_MARK}*"):
-        try:
-            with open(orphan, "rb") as held:
-                fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                orphan.unlink()
-        except OSError:  # being written (the lock is taken), or gone in the meantime
-            continue
-        removed.append(orphan)
-    return removed
+    return [orphan for orphan in folder.glob(f".{glob.escape(prefix)}*.rrd{TMP_MARK}*")
+            if _act_on_orphan(orphan, orphan.unlink)]
+
+
+def _act_on_orphan(orphan: Path, act: Callable[[], Any]) -> bool:
+    """``act()`` under the exclusive lock a live recorder holds on its temporary for the whole recording
+    (:class:`RecordingFile`): False, nothing done, when one holds it or the file is gone meanwhile."""
+    try:
+        with open(orphan, "rb") as held:
+            fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            act()
+    except OSError:
+        return False
+    return True
 
 
 MIN_FREE_BYTES = 16 * 2**20
@@ -325,27 +329,25 @@ class RecordingFile:
             stale = False
         candidates = self.path.parent.glob(f".{glob.escape(self.path.name)}{TMP_MARK}*")
         for orphan in [*candidates, *([legacy] if stale else [])]:
-            try:
-                with open(orphan, "rb") as held:
-                    fcntl.flock(held, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                    if orphans == "keep":
-                        # named by the writer's pid (an earlier release's name carries none), never over
-                        # one kept before (a pid comes round again)
-                        writer = orphan.name.rsplit("-", 2)[-2] if orphan != legacy else "earlier"
-                        kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}{self.path.suffix}")
-                        n = 1
-                        while kept.exists():
-                            n += 1
-                            kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}-{n}{self.path.suffix}")
-                        orphan.rename(kept)
-                    else:
-                        orphan.unlink()
-            except OSError:  # being written (the lock is taken), or gone in the meantime
+            if orphans != "keep":
+                if _act_on_orphan(orphan, orphan.unlink):
+                    log.info("removed %s, a recording its process left unfinished", orphan)
                 continue
-            if orphans == "keep":
-                log.warning("%s, a recording its process left unfinished (killed?), is now %s", orphan, kept)
-            else:
-                log.info("removed %s, a recording its process left unfinished", orphan)
+            kept: list[Path] = []
+            if _act_on_orphan(orphan, lambda orphan=orphan: kept.append(self._keep(orphan, orphan == legacy))):
+                log.warning("%s, a recording its process left unfinished (killed?), is now %s", orphan, kept[0])
+
+    def _keep(self, orphan: Path, legacy: bool) -> Path:
+        """Rename ``orphan`` to ``<stem>.unfinished-<writer's pid><suffix>`` (an earlier release's name
+        carries none), never over one kept before (a pid comes round again); the name it took."""
+        writer = "earlier" if legacy else orphan.name.rsplit("-", 2)[-2]
+        kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}{self.path.suffix}")
+        n = 1
+        while kept.exists():
+            n += 1
+            kept = self.path.with_name(f"{self.path.stem}.unfinished-{writer}-{n}{self.path.suffix}")
+        orphan.rename(kept)
+        return kept
 
     def commit(self) -> None:
         """Give the file its name (once its sink has closed: Rerun writes a file's footer as it closes)."""
