@@ -1,10 +1,17 @@
 """Test-wide settings: offline, headless, small thread counts (2-core CI)."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 os.environ.setdefault("RERUN_ANALYTICS", "0")
 os.environ.setdefault("MUJOCO_GL", "egl")  # must precede the first mujoco import
 os.environ.setdefault("OMP_NUM_THREADS", "2")
+# generated worlds are cached in a folder of this session's (its processes share it), never the user's
+_WORLD_CACHE = tempfile.mkdtemp(prefix="cogexplore-test-cache-")
+os.environ["COGEXPLORE_CACHE_DIR"] = _WORLD_CACHE
+atexit.register(shutil.rmtree, _WORLD_CACHE, ignore_errors=True)
 
 
 import pytest  # noqa: E402

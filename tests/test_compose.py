@@ -27,6 +27,7 @@ import yaml
 
 from services.bus import DEFAULT_ROUTER_WAIT_S
 from services.bus.session import ZenohSettings, parse_endpoints
+from shared.sim.world_cache import CACHE_DIR_ENV
 
 ROOT = Path(__file__).resolve().parents[1]
 COMPOSE_FILE = ROOT / "docker-compose.yml"
@@ -45,9 +46,9 @@ SERVICE_ENV = (
     "COGEXPLORE_DEVICE",
 )
 """The environment variables every service reads (the CLI contract)."""
-EXTRA_ENV = ("COGEXPLORE_RERUN_URL", "COGEXPLORE_RERUN_EVERY_EPISODES")
+EXTRA_ENV = ("COGEXPLORE_RERUN_URL", "COGEXPLORE_RERUN_EVERY_EPISODES", CACHE_DIR_ENV)
 """Also read by the services: where the evaluator and the actors stream to the Rerun viewer,
-and which share of its episodes each actor streams."""
+which share of its episodes each actor streams, and where generated worlds are kept."""
 RERUN_ENV_READERS = ("actor", "evaluator")
 """Services whose ``--rerun-connect`` defaults to ``COGEXPLORE_RERUN_URL``."""
 ACTOR_ENV = ("COGEXPLORE_NUM_ACTORS",)

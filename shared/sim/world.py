@@ -31,6 +31,7 @@ from shared.sim import maps
 from shared.sim.robot import (FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, ROBOT_HEIGHT_M, Robot,
                               build_model)
 from shared.sim.sensor import DepthCamera
+from shared.sim.world_cache import cached_world
 
 log = logging.getLogger(__name__)
 
@@ -984,7 +985,7 @@ def _cached_world(name: str) -> World:
     if not is_procedural_seed(seed_text):
         raise WorldError(f"world {name[:40]!r}: the seed after '{PROCEDURAL_PREFIX}' must be an integer >= 0 "
                          "of at most 18 digits")
-    return procedural_world(int(seed_text))
+    return cached_world(name, lambda: procedural_world(int(seed_text)))
 
 
 def canonical_world_name(name: str) -> str:
@@ -999,7 +1000,8 @@ def canonical_world_name(name: str) -> str:
 def load_world(name: str) -> World:
     """Resolve a built-in name, ``procedural:<seed>`` or an MJCF path to a World.
 
-    Built-in and procedural worlds are cached (they are immutable); files are read anew."""
+    Built-in and procedural worlds are cached (they are immutable), procedural ones also on disk
+    (:mod:`shared.sim.world_cache`); files are read anew."""
     if not isinstance(name, str) or not name:
         raise WorldError(f"a world name must be a non-empty string, got {name!r}")
     if name in BUILTIN_WORLDS or name.startswith(PROCEDURAL_PREFIX):

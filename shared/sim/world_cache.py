@@ -1,0 +1,150 @@
+"""Generated worlds kept on disk, so that each is generated once per machine instead of once per process.
+
+A procedural world takes about 150 ms to generate (its starts are checked by driving the robot from
+each), and the shipped recipe's actors each meet some 190 of its 200 training worlds in a ten-minute
+`make run`: half a minute of an actor's CPU, taken from the learner on a shared machine, every run,
+in every actor. The cache keeps each world as JSON in
+``<cache>/worlds/<generator fingerprint>/procedural-<seed>.json``; ``<cache>`` is
+``$COGEXPLORE_CACHE_DIR`` (``off``: no cache), else ``$XDG_CACHE_HOME/cogexplore``, else
+``~/.cache/cogexplore``. The fingerprint hashes the generator's code (``shared/sim/*.py``,
+``shared/config.py``) and the MuJoCo and numpy versions, so a changed generator never reads an old
+world. A file that cannot be read, or whose content does not match its checksum, is generated anew
+and replaced (one warning); a cache that cannot be written is said once and the worlds are generated
+each time: the cache saves time and never stops a process.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import json
+import logging
+import math
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from shared.files import atomic_write_text, read_regular_file
+
+if TYPE_CHECKING:
+    from shared.sim.world import World
+
+log = logging.getLogger(__name__)
+
+CACHE_DIR_ENV = "COGEXPLORE_CACHE_DIR"
+"""The cache folder; ``off`` (or empty) turns the cache off."""
+FORMAT = 1
+MAX_FILE_BYTES = 4 * 2**20
+"""A cached world is ~10 KB of MJCF text: anything this large is not one."""
+
+_unwritable: set[Path] = set()  # cache folders already said to be unwritable (said once each)
+
+
+def cache_root() -> Path | None:
+    """The cache folder (see the module), None when the cache is off or no home folder is known."""
+    value = os.environ.get(CACHE_DIR_ENV)
+    if value is not None:
+        return None if value.strip().lower() in ("", "off") else Path(value)
+    base = os.environ.get("XDG_CACHE_HOME")
+    if base:
+        return Path(base) / "cogexplore"
+    try:
+        return Path.home() / ".cache" / "cogexplore"
+    except (RuntimeError, KeyError):  # no HOME and no passwd entry (a container's arbitrary uid)
+        return None
+
+
+def fingerprint_of(sources: list[Path], versions: str) -> str:
+    """16 hex digits of the names and bytes of ``sources`` and of ``versions``."""
+    digest = hashlib.sha256()
+    for path in sources:
+        digest.update(path.name.encode() + b"\0" + path.read_bytes() + b"\0")
+    digest.update(f"{versions} format {FORMAT}".encode())
+    return digest.hexdigest()[:16]
+
+
+@functools.cache
+def generator_fingerprint() -> str:
+    """The fingerprint of the code and libraries that generate a world (see the module)."""
+    import mujoco
+    import numpy as np
+
+    shared = Path(__file__).resolve().parent.parent
+    return fingerprint_of(sorted(shared.joinpath("sim").glob("*.py")) + [shared / "config.py"],
+                          f"mujoco {mujoco.__version__} numpy {np.__version__}")
+
+
+def cache_path(root: Path, name: str) -> Path:
+    """Where world ``name`` (``procedural:<seed>``) is kept under ``root``."""
+    return root / "worlds" / generator_fingerprint() / f"{name.replace(':', '-')}.json"
+
+
+def _world_fields(world: World) -> dict[str, Any]:
+    return {"name": world.name, "kind": world.kind, "mjcf": world.mjcf, "extent": list(world.extent),
+            "starts": [[s.x, s.y, s.yaw, s.name] for s in world.starts]}
+
+
+def _checksum(fields: dict[str, Any]) -> str:
+    return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
+
+
+def _number(value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{value!r} is not a finite number")
+    return float(value)
+
+
+def _decode(data: bytes, name: str) -> World:
+    """The world in a cache file's bytes; ValueError naming what is wrong."""
+    from shared.sim.world import StartPose, World
+
+    doc = json.loads(data)
+    if not isinstance(doc, dict) or doc.get("format") != FORMAT:
+        raise ValueError(f"not a format {FORMAT} world cache file")
+    fields = doc.get("world")
+    if not isinstance(fields, dict) or doc.get("sha256") != _checksum(fields):
+        raise ValueError("its content does not match its checksum")
+    if fields.get("name") != name or not isinstance(fields.get("mjcf"), str) or not isinstance(fields.get("kind"), str):
+        raise ValueError(f"it does not hold world {name!r}")
+    extent, starts = fields.get("extent"), fields.get("starts")
+    if not isinstance(extent, list) or len(extent) != 4 or not isinstance(starts, list):
+        raise ValueError("its extent or starts are malformed")
+    poses = []
+    for start in starts:
+        if not isinstance(start, list) or len(start) != 4 or not isinstance(start[3], str):
+            raise ValueError("a start pose is malformed")
+        poses.append(StartPose(_number(start[0]), _number(start[1]), _number(start[2]), start[3]))
+    return World(name=name, mjcf=fields["mjcf"], starts=tuple(poses), extent=tuple(_number(v) for v in extent),
+                 kind=fields["kind"])
+
+
+def _encode(world: World) -> str:
+    fields = _world_fields(world)
+    return json.dumps({"format": FORMAT, "fingerprint": generator_fingerprint(), "sha256": _checksum(fields),
+                       "world": fields})
+
+
+def cached_world(name: str, build: Callable[[], World]) -> World:
+    """World ``name`` from the cache, else ``build()`` and kept there (see the module)."""
+    root = cache_root()
+    if root is None:
+        return build()
+    path = cache_path(root, name)
+    try:
+        return _decode(read_regular_file(path, MAX_FILE_BYTES), name)
+    except FileNotFoundError:
+        pass
+    except (OSError, ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+        log.warning("world cache file %s cannot be used (%s): world %r is generated anew and the file replaced",
+                    path, exc, name)
+    world = build()
+    if root not in _unwritable:
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            atomic_write_text(path, _encode(world))
+        except OSError as exc:
+            _unwritable.add(root)
+            log.warning("the world cache %s cannot be written (%s): generated worlds are not kept (set %s to "
+                        "another folder, or to 'off')", root, exc.strerror or exc, CACHE_DIR_ENV)
+    return world
