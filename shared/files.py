@@ -71,12 +71,14 @@ def named(exc: OSError, path: str | Path) -> OSError:
     return OSError(exc.errno, what) if exc.errno is not None else OSError(what)
 
 
-def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
+def write_atomically(final: str | Path, write: Callable[[Path], Any], *, tag: str | None = None) -> Path:
     """``write(tmp)`` to a temporary file beside ``final``, fsynced and renamed to it: a reader never
     sees half a file. The temporary file is removed when any step fails (a full disk, ``final`` a
-    folder). Returns ``final``; a failed write is raised naming it (:func:`named`)."""
+    folder). Returns ``final``; a failed write is raised naming it (:func:`named`). ``tag`` ends the
+    temporary file's name instead of this process's id: a folder that processes of other machines or
+    containers share (whose ids repeat) needs one of its own per writer."""
     final = Path(final)
-    tmp = final.with_name(f".{final.name}{TMP_MARK}{os.getpid()}")
+    tmp = final.with_name(f".{final.name}{TMP_MARK}{os.getpid() if tag is None else tag}")
     try:
         write(tmp)
         fsync_path(tmp)
@@ -91,9 +93,9 @@ def write_atomically(final: str | Path, write: Callable[[Path], Any]) -> Path:
     return final
 
 
-def atomic_write_text(path: str | Path, text: str) -> Path:
+def atomic_write_text(path: str | Path, text: str, *, tag: str | None = None) -> Path:
     """Write ``text`` to ``path`` via :func:`write_atomically`."""
-    return write_atomically(path, lambda tmp: tmp.write_text(text))
+    return write_atomically(path, lambda tmp: tmp.write_text(text), tag=tag)
 
 
 def ends_torn(path: str | Path) -> bool:

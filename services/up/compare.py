@@ -6,7 +6,9 @@ evaluator) and ``cogexplore train``, each for ``--minutes`` of wall time from it
 own ``stats/learner.csv`` gives the updates and environment steps it made (averaged over the run,
 start-up included, since that is wall time a user waits too), and its final checkpoint is then
 scored by ``cogexplore evaluate`` under both protocols. The ratios are ``up`` / single process,
-from one invocation: above 1, the system is faster or better.
+from one invocation: above 1, the system is faster or better. Each run starts with an empty world cache
+of its own (``<runs>/<run>-world-cache``): sharing the user's, the second run would read warm the
+worlds the first generated (shared.sim.world_cache).
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from typing import Any
 
 from shared.errors import CogexploreError
 from shared.learning.stats import summarize_learner_log
+from shared.sim.world_cache import CACHE_DIR_ENV
 
 PROTOCOLS = ("robust", "paper")
 RUNS = {"up": "up", "single_process": "single"}
@@ -35,12 +38,19 @@ class CompareError(CogexploreError, RuntimeError):
     """One of the two runs, or an evaluation, failed; the message names the log."""
 
 
-def _cli(argv: list[str], log: Path) -> float:
-    """Run ``cogexplore ARGV`` to the end (output to ``log``); its wall time in seconds."""
+def world_cache(run_dir: Path) -> Path:
+    """The world cache of one side's run (its own, empty at its start: see the module)."""
+    return run_dir.with_name(f"{run_dir.name}-world-cache")
+
+
+def _cli(argv: list[str], log: Path, world_cache: Path) -> float:
+    """Run ``cogexplore ARGV`` to the end (output to ``log``, generated worlds kept in ``world_cache``);
+    its wall time in seconds."""
     started = time.monotonic()
+    env = dict(os.environ, RERUN_ANALYTICS="0", **{CACHE_DIR_ENV: str(world_cache)})
     with open(log, "wb") as out:
         proc = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
-                                stdin=subprocess.DEVNULL, env=dict(os.environ, RERUN_ANALYTICS="0"))
+                                stdin=subprocess.DEVNULL, env=env)
         try:
             code = proc.wait()
         except BaseException:
@@ -73,7 +83,8 @@ def _learner_totals(run_dir: Path) -> dict[str, float]:
 def _score(run_dir: Path, protocol: str, episodes_per_start: int, logs: Path) -> dict[str, float]:
     out = logs / f"{run_dir.name}-{protocol}.json"
     _cli(["evaluate", "--checkpoint", str(run_dir), "--protocol", protocol, "--episodes-per-start",
-          str(episodes_per_start), "--device", "cpu", "--quiet", "--json", str(out)], logs / f"{out.stem}.log")
+          str(episodes_per_start), "--device", "cpu", "--quiet", "--json", str(out)], logs / f"{out.stem}.log",
+         world_cache(run_dir))
     summary = json.loads(out.read_text())["summary"]
     return {"mean_steps": float(summary["overall"]["mean_steps"]),
             "worst_start_steps": min(float(s["mean_steps"]) for s in summary["per_start"]),
@@ -88,7 +99,8 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
     root = Path(runs_dir) if runs_dir else Path(tempfile.mkdtemp(prefix="bench-compare-"))
     # `up` and `train` resume a run that exists, and its learner.csv counts the earlier session's
     # updates too: a second comparison in one --runs-dir would divide them by this session's time.
-    taken = [str(root / run) for run in RUNS.values() if (root / run).exists()]
+    # (and a world cache left by one would be warm)
+    taken = [str(p) for run in RUNS.values() for p in (root / run, world_cache(root / run)) if p.exists()]
     if taken:
         raise CompareError(f"{' and '.join(taken)} already {'exists' if len(taken) == 1 else 'exist'}: both runs "
                            "must start from nothing (their figures would count the earlier runs' updates); give "
@@ -104,8 +116,8 @@ def compare(minutes: float = 5.0, *, actors: int = 2, preset: str | None = None,
         for name, argv in (("up", ["up", "--run", RUNS["up"], "--actors", str(actors), "--no-report", "--quiet",
                                    *common]),
                            ("single_process", ["train", "--run", RUNS["single_process"], "--quiet", *common])):
-            wall_s = _cli(argv, root / f"{name}.log")
             run_dir = root / RUNS[name]
+            wall_s = _cli(argv, root / f"{name}.log", world_cache(run_dir))
             totals = _learner_totals(run_dir)
             runs[name] = {"wall_s": wall_s, **totals, "updates_per_s": totals["updates"] / wall_s,
                           "env_steps_per_s": totals["transitions"] / wall_s,

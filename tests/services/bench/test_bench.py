@@ -106,7 +106,12 @@ def test_bench_system_json(tmp_path: Path) -> None:
 def test_bench_system_compares_up_with_the_single_process_trainer(tmp_path: Path) -> None:
     out = _bench("system", "--compare-single-process", "--preset", "smoke", "--minutes", "0.4",
                  "--set", "dqn.lr_decay_updates=20", "--episodes-per-start", "1",
+                 "--set", "env.extra_worlds=procedural:900-901", "--set", "env.extra_world_prob=0.5",
                  "--runs-dir", str(tmp_path), timeout_s=380)
+    # each side generated the extra worlds into a cache of its own: the second did not read the first's warm
+    for run_dir in ("up", "single"):
+        kept = {p.name for p in (tmp_path / f"{run_dir}-world-cache").glob("worlds/*/*.json")}
+        assert kept == {"procedural-900.json", "procedural-901.json"}, run_dir
     for name, run_dir in (("up", "up"), ("single_process", "single")):
         run = out[name]
         assert run["updates"] > 0 and run["transitions"] > 0

@@ -61,15 +61,15 @@ def test_up_takes_a_port_in_range() -> None:
     assert parser.parse_args(["up"]).port is None
 
 
-@pytest.mark.parametrize("existing", ["up", "single"])
+@pytest.mark.parametrize("existing", ["up", "single", "up-world-cache", "single-world-cache"])
 def test_compare_single_process_refuses_a_runs_dir_that_holds_its_runs(existing: str, tmp_path: Path, capsys,
                                                                       monkeypatch) -> None:
     # `up --run up` and `train --run single` resumed them: their learner.csv counted the earlier
-    # comparison's updates too, divided by this one's minutes
+    # comparison's updates too, divided by this one's minutes; a world cache left by one is warm
     from services.up import compare
 
     (tmp_path / existing).mkdir()
-    monkeypatch.setattr(compare, "_cli", lambda argv, _log: pytest.fail(f"started `cogexplore {argv[0]}`"))
+    monkeypatch.setattr(compare, "_cli", lambda argv, *_: pytest.fail(f"started `cogexplore {argv[0]}`"))
     assert main(["bench", "system", "--compare-single-process", "--minutes", "0.01", "--runs-dir", str(tmp_path)]) == 2
     err = capsys.readouterr().err
     assert f"{tmp_path / existing} already exists: both runs must start from nothing" in err, err
