@@ -977,6 +977,34 @@ def _geom_extent(model: mujoco.MjModel, data: mujoco.MjData, skip: set[int],
 # ---------------------------------------------------------------------------
 
 
+def _finite(value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"{value!r} is not a finite number")
+    return float(value)
+
+
+def _world_fields(world: World) -> dict[str, Any]:
+    """A procedural world as JSON fields (:mod:`shared.sim.world_cache`)."""
+    return {"name": world.name, "kind": world.kind, "mjcf": world.mjcf, "extent": list(world.extent),
+            "starts": [[s.x, s.y, s.yaw, s.name] for s in world.starts]}
+
+
+def _world_from_fields(fields: dict[str, Any]) -> World:
+    """The procedural world in :func:`_world_fields`'s fields; ValueError naming what is wrong."""
+    if fields.get("kind") != "procedural" or not isinstance(fields.get("mjcf"), str):
+        raise ValueError("it does not hold a procedural world")
+    extent, starts = fields.get("extent"), fields.get("starts")
+    if not isinstance(extent, list) or len(extent) != 4 or not isinstance(starts, list):
+        raise ValueError("its extent or starts are malformed")
+    poses = []
+    for start in starts:
+        if not isinstance(start, list) or len(start) != 4 or not isinstance(start[3], str):
+            raise ValueError("a start pose is malformed")
+        poses.append(StartPose(_finite(start[0]), _finite(start[1]), _finite(start[2]), start[3]))
+    return World(name=str(fields["name"]), mjcf=fields["mjcf"], starts=tuple(poses),
+                 extent=tuple(_finite(v) for v in extent), kind="procedural")
+
+
 @functools.lru_cache(maxsize=32)
 def _cached_world(name: str) -> World:
     if name in BUILTIN_WORLDS:
@@ -985,7 +1013,7 @@ def _cached_world(name: str) -> World:
     if not is_procedural_seed(seed_text):
         raise WorldError(f"world {name[:40]!r}: the seed after '{PROCEDURAL_PREFIX}' must be an integer >= 0 "
                          "of at most 18 digits")
-    return cached_world(name, lambda: procedural_world(int(seed_text)))
+    return cached_world(name, lambda: procedural_world(int(seed_text)), _world_fields, _world_from_fields)
 
 
 def canonical_world_name(name: str) -> str:

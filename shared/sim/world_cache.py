@@ -23,17 +23,15 @@ import functools
 import hashlib
 import json
 import logging
-import math
 import os
 import secrets
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, TypeVar
 
 from shared.files import atomic_write_text, read_regular_file
 
-if TYPE_CHECKING:
-    from shared.sim.world import World
+T = TypeVar("T")
 
 log = logging.getLogger(__name__)
 
@@ -91,59 +89,39 @@ def cache_path(root: Path, name: str) -> Path:
     return root / "worlds" / generator_fingerprint() / f"{name.replace(':', '-')}.json"
 
 
-def _world_fields(world: World) -> dict[str, Any]:
-    return {"name": world.name, "kind": world.kind, "mjcf": world.mjcf, "extent": list(world.extent),
-            "starts": [[s.x, s.y, s.yaw, s.name] for s in world.starts]}
-
-
 def _checksum(fields: dict[str, Any]) -> str:
     return hashlib.sha256(json.dumps(fields, sort_keys=True).encode()).hexdigest()
 
 
-def _number(value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"{value!r} is not a finite number")
-    return float(value)
+def _encode(fields: dict[str, Any]) -> str:
+    return json.dumps({"format": FORMAT, "fingerprint": generator_fingerprint(), "sha256": _checksum(fields),
+                       "world": fields})
 
 
-def _decode(data: bytes, name: str) -> World:
-    """The world in a cache file's bytes; ValueError naming what is wrong."""
-    from shared.sim.world import StartPose, World
-
+def _decode(data: bytes, name: str) -> dict[str, Any]:
+    """The world's fields in a cache file's bytes; ValueError naming what is wrong."""
     doc = json.loads(data)
     if not isinstance(doc, dict) or doc.get("format") != FORMAT:
         raise ValueError(f"not a format {FORMAT} world cache file")
     fields = doc.get("world")
     if not isinstance(fields, dict) or doc.get("sha256") != _checksum(fields):
         raise ValueError("its content does not match its checksum")
-    if fields.get("name") != name or fields.get("kind") != "procedural" or not isinstance(fields.get("mjcf"), str):
-        raise ValueError(f"it does not hold procedural world {name!r}")
-    extent, starts = fields.get("extent"), fields.get("starts")
-    if not isinstance(extent, list) or len(extent) != 4 or not isinstance(starts, list):
-        raise ValueError("its extent or starts are malformed")
-    poses = []
-    for start in starts:
-        if not isinstance(start, list) or len(start) != 4 or not isinstance(start[3], str):
-            raise ValueError("a start pose is malformed")
-        poses.append(StartPose(_number(start[0]), _number(start[1]), _number(start[2]), start[3]))
-    return World(name=name, mjcf=fields["mjcf"], starts=tuple(poses), extent=tuple(_number(v) for v in extent),
-                 kind="procedural")
+    if fields.get("name") != name:
+        raise ValueError(f"it does not hold world {name!r}")
+    return fields
 
 
-def _encode(world: World) -> str:
-    fields = _world_fields(world)
-    return json.dumps({"format": FORMAT, "fingerprint": generator_fingerprint(), "sha256": _checksum(fields),
-                       "world": fields})
-
-
-def cached_world(name: str, build: Callable[[], World]) -> World:
-    """World ``name`` from the cache, else ``build()`` and kept there (see the module)."""
+def cached_world(name: str, build: Callable[[], T], to_fields: Callable[[T], dict[str, Any]],
+                 from_fields: Callable[[dict[str, Any]], T]) -> T:
+    """World ``name`` from the cache, else ``build()`` and kept there (see the module). ``to_fields``
+    gives a world's JSON fields (its ``name`` among them); ``from_fields`` the world again, or
+    ValueError for fields that are not one (the world module's own types stay there)."""
     root = cache_root()
     if root is None:
         return build()
     path = cache_path(root, name)
     try:
-        return _decode(read_regular_file(path, MAX_FILE_BYTES), name)
+        return from_fields(_decode(read_regular_file(path, MAX_FILE_BYTES), name))
     except FileNotFoundError:
         pass
     # JSONDecodeError and UnicodeDecodeError are ValueErrors; OverflowError: an integer beyond a float's range
@@ -155,7 +133,7 @@ def cached_world(name: str, build: Callable[[], World]) -> World:
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             # a name of this writer's own: the processes of other containers sharing the folder have the same ids
-            atomic_write_text(path, _encode(world), tag=f"{os.getpid()}-{secrets.token_hex(4)}")
+            atomic_write_text(path, _encode(to_fields(world)), tag=f"{os.getpid()}-{secrets.token_hex(4)}")
         except OSError as exc:
             if exc.errno == errno.ENOENT:  # the folder was removed meanwhile (a user clearing the cache)
                 return world

@@ -65,7 +65,7 @@ def test_a_damaged_file_is_generated_anew_and_replaced(cache, caplog, damage):
         path.write_text(json.dumps(doc))
     elif damage == "other world":  # a whole, valid file of another seed under this name
         other = procedural_world(SEED + 1)
-        path.write_text(world_cache._encode(other))
+        path.write_text(world_cache._encode(world_module._world_fields(other)))
     elif damage == "not json":
         path.write_bytes(b"\xff\xfe" + bytes(range(256)))
     elif damage == "huge":
@@ -83,7 +83,7 @@ def test_a_damaged_file_is_generated_anew_and_replaced(cache, caplog, damage):
     with caplog.at_level(logging.WARNING, logger=world_cache.__name__):
         assert load_world(NAME) == fresh
     assert any("cannot be used" in r.getMessage() and str(path) in r.getMessage() for r in caplog.records)
-    assert json.loads(path.read_text()) == json.loads(world_cache._encode(fresh))  # replaced by a good one
+    assert json.loads(path.read_text()) == json.loads(world_cache._encode(world_module._world_fields(fresh)))  # replaced by a good one
 
 
 def test_an_unwritable_cache_is_said_once_and_worlds_still_load(cache, caplog):
@@ -117,7 +117,7 @@ def test_writers_with_one_process_id_do_not_collide(cache, caplog, monkeypatch):
 
         def write():
             start.wait()
-            world_cache.cached_world(NAME, lambda: world)
+            world_cache.cached_world(NAME, lambda: world, world_module._world_fields, world_module._world_from_fields)
 
         writers = [threading.Thread(target=write) for _ in range(3)]
         with caplog.at_level(logging.WARNING, logger=world_cache.__name__):
