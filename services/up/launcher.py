@@ -769,7 +769,7 @@ class Launcher:
         report = ["report", str(self.paths.root), "--model", model, "--episodes-per-start", str(a.final_episodes),
                   "--compare", "pretrained", "--threads", "0"]
         for argv in (evaluate, report):
-            code = _cli(argv)
+            code = _cli([*argv, "--quiet"] if a.quiet else argv)
             if code != 0:
                 print(f"{' '.join(argv[:2])} failed (exit {code})", file=sys.stderr)
                 return code

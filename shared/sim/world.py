@@ -778,9 +778,39 @@ def _load_world_file(p: Path, label: str, name: str) -> World:
                                 rgba=[0.35, 0.35, 0.38, 1.0])
     world = World(name=name, mjcf=spec.to_xml(), starts=tuple(starts), extent=extent, kind="file",
                   asset_sha256=assets)
+    if floor_ids:  # the file's own floor; the one added is an infinite plane
+        _check_floor_covers(world, model, data, floor_ids[0])
     validate_starts(world)
     _check_starts_walled_in(world)
     return world
+
+
+def _check_floor_covers(world: World, model: mujoco.MjModel, data: mujoco.MjData, floor: int) -> None:
+    """WorldError when the file's floor (a plane with a size, or a slab) ends before the open space
+    around the starts does: the camera would see no floor there, a hole no training image shows."""
+    plane = int(model.geom_type[floor]) == int(mujoco.mjtGeom.mjGEOM_PLANE)
+    if plane and (model.geom_size[floor][:2] <= 0).all():
+        return  # infinite
+    grid = maps.occupancy_grid(world)
+    labels, _ = maps.label_components(~grid.occupied)
+    ix, iy = grid.world_to_cell(np.array([s.x for s in world.starts]), np.array([s.y for s in world.starts]))
+    inside = (ix >= 0) & (iy >= 0) & (ix < grid.shape[1]) & (iy < grid.shape[0])
+    around = np.isin(labels, labels[iy[inside], ix[inside]]) & (labels >= 0)
+    cy, cx = np.nonzero(around)
+    x, y = grid.cell_to_world(cx, cy)
+    if plane:
+        centre, half = np.zeros(2), model.geom_size[floor][:2].astype(np.float64)
+        half[half <= 0] = np.inf  # a plane of size 0 along an axis is infinite along it
+    else:
+        centre, half = model.geom_aabb[floor][:2], model.geom_aabb[floor][3:5]
+    rot = data.geom_xmat[floor].reshape(3, 3)[:2, :2]  # an upward floor: its x-y plane is the world's
+    local = (np.stack([x, y], axis=1) - data.geom_xpos[floor][:2]) @ rot - centre
+    outside = np.any(np.abs(local) > half + grid.resolution_m, axis=1)
+    if outside.any():
+        k = int(np.argmax(outside))
+        raise WorldError(f"{world.label}: its geom '{FLOOR_GEOM}' ends before the open space around the starts does "
+                         f"(nothing under ({x[k]:.2f}, {y[k]:.2f}) m): the camera would see no floor there; make it "
+                         "a plane of size 0 (infinite), or larger")
 
 
 def _asset_files(spec: mujoco.MjSpec) -> list[tuple[str, str, Path]]:

@@ -122,7 +122,7 @@ def cached_world(name: str, build: Callable[[], T], to_fields: Callable[[T], dic
     path = cache_path(root, name)
     try:
         return from_fields(_decode(read_regular_file(path, MAX_FILE_BYTES), name))
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):  # not kept yet; the cache a file: said once, on the write
         pass
     # JSONDecodeError and UnicodeDecodeError are ValueErrors; OverflowError: an integer beyond a float's range
     except (OSError, ValueError, RecursionError, OverflowError) as exc:

@@ -510,7 +510,7 @@ def test_a_stop_during_the_final_report_says_so_and_takes_the_report_with_it(tmp
 REPORT_ONLY = ["up", "--run", RUN, "--report-only", "--quiet", "--final-episodes", "1"]
 
 
-def test_report_only_reports_a_run_as_far_as_it_got_and_trains_nothing(tmp_path: Path, capsys) -> None:
+def test_report_only_reports_a_run_as_far_as_it_got_and_trains_nothing(tmp_path: Path, capfd) -> None:
     """What compose's `report` service runs once its learner has stopped: the final evaluation and
     report of an unfinished run, with no router, service or training started and the run's config
     and checkpoints left as they were; refused while the run's learner holds it, for a run with no
@@ -519,27 +519,28 @@ def test_report_only_reports_a_run_as_far_as_it_got_and_trains_nothing(tmp_path:
 
     args = REPORT_ONLY + ["--runs-dir", str(tmp_path)]
     assert main(args) == 2
-    assert f"--report-only: there is no run {RUN!r} in {tmp_path} to report on" in capsys.readouterr().err
+    assert f"--report-only: there is no run {RUN!r} in {tmp_path} to report on" in capfd.readouterr().err
     paths = run_at(tmp_path, updates=0, total_updates=20)  # stopped in its warm-up: nothing to report
     assert main(args) == 2
-    assert f"--report-only: run {RUN!r} has no trained checkpoint yet" in capsys.readouterr().err
+    assert f"--report-only: run {RUN!r} has no trained checkpoint yet" in capfd.readouterr().err
 
     paths = run_at(tmp_path, updates=10, total_updates=20)  # stopped early (`docker compose stop learner`)
     for flags in (["--updates", "30"], ["--minutes", "1"], ["--set", "dqn.lr=1e-3"], ["--no-report"]):
         assert main(args + flags) == 2
-        err = capsys.readouterr().err
+        err = capfd.readouterr().err
         assert "--report-only trains nothing" in err and flags[0] in err and err.count("\n") == 1, err
     learner = RunLock(paths, "learner")  # its learner still training: the checkpoints are still moving
     try:
         assert main(args) == 2
-        assert "its learner is pid" in capsys.readouterr().err
+        assert "its learner is pid" in capfd.readouterr().err
     finally:
         learner.release()
 
     config = paths.config.read_bytes()
     assert main(args) == 0
-    err = capsys.readouterr().err
+    err = capfd.readouterr().err
     assert f"run {RUN!r}: the final evaluation and report of its training so far (10 updates)" in err, err
+    assert "%|" not in err, err  # --quiet reaches the evaluation and the report: no progress bar of theirs
     assert checkpoint_updates(paths) == 10 and paths.config.read_bytes() == config  # trained nothing
     assert not paths.secure.exists() and not (paths.logs / "router.log").exists()  # started nothing
     assert json.loads((paths.stats / "final-eval.json").read_text())["meta"]["protocol"] == \

@@ -370,6 +370,29 @@ def test_a_floor_written_as_a_slab_or_a_hair_below_zero_is_a_floor(tmp_path, flo
         env.close()
 
 
+@pytest.mark.parametrize("floor,covers", [
+    ('<geom name="floor" type="plane" size="1 1 1"/>', False),  # a 2 m tile in a 6 m room
+    ('<geom name="floor" type="box" pos="0 0 -0.05" size="1 5 0.05"/>', False),  # a slab, too narrow along x
+    ('<geom name="floor" type="plane" size="3.1 0 1"/>', True),  # the room's width, infinite along y
+    ('<geom name="floor" type="box" pos="0 0 -0.05" size="3 3 0.05" euler="0 0 90"/>', True),  # to the walls' middle
+    ('<geom name="floor" type="box" pos="0 0 -0.05" size="2.1 5 0.05" euler="0 0 45"/>', False),  # turned: corners bare
+])
+def test_a_floor_that_ends_before_the_room_does_is_refused(tmp_path, floor, covers):
+    # the camera saw no floor beyond its edge (0 m, "no return", under 95% of the image instead of 61%)
+    path = _write(tmp_path, "tile.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>', floor=floor)
+    if covers:
+        env = ExploreEnv(world=str(path), start_index=0)
+        try:
+            obs, _ = env.reset(seed=0)
+            assert (obs[-20:] > 0).all()  # the floor in the image's bottom rows, everywhere
+        finally:
+            env.close()
+        return
+    with pytest.raises(WorldError) as err:
+        load_world(str(path))
+    assert "its geom 'floor' ends before the open space around the starts does" in str(err.value)
+
+
 def test_a_start_site_that_is_not_finite_is_refused(tmp_path):
     path = _write(tmp_path, "nan.xml", '<site name="start_a" pos="0 -2 0" euler="0 0 90"/>'
                                        '<site name="start_nan" pos="nan 0 0"/>')
