@@ -43,11 +43,11 @@ def world_cache(run_dir: Path) -> Path:
     return run_dir.with_name(f"{run_dir.name}-world-cache")
 
 
-def _cli(argv: list[str], log: Path, world_cache: Path) -> float:
-    """Run ``cogexplore ARGV`` to the end (output to ``log``, generated worlds kept in ``world_cache``);
+def _cli(argv: list[str], log: Path, cache_dir: Path) -> float:
+    """Run ``cogexplore ARGV`` to the end (output to ``log``, generated worlds kept in ``cache_dir``);
     its wall time in seconds."""
     started = time.monotonic()
-    env = dict(os.environ, RERUN_ANALYTICS="0", **{CACHE_DIR_ENV: str(world_cache)})
+    env = dict(os.environ, RERUN_ANALYTICS="0", **{CACHE_DIR_ENV: str(cache_dir)})
     with open(log, "wb") as out:
         proc = subprocess.Popen([sys.executable, "-m", "services.cli", *argv], stdout=out, stderr=subprocess.STDOUT,
                                 stdin=subprocess.DEVNULL, env=env)

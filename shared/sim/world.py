@@ -25,7 +25,8 @@ from typing import Any
 import mujoco
 import numpy as np
 
-from shared.config import PROCEDURAL_PREFIX, ROBOT_FIELDS, SPEED_TABLES, EnvConfig, SensorConfig, is_procedural_seed
+from shared.config import (PROCEDURAL_PREFIX, ROBOT_FIELDS, SPEED_TABLES, EnvConfig, SensorConfig, is_finite_number,
+                           is_procedural_seed)
 from shared.errors import CogexploreError
 from shared.sim import maps
 from shared.sim.robot import (FLOOR_GEOM, ROBOT_BODY, ROBOT_CONTACT_BITS, ROBOT_GEOM_GROUP, ROBOT_HEIGHT_M, Robot,
@@ -1008,7 +1009,7 @@ def _geom_extent(model: mujoco.MjModel, data: mujoco.MjData, skip: set[int],
 
 
 def _finite(value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+    if not is_finite_number(value):  # an integer beyond a float's range is not one either
         raise ValueError(f"{value!r} is not a finite number")
     return float(value)
 

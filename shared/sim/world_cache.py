@@ -124,8 +124,7 @@ def cached_world(name: str, build: Callable[[], T], to_fields: Callable[[T], dic
         return from_fields(_decode(read_regular_file(path, MAX_FILE_BYTES), name))
     except (FileNotFoundError, NotADirectoryError):  # not kept yet; the cache a file: said once, on the write
         pass
-    # JSONDecodeError and UnicodeDecodeError are ValueErrors; OverflowError: an integer beyond a float's range
-    except (OSError, ValueError, RecursionError, OverflowError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:  # JSONDecodeError, UnicodeDecodeError: ValueErrors
         log.warning("world cache file %s cannot be used (%s): world %r is generated anew and the file replaced",
                     path, exc, name)
     world = build()
