@@ -277,8 +277,7 @@ class LearnerCore:
         t = self.cfg.train
         paced = self.received - self.unpaced
         # the memory's own size too: after a resume without it, the count alone let a batch be drawn from a few
-        if paced < max(t.warmup_transitions, self.cfg.dqn.batch_size) or len(self.replay) < min(
-                self.cfg.dqn.batch_size, self.cfg.replay.capacity):
+        if paced < self._first_update_at or len(self.replay) < min(self.cfg.dqn.batch_size, self.cfg.replay.capacity):
             return 0
         allowed = math.floor(t.replay_ratio * (paced - t.warmup_transitions)) + 1
         return max(0, min(allowed, t.total_updates) - self.updates)
@@ -287,14 +286,22 @@ class LearnerCore:
         """Transitions the learner wants to have received in all: enough for every update up
         to ``total_updates`` at the replay ratio, but no more than ``slack`` ahead of now."""
         t = self.cfg.train
-        needed_for_next = t.warmup_transitions + math.ceil(self.updates / t.replay_ratio)
+        needed_for_next = max(self._first_update_at, t.warmup_transitions + math.ceil(self.updates / t.replay_ratio))
         return min(needed_for_next + slack, self.transitions_needed) + self.unpaced
 
     @property
     def transitions_needed(self) -> int:
-        """Transitions the whole run needs: the warm-up, then every update at the replay ratio."""
+        """Transitions the whole run needs: the warm-up (a batch at least), then every update at the
+        replay ratio."""
         t = self.cfg.train
-        return t.warmup_transitions + math.ceil(t.total_updates / t.replay_ratio)
+        return max(self._first_update_at, t.warmup_transitions + math.ceil(t.total_updates / t.replay_ratio))
+
+    @property
+    def _first_update_at(self) -> int:
+        """Paced transitions before the first update: the warm-up, and a batch to draw. Both the ratio rule
+        and the credit asked of the actors count from it: credit that stopped short of it (a warm-up under a
+        batch, few updates) held the actors while the learner waited for them."""
+        return max(self.cfg.train.warmup_transitions, self.cfg.dqn.batch_size)
 
     @property
     def done(self) -> bool:

@@ -31,6 +31,22 @@ def test_replay_ratio_rule_and_wanted_transitions():
     assert core.transitions_wanted(slack=1000) == 10 + 12  # never beyond what total_updates needs
 
 
+@pytest.mark.parametrize("warmup, ratio, total", [(0, 1.0, 5), (3, 1.0, 2), (0, 4.0, 12)])
+def test_credit_reaches_every_update_when_the_warmup_is_under_a_batch(warmup, ratio, total):
+    # The actors send what the credit allows and no more (services.actor.service.FlowGate): credit that
+    # stopped short of the first batch held them while the learner waited for that batch, for ever.
+    cfg = load_preset("smoke").with_overrides({"train.warmup_transitions": warmup, "train.replay_ratio": ratio,
+                                               "train.total_updates": total, "dqn.batch_size": 8})
+    core = LearnerCore(cfg, device="cpu")
+    for _ in range(10 * total):
+        while core.received < core.transitions_wanted(slack=256):
+            core.add_transition("s", _frame(1.0), 1, 1.0, _frame(1.0), False, False)
+        for _ in range(core.updates_due()):
+            core.train_step()
+    assert core.done and core.updates == total
+    assert core.transitions_needed >= 8
+
+
 def test_ingest_rejects_frames_of_another_sensor_and_stores_nothing():
     core = LearnerCore(load_preset("smoke"), device="cpu")
     batch = TransitionBatch.from_steps(actor_id="a", episode=0, first_step=0, start_index=0,
