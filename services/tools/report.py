@@ -352,7 +352,7 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     from shared.config import load_preset
     from shared.evaluation.probes import ProbeError, load_probe_image, load_probes
     from shared.sim.maps import free_area_m2, occupancy_grid
-    from shared.sim.world import WorldError, load_world
+    from shared.sim.world import WorldError, canonical_world_name, load_world
 
     run = Path(run_dir)
     if not run.is_dir():
@@ -386,7 +386,8 @@ def build_report(run_dir: str | Path, *, model: str | Path | None = None, compar
     for c in compare:
         loaded.append(load_model(c, device))
     first_cfg = loaded[0].run_config if loaded else None
-    world_name = world or (run_cfg or first_cfg or load_preset("paper")).env.world
+    # canonical (procedural:0301 is procedural:301): results record that name, and the search below matches it
+    world_name = canonical_world_name(world or (run_cfg or first_cfg or load_preset("paper")).env.world)
     for m in loaded:
         setup = setup_evaluation("greedy", model=m, world=world_name, seed=seed)
         name = _unique(m.label, taken)

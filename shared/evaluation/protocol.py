@@ -35,7 +35,7 @@ from shared.evaluation import (
 )
 from shared.evaluation.results import EpisodeResult, EvalResults, ResultsError
 from shared.rollout import Episode, Rollout, Step
-from shared.sim.world import World, load_world
+from shared.sim.world import World, canonical_world_name, load_world
 
 WORLD_META = "world_sha256"
 """The results meta field holding :func:`world_sha256` of the world the episodes were played in."""
@@ -104,8 +104,9 @@ def protocol_env_config(base: EnvConfig | None, world: str, max_steps: int) -> E
     option), no trap reward (the protocol counts steps; the trap's map checks would only cost time),
     a step cap no shorter than the protocol's, and none of training's other worlds, random or
     failure starts (the protocol names each episode's start: they were never played, but a
-    training world file the env loads at construction, moved or broken since, failed the test)."""
-    return dataclasses.replace(base or EnvConfig(), world=world, speed_table="test",
+    training world file the env loads at construction, moved or broken since, failed the test).
+    The world by its canonical name (``procedural:007`` is ``procedural:7``), as results record it."""
+    return dataclasses.replace(base or EnvConfig(), world=canonical_world_name(world), speed_table="test",
                                max_episode_steps=max_steps, start_index=None,
                                start_jitter_m=0.0, start_jitter_deg=0.0, reward_trap_penalty=0.0,
                                extra_worlds="", extra_world_prob=0.0, random_start_prob=0.0,

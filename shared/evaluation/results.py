@@ -51,6 +51,10 @@ from shared.jsontext import parse_json, read_json_file
 
 SCHEMA_ID = "cogexplore.eval-results/2"
 _SCHEMA_WITHOUT_PROTOCOL = "cogexplore.eval-results/1"
+
+MAX_EPISODE_COUNT = 2**31 - 1
+"""The largest start index, episode index or step count a results file may hold (far beyond any protocol)."""
+
 COLLISION_CAUSES: tuple[str, ...] = ("depth", "contact")
 
 
@@ -116,7 +120,8 @@ def _check_episode(d: Mapping[str, Any], where: str) -> None:
             raise ResultsError(f"{where}.{key}: expected {want}, got {d[key]!r}")
 
     for key in ("start_index", "episode", "steps"):
-        need(is_whole(d[key]) and d[key] >= 0, key, "an integer >= 0")
+        # bounded: a count of hundreds of digits would overflow the float statistics built from it
+        need(is_whole(d[key]) and 0 <= d[key] <= MAX_EPISODE_COUNT, key, f"an integer in [0, {MAX_EPISODE_COUNT}]")
     for key in ("terminated", "truncated"):
         need(isinstance(d[key], (bool, np.bool_)), key, "true or false")
     need(d["collision_cause"] is None or d["collision_cause"] in COLLISION_CAUSES, "collision_cause",
@@ -125,6 +130,9 @@ def _check_episode(d: Mapping[str, Any], where: str) -> None:
         need(is_finite_number(d[key]) and d[key] >= 0, key, "a finite number >= 0")
     need(is_finite_number(d["coverage_fraction"]) and 0 <= d["coverage_fraction"] <= 1 + 1e-9, "coverage_fraction",
          "a number in [0, 1]")
+    # a straight line is never longer than the path between its ends (a little float slack)
+    need(d["distance_m"] <= d["path_length_m"] + 1e-6, "distance_m",
+         f"at most path_length_m = {d['path_length_m']!r} (the straight line from the start to the end)")
     if d["terminated"] and d["truncated"]:
         raise ResultsError(f"{where}: an episode cannot be both terminated (collision) and truncated (cap)")
     if bool(d["terminated"]) != (d["collision_cause"] is not None):
@@ -297,6 +305,13 @@ def _check_run(meta: Mapping[str, Any], episodes: Sequence[EpisodeResult]) -> No
         over = next((i for i, e in enumerate(episodes) if e.steps > cap), None)
         if over is not None:
             raise ResultsError(f"episodes[{over}].steps: {episodes[over].steps} is past meta.max_steps = {cap}")
+        # every protocol episode ends at a collision or at the cap: "reached cap" counts the latter
+        odd = next((i for i, e in enumerate(episodes) if e.truncated != (not e.terminated)
+                    or (e.truncated and e.steps != cap)), None)
+        if odd is not None:
+            e = episodes[odd]
+            raise ResultsError(f"episodes[{odd}]: {e.steps} steps, terminated {e.terminated}, truncated {e.truncated}; "
+                               f"an episode ends at a collision (terminated) or at meta.max_steps = {cap} (truncated)")
     starts, per = meta.get("starts"), meta.get("episodes_per_start")
     if starts is None or per is None:
         return

@@ -611,6 +611,17 @@ def test_a_report_elsewhere_reuses_the_runs_own_report_results(tmp_path: Path) -
     assert not (tmp_path / "elsewhere" / "results").exists()
 
 
+def test_a_world_spelt_with_leading_zeros_reuses_its_results(tmp_path: Path) -> None:
+    # procedural:0301 is the world procedural:301, and its results say so: looked up by the name as
+    # typed, they never matched, and every report played every model again.
+    run = bare_run(tmp_path / "run")
+    first = build_report(run, **{**QUICK, "world": "procedural:0301"})
+    again = build_report(run, **{**QUICK, "world": "procedural:301"})
+    assert again.results == first.results
+    assert "paper reused" in again.markdown.read_text()
+    assert load_results(first.results["paper"]["reactive"]).meta["env"]["world"] == "procedural:301"
+
+
 def test_a_line_break_in_a_run_name_does_not_end_its_heading(tmp_path: Path) -> None:
     # The heading's code span broke at the line break: report.md's next line was the raw HTML
     # "<img src=x onerror=alert(1)>`", run by a Markdown viewer that shows HTML.

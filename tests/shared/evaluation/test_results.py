@@ -27,7 +27,7 @@ from shared.sim.env import ExploreEnv
 
 
 def ep(start: int, k: int, steps: int, cause: str | None = None, cap: bool = False, dist: float = 1.0,
-       path: float = 2.0, cov: float = 0.5, traj: bool = False) -> EpisodeResult:
+       path: float = 5.0, cov: float = 0.5, traj: bool = False) -> EpisodeResult:
     return EpisodeResult(start_index=start, episode=k, steps=steps, terminated=cause is not None,
                          truncated=cap, collision_cause=cause, distance_m=dist, path_length_m=path,
                          coverage_m2=10.0 * cov, coverage_fraction=cov,
@@ -50,7 +50,9 @@ EPISODES = [
     (dict(terminated=True, collision_cause=None), "cause go together"),
     (dict(terminated=False, collision_cause="depth"), "cause go together"),
     (dict(terminated=True, truncated=True, collision_cause="depth"), "both terminated"),
-    (dict(steps=-1), r"episode\.steps: expected an integer >= 0"),
+    (dict(steps=-1), r"episode\.steps: expected an integer in \[0, 2147483647\]"),
+    (dict(steps=int("9" * 400)), r"episode\.steps: expected an integer in"),  # not an OverflowError later
+    (dict(distance_m=1.5), r"distance_m: expected at most path_length_m = 1\.0"),
     (dict(collision_cause="wall", terminated=True), r"collision_cause"),
     (dict(coverage_fraction=1.5), r"coverage_fraction"),
     (dict(distance_m=float("nan")), r"distance_m"),
@@ -79,7 +81,7 @@ def test_aggregate_numbers() -> None:
     assert o["episodes"] == 4
     assert o["mean_steps"] == pytest.approx((10 + 200 + 4 + 6) / 4)
     assert o["mean_distance_m"] == pytest.approx((1.0 + 3.0 + 0.5 + 0.7) / 4)
-    assert o["mean_path_length_m"] == pytest.approx(2.0)
+    assert o["mean_path_length_m"] == pytest.approx(5.0)
     assert o["mean_coverage_pct"] == pytest.approx(100 * (0.2 + 0.6 + 0.1 + 0.3) / 4)
     assert o["mean_coverage_m2"] == pytest.approx(10 * (0.2 + 0.6 + 0.1 + 0.3) / 4)
     assert o["collisions"] == {"depth": 2, "contact": 1}
@@ -124,7 +126,7 @@ def _doc() -> dict:
     (lambda d: d.pop("summary"), "missing \\['summary'\\]"),
     (lambda d: d.update(extra=1), "unknown \\['extra'\\]"),
     (lambda d: d.update(episodes=[]), "non-empty list"),
-    (lambda d: d["episodes"][1].update(steps=-3), r"episodes\[1\]\.steps: expected an integer >= 0, got -3"),
+    (lambda d: d["episodes"][1].update(steps=-3), r"episodes\[1\]\.steps: expected an integer in \[0, 2147483647\], got -3"),
     (lambda d: d["episodes"][2].pop("distance_m"), r"episodes\[2\]: missing fields \['distance_m'\]"),
     (lambda d: d["episodes"][3]["trajectory_xy"].__setitem__(2, [0.0, "x"]), r"episodes\[3\]\.trajectory_xy\[2\]"),
     (lambda d: d["episodes"][1].update(episode=0), "appears twice"),
@@ -162,6 +164,11 @@ def _run_doc(episodes=tuple(EPISODES), **meta) -> dict:
     (lambda: _run_doc(episodes_per_start=10 ** 18), r"episodes: 4 for meta\.starts"),  # bounded work
     (lambda: _run_doc(max_steps=100), r"episodes\[1\]\.steps: 200 is past meta\.max_steps = 100"),
     (lambda: _run_doc(max_steps=0), r"meta\.max_steps: expected an integer >= 1"),
+    # "reached cap" counts the truncated episodes: each must have reached it, and every other one collided
+    (lambda: _run_doc([*EPISODES[:1], ep(0, 1, 150, cap=True, dist=3.0), *EPISODES[2:]]),
+     r"episodes\[1\]: 150 steps, terminated False, truncated True; an episode ends at a collision"),
+    (lambda: _run_doc([*EPISODES[:1], ep(0, 1, 150, dist=3.0), *EPISODES[2:]]),
+     r"episodes\[1\]: 150 steps, terminated False, truncated False"),
     (lambda: _run_doc(starts="all"), r"meta\.starts: expected a non-empty list"),
 ])
 def test_episodes_must_be_the_run_their_meta_records(doc, match: str) -> None:
