@@ -1,11 +1,13 @@
-"""A subscriber to the weights that stops reading (a laptop asleep with its link open, a process
-stopped, an evaluator or actor whose credentials someone else uses) does not stall the run.
+"""A subscriber to the weights, or a querier of the newest weights, that stops reading (a laptop
+asleep with its link open, a process stopped, an evaluator or actor whose credentials someone else
+uses) does not stall the run.
 
 Zenoh's router forwards a message on the task that reads the link it came on: a BLOCK message
 (the weights) for a receiver whose queue is full holds everything else the sender puts on that
 link for up to ``wait_before_close`` (5 s), until the router gives that receiver up. Were the
 learner's flow control on the same link as its weights, every actor would run out of credit and the
-learner out of data for those seconds (and again for each such receiver). Real processes on loopback.
+learner out of data for those seconds (and again for each such receiver). A reply to a query blocks
+the same way. Real processes on loopback.
 """
 
 from __future__ import annotations
@@ -25,13 +27,20 @@ from shared.wire.keys import RunKeys
 
 RUN = "stalled"
 
-# A client that subscribes to the weights and never reads another byte once it is stopped.
+# A client that subscribes to the weights, or asks for the newest weights a thousand times, and never
+# reads another byte once it is stopped.
 ROGUE = """
-import sys, time
+import os, signal, sys, time
 from services.bus.session import ZenohSettings, open_session
 with open_session(ZenohSettings(mode="client", connect=(sys.argv[1],))) as session:
-    sub = session.declare_subscriber(sys.argv[2], lambda sample: None)
-    print("subscribed", flush=True)
+    if sys.argv[3] == "subscriber":
+        sub = session.declare_subscriber(sys.argv[2], lambda sample: None)
+        print("ready", flush=True)
+    else:  # stopped at once, its replies still to come
+        for _ in range(1000):
+            session.get(sys.argv[2], lambda reply: None, timeout=60.0)
+        print("ready", flush=True)
+        os.kill(os.getpid(), signal.SIGSTOP)
     while True:
         time.sleep(1)
 """
@@ -58,7 +67,9 @@ def longest_still(seen: list[tuple[float, int]]) -> float:
 
 
 @pytest.mark.timeout(180)
-def test_a_stopped_weights_subscriber_does_not_stall_training(tmp_path: Path):
+@pytest.mark.parametrize("reader", ["subscriber", "querier"])
+def test_a_stopped_weights_reader_does_not_stall_training(tmp_path: Path, reader: str):
+    # the querier's replies went out on the learner's first link, the flow control's (stalled 5 s)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     common = ["--run", RUN, "--runs-dir", str(tmp_path), "--connect", endpoint, "--zenoh-mode", "client",
               "--preset", "smoke", "--set", "train.total_updates=1000000", "--set", "train.checkpoint_every=1000000"]
@@ -72,10 +83,11 @@ def test_a_stopped_weights_subscriber_does_not_stall_training(tmp_path: Path):
         procs["actor"] = cogexplore(["actor", *common, "--actor-id", "actor-0"], logs[2])
         wait_for(lambda: learner_counts(stats)[0] >= 20, 120, "20 updates", logs)
 
-        procs["rogue"] = subprocess.Popen([sys.executable, "-c", ROGUE, endpoint, RunKeys(RUN).weights], cwd=REPO,
+        key = RunKeys(RUN).weights if reader == "subscriber" else RunKeys(RUN).weights_latest
+        procs["rogue"] = subprocess.Popen([sys.executable, "-c", ROGUE, endpoint, key, reader], cwd=REPO,
                                           env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        assert procs["rogue"].stdout.readline().strip() == "subscribed"
-        time.sleep(0.5)  # its subscription reaches the learner: weights flow to it
+        assert procs["rogue"].stdout.readline().strip() == "ready"
+        time.sleep(0.5)  # its subscription or queries reach the learner: weights flow to it
         procs["rogue"].send_signal(signal.SIGSTOP)
         # the router gives it up after wait_before_close (5 s) or its lease (10 s): watch for 9 s
         updates: list[tuple[float, int]] = []

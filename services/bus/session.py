@@ -64,6 +64,7 @@ from shared.wire.messages import (
     Message,
     MessageError,
     RejectCounter,
+    printable,
 )
 
 log = logging.getLogger(__name__)
@@ -452,18 +453,22 @@ def subscribe_messages(session: zenoh.Session, key_expr: str, cls: type[Message]
         except Exception as exc:
             n = next(failures)
             if n == 1:
-                log.exception("handler for %s failed on a message from %s", key_expr, key)
+                log.exception("handler for %s failed on a message from %s", key_expr, printable(key))
             elif n % 1000 == 0:
-                log.error("handler for %s failed %d times, last on a message from %s: %s", key_expr, n, key, exc)
+                log.error("handler for %s failed %d times, last on a message from %s: %s", key_expr, n,
+                          printable(key), printable(exc))
 
     return session.declare_subscriber(key_expr, on_sample)
 
 
-def serve_latest(session: zenoh.Session, key_expr: str,
-                 latest: Callable[[], bytes | None]) -> zenoh.Queryable:
+def serve_latest(session: zenoh.Session, key_expr: str, latest: Callable[[], bytes | None], *,
+                 drop: bool = False) -> zenoh.Queryable:
     """A queryable on ``key_expr`` answering with ``latest()`` (no reply while it is None).
 
     ``latest`` runs on a Zenoh thread for every query: return cached bytes, do not encode.
+    Zenoh's replies block by default: a querier that stops reading holds them, and the replier's link
+    to the router behind them, as a stopped subscriber holds a BLOCK publisher's
+    (:func:`declare_reliable_publisher`). ``drop`` gives such a querier's reply up instead.
     """
 
     def on_query(query: zenoh.Query) -> None:
@@ -473,7 +478,7 @@ def serve_latest(session: zenoh.Session, key_expr: str,
             log.exception("latest() for %s failed", key_expr)
             return
         if payload is not None:
-            query.reply(key_expr, payload)
+            query.reply(key_expr, payload, congestion_control=zenoh.CongestionControl.DROP if drop else None)
 
     return session.declare_queryable(key_expr, on_query)
 

@@ -931,6 +931,20 @@ class RunConfigMessage(Message):
 # Counting rejects
 # ---------------------------------------------------------------------------------------------
 
+MAX_LOGGED_CHARS = 500
+"""The most characters of a key or reject message a log line carries."""
+
+
+def printable(text: object, max_chars: int = MAX_LOGGED_CHARS) -> str:
+    """``text`` for a log line: every character printable or escaped (``\\n``, ``\\x1b``), at most
+    ``max_chars``. A key or a field value is chosen by whoever sent the message: raw, a line break in it
+    wrote a log line of the sender's own making, and an escape code recoloured the operator's terminal."""
+    text = str(text)
+    if not text.isprintable():
+        text = "".join(ch if ch.isprintable() else repr(ch)[1:-1] for ch in text)
+    return text if len(text) <= max_chars else text[:max_chars] + "..."
+
+
 class RejectCounter:
     """Counts rejected messages by cause and logs the first reject of each cause.
 
@@ -949,9 +963,9 @@ class RejectCounter:
             first = error.cause not in self._counts
             self._counts[error.cause] = self._counts.get(error.cause, 0) + 1
         if first:
-            origin = f" from {source}" if source else ""
+            origin = f" from {printable(source)}" if source else ""
             self._log.warning("rejected %s%s: %s (later '%s' rejects are counted, not logged)",
-                              self.what, origin, error, error.cause)
+                              self.what, origin, printable(error), error.cause)
 
     def decode(self, data: bytes | bytearray | memoryview, cls: type[M] | None = None,
                source: str | None = None) -> M | Message | None:

@@ -433,6 +433,17 @@ def test_reject_counter_counts_by_cause_and_logs_each_cause_once(caplog: pytest.
     assert isinstance(counter.decode(make_weights().encode()), WeightsMessage)  # any type
 
 
+def test_a_reject_log_line_is_one_line_whatever_the_sender_put_in_its_key(caplog: pytest.LogCaptureFixture) -> None:
+    # Zenoh keys may hold line breaks and escape codes: raw, a key wrote a log line of its sender's making
+    forged = "x\n2026-12-08 01:00:00,000 CRITICAL cogexplore.learner: run ABORTED\x1b[2J"
+    counter = RejectCounter("transition batch", logging.getLogger("test.rejects"))
+    with caplog.at_level(logging.WARNING, logger="test.rejects"):
+        counter.reject(MessageError(m.RANGE, f"actor sent on {forged}"), source=f"run/transitions/{forged}")
+    line = caplog.records[-1].getMessage()
+    assert line.isprintable() and "\\n2026-12-08" in line and "\\x1b[2J" in line
+    assert m.printable("é 1 m") == "é 1 m" and m.printable("x" * 600) == "x" * m.MAX_LOGGED_CHARS + "..."
+
+
 def test_reject_counter_counts_a_decoder_bug_as_garbage_and_never_raises() -> None:
     # Bytes from the network that reach a bug in a decoder must not raise into a Zenoh thread,
     # which logs a traceback for every such message and counts nothing.
