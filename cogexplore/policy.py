@@ -18,6 +18,7 @@ from shared.config import SensorConfig
 from shared.errors import PolicyError
 from shared.evaluation.setup import EvalSetup, setup_evaluation
 from shared.learning.checkpoints import LoadedModel
+from shared.learning.policy import NonFiniteQValues
 
 __all__ = ["ASPECT_TOLERANCE", "COMMAND_NAMES", "Command", "Policy", "load_policy"]
 
@@ -57,12 +58,13 @@ class Policy(CameraPolicy):
         return checked_q_values(self._greedy.policy.q_values(self.observation(depth_m)), self.label)
 
     def decide(self, depth_m: Any) -> tuple[int, np.ndarray]:
-        command, q = self._greedy(self.observation(depth_m))
         try:
-            return command, checked_q_values(q, self.label)
-        except PolicyError:
-            self.reset()  # the command argmax made of NaN is not remembered as the previous one
+            command, q = self._greedy(self.observation(depth_m))
+        except NonFiniteQValues as exc:  # no command chosen, none remembered: said naming this policy
+            self.reset()  # nor the image, for a network that reads several
+            checked_q_values(exc.q_values, self.label)
             raise
+        return command, checked_q_values(q, self.label)
 
     def reset(self) -> None:
         """A new episode: no previous command."""

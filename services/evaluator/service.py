@@ -97,6 +97,7 @@ from shared.learning.model import (
     named_shapes,
     resolve_device,
 )
+from shared.learning.policy import NonFiniteQValues
 from shared.learning.stats import TensorBoardLog
 from shared.sim.world import load_world
 from shared.wire.keys import RunKeys, validate_name
@@ -297,9 +298,12 @@ class EvaluatorService:
         """:meth:`evaluate` as the service runs it, for as long as the run trains: an evaluation whose
         files cannot be written (a full disk, a quota, a read-only folder: :data:`WRITE_FAILURES`) is said
         in one line and lost, and the next version's goes on (None); its results file stays whole or
-        absent, never half written."""
+        absent, never half written. Weights whose Q-values are not finite are said and skipped alike."""
         try:
             return self.evaluate(message, stop, session, repeat=False)
+        except NonFiniteQValues as exc:  # weights that load but overflow: theirs alone, not the next version's
+            log.error("policy version %d not evaluated: %s", message.policy_version, exc)
+            return None
         except OSError as exc:
             if exc.errno not in WRITE_FAILURES:  # a world file gone, a bug: not for every version to meet again
                 raise

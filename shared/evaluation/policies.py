@@ -68,6 +68,7 @@ class GreedyPolicy:
 
     def __call__(self, depth_m: np.ndarray) -> tuple[int, np.ndarray]:
         # argmax takes the first maximum: ties (a fresh net rarely has any) break toward "left".
+        # NonFiniteQValues: broken weights are not scored as if they had chosen command 0
         choice = self.policy.greedy(_check_depth(depth_m, self.net.sensor_cfg))
         return choice.action, choice.q_values
 

@@ -203,7 +203,7 @@ def load_tensors_file(path: Path, fmt: str, framework: str = "pt") -> tuple[dict
             tensors: dict[str, Any] = safetensors.torch.load_file(str(path))
         else:
             tensors = safetensors.numpy.load_file(str(path))
-    except (SafetensorError, OSError, ValueError, RuntimeError) as exc:
+    except (SafetensorError, OSError, ValueError, RuntimeError, TypeError) as exc:  # TypeError: a dtype numpy lacks
         raise CheckpointError(f"{path} cannot be read (partial or corrupt?): {exc}") from None
     if _digest(tensors) != meta.get("digest"):
         raise CheckpointError(f"{path} is corrupt: its tensor data does not match the stored digest")
@@ -988,8 +988,15 @@ def load_replay(source: str | Path) -> ReplayMemory:
             raise CheckpointError(f"{ckpt.replay_path} belongs to another checkpoint")
         try:
             state = meta["replay"]
-            memory = ReplayMemory(ReplayConfig(capacity=int(state["capacity"]), prioritized=bool(state["prioritized"])),
-                                  tuple(state["frame_shape"]), frame_capacity=int(state["frame_capacity"]))
+            # the sizes the metadata declares are the arrays' own before anything is built to them: a
+            # declared frame_capacity of 2e8 in a 600 kB file took 5 GB, then failed
+            declared = (int(state["capacity"]), int(state["frame_capacity"]), tuple(state["frame_shape"]))
+            held = (len(arrays["tid"]), len(arrays["frame_id"]), tuple(arrays["frames"].shape[1:]))
+            if declared != held:
+                raise ValueError(f"its metadata declares capacity, frame capacity and frame shape {declared}, "
+                                 f"its arrays hold {held}")
+            memory = ReplayMemory(ReplayConfig(capacity=declared[0], prioritized=bool(state["prioritized"])),
+                                  declared[2], frame_capacity=declared[1])
             memory.load_state_dict(arrays, state)
         except (ReplayError, ConfigError, KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{ckpt.replay_path} is not a readable replay memory: {exc}") from None

@@ -64,6 +64,17 @@ class ActionChoice:
     explored: bool  # True when the action was drawn at random
 
 
+class NonFiniteQValues(PolicyError):
+    """A network gave Q-values that are not finite: weights that load (each one finite) but so large
+    that the arithmetic overflows. argmax reads NaN as command 0, a full turn: a test must not score
+    such a network as if it had chosen it, nor a policy remember it as its last command."""
+
+    def __init__(self, q_values: np.ndarray):
+        self.q_values = np.asarray(q_values)
+        super().__init__(f"the network gave Q-values that are not finite ({self.q_values.tolist()}): its weights "
+                         "are broken (each finite, but large enough to overflow)")
+
+
 def greedy_action(q_values: np.ndarray) -> int:
     """argmax of (5,) Q-values; ties go to the lowest index (deterministic)."""
     q = np.asarray(q_values)
@@ -151,6 +162,8 @@ class EpsilonGreedyPolicy:
         return self._chose(ActionChoice(greedy_action(q), q, eps, False))
 
     def greedy(self, depth_m: np.ndarray) -> ActionChoice:
-        """The greedy action (test protocol)."""
+        """The greedy action (test protocol); NonFiniteQValues, nothing chosen, when the Q-values are not finite."""
         q = self._q_values(depth_m)
+        if not np.isfinite(q).all():
+            raise NonFiniteQValues(q)
         return self._chose(ActionChoice(greedy_action(q), q, 0.0, False))

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import logging
 import os
 import signal
 import subprocess
@@ -14,6 +15,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import torch
 import zenoh
 
 from services.bus.session import (
@@ -31,6 +33,7 @@ from shared.errors import StopRequested
 from shared.evaluation import PROTOCOLS
 from shared.evaluation.results import load_results
 from shared.learning.model import QNetwork
+from shared.learning.policy import NonFiniteQValues
 from shared.learning.weights import to_message
 from shared.wire.keys import RunKeys
 from shared.wire.messages import EvalResult
@@ -278,6 +281,24 @@ def test_a_restarted_evaluator_skips_the_weights_its_run_evaluated_unless_asked_
     # Another protocol, seed or episode count is another evaluation.
     assert EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", episodes_per_start=1,
                             max_steps=3, record=False, seed=7).evaluate(to_message(net, 5), repeat=False)
+
+
+def test_weights_whose_q_values_overflow_are_skipped_and_the_next_version_evaluated(tmp_path: Path, caplog) -> None:
+    # Each weight finite, so they load; their Q-values are not, and argmax played NaN as command 0: the
+    # evaluation scored a network that chose nothing.
+    cfg = load_preset("paper").with_overrides(OVERRIDES)
+    service = EvaluatorService(cfg, "svc", tmp_path / "svc", ZenohSettings(), "ev-1", every_updates=10,
+                               episodes_per_start=1, max_steps=3, record=False)
+    huge = small_net()
+    with torch.no_grad():
+        huge.fc1.weight.fill_(1e38)
+    with caplog.at_level(logging.ERROR, logger="cogexplore.evaluator"):
+        assert service.evaluate_in_service(to_message(huge, 5)) is None
+    assert "policy version 5 not evaluated: the network gave Q-values that are not finite" in caplog.text
+    assert not (tmp_path / "svc" / "stats" / "eval.jsonl").exists()
+    assert service.evaluate_in_service(to_message(small_net(), 12)) is not None
+    with pytest.raises(NonFiniteQValues):  # --once and the tools say it as their error
+        service.evaluate(to_message(huge, 25))
 
 
 def test_a_restarted_evaluator_evaluates_again_on_a_world_file_edited_since(tmp_path: Path) -> None:

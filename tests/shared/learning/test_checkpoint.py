@@ -254,6 +254,32 @@ def test_only_the_newest_checkpoints_keep_their_replay_and_an_older_one_resumes_
         CheckpointManager(tmp_path, keep_replays=0)
 
 
+@pytest.mark.parametrize("forge, match", [
+    # sizes the arrays do not have: the memory was built to them first (2e8 frames: 5 GB) and failed after
+    (lambda arrays, state: state.update(frame_capacity=200_000_000), r"declares .*200000000.*arrays hold"),
+    (lambda arrays, state: state.update(frame_shape="ab"), r"declares .*\('a', 'b'\)"),
+    # an array in a dtype numpy cannot read: safetensors' TypeError, a traceback (once ml_dtypes, which onnx
+    # imports, has taught numpy bfloat16, the file reads, and its digest is not the checkpoint's)
+    (lambda arrays, state: arrays.update(reward=torch.zeros(len(arrays["reward"]), dtype=torch.bfloat16)),
+     "cannot be read .*bfloat16|belongs to another checkpoint"),
+])
+def test_a_replay_file_that_lies_about_its_arrays_is_refused_in_one_line_before_anything_is_built(
+        tmp_path, forge, match):
+    from shared.learning.checkpoints import FORMAT, load_replay, load_tensors_file, save_tensors_file
+
+    agent, mem = setup(DQNConfig())
+    fill(mem)
+    saved = CheckpointManager(tmp_path).save(agent, replay=mem)
+    replay_path = CheckpointManager(tmp_path).load(saved).replay_path
+    arrays, meta = load_tensors_file(replay_path, FORMAT + "-replay", framework="numpy")
+    tensors = {k: torch.from_numpy(np.ascontiguousarray(v)) for k, v in arrays.items()}
+    forge(tensors, meta["replay"])
+    # the digest covers the tensors: forged metadata keeps it, and the bfloat16 array fails before it is compared
+    save_tensors_file(replay_path, tensors, {k: v for k, v in meta.items() if k != "digest"})
+    with pytest.raises(CheckpointError, match=match):
+        load_replay(saved)
+
+
 @pytest.mark.parametrize("saved", [None, "stored", "most", "abc", -5, True, 2.5, "fewer", "more", 10**400])
 def test_a_checkpoint_s_transition_count_resumes_only_as_a_count_the_run_can_have(tmp_path, caplog, saved):
     """The learner's own count paces its replay ratio and the actors' credit; one that no run could
