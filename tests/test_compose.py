@@ -499,6 +499,8 @@ def test_the_final_report_of_a_compose_run_is_up_s_without_training(services: di
     spec = services["report"]
     env = service_env(spec)
     assert env["RERUN_ANALYTICS"] == "0" and env["COGEXPLORE_RUNS_DIR"] == "/app/runs"
+    # the worlds the services generated, not each again at every report
+    assert env[CACHE_DIR_ENV] == service_env(services["actor"])[CACHE_DIR_ENV]
     assert {"router", "learner"}.isdisjoint(spec.get("depends_on", [])), "it trains nothing and needs no router"
     assert [v for v in spec["volumes"] if v.endswith(":/app/runs")], "the runs folder the learner writes"
     args = parse_command(spec["command"], env, monkeypatch)

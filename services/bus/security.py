@@ -225,14 +225,36 @@ class SecureFiles:
         missing = [p.name for p in (self.router_config, *map(self.config, ROLES)) if not p.is_file()]
         if missing:
             raise SecurityError(f"{self.root} lacks {', '.join(missing)}: run `cogexplore secure init {self.root}`")
-        if tls and not self.tls:
+        if tls and not self.tls:  # init refuses a folder with credentials unless forced
             raise SecurityError(f"{self.root} has no TLS certificates: run `cogexplore secure init {self.root} "
-                                "--tls --host <this machine's name>` (links that leave the machine need TLS)")
+                                "--tls --host <this machine's name> --force` (links that leave the machine need TLS; "
+                                "the passwords are made anew too: export the bundles of actors elsewhere again)")
+        if self.tls and (expired := self.expired_certificate()) is not None:
+            name, when = expired
+            raise SecurityError(f"{self.root / name} expired on {when:%Y-%m-%d %H:%M} UTC (certificates last {CERT_DAYS} "
+                                f"days): run `cogexplore secure init {self.root} --tls --host <this machine's name> "
+                                "--force` for new ones (and new passwords: export the bundles again)")
         if self.outdated_rules(run):
             raise SecurityError(f"{self.router_config}'s access rules are not this release's (a folder made by an "
                                 f"older one: some service would be refused its part): run `cogexplore secure init "
                                 f"{self.root} --keep`, which rewrites them and keeps the passwords and certificates")
         return self
+
+    def expired_certificate(self, now: datetime.datetime | None = None) -> tuple[str, datetime.datetime] | None:
+        """(file name, end of validity) of the first certificate here past its end, or None. The router
+        refuses every link it signs, a service's or its own clients', with the same silence as a router
+        that is not there: said here instead, where the run starts."""
+        from cryptography import x509
+
+        now = now or datetime.datetime.now(datetime.UTC)
+        for name in ("ca.pem", "router.pem", *(f"{role}.pem" for role in ROLES)):
+            try:
+                cert = x509.load_pem_x509_certificate((self.root / name).read_bytes())
+            except (OSError, ValueError):  # absent (an exported bundle holds its role's alone) or unreadable:
+                continue                   # the TLS handshake says so
+            if cert.not_valid_after_utc <= now:
+                return name, cert.not_valid_after_utc
+        return None
 
     def current_rules(self, run: str) -> dict[str, Any]:
         """The access control this release gives ``run``'s users (those of the credentials file)."""

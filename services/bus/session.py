@@ -342,8 +342,27 @@ def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0,
             remaining = deadline - time.monotonic()
             reason = give_up() if give_up is not None else None
             if remaining <= 0 or reason:
-                raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {reason or exc}") from None
+                raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {reason or exc}"
+                                     f"{'' if reason else _refused_hint(settings)}") from None
             time.sleep(min(0.2, remaining))
+
+
+def _refused_hint(settings: ZenohSettings) -> str:
+    """What to say when a session did not open although something takes connections at one of its
+    endpoints: Zenoh's own error reads as if no router were there. A router of a secured run says
+    nothing to a link whose password or certificate it refuses."""
+    for endpoint in settings.effective_connect:
+        protocol, host, port = endpoint_host_port(endpoint)
+        if protocol not in ("tcp", "tls") or not host or not port.isdigit():
+            continue
+        try:
+            socket.create_connection((host, int(port)), timeout=1.0).close()
+        except OSError:
+            continue
+        return (f"; something takes connections at {host}:{port} but opened no session: the run's router refusing "
+                "this process's password or certificate (a bundle of another run, made before `secure init "
+                "--force`, or expired: export a fresh one), or tcp/ where it listens on tls/ (or the other way)")
+    return ""
 
 
 class StoppedWaiting(TransportError, StopRequested):

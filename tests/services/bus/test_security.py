@@ -106,6 +106,37 @@ def test_the_folder_is_private_complete_and_denies_by_default(tmp_path: Path):
     plain = init_secure(tmp_path / "plain", RUN)
     with pytest.raises(SecurityError, match="no TLS certificates"):
         plain.check(RUN, tls=True)
+    # the command it names makes them (init alone refuses a folder that holds credentials)
+    fix = str(pytest.raises(SecurityError, plain.check, RUN, tls=True).value).split("`")[1].split()
+    assert fix[:3] == ["cogexplore", "secure", "init"] and "--force" in fix
+    assert init_secure(plain.root, RUN, tls=True, force=True).check(RUN, tls=True)
+
+
+def test_expired_certificates_are_refused_where_the_run_starts(tmp_path: Path):
+    # The router refuses every link an expired certificate signs with the silence of a router that is not
+    # there, and `secure init --keep` (compose, at every start) kept them: said at the start instead.
+    import datetime
+
+    from cryptography import x509
+    from cryptography.hazmat.primitives import hashes, serialization
+    from cryptography.hazmat.primitives.asymmetric import ec
+
+    files = init_secure(tmp_path / "secure", RUN, tls=True)
+    assert files.expired_certificate() is None
+    later = datetime.datetime.now(datetime.UTC) + datetime.timedelta(days=366)
+    assert files.expired_certificate(later)[0] == "ca.pem"
+    key = ec.generate_private_key(ec.SECP256R1())
+    name = x509.Name([x509.NameAttribute(x509.oid.NameOID.COMMON_NAME, "router")])
+    yesterday = datetime.datetime.now(datetime.UTC) - datetime.timedelta(days=1)
+    old = (x509.CertificateBuilder().subject_name(name).issuer_name(name).public_key(key.public_key())
+           .serial_number(1).not_valid_before(yesterday - datetime.timedelta(days=365)).not_valid_after(yesterday)
+           .sign(key, hashes.SHA256()))
+    (files.root / "router.pem").write_bytes(old.public_bytes(serialization.Encoding.PEM))
+    with pytest.raises(SecurityError, match=r"router\.pem expired on .* UTC \(certificates last 365 days\): run "
+                                            r"`cogexplore secure init .* --force`"):
+        files.check(RUN, tls=True)
+    with pytest.raises(SecurityError, match="expired"):
+        run_secure_init(init_args(files.root, "--keep", "--tls"))
 
 
 def test_no_credentials_or_a_wrong_password_get_no_session(bus: Bus, tmp_path: Path):
@@ -555,7 +586,9 @@ def test_outsiders_get_no_session_in_any_mode_nor_with_another_runs_credentials_
         for other in (init_secure(tmp_path / "other", "other", tls=True),
                       init_secure(tmp_path / "again", RUN, tls=True)):
             for role in ROLES:
-                with pytest.raises(TransportError):
+                # said as a refusal, not as a router that is not there (Zenoh's own words for both)
+                with pytest.raises(TransportError, match="takes connections at .* but opened no session: the run's "
+                                                         "router refusing"):
                     refused(other.config(role))
             # another run's certificate with this run's CA and password: no TLS link either
             stolen = json.loads(bus.files.config("actor").read_text())
