@@ -219,10 +219,10 @@ def _learn_locked(cfg: RunConfig, run: str, paths: RunPaths, settings, stop: thr
             as weights_session, CsvLog(paths.stats, LearnerRow) as stats_log, TensorBoardLog(tensorboard) as board:
         actors = LivelinessWatch(session, keys.all_alive("actor"))
         sender = LatestSender(declare_reliable_publisher(weights_session, keys.weights))
-        # A querier that stops reading holds a reply, and the link it goes out on, the same way: the newest
-        # weights (megabytes) are answered on the weights' link; the config (a few kB, asked once at a
-        # start, and asked again when unanswered) is given up for such a querier.
-        queryable = serve_latest(weights_session, keys.weights_latest, lambda: sender.latest)  # noqa: F841
+        # A querier that stops reading holds a reply, and the link it goes out on, the same way: its replies
+        # are given up (a follower without an answer takes the weights' stream, an unanswered config query
+        # is asked again), and the newest weights (megabytes each) are answered on the weights' link.
+        queryable = serve_latest(weights_session, keys.weights_latest, lambda: sender.latest, drop=True)  # noqa: F841
         run_config = RunConfigMessage(learner_id=learner_id, config=cfg).encode()  # what actors without a preset take
         config_queryable = serve_latest(session, keys.config, lambda: run_config, drop=True)  # noqa: F841
         sub = subscribe_messages(session, keys.all_transitions, TransitionBatch, on_batch, rejects,  # noqa: F841
