@@ -241,7 +241,9 @@ class ZenohSettings:
         elif self.second_session:
             config.insert_json5("listen/endpoints", "[]")
         if self.second_session:
-            config.insert_json5("id", json.dumps(secrets.token_hex(16)))
+            # 128 random bits with the top one set: Zenoh refuses an id written with a leading 0, which
+            # token_hex gave one time in 16 (a session without retries failed to open)
+            config.insert_json5("id", json.dumps(f"{secrets.randbits(128) | 1 << 127:032x}"))
         return config
 
     def second_link(self) -> "ZenohSettings | None":
@@ -342,8 +344,10 @@ def open_session(settings: ZenohSettings | None = None, *, wait_s: float = 0.0,
             remaining = deadline - time.monotonic()
             reason = give_up() if give_up is not None else None
             if remaining <= 0 or reason:
+                # Zenoh's words for a router that did not take this session: "Unable to connect"
+                refused = not reason and "Unable to connect" in str(exc)
                 raise TransportError(f"cannot open a Zenoh session ({settings.describe()}): {reason or exc}"
-                                     f"{'' if reason else _refused_hint(settings)}") from None
+                                     f"{_refused_hint(settings) if refused else ''}") from None
             time.sleep(min(0.2, remaining))
 
 

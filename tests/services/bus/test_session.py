@@ -267,6 +267,23 @@ def test_client_without_router_fails_clearly_and_can_wait_for_one() -> None:
             r.close()
 
 
+def test_a_second_session_always_opens_under_an_id_of_its_own() -> None:
+    # A random id written with a leading 0 (token_hex: one time in 16) is not one Zenoh takes: the
+    # learner's weights link failed to open, at once where it had no wait for its router.
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    second = ZenohSettings(mode="client", connect=(endpoint,)).second_link()
+    ids = [json.loads(second.to_config().get_json("id")) for _ in range(200)]
+    assert len(set(ids)) == 200 and all(len(i) == 32 and i[0] != "0" for i in ids)
+    with open_router([endpoint]):
+        for _ in range(3):
+            with open_session(second) as session:
+                assert not session.is_closed()
+    # with no router there, the error is the absent router's, not a refusal's
+    with pytest.raises(TransportError) as info:
+        open_session(second)
+    assert "takes connections" not in str(info.value)
+
+
 def test_a_wait_for_a_router_ends_at_once_when_told_why() -> None:
     """``give_up``: `up` asks whether its router process has exited after each failed try."""
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
