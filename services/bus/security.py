@@ -231,9 +231,9 @@ class SecureFiles:
                                 "the passwords are made anew too: export the bundles of actors elsewhere again)")
         if self.tls and (expired := self.expired_certificate()) is not None:
             name, when = expired
-            raise SecurityError(f"{self.root / name} expired on {when:%Y-%m-%d %H:%M} UTC (certificates last {CERT_DAYS} "
-                                f"days): run `cogexplore secure init {self.root} --tls --host <this machine's name> "
-                                "--force` for new ones (and new passwords: export the bundles again)")
+            raise SecurityError(f"{self.root / name} expired on {when:%Y-%m-%d %H:%M} UTC (certificates last "
+                                f"{CERT_DAYS} days): run `cogexplore secure init {self.root} --tls --host <this "
+                                "machine's name> --force` for new ones (and new passwords: export the bundles again)")
         if self.outdated_rules(run):
             raise SecurityError(f"{self.router_config}'s access rules are not this release's (a folder made by an "
                                 f"older one: some service would be refused its part): run `cogexplore secure init "

@@ -356,16 +356,16 @@ def _refused_hint(settings: ZenohSettings) -> str:
     endpoints: Zenoh's own error reads as if no router were there. A router of a secured run says
     nothing to a link whose password or certificate it refuses."""
     for endpoint in settings.effective_connect:
-        protocol, host, port = endpoint_host_port(endpoint)
-        if protocol not in ("tcp", "tls") or not host or not port.isdigit():
+        where = _socket_address(endpoint)
+        if where is None or not where[0]:
             continue
         try:
-            socket.create_connection((host, int(port)), timeout=1.0).close()
-        except OSError:
+            socket.create_connection(where, timeout=1.0).close()
+        except (OSError, UnicodeError, ValueError):  # a name IDNA cannot encode is no listener either
             continue
-        return (f"; something takes connections at {host}:{port} but opened no session: the run's router refusing "
-                "this process's password or certificate (a bundle of another run, made before `secure init "
-                "--force`, or expired: export a fresh one), or tcp/ where it listens on tls/ (or the other way)")
+        return (f"; something takes connections at {where[0]}:{where[1]} but opened no session: the run's router "
+                "refusing this process's password or certificate (a bundle of another run, made before `secure "
+                "init --force`, or expired: export a fresh one), or tcp/ where it listens on tls/ (or the other way)")
     return ""
 
 
@@ -608,17 +608,26 @@ def free_tcp_port(host: str = "127.0.0.1") -> int:
         return int(sock.getsockname()[1])
 
 
+def _socket_address(endpoint: str) -> tuple[str, int] | None:
+    """(host, port) of a ``tcp/`` or ``tls/`` endpoint a plain socket can reach (the host may be
+    empty); None for another protocol, an ``#iface=`` endpoint or a port that is not a number."""
+    protocol, host, port = endpoint_host_port(endpoint)
+    if protocol not in ("tcp", "tls") or "#" in endpoint or not (port.isascii() and port.isdigit()):
+        return None
+    return host, int(port)
+
+
 def port_taken(endpoint: str) -> str | None:
     """Why a router could not listen on ``endpoint`` (``tcp/`` or ``tls/`` HOST:PORT) because other
     sockets already hold its port at every address HOST resolves to (a Zenoh listener keeps the
     first address that binds); None when one is free, or when this cannot tell (an ``#iface=``
     endpoint, a name that does not resolve: the router then says what is wrong). A port in
     TIME_WAIT counts as free, as it does for a router."""
-    protocol, host, port = endpoint_host_port(endpoint)
-    if protocol not in ("tcp", "tls") or "#" in endpoint or not (port.isascii() and port.isdigit()):
+    if (where := _socket_address(endpoint)) is None:
         return None
+    host, port = where
     try:
-        addresses = socket.getaddrinfo(host or None, int(port), type=socket.SOCK_STREAM)
+        addresses = socket.getaddrinfo(host or None, port, type=socket.SOCK_STREAM)
     except (OSError, UnicodeError, ValueError):
         return None
     reasons = []
